@@ -1,0 +1,113 @@
+"""The encodings schema: every per-image encoding's name, shape, dtype and meaning (SPEC 2).
+
+One place defines what an encoding is. The store (``difareli.store``) validates records against it, the
+DataModule loads exactly the encodings a model variant declares, and estimators / the SynthFaces generator
+produce them. Shapes use symbols: ``H``/``W`` image size, ``S`` shape-vector length, ``D`` identity length,
+resolved per data set and recorded in the store's header.
+
+Conventions (docs/architecture.md has the full list):
+- camera space is right-handed: x right, y up, z toward the viewer; normals are unit vectors in it;
+- ``light`` is 9x3 SH in DECA's basis order and constants (``difareli.sh``);
+- images are uint8 RGB HxWx3; float maps are float32.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+SCHEMA_VERSION = 1
+
+#: The 14-part segmentation scheme (SPEC 7; CelebAMask-HQ / BiSeNet classes merged to what SynthFaces
+#: geometry and the real-photo estimators can both produce: ears and eyeglasses are folded into skin).
+MASK_PARTS: tuple[str, ...] = (
+    "background",
+    "skin",
+    "l_brow",
+    "r_brow",
+    "l_eye",
+    "r_eye",
+    "nose",
+    "u_lip",
+    "l_lip",
+    "mouth",
+    "neck",
+    "clothes",
+    "hair",
+    "hat",
+)
+NUM_MASK_PARTS = len(MASK_PARTS)
+PART_INDEX = {name: i for i, name in enumerate(MASK_PARTS)}
+#: Parts that make up the "face region" used by metrics (SPEC 11) and the ``face_mask`` encoding.
+FACE_PARTS: tuple[str, ...] = ("skin", "l_brow", "r_brow", "l_eye", "r_eye", "nose", "u_lip", "l_lip", "mouth")
+#: Parts that DiFaReli's ``background`` encoding masks out (face, hair, neck; SPEC 2).
+FOREGROUND_PARTS: tuple[str, ...] = FACE_PARTS + ("neck", "hair")
+
+
+@dataclass(frozen=True)
+class Encoding:
+    """One per-image encoding: its stored shape (symbolic), dtype, and meaning."""
+
+    name: str
+    shape: tuple[int | str, ...]
+    dtype: str
+    meaning: str
+    spatial: bool = False
+
+    def resolve(self, dims: dict[str, int]) -> tuple[int, ...]:
+        """Concrete shape given the data set's dimensions (``H``, ``W``, ``S``, ``D``)."""
+        try:
+            return tuple(d if isinstance(d, int) else int(dims[d]) for d in self.shape)
+        except KeyError as e:
+            raise KeyError(f"encoding {self.name!r} needs dimension {e.args[0]!r}; known: {sorted(dims)}") from None
+
+    def validate(self, array: np.ndarray, dims: dict[str, int]) -> np.ndarray:
+        """Return ``array`` cast to the schema dtype, or raise naming the encoding and the mismatch."""
+        arr = np.asarray(array)
+        want = self.resolve(dims)
+        if arr.shape != want:
+            raise ValueError(f"encoding {self.name!r}: shape {arr.shape} does not match schema {want}")
+        if not np.can_cast(arr.dtype, self.dtype, casting="same_kind") and arr.dtype != np.bool_:
+            raise ValueError(f"encoding {self.name!r}: dtype {arr.dtype} cannot be stored as {self.dtype}")
+        if np.issubdtype(arr.dtype, np.floating) and not np.all(np.isfinite(arr)):
+            raise ValueError(f"encoding {self.name!r}: contains NaN or Inf")
+        return arr.astype(self.dtype, copy=False)
+
+
+_ENCODINGS = (
+    Encoding("image", ("H", "W", 3), "uint8", "the face photo, RGB", spatial=True),
+    Encoding("light", (9, 3), "float32", "2nd-order SH lighting, DECA basis order and constants (sh.py)"),
+    Encoding("shape", ("S",), "float32", "face shape / expression / pose parameters (source-specific length S)"),
+    Encoding("cam", (3,), "float32", "orthographic camera (scale, tx, ty), DECA convention"),
+    Encoding("identity", ("D",), "float32", "identity embedding (length D)"),
+    Encoding("shadow", (1,), "float32", "cast-shadow intensity c, a logit"),
+    Encoding("background", ("H", "W", 3), "uint8", "image with face, hair and neck pixels set to 0", spatial=True),
+    Encoding("masks", ("H", "W"), "uint8", "part label per pixel, indices into MASK_PARTS", spatial=True),
+    Encoding("shadow_map", ("H", "W"), "float32", "binary cast-shadow map times normalised c", spatial=True),
+    Encoding("shading", ("H", "W", 3), "float32", "shading reference R = 0.7 * SH irradiance, unclipped", spatial=True),
+    Encoding("normal", ("H", "W", 3), "float32", "camera-space unit normal of the face mesh, 0 off-mesh", spatial=True),
+    Encoding("face_mask", ("H", "W"), "bool", "face region (FACE_PARTS), used by metrics", spatial=True),
+)
+
+#: All encodings by name, in schema order.
+ENCODINGS: dict[str, Encoding] = {e.name: e for e in _ENCODINGS}
+
+#: Channels each encoding contributes when fed to a network as a spatial or non-spatial input.
+def channels(name: str, dims: dict[str, int]) -> int:
+    """Number of network channels/features of an encoding once prepared (masks are one-hot over parts)."""
+    enc = get(name)
+    if name == "masks":
+        return NUM_MASK_PARTS
+    shape = enc.resolve(dims)
+    if enc.spatial:
+        return shape[2] if len(shape) == 3 else 1
+    return int(np.prod(shape))
+
+
+def get(name: str) -> Encoding:
+    """Look up an encoding by name, with an error that lists the valid names."""
+    try:
+        return ENCODINGS[name]
+    except KeyError:
+        raise KeyError(f"unknown encoding {name!r}; the schema (v{SCHEMA_VERSION}) has: {', '.join(ENCODINGS)}") from None

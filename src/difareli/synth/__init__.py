@@ -1,0 +1,1 @@
+"""difareli.synth."""
