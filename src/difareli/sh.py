@@ -2,8 +2,10 @@
 
 ``E(n) = sum_k l_k c_k H_k(n)`` with the basis ``H = [1, x, y, z, xy, xz, yz, x^2-y^2, 3z^2-1]`` and the
 constants ``c_k`` below, which fold the Lambertian convolution into bands 1 and 2 (DECA leaves band 0
-without the factor pi: see docs/architecture.md). Functions accept numpy arrays or torch tensors and
-return the same kind.
+without the factor pi: see docs/architecture.md). ``sh_basis``, ``irradiance``, ``shading_reference`` and
+``rotate`` accept numpy arrays or torch tensors and return the same kind; the other helpers (directional
+lights, rotation matrices, dominant direction, env maps, fitting) accept either, compute in float64 numpy
+and return numpy.
 """
 
 from __future__ import annotations
@@ -62,3 +64,229 @@ def shading_reference(light, normals, mask=None, albedo: float = SHADING_ALBEDO)
     if mask is not None:
         r = r * mask[..., None]
     return r
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Radiance <-> DECA lighting. ``c_k H_k = A_l Y_k`` with Y the orthonormal real SH and the per-band factor
+# A = (1, 2pi/3, pi/4): DECA drops pi from band 0, so the radiance coefficients are L_0 = l_0 / pi, L_k = l_k.
+_BAND = np.array([0, 1, 1, 1, 2, 2, 2, 2, 2])
+_BAND_FACTOR = np.array([1.0, 2 * math.pi / 3, math.pi / 4])[_BAND]
+_LIGHT_FROM_RADIANCE = np.array([math.pi] + [1.0] * 8)
+
+
+def _f64(a) -> np.ndarray:
+    if isinstance(a, torch.Tensor):
+        a = a.detach().cpu().numpy()
+    return np.asarray(a, dtype=np.float64)
+
+
+def real_sh(directions) -> np.ndarray:
+    """Orthonormal real SH ``Y_k`` of unit ``directions`` ``(..., 3)`` -> ``(..., 9)``, DECA order."""
+    return sh_basis(_f64(directions)) / _BAND_FACTOR
+
+
+def light_from_radiance(coeffs) -> np.ndarray:
+    """DECA ``light`` ``(..., 9, 3)`` from the real-SH coefficients ``L`` of a radiance (``l_0 = pi L_0``)."""
+    return _f64(coeffs) * _LIGHT_FROM_RADIANCE[:, None]
+
+
+def radiance_from_light(light) -> np.ndarray:
+    """Real-SH radiance coefficients ``L`` ``(..., 9, 3)`` of a DECA ``light`` (inverse of the above)."""
+    return _f64(light) / _LIGHT_FROM_RADIANCE[:, None]
+
+
+def directional_light(direction, intensity=1.0) -> np.ndarray:
+    """SH ``light`` (9x3) of a delta radiance of RGB ``intensity`` arriving from unit ``direction``.
+
+    ``irradiance(directional_light(d, I), n)`` is the 9-term approximation of ``I * max(0, n.d)``;
+    at ``n = d`` it equals ``(1/4 + 1/2 + 5/16) I = 1.0625 I``. ``direction`` is normalised here.
+    """
+    d = _f64(direction)
+    norm = np.linalg.norm(d)
+    if d.shape != (3,) or not norm > 0:
+        raise ValueError(f"direction must be a non-zero 3-vector, got {d!r}")
+    rgb = np.broadcast_to(_f64(intensity), (3,))
+    return light_from_radiance(real_sh(d / norm)[:, None] * rgb[None, :])
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Rotations. M(R) is defined by Y(R w) = M(R) Y(w); it is block-diagonal and orthogonal, and because the
+# DECA scaling is constant within a band the same M acts on ``light``. Rotating the environment by R
+# (new radiance L'(w) = L(R^T w)) maps its coefficients to M(R) L, so E'(R n) = E(n).
+
+
+def _band2_forms() -> np.ndarray:
+    """Symmetric traceless Q_k with Y_k(n) = n^T Q_k n for the five band-2 functions (unit n)."""
+    q = np.zeros((5, 3, 3))
+    q[0, 0, 1] = q[0, 1, 0] = 0.5  # xy
+    q[1, 0, 2] = q[1, 2, 0] = 0.5  # xz
+    q[2, 1, 2] = q[2, 2, 1] = 0.5  # yz
+    q[3] = np.diag([1.0, -1.0, 0.0])  # x^2 - y^2
+    q[4] = np.diag([-1.0, -1.0, 2.0])  # 3z^2 - 1 = 3z^2 - |n|^2 on the sphere, made traceless
+    scale = SH_CONSTANTS[4:] / _BAND_FACTOR[4:]
+    return q * scale[:, None, None]
+
+
+_Q2 = _band2_forms()
+# Both R^T Q_k R and Q_j are traceless symmetric, so the 5x5 block is an exact linear solve in that space.
+_Q2_PINV = np.linalg.pinv(_Q2.reshape(5, 9).T)  # (5, 9)
+
+
+def sh_rotation_matrix(R) -> np.ndarray:
+    """9x9 matrix ``M`` (or ``(..., 9, 9)`` for ``(..., 3, 3)``) with ``real_sh(R w) = M @ real_sh(w)``.
+
+    Exact for bands 0-2 and any orthogonal ``R``; raises ValueError if ``R`` is not orthogonal.
+    """
+    R = _f64(R)
+    if R.shape[-2:] != (3, 3):
+        raise ValueError(f"rotation must have shape (..., 3, 3), got {R.shape}")
+    eye = np.broadcast_to(np.eye(3), R.shape)
+    if not np.allclose(np.swapaxes(R, -1, -2) @ R, eye, atol=1e-6):
+        raise ValueError("rotation matrix is not orthogonal (R^T R != I)")
+    t = np.einsum("...ai,kab,...bj->...kij", R, _Q2, R)  # R^T Q_k R
+    m2 = t.reshape(*R.shape[:-2], 5, 9) @ _Q2_PINV.T
+    m = np.zeros((*R.shape[:-2], 9, 9))
+    m[..., 0, 0] = 1.0
+    m[..., 1:4, 1:4] = R  # band 1 in (x, y, z) order transforms like the vector itself
+    m[..., 4:, 4:] = m2
+    return m
+
+
+def rotate(light, R):
+    """Light after rotating the lighting environment by ``R``: its irradiance at ``R n`` is the old one at ``n``.
+
+    ``light`` (9x3 or Nx9x3) and ``R`` (3x3 or Nx3x3) broadcast; torch ``light`` gives a torch result.
+    """
+    m = sh_rotation_matrix(R)
+    if isinstance(light, torch.Tensor):
+        return torch.as_tensor(m, dtype=light.dtype, device=light.device) @ light
+    return m @ _f64(light)
+
+
+def _axis_rotation(deg, axis: int) -> np.ndarray:
+    a = np.deg2rad(_f64(deg))
+    c, s = np.cos(a), np.sin(a)
+    i, j = [(1, 2), (2, 0), (0, 1)][axis]  # right-handed: positive angle turns i toward j
+    R = np.zeros((*a.shape, 3, 3))
+    R[..., axis, axis] = 1.0
+    R[..., i, i] = R[..., j, j] = c
+    R[..., j, i] = s
+    R[..., i, j] = -s
+    return R
+
+
+def rotation_yaw(deg) -> np.ndarray:
+    """Rotation about +y (up), counter-clockwise seen from +y (takes +z toward +x); ``(..., 3, 3)``."""
+    return _axis_rotation(deg, 1)
+
+
+def rotation_roll(deg) -> np.ndarray:
+    """Rotation about +z (toward the viewer), counter-clockwise seen by the viewer (+x toward +y)."""
+    return _axis_rotation(deg, 2)
+
+
+def yaw(light, deg):
+    """``light`` rotated by ``rotation_yaw(deg)``; a sequence of angles gives ``(N, 9, 3)`` (videos)."""
+    return rotate(light, rotation_yaw(deg))
+
+
+def roll(light, deg):
+    """``light`` rotated by ``rotation_roll(deg)``; a sequence of angles gives ``(N, 9, 3)``."""
+    return rotate(light, rotation_roll(deg))
+
+
+# Rec. 709 luminance would tilt the direction toward green light; the plain RGB mean treats channels alike.
+RGB_MEAN = (1 / 3, 1 / 3, 1 / 3)
+
+
+def dominant_direction(light, channel_weights=RGB_MEAN, eps: float = 1e-12) -> np.ndarray:
+    """Unit direction toward the light (``(3,)``, or ``(N, 3)`` for ``(N, 9, 3)``) from band 1.
+
+    Band 1 is the irradiance gradient, (x, y, z) order, combined over RGB with ``channel_weights``
+    (default: mean). Where band 1 has norm <= ``eps`` (a uniform light has no direction) this returns
+    +z, the frontal light, which casts no visible shadow on a face.
+    """
+    b1 = _f64(light)[..., 1:4, :] @ _f64(channel_weights)
+    norm = np.linalg.norm(b1, axis=-1, keepdims=True)
+    frontal = np.broadcast_to(np.array([0.0, 0.0, 1.0]), b1.shape)
+    return np.where(norm > eps, b1 / np.maximum(norm, eps), frontal)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Equirectangular env maps (docs/architecture.md): row 0 = +y, theta from +y, phi = 0 at +z, pi/2 at +x.
+
+
+def envmap_directions(height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """Unit directions ``(H, W, 3)`` of pixel centres and pixel solid angles ``(H, W)`` (sum 4 pi).
+
+    Each solid angle is the exact integral of ``sin theta dtheta dphi`` over the pixel, so band 0 and
+    the total are exact for any resolution.
+    """
+    theta_edges = np.linspace(0.0, math.pi, height + 1)
+    theta = 0.5 * (theta_edges[:-1] + theta_edges[1:])
+    phi = -math.pi + (np.arange(width) + 0.5) * (2 * math.pi / width)
+    st = np.sin(theta)[:, None]
+    dirs = np.stack(
+        np.broadcast_arrays(st * np.sin(phi)[None], np.cos(theta)[:, None], st * np.cos(phi)[None]), axis=-1
+    )
+    ring = (np.cos(theta_edges[:-1]) - np.cos(theta_edges[1:])) * (2 * math.pi / width)
+    return dirs, np.broadcast_to(ring[:, None], (height, width)).copy()
+
+
+def project_envmap(env) -> np.ndarray:
+    """DECA ``light`` (9x3) of an equirectangular HDR radiance map ``env`` (H, W, 3)."""
+    env = _f64(env)
+    if env.ndim != 3 or env.shape[-1] != 3:
+        raise ValueError(f"env map must be (H, W, 3), got {env.shape}")
+    dirs, area = envmap_directions(*env.shape[:2])
+    coeffs = np.einsum("hwk,hw,hwc->kc", real_sh(dirs), area, env)
+    return light_from_radiance(coeffs)
+
+
+def render_envmap(light, height: int, width: int) -> np.ndarray:
+    """Radiance map (H, W, 3) whose projection is ``light``; the raw SH sum, unclipped (it may be < 0)."""
+    dirs, _ = envmap_directions(height, width)
+    return real_sh(dirs) @ radiance_from_light(light)
+
+
+# ---------------------------------------------------------------------------------------------------------
+def fit(intensity, normals, albedo=1.0, weights=None, ridge: float = 0.0) -> np.ndarray:
+    """Least-squares ``light`` (9x3) with ``intensity ~ albedo * irradiance(light, normals)``, per channel.
+
+    ``intensity``/``normals`` (N, 3); ``albedo`` scalar, (3,) or (N, 3); ``weights`` (N,) >= 0.
+    ``ridge`` adds ``ridge * |l|^2`` to the loss. Without ridge, raises ValueError for N < 9 samples or
+    normals whose SH design matrix has rank < 9 (e.g. all equal, or all in one plane).
+    """
+    y = _f64(intensity)
+    n = _f64(normals)
+    if y.ndim != 2 or y.shape[1] != 3 or n.shape != y.shape:
+        raise ValueError(f"intensity and normals must both be (N, 3), got {y.shape} and {n.shape}")
+    num = y.shape[0]
+    alb = np.broadcast_to(_f64(albedo), (num, 3))
+    w = np.ones(num) if weights is None else np.broadcast_to(_f64(weights), (num,))
+    if np.any(w < 0):
+        raise ValueError("weights must be non-negative")
+    if ridge < 0:
+        raise ValueError("ridge must be non-negative")
+    sw = np.sqrt(w)
+    basis = sh_basis(n) * sw[:, None]  # (N, 9)
+    if ridge == 0 and np.count_nonzero(sw) < 9:
+        raise ValueError(
+            f"fit needs at least 9 samples with non-zero weight for 9 SH coefficients, got {np.count_nonzero(sw)}"
+        )
+    out = np.empty((9, 3))
+    for c in range(3):
+        a = basis * alb[:, c : c + 1]
+        b = y[:, c] * sw
+        if ridge > 0:
+            a = np.concatenate([a, math.sqrt(ridge) * np.eye(9)])
+            b = np.concatenate([b, np.zeros(9)])
+        s = np.linalg.svd(a, compute_uv=False)
+        rank = int(np.sum(s > 1e-9 * s[0])) if s[0] > 0 else 0
+        if rank < 9:
+            raise ValueError(
+                f"fit: normals (times albedo of channel {c}) are rank-deficient: the SH design matrix has rank "
+                f"{rank} < 9; use normals spread over more directions (not all equal or coplanar) or ridge > 0"
+            )
+        out[:, c] = np.linalg.lstsq(a, b, rcond=None)[0]
+    return out

@@ -1,1 +1,40 @@
-"""difareli.nn."""
+"""The denoising network: ADM UNet with AdaGN (unet.py), spatial components (conditioning.py), presets, and
+the composed :class:`DiffusionNet` (network.py).
+
+Names are imported lazily (PEP 562) so that ``python -m difareli.nn.presets`` does not import its own module twice.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+_HOMES = {
+    "SPATIAL_COMPONENTS": "conditioning",
+    "ConcatSpatial": "conditioning",
+    "Modulator": "conditioning",
+    "build_spatial": "conditioning",
+    "Condition": "network",
+    "DiffusionNet": "network",
+    "build_network": "network",
+    "PRESETS": "presets",
+    "VARIANTS": "presets",
+    "get_config": "presets",
+    "AdaGN": "unet",
+    "SpatialConditioning": "unet",
+    "UNet": "unet",
+    "UNetConfig": "unet",
+    "timestep_embedding": "unet",
+}
+
+__all__ = sorted(_HOMES)
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _HOMES:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    return getattr(importlib.import_module(f".{_HOMES[name]}", __name__), name)
+
+
+def __dir__() -> list[str]:
+    return sorted(list(globals()) + __all__)

@@ -1,0 +1,202 @@
+"""The DataModule: serves exactly the encodings a model variant declares, from an encodings store.
+
+A variant names its spatial inputs (fed to the Modulator, or concatenated) and its non-spatial inputs (fed to
+AdaGN). Only those encodings and the image are read from disk; nothing else is loaded or kept. Non-spatial
+inputs are returned raw; their normalisation statistics are computed on the training split and stored in the
+model (and so in the checkpoint).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import lightning as L
+import numpy as np
+import torch
+from torch.utils.data import DataLoader, Dataset
+
+from difareli import encodings as enc
+from difareli.store import EncodingStore
+
+
+class MissingEncodingError(KeyError):
+    """A model variant needs an encoding the data set does not have."""
+
+    def __str__(self) -> str:  # KeyError quotes its message; keep it readable
+        return str(self.args[0])
+
+
+def prepare_spatial(names: Sequence[str], arrays: Mapping[str, np.ndarray]) -> torch.Tensor:
+    """Concatenate spatial encodings into a float tensor ``[C, H, W]`` in the declared order.
+
+    uint8 images map to [-1, 1], part masks become one-hot over ``MASK_PARTS``, float maps pass unchanged
+    (the shading reference stays unclipped, SPEC 3).
+    """
+    chans = []
+    for name in names:
+        a = np.asarray(arrays[name])
+        if name == "masks":
+            labels = torch.from_numpy(a.astype(np.int64))
+            chans.append(torch.nn.functional.one_hot(labels, enc.NUM_MASK_PARTS).permute(2, 0, 1).float())
+            continue
+        t = torch.from_numpy(np.array(a))
+        t = t.float() / 127.5 - 1.0 if a.dtype == np.uint8 else t.float()
+        chans.append(t.permute(2, 0, 1) if t.ndim == 3 else t[None])
+    return torch.cat(chans, 0)
+
+
+def prepare_nonspatial(names: Sequence[str], arrays: Mapping[str, np.ndarray]) -> torch.Tensor:
+    """Concatenate non-spatial encodings into one raw float vector ``[D]`` in the declared order."""
+    if not names:
+        return torch.zeros(0)
+    return torch.cat([torch.from_numpy(np.asarray(arrays[n], dtype=np.float32).reshape(-1).copy()) for n in names])
+
+
+def image_to_tensor(image: np.ndarray) -> torch.Tensor:
+    """uint8 ``HxWx3`` -> float ``[3, H, W]`` in [-1, 1]."""
+    return torch.from_numpy(np.array(image)).permute(2, 0, 1).float() / 127.5 - 1.0
+
+
+class EncodingsDataset(Dataset):
+    """Records of a store, each as ``image``, ``spatial``, ``nonspatial`` tensors and its ``record_id``."""
+
+    def __init__(self, store: EncodingStore, ids: Sequence[str], spatial: Sequence[str], nonspatial: Sequence[str]):
+        self.store, self.ids = store, list(ids)
+        self.spatial, self.nonspatial = list(spatial), list(nonspatial)
+        self.names = ["image", *self.spatial, *self.nonspatial]
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    def __getitem__(self, i: int) -> dict[str, Any]:
+        rid = self.ids[i]
+        arrays = self.store.read(rid, self.names)
+        return {
+            "image": image_to_tensor(arrays["image"]),
+            "spatial": prepare_spatial(self.spatial, arrays),
+            "nonspatial": prepare_nonspatial(self.nonspatial, arrays),
+            "record_id": rid,
+        }
+
+
+class EncodingsDataModule(L.LightningDataModule):
+    """Train/val loaders over an encodings store, restricted to the encodings a variant declares.
+
+    If ``root`` holds no store and ``synth`` is given, SynthFaces is generated there first
+    (``synth`` = keyword arguments of :func:`difareli.synth.generator.generate`).
+    """
+
+    def __init__(
+        self,
+        root: str,
+        spatial: Sequence[str] = (),
+        nonspatial: Sequence[str] = (),
+        resolution: int | None = None,
+        batch_size: int = 32,
+        num_workers: int = 0,
+        synth: Mapping[str, Any] | None = None,
+        train_split: str = "train",
+        val_split: str = "val",
+    ):
+        super().__init__()
+        self.root = Path(root)
+        self.spatial, self.nonspatial = list(spatial), list(nonspatial)
+        for name in [*self.spatial, *self.nonspatial]:
+            e = enc.get(name)  # unknown names fail here, naming the valid ones
+            if name != "image" and e.spatial != (name in self.spatial):
+                kind = "spatial" if e.spatial else "non-spatial"
+                raise ValueError(f"encoding {name!r} is {kind}; list it under the model's {kind} inputs")
+        self.resolution, self.batch_size, self.num_workers = resolution, batch_size, num_workers
+        self.synth = dict(synth) if synth else None
+        self.train_split, self.val_split = train_split, val_split
+        self.store: EncodingStore | None = None
+        self.train_set = self.val_set = None
+
+    @property
+    def required(self) -> list[str]:
+        """Every encoding this module reads: the image plus the variant's declared inputs."""
+        return ["image", *self.spatial, *self.nonspatial]
+
+    def prepare_data(self) -> None:
+        if (self.root / "store.json").exists():
+            return
+        if self.synth is None:
+            raise FileNotFoundError(
+                f"no encodings store at {self.root} (no store.json): run `difareli-synth out_dir={self.root}` or "
+                "`difareli-preprocess`, or point data.root at an existing store"
+            )
+        from difareli.synth.generator import generate  # only needed when the data set is missing
+
+        generate(out_dir=str(self.root), resolution=self.resolution, **self.synth)
+
+    def _open(self) -> EncodingStore:
+        if self.store is None:
+            self.prepare_data()
+            self.store = EncodingStore.open(self.root)
+            missing = [n for n in self.required if not self.store.available(n)]
+            if missing:
+                raise MissingEncodingError(
+                    f"the model needs encoding(s) {missing} but the data set at {self.root} has only "
+                    f"{list(self.store.encodings)}; re-create it with an estimator/generator that writes them, "
+                    "or pick a model variant that does not consume them"
+                )
+            res = self.store.dims.get("H")
+            if self.resolution is not None and res != self.resolution:
+                raise ValueError(
+                    f"data.resolution={self.resolution} but the store at {self.root} holds {res}x{res} images; "
+                    f"set data.resolution={res} or point data.root at a {self.resolution}px store"
+                )
+        return self.store
+
+    def input_dims(self) -> dict[str, int]:
+        """Sizes the network needs: spatial channels, non-spatial vector length, image resolution."""
+        store = self._open()
+        return {
+            "spatial_channels": sum(enc.channels(n, store.dims) for n in self.spatial),
+            "nonspatial_dim": sum(enc.channels(n, store.dims) for n in self.nonspatial),
+            "resolution": int(store.dims["H"]),
+        }
+
+    def _split_ids(self) -> tuple[list[str], list[str]]:
+        store = self._open()
+        train, val = store.ids(split=self.train_split), store.ids(split=self.val_split)
+        if not train:  # a store without split metadata: hold out every 20th record, deterministically
+            ids = store.ids()
+            val = ids[::20]
+            held = set(val)
+            train = [i for i in ids if i not in held]
+        return train, val or train[:1]
+
+    def setup(self, stage: str | None = None) -> None:
+        if self.train_set is not None:
+            return
+        store = self._open()
+        train, val = self._split_ids()
+        self.train_set = EncodingsDataset(store, train, self.spatial, self.nonspatial)
+        self.val_set = EncodingsDataset(store, val, self.spatial, self.nonspatial)
+
+    def nonspatial_stats(self) -> tuple[np.ndarray, np.ndarray]:
+        """Per-feature mean and std of the non-spatial vector over the training split (std floored at 1e-6)."""
+        self.setup()
+        store = self._open()
+        if not self.nonspatial:
+            return np.zeros(0, np.float32), np.ones(0, np.float32)
+        vecs = np.stack([prepare_nonspatial(self.nonspatial, store.read(r, self.nonspatial)).numpy()
+                         for r in self.train_set.ids])
+        mean, std = vecs.mean(0), vecs.std(0)
+        # Constant features (e.g. a fixed camera) would divide by ~0: leave them unscaled instead.
+        std = np.where(std < 1e-6, 1.0, std)
+        return mean.astype(np.float32), std.astype(np.float32)
+
+    def _loader(self, ds: Dataset, shuffle: bool) -> DataLoader:
+        return DataLoader(ds, batch_size=self.batch_size, shuffle=shuffle, num_workers=self.num_workers,
+                          persistent_workers=self.num_workers > 0, drop_last=shuffle and len(ds) > self.batch_size)
+
+    def train_dataloader(self) -> DataLoader:
+        self.setup()
+        return self._loader(self.train_set, shuffle=True)
+
+    def val_dataloader(self) -> DataLoader:
+        self.setup()
+        return self._loader(self.val_set, shuffle=False)

@@ -1,0 +1,91 @@
+"""DiffusionNet: the UNet composed with its spatial and non-spatial conditioning (docs/architecture.md, Network).
+
+``cond = net.condition(spatial, nonspatial)`` runs everything that does not depend on ``t`` or ``x_t`` once per
+condition (the Modulator); ``net(x_t, t, cond)`` then predicts eps at every step. :func:`build_network` builds one
+from plain values (preset name, component name, channel counts), which is what Hydra configs and checkpoints store.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from .conditioning import Modulator, build_spatial, count_parameters
+from .presets import get_config
+from .unet import MLP3, SpatialConditioning, UNet, UNetConfig
+
+
+@dataclass
+class Condition:
+    """A prepared condition: the spatial component's state (e.g. the Modulator's tanh(m_i)) and the non-spatial
+    vector [B, D] (its MLP3s run inside the UNet's blocks). Independent of ``t`` and ``x_t``."""
+
+    spatial: Any = None
+    nonspatial: Tensor | None = None
+
+
+class DiffusionNet(nn.Module):
+    """eps-prediction network: :class:`UNet` + optional spatial component + AdaGN non-spatial conditioning."""
+
+    def __init__(self, config: UNetConfig, spatial: SpatialConditioning | None = None, nonspatial_dim: int = 0,
+                 image_channels: int = 3):
+        super().__init__()
+        self.config, self.nonspatial_dim, self.image_channels = config, nonspatial_dim, image_channels
+        extra = spatial.extra_in_channels if spatial is not None else 0
+        self.unet = UNet(config, in_channels=image_channels + extra, out_channels=image_channels,
+                         nonspatial_dim=nonspatial_dim)
+        self.spatial = spatial
+        if isinstance(spatial, Modulator) and spatial.num_levels != self.unet.num_levels:
+            raise ValueError(f"Modulator has {spatial.num_levels} levels, the UNet {self.unet.num_levels}")
+
+    def condition(self, spatial: Tensor | None = None, nonspatial: Tensor | None = None) -> Condition:
+        """Prepare a condition once (runs the Modulator); reuse it for every timestep."""
+        if self.nonspatial_dim > 0:
+            if nonspatial is None or nonspatial.ndim != 2 or nonspatial.shape[1] != self.nonspatial_dim:
+                got = None if nonspatial is None else tuple(nonspatial.shape)
+                raise ValueError(f"expected a non-spatial vector [B, {self.nonspatial_dim}], got {got}")
+        elif nonspatial is not None:
+            raise ValueError("this network has no non-spatial conditioning (nonspatial_dim=0) but got a vector")
+        if self.spatial is None:
+            if spatial is not None:
+                raise ValueError("this network has no spatial conditioning but got a spatial input")
+            state = None
+        else:
+            state = self.spatial.prepare(spatial)
+        return Condition(spatial=state, nonspatial=nonspatial)
+
+    def forward(self, x_t: Tensor, t: Tensor | float | int, cond: Condition | None = None) -> Tensor:
+        """eps for ``x_t`` [B, C, H, W] at ``t`` ([B] long in 0..T-1 or float; a scalar is broadcast)."""
+        if not torch.is_tensor(t) or t.ndim == 0:
+            t = torch.as_tensor(t, device=x_t.device).expand(x_t.shape[0])
+        cond = cond if cond is not None else self.condition()
+        return self.unet(x_t, t, cond.nonspatial, self.spatial, cond.spatial)
+
+    def bind(self, cond: Condition) -> Callable[[Tensor, Tensor], Tensor]:
+        """The sampler-facing denoiser ``(x, t) -> eps`` for one prepared condition."""
+        return lambda x, t: self(x, t, cond)
+
+    def parameter_counts(self) -> dict[str, int]:
+        """Parameters of the UNet proper, the spatial component, the AdaGN MLP3s, and in total."""
+        mlps = sum(count_parameters(m) for m in self.unet.modules() if isinstance(m, MLP3))
+        spatial = count_parameters(self.spatial)
+        total = count_parameters(self)
+        return {"unet": total - spatial - mlps, "spatial": spatial, "mlps": mlps, "total": total}
+
+
+def build_network(preset: str = "tiny", spatial_type: str | None = "modulator", spatial_channels: int = 0,
+                  nonspatial_dim: int = 0, image_channels: int = 3, overrides: dict[str, Any] | None = None,
+                  spatial_kwargs: dict[str, Any] | None = None) -> DiffusionNet:
+    """Build a :class:`DiffusionNet` from plain values.
+
+    ``spatial_type``: ``"modulator"`` (DiFaReli/++), ``"concat"`` (ablation (a)) or ``None``;
+    ``overrides``: :class:`UNetConfig` fields replacing the preset's; ``spatial_kwargs``: options of the component
+    (e.g. ``{"modulate_skips": True}`` for the Modulator).
+    """
+    cfg = get_config(preset, overrides)
+    spatial = build_spatial(spatial_type, cfg, spatial_channels, **(spatial_kwargs or {}))
+    return DiffusionNet(cfg, spatial, nonspatial_dim=nonspatial_dim, image_channels=image_channels)
