@@ -87,6 +87,8 @@ _ENCODINGS = (
     Encoding("shadow_map", ("H", "W"), "float32", "binary cast-shadow map times normalised c", spatial=True),
     Encoding("shading", ("H", "W", 3), "float32", "shading reference R = 0.7 * SH irradiance, unclipped", spatial=True),
     Encoding("normal", ("H", "W", 3), "float32", "camera-space unit normal of the face mesh, 0 off-mesh", spatial=True),
+    Encoding("depth", ("H", "W"), "float32", "camera-space z of the face mesh (toward the viewer), 0 off-mesh; "
+             "used to ray-march target shadow maps", spatial=True),
     Encoding("face_mask", ("H", "W"), "bool", "face region (FACE_PARTS), used by metrics", spatial=True),
 )
 

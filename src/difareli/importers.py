@@ -231,11 +231,14 @@ def import_difareli(
     if images_dir is not None and not img_files:
         raise FileNotFoundError(f"images_dir {images_dir} is missing or empty (the aligned images DiFaReli processed)")
 
-    # The image list: names present in the first parameter file (or the label maps when only spatial).
+    # The image list: names in the first parameter file, else the files of the first spatial source
+    # (``anno_<stem>.png`` counts as ``<stem>.png``, as DiFaReli's loader does).
     if params:
         names = sorted(next(iter(params.values())))
+    elif seg_files:
+        names = sorted(n[len("anno_"):] for n in seg_files if n.startswith("anno_") and n.endswith(".png"))
     else:
-        names = sorted(n[len("anno_"):-4] + ".png" for n in seg_files if n.startswith("anno_"))
+        names = sorted(n for n in (shade_files or img_files) if not n.startswith("."))
     if limit is not None:
         names = names[:limit]
     sources: dict[str, dict[str, Path]] = {}

@@ -44,3 +44,51 @@ class ReconstructionGrid(L.Callback):
         rows = [[c[i] for c in cols] for i in range(n)]
         path = Path(trainer.default_root_dir) / "grids" / f"reconstruction_step{trainer.global_step:07d}.png"
         viz.save_png(viz.grid(rows), path)
+
+
+class LossCurve(L.Callback):
+    """Record ``train/loss`` (and ``val/loss``) during fit; at the end print the curve's numbers and write
+    ``loss_curve.png`` next to the run's logs, so "the loss falls" is visible at a glance."""
+
+    def __init__(self, every_n_steps: int = 10):
+        self.every_n_steps = every_n_steps
+        self.train: list[tuple[int, float]] = []
+        self.val: list[tuple[int, float]] = []
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
+        step = trainer.global_step
+        if step % self.every_n_steps == 0 and outputs is not None:
+            loss = outputs["loss"] if isinstance(outputs, dict) else outputs
+            self.train.append((step, float(loss.detach())))
+
+    def on_validation_epoch_end(self, trainer, pl_module) -> None:
+        if not trainer.sanity_checking and "val/loss" in trainer.callback_metrics:
+            self.val.append((trainer.global_step, float(trainer.callback_metrics["val/loss"])))
+
+    def on_fit_end(self, trainer, pl_module) -> None:
+        if not self.train or not trainer.is_global_zero:
+            return
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+        import numpy as np
+
+        steps, losses = map(np.asarray, zip(*self.train))
+        k = max(1, len(losses) // 10)
+        first, last = losses[:k].mean(), losses[-k:].mean()
+        print(f"train/loss: first {k} logged steps mean {first:.4f} -> last {k} mean {last:.4f} "
+              f"({first / max(last, 1e-12):.1f}x lower)")
+        if self.val:
+            print("val/loss: " + ", ".join(f"step {s}: {v:.4f}" for s, v in self.val))
+        fig, ax = plt.subplots(figsize=(5, 3.2))
+        ax.semilogy(steps, losses, lw=0.8, label="train/loss")
+        if self.val:
+            ax.semilogy(*zip(*self.val), "o-", label="val/loss")
+        ax.set_xlabel("step")
+        ax.legend()
+        fig.tight_layout()
+        out = Path(trainer.default_root_dir) / "loss_curve.png"
+        out.parent.mkdir(parents=True, exist_ok=True)
+        fig.savefig(out, dpi=100)
+        plt.close(fig)

@@ -43,14 +43,17 @@ class DiffusionModule(L.LightningModule):
                              "difareli-train takes them from the DataModule")
         self.save_hyperparameters()
         dims = dict(input_dims)
+        spatial_type = spatial_type if spatial_inputs else None
+        # Attention resolutions are feature-map sizes at the data resolution unless overridden.
+        overrides = {"image_size": int(dims["resolution"]), "adagn_scale_plus_one": adagn_scale_plus_one,
+                     **dict(net_overrides or {})}
         self.net = build_network(
             preset=preset,
-            spatial_type=spatial_type if spatial_inputs else None,
-            spatial_channels=int(dims["spatial_channels"]),
+            spatial_type=spatial_type,
+            spatial_channels=int(dims["spatial_channels"]) if spatial_type else 0,
             nonspatial_dim=int(dims["nonspatial_dim"]),
-            modulate_skips=modulate_skips,
-            scale_plus_one=adagn_scale_plus_one,
-            overrides=dict(net_overrides or {}),
+            overrides=overrides,
+            spatial_kwargs={"modulate_skips": modulate_skips} if spatial_type == "modulator" else None,
         )
         self.schedule = DiffusionSchedule(**dict(schedule or {}))
         d = int(dims["nonspatial_dim"])
@@ -76,7 +79,7 @@ class DiffusionModule(L.LightningModule):
 
     def denoiser(self, cond):
         """The sampler interface: ``eps = denoiser(x_t, t)`` with this condition bound."""
-        return lambda x, t: self.net(x, t, cond)
+        return self.net.bind(cond)
 
     # ------------------------------------------------------------------ training
     def setup(self, stage: str) -> None:

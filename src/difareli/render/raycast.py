@@ -73,6 +73,10 @@ class Scene:
         self.vertex_normals = np.asarray(mesh.vertex_normals, dtype=np.float64).copy()
         #: Length of the bounding-box diagonal; offsets (ray starts, shadow eps) are relative to it.
         self.scale = float(np.linalg.norm(np.ptp(self.vertices, axis=0))) or 1.0
+        # Per-face tables so a render gathers once per hit instead of re-deriving per pixel.
+        self._corner_z = self.vertices[self.faces, 2]  # (F, 3)
+        self._corner_normals = self.vertex_normals[self.faces]  # (F, 3, 3)
+        self._bary_affine, self._edge_on = _xy_barycentric_affine(self.vertices[self.faces])
         self.intersector, self.backend = _make_intersector(mesh, backend)
         # Build the BVH now so that render timings measure rays only.
         self.intersects_first(np.zeros((1, 3)), np.array([[0.0, 0.0, -1.0]]))
@@ -122,24 +126,39 @@ class GBuffer:
         return self.hit.shape
 
 
-def _barycentric_xy(tri: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """Barycentrics ``(M, 3)`` of 2-D points ``p (M, 2)`` in the xy projection of triangles ``tri (M, 3, 3)``.
+def _xy_barycentric_affine(tri: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-triangle affine maps ``(F, 6)`` (two rows of 3) from ``(x, y, 1)`` to barycentrics ``(b1, b2)`` of the triangles'
+    xy projection, and a mask of triangles seen exactly edge-on (no xy area; their map is 0).
 
     Exact for rays along -z: an orthographic projection is affine, and affine maps keep barycentrics.
     """
-    a, b, c = tri[:, 0, :2], tri[:, 1, :2], tri[:, 2, :2]
-    e1, e2, ep = b - a, c - a, p - a
+    a = tri[:, 0, :2]
+    e1, e2 = tri[:, 1, :2] - a, tri[:, 2, :2] - a
     den = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
-    # Triangles seen exactly edge-on have no xy area; embree rarely reports them, use their centroid.
-    flat = np.abs(den) < 1e-14 * max(1.0, float(np.abs(tri).max(initial=1.0))) ** 2
-    den = np.where(flat, 1.0, den)
-    b1 = (ep[:, 0] * e2[:, 1] - ep[:, 1] * e2[:, 0]) / den
-    b2 = (e1[:, 0] * ep[:, 1] - e1[:, 1] * ep[:, 0]) / den
-    bary = np.stack([1.0 - b1 - b2, b1, b2], axis=-1)
-    bary[flat] = 1.0 / 3.0
+    ref = max(1.0, float(np.abs(tri).max(initial=1.0))) ** 2
+    edge_on = np.abs(den) < 1e-14 * ref
+    inv = np.where(edge_on, 0.0, 1.0 / np.where(edge_on, 1.0, den))
+    # b1 = cross(p - a, e2) / den, b2 = cross(e1, p - a) / den, written as rows acting on (x, y, 1).
+    r1 = np.stack([e2[:, 1], -e2[:, 0], -(a[:, 0] * e2[:, 1] - a[:, 1] * e2[:, 0])], axis=-1)
+    r2 = np.stack([-e1[:, 1], e1[:, 0], -(e1[:, 0] * a[:, 1] - e1[:, 1] * a[:, 0])], axis=-1)
+    return (np.concatenate([r1, r2], axis=1) * inv[:, None]), edge_on
+
+
+def _barycentric(scene: "Scene", tri: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Barycentrics ``(M, 3)`` of ray points ``xy (M, 2)`` in hit triangles ``tri (M,)``."""
+    aff = scene._bary_affine[tri]  # (M, 6): rows (b1, b2) x coefficients of (x, y, 1)
+    x, y = xy[:, 0], xy[:, 1]
+    bary = np.empty((len(tri), 3))
+    # Elementwise, not batched matmul: numpy's (M, 2, 3) @ (M, 3, 1) is several times slower.
+    bary[:, 1] = aff[:, 0] * x + aff[:, 1] * y + aff[:, 2]
+    bary[:, 2] = aff[:, 3] * x + aff[:, 4] * y + aff[:, 5]
+    bary[:, 0] = 1.0 - bary[:, 1] - bary[:, 2]
+    # Edge-on triangles (embree rarely reports them) get their centroid.
+    bary[scene._edge_on[tri]] = 1.0 / 3.0
     # Embree works in float32 and can report hits a hair outside an edge: clamp back into the triangle.
-    bary = np.clip(bary, 0.0, None)
-    return bary / bary.sum(axis=-1, keepdims=True)
+    np.maximum(bary, 0.0, out=bary)
+    bary /= bary.sum(axis=1, keepdims=True)
+    return bary
 
 
 def _unit(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -158,12 +177,13 @@ def render_gbuffer(scene: Scene, cam: OrthoCamera, H: int, W: int) -> GBuffer:
     idx = np.flatnonzero(hit_flat)
     tri = tri_all[idx]
 
-    corners = scene.vertices[scene.faces[tri]]  # (M, 3, 3)
-    bary = _barycentric_xy(corners, origins[idx, :2])
-    z = np.einsum("mk,mk->m", bary, corners[:, :, 2])
+    xy = origins[idx, :2]
+    bary = _barycentric(scene, tri, xy)
+    z = np.einsum("mk,mk->m", bary, scene._corner_z[tri])
 
     fn = scene.face_normals[tri]
-    vn = np.einsum("mk,mkc->mc", bary, scene.vertex_normals[scene.faces[tri]])
+    cn = scene._corner_normals[tri]  # (M, 3, 3)
+    vn = bary[:, 0:1] * cn[:, 0] + bary[:, 1:2] * cn[:, 1] + bary[:, 2:3] * cn[:, 2]
     vn, vnorm = _unit(vn)
     # Opposing vertex normals can cancel (thin sheets, creases): fall back to the facet normal there.
     degenerate = vnorm < 1e-8
@@ -184,7 +204,7 @@ def render_gbuffer(scene: Scene, cam: OrthoCamera, H: int, W: int) -> GBuffer:
     triangle = np.full(n, -1, dtype=np.int64)
     normal[idx] = vn
     face_normal[idx] = fn
-    points[idx, :2] = origins[idx, :2]
+    points[idx, :2] = xy
     points[idx, 2] = z
     bary_img[idx] = bary
     depth[idx] = z

@@ -114,17 +114,17 @@ def sample_light(rng: np.random.Generator, category: str | None = None) -> Light
     white = np.ones(3)
     az, el = rng.uniform(-75, 75), rng.uniform(-15, 60)
     if category == "hard":
-        amb, amb_c = rng.uniform(0.08, 0.3), _tint(rng, 0.05)
-        sun, sun_c = rng.uniform(0.7, 1.1), _tint(rng, 0.04)
+        amb, amb_c = rng.uniform(0.15, 0.4), _tint(rng, 0.05)
+        sun, sun_c = rng.uniform(0.9, 1.4), _tint(rng, 0.04)
         grad, b2 = rng.uniform(0, 0.4), rng.uniform(0, 0.2)
     elif category == "soft":
-        amb, amb_c = rng.uniform(0.45, 0.85), _tint(rng, 0.05)
-        sun, sun_c = (0.0 if rng.uniform() < 0.4 else rng.uniform(0.05, 0.25)), white
+        amb, amb_c = rng.uniform(0.7, 1.1), _tint(rng, 0.05)
+        sun, sun_c = (0.0 if rng.uniform() < 0.4 else rng.uniform(0.05, 0.3)), white
         grad, b2 = rng.uniform(0.2, 0.6), rng.uniform(0, 0.3)
     elif category == "coloured":
         sun_c = _tint(rng, 0.35) if rng.uniform() < 0.5 else _warm_or_cool(rng)
         amb_c = (1.0 / sun_c) / (1.0 / sun_c).mean() * _tint(rng, 0.1)  # complementary fill
-        amb, sun = rng.uniform(0.15, 0.45), rng.uniform(0.4, 0.9)
+        amb, sun = rng.uniform(0.25, 0.6), rng.uniform(0.6, 1.1)
         grad, b2 = rng.uniform(0, 0.5), rng.uniform(0, 0.3)
     elif category == "dim":
         k = rng.uniform(0.12, 0.35)
@@ -132,19 +132,19 @@ def sample_light(rng: np.random.Generator, category: str | None = None) -> Light
         amb_c, sun_c = _tint(rng, 0.08), _tint(rng, 0.08)
         grad, b2 = rng.uniform(0, 0.5), rng.uniform(0, 0.2)
     elif category == "bright":
-        amb, sun = rng.uniform(0.5, 0.9), rng.uniform(0.8, 1.3)
+        amb, sun = rng.uniform(0.6, 0.9), rng.uniform(0.9, 1.3)
         amb_c, sun_c = _tint(rng, 0.04), _tint(rng, 0.04)
         grad, b2 = rng.uniform(0, 0.3), rng.uniform(0, 0.2)
     elif category == "rim":
         az = rng.choice([-1, 1]) * rng.uniform(110, 165)
         el = rng.uniform(-10, 50)
-        amb, sun = rng.uniform(0.25, 0.55), rng.uniform(0.8, 1.4)
+        amb, sun = rng.uniform(0.4, 0.7), rng.uniform(0.8, 1.4)
         amb_c, sun_c = _tint(rng, 0.06), _tint(rng, 0.06)
         grad, b2 = rng.uniform(0, 0.4), rng.uniform(0, 0.2)
     else:  # grazing
         az = rng.choice([-1, 1]) * rng.uniform(70, 88)
         el = rng.uniform(-10, 35)
-        amb, sun = rng.uniform(0.05, 0.25), rng.uniform(0.8, 1.2)
+        amb, sun = rng.uniform(0.1, 0.35), rng.uniform(0.9, 1.4)
         amb_c, sun_c = _tint(rng, 0.05), _tint(rng, 0.05)
         grad, b2 = rng.uniform(0, 0.3), rng.uniform(0, 0.2)
     ambient = ambient_sh(rng, amb * amb_c, gradient=grad, band2=b2)

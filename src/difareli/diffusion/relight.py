@@ -1,0 +1,147 @@
+"""Relighting with any sampler: invert with the input's own condition, then decode under targets (SPEC 5).
+
+Three passes per image, all sampler-agnostic:
+
+1. inversion ``x_0 -> x_T`` on the ascending grid, recording per-channel spatial means of each ``x_t``;
+2. (mean-matching) a self-decode ``x_T -> x_0`` with the input's own condition, recording the same means;
+   the per-step offsets ``mu_t = mean(x_t^inv) - mean(x_t^self)`` are kept in the :class:`Inversion`;
+3. the decode under one or many target conditions, adding ``mu_t`` after each step.
+
+Passes 1-2 run once per image; any number of targets can then be decoded, in one batch.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Callable, Mapping
+
+import torch
+
+from difareli.diffusion.samplers import get_sampler, sampler_options
+from difareli.diffusion.schedule import DiffusionSchedule
+
+Denoiser = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+
+
+@dataclass(frozen=True)
+class SamplerSpec:
+    """Which sampler, how many steps on which grid, and the x0-clipping options per direction."""
+
+    name: str = "ddim"
+    steps: int = 50
+    grid: str = "uniform"
+    clip_x0_invert: bool = False
+    clip_x0_generate: bool = False
+    alpha_zero_end: bool = False
+    options: tuple[tuple[str, Any], ...] = ()
+
+    @classmethod
+    def from_config(cls, cfg: Mapping[str, Any]) -> "SamplerSpec":
+        """From a ``conf/sampler/*.yaml`` mapping (extra keys such as ``order`` go to the sampler)."""
+        return cls(name=cfg["name"], steps=int(cfg["steps"]), grid=cfg.get("grid", "uniform"),
+                   clip_x0_invert=bool(cfg.get("clip_x0_invert", False)),
+                   clip_x0_generate=bool(cfg.get("clip_x0_generate", False)),
+                   alpha_zero_end=bool(cfg.get("alpha_zero_end", False) or False),
+                   options=tuple(sorted(sampler_options(cfg).items())))
+
+    def grids(self, schedule: DiffusionSchedule) -> tuple[torch.Tensor, torch.Tensor]:
+        """(inversion grid ascending, generation grid descending), mirrors of each other."""
+        inv = schedule.time_grid(self.steps, kind=self.grid, direction="invert", alpha_zero_end=self.alpha_zero_end)
+        return inv, inv.flip(0)
+
+    def run(self, denoiser: Denoiser, x: torch.Tensor, grid: torch.Tensor, schedule: DiffusionSchedule, *,
+            clip_x0: bool, callback=None, progress: bool = False) -> torch.Tensor:
+        return get_sampler(self.name)(denoiser, x, grid, schedule, clip_x0=clip_x0, callback=callback,
+                                      progress=progress, **dict(self.options))
+
+
+def _channel_means(x: torch.Tensor) -> torch.Tensor:
+    return x.float().mean(dim=(2, 3))
+
+
+@dataclass
+class Inversion:
+    """The result of passes 1-2 for a batch of images: ``x_T`` and the mean-matching offsets.
+
+    ``offsets[i]`` ([B, C]) is added after decode step ``i``; ``None`` when mean-matching is off.
+    """
+
+    x_T: torch.Tensor
+    spec: SamplerSpec
+    offsets: torch.Tensor | None
+
+    def expand(self, n: int) -> "Inversion":
+        """The same inversion repeated for ``n`` targets of one image (batch of 1 -> n)."""
+        if self.x_T.shape[0] != 1:
+            raise ValueError(f"expand() needs an inversion of one image, got a batch of {self.x_T.shape[0]}")
+        off = None if self.offsets is None else self.offsets.expand(-1, n, -1)
+        return Inversion(self.x_T.expand(n, -1, -1, -1).contiguous(), self.spec, off)
+
+
+@torch.no_grad()
+def invert(denoiser: Denoiser, x0: torch.Tensor, schedule: DiffusionSchedule, spec: SamplerSpec, *,
+           mean_matching: bool = True, progress: bool = False) -> Inversion:
+    """Passes 1-2: invert ``x0`` with its own condition (bound in ``denoiser``) and, with mean-matching,
+    self-decode to compute the per-step offsets once."""
+    inv_grid, gen_grid = spec.grids(schedule)
+    means = [_channel_means(x0)]
+
+    def record_inv(step, t, t_next, x):
+        means.append(_channel_means(x))
+
+    x_T = spec.run(denoiser, x0, inv_grid, schedule, clip_x0=spec.clip_x0_invert,
+                   callback=record_inv if mean_matching else None, progress=progress)
+    if not mean_matching:
+        return Inversion(x_T, spec, None)
+    # Decode step i lands on gen_grid[i + 1] = inv_grid[n - 1 - i], where the inversion recorded means[n-1-i].
+    target = means[::-1][1:]
+    offsets = []
+
+    def match(step, t, t_next, x):
+        # Offsets are measured on the *matched* self-decode (each applied before the next is measured), so
+        # decoding with the input's own condition reproduces the inversion's means at every step; measuring
+        # them on an unmatched decode and adding them cumulatively would over-correct.
+        mu = target[step] - _channel_means(x)
+        offsets.append(mu)
+        return x + mu.to(x.dtype)[:, :, None, None]
+
+    spec.run(denoiser, x_T, gen_grid, schedule, clip_x0=spec.clip_x0_generate, callback=match, progress=progress)
+    offsets = torch.stack(offsets)
+    return Inversion(x_T, spec, offsets)
+
+
+@torch.no_grad()
+def decode(denoiser: Denoiser, inversion: Inversion, schedule: DiffusionSchedule, *, progress: bool = False,
+           callback=None) -> torch.Tensor:
+    """Pass 3: decode ``inversion.x_T`` with the (target) condition bound in ``denoiser``, adding the
+    mean-matching offsets after each step. ``callback(step, t, t_next, x)`` sees the matched ``x``."""
+    _, gen_grid = inversion.spec.grids(schedule)
+    offsets = inversion.offsets
+
+    def step_hook(step, t, t_next, x):
+        if offsets is not None:
+            x = x + offsets[step].to(x.dtype)[:, :, None, None]
+        if callback is not None:
+            out = callback(step, t, t_next, x)
+            x = x if out is None else out
+        return x
+
+    return inversion.spec.run(denoiser, inversion.x_T, gen_grid, schedule, clip_x0=inversion.spec.clip_x0_generate,
+                              callback=step_hook, progress=progress)
+
+
+@torch.no_grad()
+def relight(model, image: torch.Tensor, source: tuple, targets: tuple, spec: SamplerSpec, *,
+            mean_matching: bool = True, progress: bool = False) -> torch.Tensor:
+    """Relight one image under ``B`` targets in one batch.
+
+    ``model`` has ``condition(spatial, nonspatial)``, ``denoiser(cond)`` and ``schedule`` (a
+    :class:`~difareli.lit.DiffusionModule`); ``source`` is the input's own ``(spatial [1,...], nonspatial [1,D])``;
+    ``targets`` the same with batch ``B``. The Modulator runs once for the source and once for the targets.
+    """
+    src_cond = model.condition(*source)
+    inversion = invert(model.denoiser(src_cond), image, model.schedule, spec, mean_matching=mean_matching,
+                       progress=progress)
+    n = targets[0].shape[0] if targets[0] is not None else targets[1].shape[0]
+    tgt_cond = model.condition(*targets)
+    return decode(model.denoiser(tgt_cond), inversion.expand(n), model.schedule, progress=progress)

@@ -1,0 +1,29 @@
+"""Test helpers: compose the real Hydra configs outside the CLI."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from hydra import compose, initialize_config_dir
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig, open_dict
+
+CONF = Path(__file__).resolve().parents[1] / "conf"
+
+
+def compose_train(out_dir: Path, overrides: list[str], config_name: str = "train") -> DictConfig:
+    """Compose ``conf/<config_name>.yaml`` with overrides; run outputs go to ``out_dir``."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    with initialize_config_dir(str(CONF), version_base="1.3"):
+        cfg = compose(config_name, overrides=overrides, return_hydra_config=True)
+        # `${hydra:...}` interpolations need a live HydraConfig, as under @hydra.main.
+        with open_dict(cfg):
+            cfg.hydra.runtime.output_dir = str(out_dir)
+            cfg.hydra.runtime.cwd = str(out_dir)
+        HydraConfig().set_config(cfg)
+        with open_dict(cfg):
+            cfg.paths.output_dir = str(out_dir)
+            cfg.paths.log_dir = str(out_dir / "logs")
+            del cfg.hydra
+    return cfg

@@ -1,0 +1,117 @@
+"""Aggregation (mean ± SE) and Table I rendering from per-image CSVs."""
+
+import csv
+import math
+
+import pytest
+
+from difareli import tables as T
+
+
+def test_mean_se_hand_computed():
+    # values 1,2,3,4: mean 2.5; sample var = (2.25+0.25+0.25+2.25)/3 = 5/3; SE = sqrt(5/3)/2.
+    s = T.mean_se([1.0, 2.0, 3.0, 4.0])
+    assert s.n == 4 and s.mean == 2.5
+    assert s.se == pytest.approx(math.sqrt(5 / 3) / 2, rel=1e-15)
+    assert s.se == pytest.approx(0.6454972243679028, rel=1e-12)
+    one = T.mean_se([0.3])
+    assert one.mean == 0.3 and one.n == 1 and math.isnan(one.se)
+    skip = T.mean_se([1.0, float("nan"), 3.0])
+    assert (skip.mean, skip.n) == (2.0, 2) and skip.se == pytest.approx(1.0)
+    assert T.mean_se([]).n == 0
+
+
+def test_csv_round_trip_is_exact(tmp_path):
+    recs = [T.Record("DiFaReli++", "same", "s001_l03", 0.1 / 3, 1e-17, 0.2, 0.07),
+            T.Record("DiFaReli++", "different", "s002_l03", 0.5, 0.25, 0.125)]
+    path = T.write_records(tmp_path / "run" / T.PER_IMAGE_CSV, recs)
+    with open(path) as f:
+        assert next(csv.reader(f)) == list(T.COLUMNS)
+    back = T.read_records(path)
+    assert back[0] == recs[0]
+    assert back[1].dssim == 0.5 and math.isnan(back[1].seconds)
+
+
+def _fake_run(path, method, rows):
+    return T.write_records(path / T.PER_IMAGE_CSV, [T.Record(method, *r) for r in rows]).parent
+
+
+@pytest.fixture
+def two_runs(tmp_path):
+    a = _fake_run(tmp_path / "a", "DiFaReli", [
+        ("same", "r1", 0.07, 0.012, 0.13, 2.0), ("same", "r2", 0.08, 0.014, 0.15, 4.0),
+        ("different", "r1", 0.10, 0.020, 0.16, 3.0), ("different", "r2", 0.09, 0.022, 0.18, 3.0)])
+    b = _fake_run(tmp_path / "b", "DiFaReli++_ss", [
+        ("different", "r1", 0.08, 0.015, 0.11, 0.1), ("same", "r1", 0.05, 0.007, 0.10, 0.05),
+        ("same", "r2", 0.06, 0.009, 0.12, 0.05), ("different", "r2", 0.09, 0.017, 0.12, 0.1)])
+    return a, b
+
+
+def test_merge_runs_groups_method_by_protocol(two_runs):
+    table = T.merge_runs(two_runs)
+    assert table.methods == ["DiFaReli", "DiFaReli++_ss"]
+    assert table.protocols == ["same", "different"]  # (i) before (ii), whatever the file order
+    c = table.cells[("DiFaReli", "same")]
+    assert c["dssim"].mean == pytest.approx(0.075) and c["dssim"].n == 2
+    # two values: SE = |x1 - x2| / 2
+    assert c["dssim"].se == pytest.approx(0.005)
+    assert c["mse"].se == pytest.approx(0.001)
+    assert table.cells[("DiFaReli++_ss", "different")]["lpips"].mean == pytest.approx(0.115)
+    assert table.seconds["DiFaReli"].mean == pytest.approx(3.0)
+    assert table.seconds["DiFaReli++_ss"].mean == pytest.approx(0.075)
+    assert T.merge_runs(two_runs, methods=["DiFaReli++_ss"]).methods == ["DiFaReli++_ss", "DiFaReli"]
+
+
+def test_merge_rejects_duplicates_and_missing(two_runs, tmp_path):
+    with pytest.raises(ValueError, match="duplicate"):
+        T.merge_runs([two_runs[0], two_runs[0]])
+    with pytest.raises(FileNotFoundError):
+        T.merge_runs([tmp_path / "nope"])
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    (bad / T.PER_IMAGE_CSV).write_text("method,protocol,dssim\nx,same,0.1\n")
+    with pytest.raises(ValueError, match="missing columns"):
+        T.merge_runs([bad])
+
+
+def test_markdown_has_numbers_and_bold_best(two_runs):
+    md = T.merge_runs(two_runs).to_markdown()
+    lines = md.strip().splitlines()
+    assert lines[0].startswith("| Method | (i) same subject DSSIM | (i) same subject MSE")
+    assert lines[0].endswith("(ii) different subject LPIPS | s/img |")
+    assert len(lines) == 4
+    difa, ss = lines[2], lines[3]
+    assert "0.0750 ± 0.0050" in difa and "0.0130 ± 0.0010" in difa and "| 3 |" in difa
+    assert "**0.0550 ± 0.0050**" in ss and "**0.0850 ± 0.0050**" in ss  # (i) and (ii) DSSIM best
+    assert "0.0950 ± 0.0050" in difa and "**" not in difa.split("|")[4]  # (ii) DSSIM: loser not bold
+    assert difa.count("|") == ss.count("|") == 2 + 6 + 1
+
+
+def test_latex_table_shape_and_escaping(two_runs):
+    tex = T.merge_runs(two_runs).to_latex(caption="Multi-PIE relighting")
+    assert r"\begin{tabular}{lccccccc}" in tex
+    assert r"\multicolumn{3}{c}{(i) same subject} & \multicolumn{3}{c}{(ii) different subject}" in tex
+    assert r"\cmidrule(lr){2-4}\cmidrule(lr){5-7}" in tex
+    row = next(line for line in tex.splitlines() if line.startswith("DiFaReli++"))
+    assert row.startswith(r"DiFaReli++\_ss & $\mathbf{0.0550} \pm 0.0050$ & $\mathbf{0.0080} \pm 0.0010$")
+    assert row.endswith(r"& 0.075 \\")
+    assert row.count("&") == 7
+    difa = next(line for line in tex.splitlines() if line.startswith("DiFaReli &"))
+    assert r"$0.0750 \pm 0.0050$" in difa and r"\mathbf" not in difa.split("&")[1]
+
+
+def test_wide_csv_full_precision(two_runs, tmp_path):
+    out = tmp_path / "table.csv"
+    text = T.merge_runs(two_runs).to_csv(out)
+    assert out.read_text() == text
+    rows = list(csv.DictReader(text.splitlines()))
+    assert rows[0]["method"] == "DiFaReli"
+    assert float(rows[0]["same_dssim_mean"]) == pytest.approx(0.075, abs=1e-15)
+    assert float(rows[1]["different_mse_se"]) == pytest.approx(0.001, abs=1e-15)
+    assert rows[1]["same_n"] == "2" and float(rows[1]["seconds_per_image"]) == pytest.approx(0.075)
+
+
+def test_single_image_se_renders_na():
+    t = T.summarize([T.Record("A", "same", "r1", 0.1, 0.01, 0.2)])
+    assert "0.1000 ± n/a" in t.to_markdown()
+    assert "–" in t.to_markdown().splitlines()[-1]  # unknown seconds
