@@ -11,6 +11,7 @@ the ray backend (embree or pure Python), then a per-record estimate for SynthFac
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import time
 
@@ -20,7 +21,7 @@ import trimesh
 from difareli.render import OrthoCamera, Scene, cast_shadow, cast_shadows, render_gbuffer, shading_reference
 
 
-def bench_mesh(rings: int = 71) -> tuple[trimesh.Trimesh, np.ndarray]:
+def bench_mesh(rings: int = 50) -> tuple[trimesh.Trimesh, np.ndarray]:
     """Bumpy unit sphere (~2 * rings * (rings + 1) triangles) + a box in front + a backdrop, with labels."""
     head = trimesh.creation.uv_sphere(radius=1.0, count=[rings, rings + 1])
     v = head.vertices
@@ -36,15 +37,17 @@ def bench_mesh(rings: int = 71) -> tuple[trimesh.Trimesh, np.ndarray]:
     return mesh, labels
 
 
-def median_ms(fn, repeats: int) -> float:
-    """Median wall time of ``fn()`` in milliseconds (after one warm-up call)."""
+def median_ms(fn, repeats: int) -> str:
+    """Median wall and CPU (process) time of ``fn()`` in ms, after one warm-up call. CPU time is the
+    steadier figure on a shared machine; it sums over threads if the backend uses several."""
     fn()
-    times = []
+    wall, cpu = [], []
     for _ in range(repeats):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         fn()
-        times.append(time.perf_counter() - t0)
-    return 1e3 * statistics.median(times)
+        wall.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
+    return f"{1e3 * statistics.median(wall):8.2f} ms wall {1e3 * statistics.median(cpu):8.2f} ms cpu"
 
 
 def main() -> None:
@@ -67,16 +70,18 @@ def main() -> None:
     n = args.res
     g = render_gbuffer(scene, cam, n, n)
 
-    print(f"backend: {scene.backend}; mesh: {len(mesh.faces)} triangles; {n}x{n}, median of {args.repeats}")
-    print(f"  scene build (BVH)        {build:8.2f} ms")
-    print(f"  primary G-buffer         {median_ms(lambda: render_gbuffer(scene, cam, n, n), args.repeats):8.2f} ms"
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    print(f"backend: {scene.backend}; mesh: {len(mesh.faces)} triangles; {n}x{n}, median of {args.repeats}; "
+          f"{os.cpu_count()} cores, load {load:.1f}")
+    print(f"  scene build (BVH)        {build}")
+    print(f"  primary G-buffer         {median_ms(lambda: render_gbuffer(scene, cam, n, n), args.repeats)}"
           f"  ({g.hit.mean():.0%} pixels hit)")
     frac = cast_shadow(scene, g, dirs[0]).sum() / max(g.hit.sum(), 1)
-    print(f"  shadow pass (1 light)    {median_ms(lambda: cast_shadow(scene, g, dirs[0]), args.repeats):8.2f} ms"
+    print(f"  shadow pass (1 light)    {median_ms(lambda: cast_shadow(scene, g, dirs[0]), args.repeats)}"
           f"  ({frac:.1%} of hit pixels in cast shadow)")
     print(f"  shadow passes batched x{len(dirs)} "
-          f"{median_ms(lambda: cast_shadows(scene, g, dirs), args.repeats):8.2f} ms")
-    print(f"  shading reference        {median_ms(lambda: shading_reference(g, light), args.repeats):8.2f} ms")
+          f"{median_ms(lambda: cast_shadows(scene, g, dirs), args.repeats)}")
+    print(f"  shading reference        {median_ms(lambda: shading_reference(g, light), args.repeats)}")
 
     r = args.record_res
 
@@ -86,9 +91,8 @@ def main() -> None:
         cast_shadows(sc, gb, dirs[: args.shadows])
         shading_reference(gb, light)
 
-    per = median_ms(record, args.repeats)
-    print(f"per record at {r}x{r} (build + G-buffer + {args.shadows} shadows + shading): {per:.2f} ms"
-          f" -> 1000 records in {per:.1f} s")
+    print(f"per record at {r}x{r} (build + G-buffer + {args.shadows} shadows + shading): "
+          f"{median_ms(record, args.repeats)}  (x1000 records: ms -> s)")
 
 
 if __name__ == "__main__":

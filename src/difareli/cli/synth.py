@@ -3,25 +3,34 @@
 from __future__ import annotations
 
 import sys
+from pathlib import Path
 
 import hydra
 from omegaconf import DictConfig, OmegaConf
+
+#: The repository's conf/ as an absolute path: a relative config_path is resolved as a Python package
+#: ("conf") when the module runs through its console script, and conf/ is not a package.
+CONFIG_DIR = str(Path(__file__).resolve().parents[3] / "conf")
 
 #: Integer keys and their smallest valid values, checked before any work starts.
 _MINIMA = {"subjects": 1, "lights": 1, "resolution": 16, "workers": 1, "light_group_size": 1}
 
 
 def validate(cfg: DictConfig) -> None:
-    """Raise ValueError naming the first invalid key."""
+    """Raise ConfigError (a ValueError) naming the first invalid key."""
+    from difareli.synth.generator import ConfigError
+
+    if OmegaConf.is_missing(cfg, "out_dir") or not str(cfg.out_dir):
+        raise ConfigError("out_dir is required: the store root, e.g. out_dir=data/synthfaces_64")
     for key, lo in _MINIMA.items():
         value = cfg[key]
         if not isinstance(value, int) or isinstance(value, bool) or value < lo:
-            raise ValueError(f"{key}={value!r} is invalid: must be an integer >= {lo}")
+            raise ConfigError(f"{key}={value!r} is invalid: must be an integer >= {lo}")
     if cfg.shading_region not in ("face", "mesh"):
-        raise ValueError(f"shading_region={cfg.shading_region!r} is invalid: use 'face' or 'mesh'")
+        raise ConfigError(f"shading_region={cfg.shading_region!r} is invalid: use 'face' or 'mesh'")
     fr = cfg.splits
     if any(float(v) < 0 for v in fr.values()) or sum(float(v) for v in fr.values()) <= 0:
-        raise ValueError(f"splits={OmegaConf.to_container(fr)} is invalid: fractions must be >= 0, sum > 0")
+        raise ConfigError(f"splits={OmegaConf.to_container(fr)} is invalid: fractions must be >= 0, sum > 0")
 
 
 def run(cfg: DictConfig):
@@ -56,11 +65,13 @@ def run(cfg: DictConfig):
     return report
 
 
-@hydra.main(version_base="1.3", config_path="../../../conf", config_name="synth")
+@hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="synth")
 def main(cfg: DictConfig) -> None:
+    from difareli.synth.generator import ConfigError
+
     try:
         run(cfg)
-    except ValueError as e:  # configuration errors: one clear line, no traceback
+    except ConfigError as e:  # bad or mismatching configuration: one clear line, no traceback
         raise SystemExit(f"difareli-synth: {e}") from None
 
 

@@ -45,9 +45,10 @@ class SamplerSpec:
                    options=tuple(sorted(sampler_options(cfg).items())))
 
     def grids(self, schedule: DiffusionSchedule) -> tuple[torch.Tensor, torch.Tensor]:
-        """(inversion grid ascending, generation grid descending), mirrors of each other."""
+        """(inversion grid ascending, generation grid descending), mirrors of each other except that with
+        ``alpha_zero_end`` the inversion's last point is T (abar = 0) while generation starts at T-1."""
         inv = schedule.time_grid(self.steps, kind=self.grid, direction="invert", alpha_zero_end=self.alpha_zero_end)
-        return inv, inv.flip(0)
+        return inv, schedule.time_grid(self.steps, kind=self.grid, direction="generate")
 
     def run(self, denoiser: Denoiser, x: torch.Tensor, grid: torch.Tensor, schedule: DiffusionSchedule, *,
             clip_x0: bool, callback=None, progress: bool = False) -> torch.Tensor:

@@ -145,8 +145,10 @@ class DiffusionSchedule:
             f[n + 1 - m:] = np.interp(lam, self.lambdas[::-1], np.arange(self.T, dtype=np.float64)[::-1])
         g = np.floor(f + 0.5).astype(np.int64)
         g[0], g[-1] = g0, self.T - 1
-        for i in range(1, n + 1):  # strictly increasing and leaving room for the points after i
-            g[i] = min(max(g[i], g[i - 1] + 1), self.T - 1 - (n - i))
+        # Sequentially g_k = min(max(g_k, g_{k-1} + 1), T-1-(n-k)): strictly increasing, leaving room for the
+        # points after k. In u_k = g_k - k that is a running max of min(u_k, T-1-n).
+        ks = np.arange(n + 1)
+        g = np.maximum.accumulate(np.minimum(g - ks, self.T - 1 - n)) + ks
         if alpha_zero_end:
             g[-1] = self.T
         return torch.from_numpy(g if direction == "invert" else g[::-1].copy())

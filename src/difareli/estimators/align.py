@@ -1,7 +1,8 @@
 """Face detection and FFHQ-style alignment (mediapipe 0.10.21 legacy solutions; models ship in the wheel).
 
-1. BlazeFace full-range detector (``face_detection``, model 1) on a copy shrunk to ``detect_max_side``; the
-   largest box wins and the face count is recorded (several faces are a note, not a failure).
+1. BlazeFace (``face_detection``) on a copy shrunk to ``detect_max_side``: the short-range model (0, faces
+   within ~2 m: portraits) first, the full-range model (1) only if it finds nothing; the largest box wins
+   and the face count is recorded (several faces are a note, not a failure).
 2. FaceMesh on a square crop around that box gives 478 landmarks in the original image.
 3. The FFHQ recipe (Karras et al., ``ffhq-dataset/download_ffhq.py``) turns the eye centres and the mouth
    corners into an oriented square ``quad``, which is resampled to ``size`` x ``size`` (reflect padding
@@ -104,34 +105,38 @@ class FaceAligner:
     """Detect the largest face and return the FFHQ-aligned ``size`` x ``size`` crop (see module doc)."""
 
     def __init__(self, size: int = 256, detect_max_side: int = 1024, min_detection_confidence: float = 0.5,
-                 model_selection: int = 1, crop_factor: float = 2.2, mesh_crop: int = 384):
+                 models: tuple[int, ...] = (0, 1), crop_factor: float = 2.2, mesh_crop: int = 384):
         self.size = int(size)
         self.detect_max_side = detect_max_side
         self.min_detection_confidence = min_detection_confidence
-        self.model_selection = model_selection
+        self.models = tuple(models)
         self.crop_factor = crop_factor
         self.mesh_crop = mesh_crop
-        self._detector = None
+        self._detectors: dict[int, object] = {}
         self.mesh = FaceMeshRunner(min_detection_confidence)
 
     def detect(self, rgb: np.ndarray) -> list[tuple[float, np.ndarray]]:
-        """(score, box x0, y0, w, h in original pixels) of every face, largest first."""
+        """(score, box x0, y0, w, h in original pixels) of every face, largest first; the detector models
+        are tried in ``models`` order until one finds a face."""
         import cv2
+        import mediapipe as mp
 
-        if self._detector is None:
-            import mediapipe as mp
-
-            self._detector = mp.solutions.face_detection.FaceDetection(
-                model_selection=self.model_selection, min_detection_confidence=self.min_detection_confidence)
         h, w = rgb.shape[:2]
         f = min(1.0, self.detect_max_side / max(h, w))
         small = rgb if f == 1.0 else cv2.resize(rgb, (round(w * f), round(h * f)), interpolation=cv2.INTER_AREA)
-        res = self._detector.process(np.ascontiguousarray(small))
-        boxes = []
-        for d in res.detections or []:
-            b = d.location_data.relative_bounding_box
-            boxes.append((float(d.score[0]), np.array([b.xmin * w, b.ymin * h, b.width * w, b.height * h])))
-        return sorted(boxes, key=lambda sb: -sb[1][2] * sb[1][3])
+        small = np.ascontiguousarray(small)
+        for model in self.models:
+            if model not in self._detectors:
+                self._detectors[model] = mp.solutions.face_detection.FaceDetection(
+                    model_selection=model, min_detection_confidence=self.min_detection_confidence)
+            res = self._detectors[model].process(small)
+            boxes = []
+            for d in res.detections or []:
+                b = d.location_data.relative_bounding_box
+                boxes.append((float(d.score[0]), np.array([b.xmin * w, b.ymin * h, b.width * w, b.height * h])))
+            if boxes:
+                return sorted(boxes, key=lambda sb: -sb[1][2] * sb[1][3])
+        return []
 
     def landmarks(self, rgb: np.ndarray, box: np.ndarray | None) -> np.ndarray | None:
         """FaceMesh landmarks (478, 3) in original pixels, from a square crop around ``box`` (or the image)."""

@@ -62,6 +62,8 @@ class DiffusionNet(nn.Module):
         """eps for ``x_t`` [B, C, H, W] at ``t`` ([B] long in 0..T-1 or float; a scalar is broadcast)."""
         if not torch.is_tensor(t) or t.ndim == 0:
             t = torch.as_tensor(t, device=x_t.device).expand(x_t.shape[0])
+        if t.shape != (x_t.shape[0],):
+            raise ValueError(f"expected timesteps [{x_t.shape[0]}] for x_t {tuple(x_t.shape)}, got {tuple(t.shape)}")
         cond = cond if cond is not None else self.condition()
         return self.unet(x_t, t, cond.nonspatial, self.spatial, cond.spatial)
 

@@ -10,6 +10,7 @@ MLP3 hidden 512. The public code picks the channel multipliers from the image si
 from __future__ import annotations
 
 import argparse
+from collections.abc import Sequence
 from typing import Any
 
 from .unet import UNetConfig
@@ -38,7 +39,8 @@ def get_config(preset: str, overrides: dict[str, Any] | None = None) -> UNetConf
     for key, value in (overrides or {}).items():
         if key not in UNetConfig.__dataclass_fields__:
             raise KeyError(f"unknown UNet option {key!r}; known: {sorted(UNetConfig.__dataclass_fields__)}")
-        values[key] = list(value) if isinstance(value, (list, tuple)) else value
+        # Hydra hands over ListConfig/DictConfig; keep the config plain so checkpoints and asdict() stay simple
+        values[key] = list(value) if isinstance(value, Sequence) and not isinstance(value, str) else value
     return UNetConfig(**values)
 
 

@@ -22,6 +22,8 @@ from .camera import OrthoCamera
 
 #: Primary rays start this far (relative to the mesh scale) in front of the nearest vertex.
 _RAY_START_MARGIN = 0.05
+#: Rays per intersector call.
+_RAY_CHUNK = 65536
 
 
 def _make_intersector(mesh: trimesh.Trimesh, backend: str):
@@ -45,15 +47,31 @@ def _make_intersector(mesh: trimesh.Trimesh, backend: str):
     return RayMeshIntersector(mesh), "python"
 
 
+def _normals(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit facet normals (F, 3) (0 for degenerate faces, right-hand winding) and area-weighted unit vertex
+    normals (V, 3); computed here because trimesh's angle-weighted version dominates a Scene build."""
+    tri = vertices[faces]
+    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # length = 2 * area
+    face_normals = _unit(cross)[0]
+    # Each face adds its area-weighted normal to its three vertices.
+    V = len(vertices)
+    summed = np.stack(
+        [sum(np.bincount(faces[:, k], weights=cross[:, c], minlength=V) for k in range(3)) for c in range(3)],
+        axis=-1,
+    )
+    return face_normals, _unit(summed)[0]
+
+
 class Scene:
     """A camera-space triangle mesh with per-triangle int ``labels`` (F,) and one ray intersector.
 
     ``labels`` default to 1 for every triangle; label 0 is reserved for "background" in the G-buffer but
-    may also be given to triangles (e.g. a backdrop). ``backend``: ``"auto"`` (embree if installed),
-    ``"embree"`` or ``"python"``.
+    may also be given to triangles (e.g. a backdrop). ``vertex_normals`` (V, 3) override the default
+    area-weighted average of facet normals. ``backend``: ``"auto"`` (embree if installed), ``"embree"`` or
+    ``"python"``. The Scene snapshots the geometry: build a new one if the mesh changes.
     """
 
-    def __init__(self, mesh: trimesh.Trimesh, labels=None, *, backend: str = "auto"):
+    def __init__(self, mesh: trimesh.Trimesh, labels=None, *, vertex_normals=None, backend: str = "auto"):
         faces = np.asarray(mesh.faces, dtype=np.int64)
         if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
             raise ValueError(f"Scene needs a non-empty triangle mesh, got faces of shape {faces.shape}")
@@ -69,8 +87,12 @@ class Scene:
         # Plain float64 copies: trimesh's cached properties re-hash arrays on each access.
         self.vertices = np.asarray(mesh.vertices, dtype=np.float64).copy()
         self.faces = faces.copy()
-        self.face_normals = np.asarray(mesh.face_normals, dtype=np.float64).copy()
-        self.vertex_normals = np.asarray(mesh.vertex_normals, dtype=np.float64).copy()
+        self.face_normals, self.vertex_normals = _normals(self.vertices, self.faces)
+        if vertex_normals is not None:
+            vn = np.asarray(vertex_normals, dtype=np.float64)
+            if vn.shape != self.vertices.shape:
+                raise ValueError(f"vertex_normals must have shape {self.vertices.shape}, got {vn.shape}")
+            self.vertex_normals = _unit(vn)[0]
         #: Length of the bounding-box diagonal; offsets (ray starts, shadow eps) are relative to it.
         self.scale = float(np.linalg.norm(np.ptp(self.vertices, axis=0))) or 1.0
         # Per-face tables so a render gathers once per hit instead of re-deriving per pixel.
@@ -82,11 +104,11 @@ class Scene:
         self.intersects_first(np.zeros((1, 3)), np.array([[0.0, 0.0, -1.0]]))
 
     @classmethod
-    def from_arrays(cls, vertices, faces, labels=None, *, backend: str = "auto") -> "Scene":
+    def from_arrays(cls, vertices, faces, labels=None, *, vertex_normals=None, backend: str = "auto") -> "Scene":
         """Scene from raw ``vertices (V, 3)`` and ``faces (F, 3)``; the arrays are kept as given
         (no vertex merging), so ``labels`` and face indices stay aligned."""
         mesh = trimesh.Trimesh(np.asarray(vertices, dtype=np.float64), np.asarray(faces, dtype=np.int64), process=False)
-        return cls(mesh, labels, backend=backend)
+        return cls(mesh, labels, vertex_normals=vertex_normals, backend=backend)
 
     @property
     def num_faces(self) -> int:
@@ -95,9 +117,12 @@ class Scene:
 
     def intersects_first(self, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
         """Index of the first triangle each ray ``(N, 3)`` hits, -1 on a miss (directions need not be unit)."""
-        if len(origins) == 0:
-            return np.zeros(0, dtype=np.int64)
-        return np.asarray(self.intersector.intersects_first(origins, directions), dtype=np.int64)
+        out = np.empty(len(origins), dtype=np.int64)
+        # Chunked: embree queries get superlinearly slower past ~1e5 rays per call (cache misses).
+        for i in range(0, len(origins), _RAY_CHUNK):
+            sl = slice(i, i + _RAY_CHUNK)
+            out[sl] = self.intersector.intersects_first(origins[sl], directions[sl])
+        return out
 
 
 @dataclass
@@ -127,8 +152,8 @@ class GBuffer:
 
 
 def _xy_barycentric_affine(tri: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per-triangle affine maps ``(F, 6)`` (two rows of 3) from ``(x, y, 1)`` to barycentrics ``(b1, b2)`` of the triangles'
-    xy projection, and a mask of triangles seen exactly edge-on (no xy area; their map is 0).
+    """Per-triangle affine maps ``(F, 6)`` (two rows of 3) from ``(x, y, 1)`` to barycentrics ``(b1, b2)`` of
+    the triangles' xy projection, and a mask of triangles seen exactly edge-on (no xy area; their map is 0).
 
     Exact for rays along -z: an orthographic projection is affine, and affine maps keep barycentrics.
     """
@@ -189,10 +214,11 @@ def render_gbuffer(scene: Scene, cam: OrthoCamera, H: int, W: int) -> GBuffer:
     degenerate = vnorm < 1e-8
     vn[degenerate] = fn[degenerate]
     # Face the viewer: orient by the facet (one decision per triangle, so no seams inside a triangle);
-    # closed, outward-wound meshes are never flipped, open meshes seen from behind are.
+    # closed, outward-wound meshes are never flipped, open meshes seen from behind are. The smooth normal
+    # then joins the facet's side, which also repairs inverted user-supplied vertex normals.
     facing = np.where(fn[:, 2] != 0, fn[:, 2], vn[:, 2])
-    sign = np.where(facing < 0, -1.0, 1.0)[:, None]
-    fn, vn = fn * sign, vn * sign
+    fn = fn * np.where(facing < 0, -1.0, 1.0)[:, None]
+    vn = vn * np.where((vn * fn).sum(axis=1) < 0, -1.0, 1.0)[:, None]
 
     n = H * W
     normal = np.zeros((n, 3), dtype=np.float32)

@@ -56,22 +56,12 @@ def cast_shadow(scene: Scene, gbuffer: GBuffer, direction, eps: float = DEFAULT_
 
 
 def cast_shadows(scene: Scene, gbuffer: GBuffer, directions, eps: float = DEFAULT_EPS) -> np.ndarray:
-    """Cast-shadow maps ``(L, H, W)`` for ``L`` light directions ``(L, 3)`` in one batched ray query."""
+    """Cast-shadow maps ``(L, H, W)`` for ``L`` light directions ``(L, 3)``.
+
+    One ray query per light: merging the lights into one query is slower with embree (cache misses).
+    """
     dirs = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
-    dirs = np.stack([_unit_direction(d) for d in dirs]) if len(dirs) else dirs
-    H, W = gbuffer.shape
-    out = np.zeros((len(dirs), H * W), dtype=bool)
-    origins, ray_dirs, where = [], [], []
-    fn_all = gbuffer.face_normal.reshape(-1, 3).astype(np.float64)
-    pts_all = gbuffer.points.reshape(-1, 3)
-    for i, d in enumerate(dirs):  # loop over lights only; rays are batched
-        idx = np.flatnonzero(lit_candidates(gbuffer, d).reshape(-1))
-        origins.append(pts_all[idx] + (eps * scene.scale) * fn_all[idx])
-        ray_dirs.append(np.broadcast_to(d, (len(idx), 3)))
-        where.append((np.full(len(idx), i), idx))
-    if origins:
-        blocked = scene.intersects_first(np.concatenate(origins), np.concatenate(ray_dirs)) >= 0
-        li = np.concatenate([w[0] for w in where])
-        pi = np.concatenate([w[1] for w in where])
-        out[li, pi] = blocked
-    return out.reshape(len(dirs), H, W)
+    out = np.zeros((len(dirs), *gbuffer.shape), dtype=bool)
+    for i, d in enumerate(dirs):
+        out[i] = cast_shadow(scene, gbuffer, d, eps)
+    return out

@@ -32,7 +32,7 @@ from difareli.encodings import PART_INDEX
 from difareli.synth.face_model import PIVOT, FaceModel, FaceParams, pose_points
 
 SKULL_CENTRE = np.array([0.0, 0.05, 0.0])
-SKULL_RADII = np.array([0.5, 0.75, 0.68, 0.6])  # x, y, z front, z back
+SKULL_RADII = np.array([0.52, 0.75, 0.68, 0.6, 0.9])  # x, y top, z front, z back, y bottom
 _BEHIND_FACE = 0.05  # skull kept this far behind the mean face (identity variation stays in front of it)
 _HAIR_LIFT = 0.025  # hair over the forehead floats this far in front of the face
 
@@ -55,7 +55,7 @@ class AccessoryParams:
     brim_width: float = 0.35
 
 
-def sample_accessories(rng: np.random.Generator, *, hat_prob: float = 0.25, bald_prob: float = 0.05) -> AccessoryParams:
+def sample_accessories(rng: np.random.Generator, *, hat_prob: float = 0.2, bald_prob: float = 0.05) -> AccessoryParams:
     """Random accessory style."""
     u = rng.uniform(size=12)
     return AccessoryParams(
@@ -74,8 +74,11 @@ def sample_accessories(rng: np.random.Generator, *, hat_prob: float = 0.25, bald
     )
 
 
+_SPHERE_RES = (32, 64)  # skull sphere grid (rings, azimuths); the hair cap reuses its azimuths
+
+
 @functools.lru_cache(maxsize=8)
-def _sphere(n_lat: int = 32, n_lon: int = 64) -> tuple[np.ndarray, np.ndarray]:
+def _sphere(n_lat: int = _SPHERE_RES[0], n_lon: int = _SPHERE_RES[1]) -> tuple[np.ndarray, np.ndarray]:
     """Closed unit UV sphere (outward winding): vertices (poles first/last) and faces."""
     th = np.linspace(0, np.pi, n_lat + 1)[1:-1]
     ph = np.linspace(-np.pi, np.pi, n_lon, endpoint=False)
@@ -110,9 +113,13 @@ def _cylinder(n_around: int = 48, caps: bool = True) -> tuple[np.ndarray, np.nda
 
 
 def _ellipsoid(d: np.ndarray, centre: np.ndarray, radii: np.ndarray) -> np.ndarray:
-    """Points of an egg ellipsoid (radii x, y, z front, z back) along unit directions ``d``."""
+    """Points of an egg ellipsoid (radii x, y top, z front, z back, y bottom) along unit directions ``d``.
+
+    The deeper bottom reaches into the neck so the jaw corners are backed by the skull.
+    """
     rz = np.where(d[:, 2] > 0, radii[2], radii[3])
-    return centre + d * np.c_[np.full(len(d), radii[0]), np.full(len(d), radii[1]), rz]
+    ry = np.where(d[:, 1] > 0, radii[1], radii[4])
+    return centre + d * np.c_[np.full(len(d), radii[0]), ry, rz]
 
 
 class _Template:
@@ -146,7 +153,8 @@ class _Template:
         from trimesh.ray.ray_pyembree import RayMeshIntersector
 
         o = np.c_[xy, np.full(len(xy), 10.0)]
-        tri, ray, loc = RayMeshIntersector(mesh).intersects_id(o, np.tile([0.0, 0.0, -1.0], (len(xy), 1)), multiple_hits=False, return_locations=True)
+        down = np.tile([0.0, 0.0, -1.0], (len(xy), 1))
+        _, ray, loc = RayMeshIntersector(mesh).intersects_id(o, down, multiple_hits=False, return_locations=True)
         z = np.full(len(xy), -np.inf)
         z[ray] = loc[:, 2]
         return z
@@ -189,19 +197,32 @@ class HeadGeometry:
         return trimesh.Trimesh(self.vertices, self.faces, process=False)
 
 
-def _hair(t: _Template, a: AccessoryParams, disp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    d = t.dirs
-    radii = SKULL_RADII * np.array([1 + a.hair_volume, 1 + 0.7 * a.hair_volume, 1 + 0.5 * a.hair_volume, 1 + a.hair_volume])
-    v = _ellipsoid(d, SKULL_CENTRE + [0, 0.02, -0.02], radii) + disp
+def _hair(t: _Template, a: AccessoryParams, disp: np.ndarray, n_rows: int = 24) -> tuple[np.ndarray, np.ndarray]:
+    """Hair cap: a grid from the crown down to the hairline, so its edge follows the hairline exactly."""
+    n_lat, n_lon = _SPHERE_RES
+    phi = np.linspace(-np.pi, np.pi, n_lon, endpoint=False)
+    # Hairline (unit-sphere y): `hairline` at the forehead (azimuth 0) down to -hair_back at the back (azimuth pi).
+    thr = a.hairline + (-a.hair_back - a.hairline) * (np.abs(phi) / np.pi) ** 1.5
+    theta = np.arccos(np.clip(thr, -0.98, 0.98))[None, :] * (np.arange(1, n_rows + 1)[:, None] / n_rows)
+    ph = np.broadcast_to(phi, theta.shape)
+    rows = np.stack([np.sin(theta) * np.sin(ph), np.cos(theta), np.sin(theta) * np.cos(ph)], -1).reshape(-1, 3)
+    d = np.r_[[[0.0, 1.0, 0.0]], rows]
+    # Follow the face like the nearest point of the skull's sphere grid (same azimuths, rings at pi / n_lat).
+    ring = np.clip(np.rint(theta / (np.pi / n_lat)).astype(np.int64) - 1, 0, n_lat - 2)
+    near = np.r_[0, (1 + ring * n_lon + np.arange(n_lon)[None, :]).ravel()]
+    dd = disp[near]
+    vol = a.hair_volume  # hair is thinner on the crown and the forehead than at the sides and back
+    radii = SKULL_RADII * np.array([1 + vol, 1 + 0.7 * vol, 1 + 0.5 * vol, 1 + vol, 1])
+    v = _ellipsoid(d, SKULL_CENTRE + [0, 0.02, -0.02], radii) + dd
     front = d[:, 2] > 0  # only the front half can be over the face (the back shares its xy)
-    zf = t.grid_front_z(v[front, :2]) + disp[front, 2] + _HAIR_LIFT
+    zf = t.grid_front_z(v[front, :2]) + dd[front, 2] + _HAIR_LIFT
     v[front, 2] = np.maximum(v[front, 2], zf)
-    # Hairline: from `hairline` at the forehead (azimuth 0) down to -hair_back at the back (azimuth pi).
-    az = np.abs(np.arctan2(d[:, 0], d[:, 2])) / np.pi
-    thr = a.hairline + (-a.hair_back - a.hairline) * az**1.5
-    inside = d[:, 1] > thr
-    keep = inside[t.sphere_faces].all(1)
-    return v, t.sphere_faces[keep]
+    idx = lambda r, c: 1 + r * n_lon + (c % n_lon)  # noqa: E731
+    c = np.arange(n_lon)
+    f = [np.c_[np.zeros(n_lon, np.int64), idx(0, c + 1), idx(0, c)]]
+    for r in range(n_rows - 1):
+        f += [np.c_[idx(r, c), idx(r, c + 1), idx(r + 1, c + 1)], np.c_[idx(r, c), idx(r + 1, c + 1), idx(r + 1, c)]]
+    return v, np.concatenate(f)
 
 
 def _hat(a: AccessoryParams, hair_radii: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

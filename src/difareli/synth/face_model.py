@@ -13,7 +13,7 @@ Processing, done once and cached (``FaceModel.load``):
 - crop: ears, the sides behind the cheeks (z < 0.15) and the neck below the throat (y < -0.76) are dropped;
   the skull and neck of ``accessories`` close the head.
 - subsample: one vertex per 0.016 voxel of the mean shape (closest to the voxel centre; the 68 landmarks are
-  always kept), ~8k vertices.
+  always kept): ~10k vertices, ~20k triangles.
 - triangulate once: Delaunay of a spherical projection around a point inside the head (the frontal xy
   projection folds at the cheeks and the nostrils); boundary triangles with long 3D edges and triangles that
   face the projection centre (nostril folds) are removed, and the topology is reused for every subject.
@@ -129,7 +129,8 @@ def _triangulate(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     n = np.cross(v[tri[:, 1]] - v[tri[:, 0]], v[tri[:, 2]] - v[tri[:, 0]])
     cen = v[tri].mean(1)
     edge = np.stack([np.linalg.norm(v[tri[:, i]] - v[tri[:, (i + 1) % 3]], axis=1) for i in range(3)], 1).max(1)
-    facing = np.einsum("ij,ij->i", n, cen - _PROJ_CENTRE) / (np.linalg.norm(n, axis=1) * np.linalg.norm(cen - _PROJ_CENTRE, axis=1) + 1e-12)
+    ray = cen - _PROJ_CENTRE
+    facing = np.einsum("ij,ij->i", n, ray) / (np.linalg.norm(n, axis=1) * np.linalg.norm(ray, axis=1) + 1e-12)
     if np.median(facing) < 0:
         tri = tri[:, [0, 2, 1]]
         facing = -facing
@@ -139,7 +140,7 @@ def _triangulate(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     while True:
         sub = tri[keep]
         e = np.sort(np.stack([sub[:, [0, 1]], sub[:, [1, 2]], sub[:, [2, 0]]], 1), axis=2).reshape(-1, 2)
-        _, inv, cnt = np.unique(e, axis=0, return_inverse=True, return_counts=True)
+        _, inv, cnt = np.unique(e[:, 0] * len(v) + e[:, 1], return_inverse=True, return_counts=True)
         on_boundary = (cnt[inv.ravel()] == 1).reshape(-1, 3).any(1)
         drop = np.flatnonzero(keep)[on_boundary & long_edge[keep]]
         if len(drop) == 0:
@@ -161,6 +162,9 @@ def _polygon_labels(xy: np.ndarray, lm: np.ndarray) -> np.ndarray:
 
     for name, ids in (("r_brow", range(17, 22)), ("l_brow", range(22, 27))):
         line = lm[list(ids)]
+        # Extend the polyline past its end landmarks so they fall inside the thickened band.
+        line = np.r_[[2 * line[0] - line[1]], line, [2 * line[-1] - line[-2]]]
+        line[[0, -1]] = line[[1, -2]] + 0.25 * (line[[0, -1]] - line[[1, -2]])
         poly = np.r_[line + [0, 0.012], line[::-1] - [0, 0.045]]
         lab[inside(poly)] = PART_INDEX[name]
     n27, n31, n35, n33 = lm[27], lm[31], lm[35], lm[33]
@@ -196,7 +200,7 @@ class FaceModel:
         # 3DDFA params: 12 pose, 40 shape, 10 expression; the std scales unit-variance coefficients.
         self.id_std = np.asarray(wh["param_std"][12 : 12 + N_ID], np.float64)
         self.exp_std = np.asarray(wh["param_std"][12 + N_ID : 12 + N_ID + N_EXP], np.float64)
-        x, y, z = mean_full.T
+        _, y, z = mean_full.T
         crop = (z > 0.15) & (y > -0.76)
         crop[lm_full] = True
         cand = np.flatnonzero(crop)
@@ -212,7 +216,7 @@ class FaceModel:
             sub = np.delete(sub, bad)
         used = np.unique(faces)
         sub = sub[used]  # drop vertices that lost all their triangles
-        remap = np.full(len(used) and used.max() + 1, -1)
+        remap = np.full(used.max() + 1, -1)
         remap[used] = np.arange(len(used))
         self.faces = remap[faces].astype(np.int32)
         #: Index of every model vertex into the 53,215 BFM vertices.
@@ -224,8 +228,8 @@ class FaceModel:
         rows = (3 * sub[:, None] + np.arange(3)).ravel()
         id_basis = np.load(d / "w_shp_sim.npy", mmap_mode="r")[rows] * _BFM_SCALE * self.id_std
         exp_basis = np.load(d / "w_exp_sim.npy", mmap_mode="r")[rows] * _BFM_SCALE * self.exp_std
-        # Stored transposed (coefficient-major): a vector-matrix product over contiguous rows is ~4x faster
-        # than a BLAS matvec on the tall (3V, 50) matrix when the cores are busy.
+        # Stored coefficient-major and combined with einsum (no BLAS threads): a threaded BLAS matvec on the
+        # tall (3V, 50) matrix took 3-25 ms on busy cores, this takes ~1-3 ms.
         self._basis_t = np.ascontiguousarray(np.c_[id_basis, exp_basis].T, dtype=np.float32)
         #: Bases scaled to whitened coefficients, (3V, 40) and (3V, 10), xyz interleaved per vertex.
         self.id_basis, self.exp_basis = self._basis_t[:N_ID].T, self._basis_t[N_ID:].T
@@ -240,7 +244,7 @@ class FaceModel:
     @classmethod
     @functools.lru_cache(maxsize=1)
     def load(cls) -> FaceModel:
-        """The processed model (built once per process, ~1 s)."""
+        """The processed model (built once per process, ~2 s)."""
         return cls()
 
     def _triangle_labels(self) -> np.ndarray:
@@ -262,7 +266,12 @@ class FaceModel:
 
     def sample_params(self, rng: np.random.Generator, *, identity_scale: float = 1.0, expression_scale: float = 0.8,
                       yaw_max: float = 35.0, pitch_max: float = 15.0, roll_max: float = 10.0) -> FaceParams:
-        """A random subject: N(0,1) whitened coefficients (clipped to +-3), truncated-normal pose (sigma = max/2)."""
+        """A random subject: N(0,1) whitened coefficients, truncated-normal pose (sigma = max / 2, clipped at max).
+
+        Identity is clipped to +-3 sigma, expression to +-2.5 sigma then scaled; the 3DDFA fit means in
+        ``param_whitening.pkl`` are ignored so that zero coefficients give the BFM mean face. Expressions that
+        would push the lips through each other are opened along the jaw component just enough to touch.
+        """
         ident = np.clip(rng.standard_normal(N_ID), -3, 3) * identity_scale
         expr = np.clip(rng.standard_normal(N_EXP), -2.5, 2.5) * expression_scale
         gap = self._gap0 + self._gap_id @ ident + self._gap_exp @ expr
@@ -275,7 +284,7 @@ class FaceModel:
     def shape(self, params: FaceParams) -> np.ndarray:
         """Unposed vertices (V, 3) float32 for the identity and expression of ``params``."""
         coeffs = np.r_[params.identity, params.expression].astype(np.float32)
-        return self.mean + (coeffs @ self._basis_t).reshape(-1, 3)
+        return self.mean + np.einsum("i,ij->j", coeffs, self._basis_t).reshape(-1, 3)
 
     def build(self, params: FaceParams, posed: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """Face mesh ``(vertices (V,3) float32, faces (F,3) int32)``, posed about ``PIVOT`` unless ``posed=False``."""

@@ -25,8 +25,12 @@ data-set min/max) so that records can be written one at a time and stores compar
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
 import math
+import multiprocessing as mp
 import os
+import re
 import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field
@@ -53,6 +57,10 @@ _FACE_IDX = np.array([PART_INDEX[p] for p in FACE_PARTS])
 _FG_IDX = np.array([PART_INDEX[p] for p in FOREGROUND_PARTS])
 
 
+class ConfigError(ValueError):
+    """An invalid SynthFaces configuration, or one that does not match the existing store."""
+
+
 @dataclass(frozen=True)
 class SynthConfig:
     """What defines a SynthFaces data set (stored in the store header; a resume must match it)."""
@@ -69,14 +77,43 @@ class SynthConfig:
     def __post_init__(self):
         for key, lo in (("subjects", 1), ("lights", 1), ("resolution", 16), ("light_group_size", 1)):
             if int(getattr(self, key)) < lo:
-                raise ValueError(f"{key}={getattr(self, key)} is invalid: must be >= {lo}")
+                raise ConfigError(f"{key}={getattr(self, key)} is invalid: must be >= {lo}")
         object.__setattr__(self, "splits", {str(k): float(v) for k, v in dict(self.splits).items()})
         if self.shading_region not in ("face", "mesh"):
-            raise ValueError(f"shading_region={self.shading_region!r} is invalid: use 'face' or 'mesh'")
+            raise ConfigError(f"shading_region={self.shading_region!r} is invalid: use 'face' or 'mesh'")
 
     def header_meta(self) -> dict:
         return {"generator": "synthfaces", **asdict(self), "gamma": "none", "identity_dim": IDENTITY_DIM,
                 "shadow_c": {"s_min": S_MIN, "c_lo": C_LO, "c_hi": C_HI}}
+
+
+@contextlib.contextmanager
+def single_thread_blas():
+    """Run numpy's OpenBLAS on one thread: its multi-threaded gemv sums in a thread-count dependent order,
+    which changed mesh vertices in the last float bit (and pixels at silhouettes) between a run in this
+    process and one in pool workers. (threadpoolctl does this too but is not a dependency.)"""
+    libs = []
+    try:
+        maps = open("/proc/self/maps").read()
+    except OSError:
+        maps = ""
+    for path in sorted(set(re.findall(r"(/\S*openblas\S*\.so\S*)", maps))):
+        try:
+            lib = ctypes.CDLL(path)
+        except OSError:
+            continue
+        for prefix, suffix in (("scipy_openblas", "64_"), ("openblas", "64_"), ("openblas", ""), ("scipy_openblas", "")):
+            get, set_ = f"{prefix}_get_num_threads{suffix}", f"{prefix}_set_num_threads{suffix}"
+            if hasattr(lib, get) and hasattr(lib, set_):
+                libs.append((getattr(lib, set_), int(getattr(lib, get)())))
+                break
+    for set_, _ in libs:
+        set_(ctypes.c_int(1))
+    try:
+        yield
+    finally:
+        for set_, n in libs:
+            set_(ctypes.c_int(n))
 
 
 def normalise_c(c):
@@ -190,7 +227,7 @@ def _open_store(out_dir: str, cfg: SynthConfig, durable: bool) -> EncodingStore:
         have = store.store_meta
         diff = {k: (have.get(k), v) for k, v in want.items() if have.get(k) != v}
         if diff:
-            raise ValueError(f"store {out_dir} was generated with a different configuration "
+            raise ConfigError(f"store {out_dir} was generated with a different configuration "
                              f"(key: (existing, requested)) {diff}; use a new out_dir to generate this one")
     return EncodingStore.create(out_dir, dims, ENCODINGS, want, durable=durable)
 
@@ -205,7 +242,8 @@ def _work(args) -> int:
     # Pool task: render one subject's missing lights and write them; returns the number written.
     out_dir, cfg, k, todo, split, durable = args
     store = EncodingStore.open(out_dir, durable=durable)
-    return sum(bool(store.write(rid, arrays, meta)) for rid, arrays, meta in render_records(k, todo, cfg, split))
+    with single_thread_blas():
+        return sum(bool(store.write(rid, arrays, meta)) for rid, arrays, meta in render_records(k, todo, cfg, split))
 
 
 @dataclass
@@ -231,8 +269,11 @@ def generate(out_dir: str, subjects: int, lights: int, resolution: int, seed: in
     into place whole either way).
     """
     cfg = SynthConfig(subjects=subjects, lights=lights, resolution=resolution, seed=seed, **options)
+    try:
+        splits = sp.assign_splits(cfg.subjects, cfg.splits, cfg.light_group_size, cfg.seed)
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
     store = _open_store(out_dir, cfg, durable)
-    splits = sp.assign_splits(cfg.subjects, cfg.splits, cfg.light_group_size, cfg.seed)
     split_of = sp.split_of(splits)
     existing = set(store.ids())
     tasks, skipped = [], 0
@@ -246,7 +287,12 @@ def generate(out_dir: str, subjects: int, lights: int, resolution: int, seed: in
     written = 0
     if tasks:
         if workers > 1 and len(tasks) > 1:
-            with ProcessPoolExecutor(max_workers=workers) as pool:
+            # Build the face model and head template once here; forked workers inherit them (~1-5 s each).
+            from difareli.synth.accessories import _template
+
+            _template()
+            ctx = mp.get_context("fork") if "fork" in mp.get_all_start_methods() else None
+            with ProcessPoolExecutor(max_workers=min(workers, len(tasks)), mp_context=ctx) as pool:
                 for n in pool.map(_work, tasks, chunksize=1):
                     written += n
                     if progress:

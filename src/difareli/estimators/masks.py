@@ -1,0 +1,163 @@
+"""Part masks over ``MASK_PARTS`` from FaceMesh outlines plus mediapipe selfie segmentation.
+
+No face parser with shipped weights exists offline (OFFLINE.md), so:
+
+- face parts are polygons of FaceMesh landmark sets (``face_mesh_connections``): the face oval is ``skin``,
+  painted over in this order by ``nose`` (convex hull of FACEMESH_NOSE), brows, eyes, ``u_lip``/``l_lip`` (between the outer and inner lip
+  contours) and ``mouth`` (inside the inner contour). Left/right are the subject's, as in mediapipe and
+  SynthFaces (``l_eye`` is on the image right).
+- non-facial parts come from the selfie-segmentation person mask (``person``, probability > 0.5) outside
+  the face oval, by fixed rules in units of the face height ``h`` (forehead top to chin) and width ``w``:
+  ``hair`` = person pixels above the jaw line (midway between mouth corners and chin); ``neck`` = person
+  pixels below it, less than ``neck_depth * h`` under the chin and within ``neck_halfwidth * w`` of the
+  chin horizontally; ``clothes`` = the remaining person pixels below the jaw line. ``hat`` is never
+  produced (nothing tells a hat from hair), ears count as hair or skin depending on where they fall.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from difareli.encodings import FACE_PARTS, FOREGROUND_PARTS, PART_INDEX
+
+# Lip contours (FACEMESH_LIPS is four chains; tests check these against it), corners first and last.
+LIPS_OUTER_UPPER = (61, 185, 40, 39, 37, 0, 267, 269, 270, 409, 291)
+LIPS_OUTER_LOWER = (61, 146, 91, 181, 84, 17, 314, 405, 321, 375, 291)
+LIPS_INNER_UPPER = (78, 191, 80, 81, 82, 13, 312, 311, 310, 415, 308)
+LIPS_INNER_LOWER = (78, 95, 88, 178, 87, 14, 317, 402, 318, 324, 308)
+CHIN, FOREHEAD = 152, 10
+_FACE_IDX = np.array([PART_INDEX[p] for p in FACE_PARTS])
+_FG_IDX = np.array([PART_INDEX[p] for p in FOREGROUND_PARTS])
+
+
+def chains(edges) -> list[list[int]]:
+    """Split an undirected edge set into its cycles and simple paths (vertex lists; a cycle is not closed)."""
+    adj: dict[int, list[int]] = {}
+    for a, b in edges:
+        adj.setdefault(a, []).append(b)
+        adj.setdefault(b, []).append(a)
+    seen: set[int] = set()
+    out = []
+    # Paths first, from their endpoints (degree 1); whatever is left consists of cycles.
+    starts = [v for v in sorted(adj) if len(adj[v]) == 1] + sorted(adj)
+    for s in starts:
+        if s in seen:
+            continue
+        path, prev, cur = [s], None, s
+        seen.add(s)
+        while True:
+            nxt = [v for v in adj[cur] if v != prev and v not in seen]
+            if not nxt:
+                break
+            prev, cur = cur, nxt[0]
+            seen.add(cur)
+            path.append(cur)
+        out.append(path)
+    return out
+
+
+def outline(edges, points_xy: np.ndarray) -> list[int]:
+    """One closed outline from a connection set: its cycle, or two paths joined end to end."""
+    parts = chains(edges)
+    if len(parts) == 1:
+        return parts[0]
+    if len(parts) != 2:
+        raise ValueError(f"expected one cycle or two paths, got {len(parts)} chains")
+    a, b = parts
+    # Join so that the closing gaps are short: a's end meets b's start.
+    if np.linalg.norm(points_xy[a[-1]] - points_xy[b[0]]) > np.linalg.norm(points_xy[a[-1]] - points_xy[b[-1]]):
+        b = b[::-1]
+    return a + b
+
+
+def hull(edges, points_xy: np.ndarray) -> list[int]:
+    """Vertices of a connection set's 2-D convex hull, in order (FACEMESH_NOSE is a bridge plus two
+    partial sides, not an outline)."""
+    from scipy.spatial import ConvexHull
+
+    idx = np.array(sorted({i for e in edges for i in e}))
+    return idx[ConvexHull(points_xy[idx]).vertices].tolist()
+
+
+def fill(poly_xy: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Bool mask of pixels whose centres lie inside the polygon (continuous pixel coordinates)."""
+    from skimage.draw import polygon
+
+    m = np.zeros(shape, dtype=bool)
+    rr, cc = polygon(poly_xy[:, 1] - 0.5, poly_xy[:, 0] - 0.5, shape)
+    m[rr, cc] = True
+    return m
+
+
+def face_part_polygons(lm_xy: np.ndarray) -> dict[str, np.ndarray]:
+    """Polygons (K, 2) in pixel coordinates of the face parts, in painting order."""
+    from mediapipe.python.solutions import face_mesh_connections as fmc
+
+    def poly(idx):
+        return lm_xy[list(idx)]
+
+    return {
+        "skin": poly(outline(fmc.FACEMESH_FACE_OVAL, lm_xy)),
+        "nose": poly(hull(fmc.FACEMESH_NOSE, lm_xy)),
+        "l_brow": poly(outline(fmc.FACEMESH_LEFT_EYEBROW, lm_xy)),
+        "r_brow": poly(outline(fmc.FACEMESH_RIGHT_EYEBROW, lm_xy)),
+        "l_eye": poly(outline(fmc.FACEMESH_LEFT_EYE, lm_xy)),
+        "r_eye": poly(outline(fmc.FACEMESH_RIGHT_EYE, lm_xy)),
+        "u_lip": poly(LIPS_OUTER_UPPER + LIPS_INNER_UPPER[::-1]),
+        "l_lip": poly(LIPS_OUTER_LOWER + LIPS_INNER_LOWER[::-1]),
+        "mouth": poly(LIPS_INNER_UPPER + LIPS_INNER_LOWER[::-1]),
+    }
+
+
+class FaceMeshSelfieMasks:
+    """Estimator: part label map ``masks``, ``face_mask``, ``background`` and the ``skin`` pixels."""
+
+    provides = ("masks", "face_mask", "background", "skin", "person")
+    requires = ("image", "landmarks")
+
+    def __init__(self, person_threshold: float = 0.5, neck_depth: float = 0.45, neck_halfwidth: float = 0.4,
+                 model_selection: int = 0):
+        self.person_threshold = person_threshold
+        self.neck_depth = neck_depth
+        self.neck_halfwidth = neck_halfwidth
+        self.model_selection = model_selection
+        self._seg = None
+
+    def person(self, image: np.ndarray) -> np.ndarray:
+        """Selfie-segmentation person probability (H, W) in [0, 1]."""
+        if self._seg is None:
+            import mediapipe as mp
+
+            self._seg = mp.solutions.selfie_segmentation.SelfieSegmentation(model_selection=self.model_selection)
+        return np.asarray(self._seg.process(np.ascontiguousarray(image)).segmentation_mask, dtype=np.float32)
+
+    def face_labels(self, lm_xy: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+        """uint8 label map with the face parts painted, background elsewhere."""
+        labels = np.zeros(shape, dtype=np.uint8)
+        for name, poly in face_part_polygons(lm_xy).items():
+            labels[fill(poly, shape)] = PART_INDEX[name]
+        return labels
+
+    def __call__(self, ctx: dict, needed: set[str]) -> dict:
+        image = ctx["image"]
+        H, W = image.shape[:2]
+        lm = np.asarray(ctx["landmarks"])[:, :2]
+        labels = self.face_labels(lm, (H, W))
+        face = labels > 0
+        out = {"skin": labels == PART_INDEX["skin"], "face_mask": np.isin(labels, _FACE_IDX)}
+        if needed & {"masks", "background", "person"}:
+            person = self.person(image) > self.person_threshold
+            rows, cols = np.mgrid[0:H, 0:W] + 0.5
+            chin = lm[CHIN]
+            h = max(chin[1] - lm[FOREHEAD, 1], 1.0)
+            w = max(np.ptp(lm[:, 0]), 1.0)
+            jaw = 0.5 * (chin[1] + 0.5 * (lm[61, 1] + lm[291, 1]))
+            rest = person & ~face
+            above = rows < jaw
+            neck = rest & ~above & (rows < chin[1] + self.neck_depth * h) & (np.abs(cols - chin[0]) < self.neck_halfwidth * w)
+            labels[rest & above] = PART_INDEX["hair"]
+            labels[neck] = PART_INDEX["neck"]
+            labels[rest & ~above & ~neck] = PART_INDEX["clothes"]
+            out.update(masks=labels, person=person,
+                       background=np.where(np.isin(labels, _FG_IDX)[..., None], 0, image).astype(np.uint8))
+        return out

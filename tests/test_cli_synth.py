@@ -1,0 +1,58 @@
+"""difareli-synth: config composition, validation naming the key, resume message, preview."""
+
+import os
+import subprocess
+import sys
+
+import pytest
+from hydra import compose, initialize_config_dir
+
+from difareli.cli import synth as cli
+from difareli.synth.generator import ConfigError
+
+
+def _cfg(overrides):
+    with initialize_config_dir(version_base="1.3", config_dir=cli.CONFIG_DIR):
+        return compose(config_name="synth", overrides=overrides)
+
+
+@pytest.mark.parametrize("key,value", [("resolution", 8), ("subjects", 0), ("lights", -1), ("workers", 0)])
+def test_bad_values_name_the_key(key, value, tmp_path):
+    cfg = _cfg([f"out_dir={tmp_path}", f"{key}={value}"])
+    with pytest.raises(ConfigError, match=rf"^{key}={value}"):
+        cli.validate(cfg)
+    assert not (tmp_path / "store.json").exists()
+
+
+def test_missing_out_dir_and_unknown_key():
+    with pytest.raises(ConfigError, match="out_dir"):
+        cli.validate(_cfg([]))
+    with pytest.raises(Exception, match="subject"):
+        _cfg(["out_dir=x", "subject=3"])  # struct mode: typos are errors
+
+
+def test_run_then_nothing_to_do(tmp_path, capsys):
+    out = tmp_path / "sf"
+    cfg = _cfg([f"out_dir={out}", "subjects=3", "lights=2", "resolution=24", "workers=1", "preview.cell=48"])
+    report = cli.run(cfg)
+    text = capsys.readouterr().out
+    assert report.written == 6 and "wrote 6 records" in text and "images/s" in text
+    assert (out / "preview.png").is_file()
+    import imageio.v3 as iio
+
+    sheet = iio.imread(out / "preview.png")
+    # 3 subjects x 3 rows (image, shading, shadow) of 48px cells, 2 lights across, 2px padding.
+    assert sheet.shape == (9 * 50 + 2, 2 * 50 + 2, 3)
+    report = cli.run(cfg)
+    assert report.written == 0 and "nothing to do" in capsys.readouterr().out
+
+
+def test_console_script_reports_bad_key(tmp_path):
+    env = dict(os.environ, PYTHONWARNINGS="ignore")
+    proc = subprocess.run(
+        [sys.executable, "-m", "difareli.cli.synth", f"out_dir={tmp_path / 'x'}", "resolution=8"],
+        capture_output=True, text=True, cwd=tmp_path, env=env, timeout=120,
+    )
+    assert proc.returncode != 0
+    assert "resolution=8 is invalid" in proc.stderr
+    assert os.listdir(tmp_path) == []  # no outputs/ or .hydra/ littering the working directory
