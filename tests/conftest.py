@@ -23,3 +23,31 @@ def synth_store(tmp_path_factory):
     root = tmp_path_factory.mktemp("synthfaces") / "store"
     generate(out_dir=str(root), subjects=8, lights=2, resolution=32, seed=0)
     return root
+
+
+@pytest.fixture(scope="session")
+def tiny_checkpoint(synth_store, tmp_path_factory):
+    """Factory: path to a briefly trained tiny checkpoint of a model config ("difareli_pp" or "difareli")
+    on ``synth_store``; each model is trained once per session (~20 steps)."""
+    from pathlib import Path
+
+    from difareli.cli.train import train
+
+    from .helpers import compose_train
+
+    cache: dict[str, Path] = {}
+
+    def get(model: str = "difareli_pp") -> Path:
+        if model not in cache:
+            out = tmp_path_factory.mktemp(f"ckpt_{model}")
+            cfg = compose_train(out, [
+                f"data.root={synth_store}", "data.resolution=32", "data.synth=null", "data.num_workers=0",
+                "data.batch_size=4", f"model={model}", "model.preset=tiny", "trainer=cpu", "trainer.max_steps=20",
+                "trainer.val_check_interval=20", "trainer.limit_val_batches=1", "sample_grid=false", "logger=[]",
+                "callbacks.ema.decay=0.9",
+            ])
+            train(cfg)
+            cache[model] = out / "checkpoints" / "last.ckpt"
+        return cache[model]
+
+    return get

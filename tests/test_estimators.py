@@ -171,7 +171,7 @@ def test_identity_same_face_close_different_faces_far(pipe, results):
 
 @pytest.mark.skipif(not DEFAULT_WEIGHTS.is_file(), reason="shadow classifier weights not trained")
 def test_shadow_map_is_cast_times_normalised_c(results):
-    from difareli.synth.generator import normalise_c
+    from difareli.encodings import normalise_c
 
     for name in ("astronaut", "grace"):
         arrays, meta, ctx = results[name]

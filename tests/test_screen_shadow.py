@@ -66,3 +66,26 @@ def test_convex_sphere_casts_no_shadow(theta_deg):
     normal = np.stack([x, y, depth], -1) / 0.8
     t = math.radians(theta_deg)
     assert not march_shadow(depth, hit, CAM, [math.sin(t), 0, math.cos(t)], normal=normal).any()
+
+
+def test_agrees_with_mesh_ray_tracing_on_synthfaces():
+    """On SynthFaces heads the depth-only march recovers most of the mesh-traced cast shadow (IoU measured
+    0.53-0.76 over 4 subjects x 3 lights at 128 px; here 2 subjects x 2 lights at 96 px)."""
+    from difareli.render import cast_shadow
+    from difareli.synth.generator import SynthConfig, build_subject
+
+    cfg = SynthConfig(subjects=2, lights=1, resolution=96, seed=0)
+    ious = []
+    for k in range(2):
+        sub = build_subject(k, cfg)
+        gb = sub.gbuffer
+        depth = np.where(gb.hit, gb.depth, 0.0)
+        cam = OrthoCamera(*sub.cam.tolist())
+        for az in (40.0, -45.0):
+            t = math.radians(az)
+            d = np.array([math.sin(t), 0.3, math.cos(t)])
+            d /= np.linalg.norm(d)
+            ref = cast_shadow(sub.scene, gb, d)
+            got = march_shadow(depth, gb.hit, cam, d, normal=gb.normal)
+            ious.append((ref & got).sum() / max((ref | got).sum(), 1))
+    assert min(ious) > 0.4 and np.mean(ious) > 0.55, ious

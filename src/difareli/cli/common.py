@@ -9,8 +9,9 @@ import hydra
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-#: The repository's conf/ folder, relative to this package's cli/ modules (editable install).
-CONFIG_PATH = "../../../conf"
+#: The repository's conf/ folder (editable install). Absolute: Hydra resolves a relative config_path against
+#: the calling *module* when started from a console script, which would look for a `conf` package.
+CONFIG_PATH = str(Path(__file__).resolve().parents[3] / "conf")
 
 
 def instantiate_group(group: DictConfig | None) -> list[Any]:

@@ -13,6 +13,8 @@ import sys
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
+from difareli.cli.common import CONFIG_PATH
+
 ROLES = ("geometry", "masks", "light", "identity", "shadow")
 
 
@@ -36,7 +38,7 @@ def build_pipeline(cfg: DictConfig):
                     requested_encodings(cfg), min_side=int(cfg.min_side), max_side=int(cfg.max_side))
 
 
-@hydra.main(version_base="1.3", config_path="../../../conf", config_name="preprocess")
+@hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name="preprocess")
 def main(cfg: DictConfig) -> None:
     from difareli.estimators.pipeline import REPORT, run
 

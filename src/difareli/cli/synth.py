@@ -8,9 +8,8 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-#: The repository's conf/ as an absolute path: a relative config_path is resolved as a Python package
-#: ("conf") when the module runs through its console script, and conf/ is not a package.
-CONFIG_DIR = str(Path(__file__).resolve().parents[3] / "conf")
+from difareli.cli.common import CONFIG_PATH
+
 
 #: Integer keys and their smallest valid values, checked before any work starts.
 _MINIMA = {"subjects": 1, "lights": 1, "resolution": 16, "workers": 1, "light_group_size": 1}
@@ -65,7 +64,7 @@ def run(cfg: DictConfig):
     return report
 
 
-@hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="synth")
+@hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name="synth")
 def main(cfg: DictConfig) -> None:
     from difareli.synth.generator import ConfigError
 

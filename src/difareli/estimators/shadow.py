@@ -5,11 +5,11 @@ FaceMesh surface (``features``), trained on SynthFaces by ``scripts/train_shadow
 "visible cast shadow" = SynthFaces ``c > logit(LABEL_S)``, i.e. cast shadows remove more than 2% of the
 face's light (``synth/generator.py`` defines ``c`` as the logit of that fraction). ``c`` is the
 classifier's logit, as in the paper; with ``c_scale: synthfaces`` (default) it is mapped by the affine
-calibration fitted at training time onto the SynthFaces ``c`` scale, so that ``generator.normalise_c``
-(fixed range [C_LO, C_HI]) means the same on real and synthetic records; ``c_scale: logit`` keeps the raw logit.
+calibration fitted at training time onto the SynthFaces ``c`` scale, so that ``encodings.normalise_c``
+(fixed range [SHADOW_C_LO, SHADOW_C_HI]) means the same on real and synthetic records; ``c_scale: logit`` keeps the raw logit.
 
 ``shadow_map`` = cast-shadow rays from the FaceMesh surface toward ``sh.dominant_direction(light)``
-(``render.cast_shadow``) times ``normalise_c(c)``, exactly as SynthFaces builds its maps.
+(``render.cast_shadow``) times ``encodings.normalise_c(c)``, exactly as SynthFaces builds its maps.
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from difareli import sh
+from difareli.encodings import normalise_c
 from difareli.render import cast_shadow
 
 LABEL_S = 0.02
@@ -119,8 +120,6 @@ class ShadowEstimator:
         return cast_shadow(ctx["scene"], gb, sh.dominant_direction(ctx["light"])) & gb.hit
 
     def __call__(self, ctx: dict, needed: set[str]) -> dict:
-        from difareli.synth.generator import normalise_c
-
         clf = self.classifier
         cast = self.cast(ctx)
         x = features(ctx["image"], ctx["gbuffer"], ctx["skin"], ctx["light"], ctx["albedo_prior"], cast)

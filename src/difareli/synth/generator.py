@@ -39,7 +39,8 @@ from typing import Callable, Iterator
 import numpy as np
 
 from difareli import sh
-from difareli.encodings import FACE_PARTS, FOREGROUND_PARTS, PART_INDEX
+from difareli.encodings import (FACE_PARTS, FOREGROUND_PARTS, PART_INDEX, SHADOW_C_HI, SHADOW_C_LO, SHADOW_S_MIN,
+                                normalise_c)
 from difareli.render import OrthoCamera, Scene, cast_shadows, render_gbuffer
 from difareli.store import EncodingStore
 from difareli.synth import splits as sp
@@ -47,11 +48,10 @@ from difareli.synth.appearance import albedo_image, sample_appearance, sample_ba
 from difareli.synth.lights import Light, light_rng, sample_light
 
 ENCODINGS = ("image", "light", "shape", "cam", "identity", "shadow", "background", "masks", "shadow_map",
-             "shading", "normal", "face_mask")
+             "shading", "normal", "depth", "face_mask")
 IDENTITY_DIM = 128  # matches the dlib face descriptor used for real photos
-S_MIN = 1e-3
-C_LO = math.log(S_MIN / (1 - S_MIN))  # no cast shadow
-C_HI = math.log(0.25 / 0.75)          # a quarter of the foreground's light removed: the strongest we see
+# The c range lives in the schema (shared with targets for relighting); re-exported under short names.
+S_MIN, C_LO, C_HI = SHADOW_S_MIN, SHADOW_C_LO, SHADOW_C_HI
 _LUMA = np.array([0.2126, 0.7152, 0.0722])
 _FACE_IDX = np.array([PART_INDEX[p] for p in FACE_PARTS])
 _FG_IDX = np.array([PART_INDEX[p] for p in FOREGROUND_PARTS])
@@ -94,7 +94,8 @@ def single_thread_blas():
     process and one in pool workers. (threadpoolctl does this too but is not a dependency.)"""
     libs = []
     try:
-        maps = open("/proc/self/maps").read()
+        with open("/proc/self/maps") as f:
+            maps = f.read()
     except OSError:
         maps = ""
     for path in sorted(set(re.findall(r"(/\S*openblas\S*\.so\S*)", maps))):
@@ -102,7 +103,8 @@ def single_thread_blas():
             lib = ctypes.CDLL(path)
         except OSError:
             continue
-        for prefix, suffix in (("scipy_openblas", "64_"), ("openblas", "64_"), ("openblas", ""), ("scipy_openblas", "")):
+        for prefix, suffix in (("scipy_openblas", "64_"), ("openblas", "64_"), ("openblas", ""),
+                               ("scipy_openblas", "")):
             get, set_ = f"{prefix}_get_num_threads{suffix}", f"{prefix}_set_num_threads{suffix}"
             if hasattr(lib, get) and hasattr(lib, set_):
                 libs.append((getattr(lib, set_), int(getattr(lib, get)())))
@@ -114,11 +116,6 @@ def single_thread_blas():
     finally:
         for set_, n in libs:
             set_(ctypes.c_int(n))
-
-
-def normalise_c(c):
-    """Map a shadow logit to [0, 1] with the fixed range [C_LO, C_HI] (module docstring)."""
-    return np.clip((np.asarray(c, dtype=np.float64) - C_LO) / (C_HI - C_LO), 0.0, 1.0)
 
 
 # ------------------------------------------------------------------------------------------ one subject
@@ -186,7 +183,8 @@ def shade(subject: Subject, light: Light, cast: np.ndarray | None, cfg: SynthCon
 
     lost = (sun @ _LUMA) / np.maximum((e_amb + sun) @ _LUMA, 1e-6)
     strength = float((cast * lost).sum() / max(hit.sum(), 1))
-    c = math.log(np.clip(strength, S_MIN, 1 - S_MIN) / (1 - np.clip(strength, S_MIN, 1 - S_MIN)))
+    s = float(np.clip(strength, S_MIN, 1 - S_MIN))
+    c = math.log(s / (1 - s))
 
     label = gb.label.astype(np.uint8)
     face = np.isin(label, _FACE_IDX)
@@ -200,6 +198,8 @@ def shade(subject: Subject, light: Light, cast: np.ndarray | None, cfg: SynthCon
         "identity": subject.identity, "shadow": np.array([c], np.float32), "background": background,
         "masks": label, "shadow_map": (cast * normalise_c(c)).astype(np.float32), "shading": shading,
         "normal": normal, "face_mask": face,
+        # Whole-mesh depth (hair, hat and neck included) so target shadow maps can be ray-marched from it.
+        "depth": np.where(hit, gb.depth, 0.0).astype(np.float32),
     }
 
 

@@ -1,0 +1,249 @@
+"""Relighting methods behind one interface, for benchmarks: classical baselines and the diffusion model.
+
+A :class:`Method` has a ``name`` and ``relight(store, source_id, target_light, target_shadow, target_id=None)
+-> uint8 HxWx3``. ``target_id`` (the ground-truth record) is only for the oracle; no other method reads it.
+
+Target (and source) lights "as a user gets them" come from :class:`LightFit`: a least-squares SH fit
+(:func:`difareli.sh.fit`) to one image's face pixels, with that record's normals and a constant albedo prior.
+SynthFaces images are linear (``image = albedo * irradiance``, no gamma), so the fit is the image formation
+model itself. A single image cannot separate albedo from light intensity: the fitted light is the true one
+times ``true albedo / prior``. The default prior is SynthFaces' population-mean skin albedo (the mean of its
+skin-tone model over the uniform tone distribution), the analogue of DECA's mean albedo: it is unbiased over
+the data set, though a very light or dark subject still gets a proportionally too dark or bright light.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Mapping, Protocol, Sequence, runtime_checkable
+
+import numpy as np
+
+from difareli import sh
+from difareli.encodings import PART_INDEX
+from difareli.store import EncodingStore
+
+
+def synthfaces_mean_skin_albedo() -> np.ndarray:
+    """Mean skin albedo (RGB) of SynthFaces' appearance model: tone ~ U[0, 1] linearly interpolates the Monk
+    scale, so the mean is the trapezoid average of the swatches, times the model's warming/darkening."""
+    from difareli.synth.appearance import MONK_SCALE, SKIN_ALBEDO_SCALE
+
+    w = np.ones(len(MONK_SCALE))
+    w[[0, -1]] = 0.5
+    return (w / w.sum()) @ MONK_SCALE * SKIN_ALBEDO_SCALE
+
+
+def _face_normals(arrays: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """(normals float64 HxWx3, bool mask of pixels with a stored unit normal)."""
+    n = np.asarray(arrays["normal"], dtype=np.float64)
+    return n, np.linalg.norm(n, axis=-1) > 0.5
+
+
+@dataclass(frozen=True)
+class LightFit:
+    """Estimate a record's SH light from its image alone (plus its normals and face parsing).
+
+    Pixels used: the face mask, where a normal is stored, restricted to ``parts`` of the ``masks`` parsing
+    (skin and nose: brows, eyes and lips have other albedos than the prior), and neither clipped nor black
+    (the clip breaks the linear model). ``robust_iters`` refits after dropping pixels far darker than the fit
+    (residual below ``-2.5`` robust sigmas): cast shadows, which a 9-term SH cannot explain.
+    """
+
+    albedo: tuple[float, float, float] | float | None = None  # None: SynthFaces' mean skin albedo
+    parts: tuple[str, ...] = ("skin", "nose")
+    robust_iters: int = 2
+    min_pixels: int = 30
+
+    ENCODINGS = ("image", "normal", "face_mask", "masks")
+
+    def prior(self) -> np.ndarray:
+        a = synthfaces_mean_skin_albedo() if self.albedo is None else np.broadcast_to(
+            np.asarray(self.albedo, dtype=np.float64), (3,))
+        return np.asarray(a, dtype=np.float64)
+
+    def pixels(self, arrays: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """(intensities in [0, 1], normals), both (N, 3), of the pixels the fit uses."""
+        img = np.asarray(arrays["image"], dtype=np.float64) / 255.0
+        normal, known = _face_normals(arrays)
+        m = known & np.asarray(arrays["face_mask"], dtype=bool)
+        if self.parts and "masks" in arrays:
+            m &= np.isin(np.asarray(arrays["masks"]), [PART_INDEX[p] for p in self.parts])
+        m &= (img.max(-1) < 254.5 / 255) & (img.min(-1) > 0.5 / 255)
+        if m.sum() < self.min_pixels:
+            raise ValueError(f"light fit: only {int(m.sum())} usable face pixels (need {self.min_pixels})")
+        return img[m], normal[m]
+
+    def __call__(self, arrays: Mapping[str, np.ndarray]) -> np.ndarray:
+        y, n = self.pixels(arrays)
+        albedo = self.prior()
+        w = np.ones(len(y))
+        light = sh.fit(y, n, albedo, weights=w)
+        for _ in range(self.robust_iters):
+            r = (y - albedo * sh.irradiance(light, n)).mean(-1)
+            sigma = 1.4826 * np.median(np.abs(r - np.median(r)))
+            keep = r >= -2.5 * max(sigma, 1e-4)
+            if keep.sum() < 9 or keep.all():
+                break
+            light = sh.fit(y, n, albedo, weights=keep.astype(np.float64))
+        return light
+
+    def from_store(self, store: EncodingStore, record_id: str) -> np.ndarray:
+        names = [e for e in self.ENCODINGS if e != "masks" or store.available("masks")]
+        return self(store.read(record_id, names))
+
+
+def irradiance_error(estimate: np.ndarray, truth: np.ndarray, normals: np.ndarray, mask: np.ndarray) -> tuple[float, float]:
+    """Relative irradiance error ``|E_est - E_gt| / |E_gt|`` over the masked pixels (all channels), and the
+    same after the best scalar scale of ``E_est`` (the part an albedo-scale error cannot explain)."""
+    n = np.asarray(normals, dtype=np.float64)[mask]
+    e, g = sh.irradiance(estimate, n), sh.irradiance(truth, n)
+    norm = float(np.linalg.norm(g))
+    if norm == 0 or n.size == 0:
+        return math.nan, math.nan
+    k = float((e * g).sum() / max((e * e).sum(), 1e-30))
+    return float(np.linalg.norm(e - g)) / norm, float(np.linalg.norm(k * e - g)) / norm
+
+
+# ------------------------------------------------------------------------------------------------ methods
+
+
+@runtime_checkable
+class Method(Protocol):
+    """What the benchmark runs: a name and one relit uint8 image per (source record, target light)."""
+
+    name: str
+
+    def relight(self, store: EncodingStore, source_id: str, target_light: np.ndarray,
+                target_shadow: float | None = None, target_id: str | None = None) -> np.ndarray: ...
+
+
+class Identity:
+    """The input returned unchanged: the score of doing nothing."""
+
+    def __init__(self, name: str = "identity"):
+        self.name = name
+
+    def relight(self, store, source_id, target_light, target_shadow=None, target_id=None) -> np.ndarray:
+        return np.array(store.read(source_id, ["image"])["image"])
+
+
+class Oracle:
+    """The ground-truth render of the pair: scores exactly 0, a check on the metric pipeline."""
+
+    def __init__(self, name: str = "oracle"):
+        self.name = name
+
+    def relight(self, store, source_id, target_light, target_shadow=None, target_id=None) -> np.ndarray:
+        if target_id is None:
+            raise ValueError("the oracle needs the ground-truth record (target_id)")
+        return np.array(store.read(target_id, ["image"])["image"])
+
+
+class LambertianRatio:
+    """Ratio-image relighting: ``input * E_target(n) / E_source(n)`` where the stored normals exist.
+
+    The source light is estimated from the input with ``estimator`` (None: the stored ``light``). With both
+    lights fitted under the same albedo prior, the prior's scale cancels in the ratio (exactly so when both
+    images show the same person). Cast shadows of the input stay and the target's are not added. The
+    denominator is floored at ``min_shading`` times the source irradiance's median on the face, per channel:
+    there the input is nearly black and any ratio would only amplify noise. Off the face: unchanged.
+    """
+
+    def __init__(self, name: str = "lambertian", estimator: LightFit | None = None, min_shading: float = 0.05):
+        self.name, self.estimator, self.min_shading = name, estimator, float(min_shading)
+
+    def source_light(self, store: EncodingStore, source_id: str) -> np.ndarray:
+        if self.estimator is not None:
+            return self.estimator.from_store(store, source_id)
+        return np.asarray(store.read(source_id, ["light"])["light"], dtype=np.float64)
+
+    def relight(self, store, source_id, target_light, target_shadow=None, target_id=None,
+                source_light: np.ndarray | None = None) -> np.ndarray:
+        a = store.read(source_id, ["image", "normal"])
+        light_s = self.source_light(store, source_id) if source_light is None else source_light
+        return ratio_relight(a["image"], a["normal"], light_s, target_light, self.min_shading)
+
+
+def ratio_relight(image: np.ndarray, normal: np.ndarray, source_light: np.ndarray, target_light: np.ndarray,
+                  min_shading: float = 0.05) -> np.ndarray:
+    """``image * E_t / max(E_s, floor)`` on pixels with a stored normal (uint8 in and out)."""
+    normals, known = _face_normals({"normal": normal})
+    img = np.asarray(image, dtype=np.float64) / 255.0
+    if not known.any():
+        return np.array(image, dtype=np.uint8)
+    n = normals[known]
+    e_s = sh.irradiance(np.asarray(source_light, np.float64), n)
+    e_t = sh.irradiance(np.asarray(target_light, np.float64), n)
+    floor = np.maximum(min_shading * np.median(e_s, axis=0), 1e-6)
+    out = img.copy()
+    out[known] = img[known] * np.maximum(e_t, 0.0) / np.maximum(e_s, floor)
+    return np.round(np.clip(out, 0.0, 1.0) * 255.0).astype(np.uint8)
+
+
+class DiffusionMethod:
+    """A trained DiFaReli/DiFaReli++ checkpoint through :class:`difareli.relighting.Relighter`.
+
+    The input is inverted with its own stored encodings (once per record, cached) and decoded under the
+    target light and shadow strength. Default name: ``<model>/<sampler>-<steps>``, e.g. ``difareli_pp/ddim-20``.
+    """
+
+    def __init__(self, checkpoint: str, sampler: Mapping[str, Any], *, name: str | None = None,
+                 device: str = "auto", mean_matching: bool = True, batch_size: int = 16):
+        from difareli.relighting import Relighter
+
+        self.relighter = Relighter(checkpoint, sampler, device=device, mean_matching=mean_matching,
+                                   batch_size=batch_size)
+        spec = self.relighter.spec
+        model = self.relighter.config.get("name") or "diffusion"
+        self.name = name or f"{model}/{spec.name}-{spec.steps}"
+
+    def relight(self, store, source_id, target_light, target_shadow=None, target_id=None) -> np.ndarray:
+        return self.relighter.relight_record(store, source_id, [target_light], [target_shadow])[0]
+
+
+KINDS = ("identity", "lambertian", "oracle", "diffusion")
+
+
+def build_method(cfg: Mapping[str, Any], *, sampler: Mapping[str, Any] | None = None, device: str = "auto",
+                 estimator: LightFit | None = None, name_suffix: str = "") -> Method:
+    """A method from a ``conf/method/*.yaml`` mapping (``kind``, optional ``name``, the kind's options).
+
+    ``estimator`` fits the Lambertian baseline's source light (None: stored light); ``name_suffix`` is
+    appended to the name (e.g. to mark ground-truth lighting).
+    """
+    kind = cfg.get("kind")
+    if kind not in KINDS:
+        raise ValueError(f"method.kind must be one of {list(KINDS)}, got {kind!r}")
+    name = cfg.get("name")
+    if kind == "identity":
+        m: Method = Identity(name or "identity")
+    elif kind == "oracle":
+        m = Oracle(name or "oracle")
+    elif kind == "lambertian":
+        m = LambertianRatio(name or "lambertian", estimator, float(cfg.get("min_shading", 0.05)))
+    else:
+        if not cfg.get("checkpoint"):
+            raise ValueError("method=diffusion needs method.checkpoint=<run>/checkpoints/last.ckpt")
+        if sampler is None:
+            raise ValueError("method=diffusion needs a sampler config")
+        m = DiffusionMethod(str(cfg["checkpoint"]), sampler, name=name, device=device,
+                            mean_matching=bool(cfg.get("mean_matching", True)),
+                            batch_size=int(cfg.get("batch_size", 16)))
+    m.name += name_suffix
+    return m
+
+
+def light_fit_from_config(cfg: Mapping[str, Any] | None) -> LightFit:
+    """A :class:`LightFit` from the ``light_fit`` config block (``albedo: null | number | [r, g, b]``)."""
+    cfg = dict(cfg or {})
+    albedo = cfg.get("albedo")
+    if albedo is not None and not isinstance(albedo, (int, float)):
+        albedo = tuple(float(x) for x in albedo)
+    parts: Sequence[str] = tuple(cfg.get("parts") or ())
+    unknown = [p for p in parts if p not in PART_INDEX]
+    if unknown:
+        raise ValueError(f"light_fit.parts: unknown parts {unknown}; choose from {list(PART_INDEX)}")
+    return LightFit(albedo=albedo, parts=tuple(parts), robust_iters=int(cfg.get("robust_iters", 2)),
+                    min_pixels=int(cfg.get("min_pixels", 30)))

@@ -1,0 +1,204 @@
+"""Benchmark a relighting method on the SynthFaces protocols of SPEC 11 (the paper's Tables I/II/IV).
+
+For each pair of ``protocols.json`` (written with the store by ``synth.splits``): relight ``source`` under the
+light estimated from ``light_source`` (protocol (i) ``same_subject``: the same person under the target light;
+(ii) ``different_subject``: another person under that very light) and score the result against ``target``
+on the target's ``face_mask``. The light is fitted from the light-source image (:class:`baselines.LightFit`)
+as a user would get it; ``oracle_light`` takes the stored ground truth instead.
+
+Outputs in the run dir: ``relit/<protocol>/<pair id>.png``, ``metrics_per_image.csv`` (tables.py schema),
+``summary.{md,csv,tex}``, ``light_estimation.csv`` and ``comparison_<protocol>.png`` (input | light source |
+relit | ground truth for the first pairs).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+from difareli import metrics, tables, viz
+from difareli.baselines import LambertianRatio, LightFit, Method, irradiance_error
+from difareli.store import EncodingStore
+from difareli.synth.splits import PROTOCOLS_FILE
+
+#: protocols.json key -> the ``protocol`` column of the per-image CSV (tables.PROTOCOL_LABELS).
+PROTOCOLS = {"same_subject": "same", "different_subject": "different"}
+LIGHT_CSV = "light_estimation.csv"
+
+
+@dataclass(frozen=True)
+class Pair:
+    """One protocol pair: relight ``source`` with the light of ``light_source``; ground truth ``target``."""
+
+    protocol: str
+    source: str
+    light_source: str
+    target: str
+
+    @property
+    def id(self) -> str:
+        # (source, light source) is unique within a protocol; the target follows from them.
+        return f"{self.source}__{self.light_source}"
+
+
+def load_pairs(store: EncodingStore, protocols: Sequence[str], limit: int | None = None) -> dict[str, list[Pair]]:
+    """The pairs of each protocol from the store's ``protocols.json``; ``limit`` keeps at most that many,
+    evenly spaced over the list (so a small run still covers several subjects and lights)."""
+    path = Path(store.root) / PROTOCOLS_FILE
+    if not path.is_file():
+        raise FileNotFoundError(f"{path} missing: benchmarks need a SynthFaces store (difareli-synth writes it)")
+    doc = json.loads(path.read_text())
+    out: dict[str, list[Pair]] = {}
+    for p in protocols:
+        if p not in PROTOCOLS:
+            raise ValueError(f"unknown protocol {p!r}; choose from {list(PROTOCOLS)}")
+        rows = doc.get(p, [])
+        if not rows:
+            raise ValueError(f"{path} has no pairs for protocol {p!r} (a test split with light groups of >= 2 "
+                             "subjects is needed for different_subject)")
+        if limit is not None and 0 < limit < len(rows):
+            rows = [rows[i] for i in np.unique(np.linspace(0, len(rows) - 1, int(limit)).round().astype(int))]
+        out[p] = [Pair(p, r["source"], r["light_source"], r["target"]) for r in rows]
+    return out
+
+
+def _to_tensor(img: np.ndarray) -> torch.Tensor:
+    """uint8 HxWx3 -> float64 1x3xHxW in [0, 1]."""
+    return torch.from_numpy(np.asarray(img, dtype=np.float64) / 255.0).permute(2, 0, 1)[None]
+
+
+def score(pred: np.ndarray, target: np.ndarray, face_mask: np.ndarray) -> dict[str, float]:
+    """DSSIM / MSE / LPIPS of one uint8 image against the ground truth on the face mask."""
+    m = torch.from_numpy(np.array(face_mask, dtype=bool))[None]
+    return {k: float(v[0]) for k, v in metrics.evaluate(_to_tensor(pred), _to_tensor(target), m).items()}
+
+
+class Lights:
+    """Target (and source) lights per record, estimated once each; errors against the stored light."""
+
+    def __init__(self, store: EncodingStore, estimator: LightFit | None):
+        self.store, self.estimator = store, estimator
+        self._cache: dict[str, np.ndarray] = {}
+
+    def get(self, record_id: str) -> np.ndarray:
+        if self.estimator is None:
+            return np.asarray(self.store.read(record_id, ["light"])["light"], dtype=np.float64)
+        if record_id not in self._cache:
+            self._cache[record_id] = self.estimator.from_store(self.store, record_id)
+        return self._cache[record_id]
+
+    def shadow(self, record_id: str) -> float | None:
+        """The record's stored cast-shadow strength c (what a shadow estimator would report), if any."""
+        if not self.store.available("shadow"):
+            return None
+        return float(np.asarray(self.store.read(record_id, ["shadow"])["shadow"]).reshape(-1)[0])
+
+    def error(self, estimate: np.ndarray, truth_id: str, on_id: str) -> tuple[float, float]:
+        """:func:`irradiance_error` of ``estimate`` vs ``truth_id``'s light on ``on_id``'s face normals."""
+        a = self.store.read(on_id, ["normal", "face_mask"])
+        n = np.asarray(a["normal"], dtype=np.float64)
+        mask = np.asarray(a["face_mask"], dtype=bool) & (np.linalg.norm(n, axis=-1) > 0.5)
+        truth = np.asarray(self.store.read(truth_id, ["light"])["light"], dtype=np.float64)
+        return irradiance_error(estimate, truth, n, mask)
+
+
+@dataclass
+class BenchmarkResult:
+    records: list[tables.Record]
+    light_errors: list[dict] = field(default_factory=list)
+    paths: dict[str, Path] = field(default_factory=dict)
+
+    @property
+    def table(self) -> tables.Table:
+        return tables.summarize(self.records)
+
+    def light_summary(self) -> str:
+        """Markdown table of the light-estimation errors (mean ± SE per protocol and light)."""
+        if not self.light_errors:
+            return ""
+        lines = ["| protocol | light | n | rel. irradiance error | after best gain |", "|---|---|---:|---:|---:|"]
+        keys = list(dict.fromkeys((e["protocol"], e["light"]) for e in self.light_errors))
+        for p, which in keys:
+            rows = [e for e in self.light_errors if e["protocol"] == p and e["light"] == which]
+            rel, free = tables.mean_se(r["rel_error"] for r in rows), tables.mean_se(r["rel_error_gain_free"] for r in rows)
+            lines.append(f"| {tables.PROTOCOL_LABELS.get(p, p)} | {which} | {rel.n} | {_pm(rel)} | {_pm(free)} |")
+        return "\n".join(lines) + "\n"
+
+
+def _pm(s: tables.Stat) -> str:
+    return f"{s.mean:.4f} ± {s.se:.4f}" if math.isfinite(s.se) else f"{s.mean:.4f}"
+
+
+def run_benchmark(store: EncodingStore, method: Method, protocols: Sequence[str], out_dir: str | Path, *,
+                  limit: int | None = None, oracle_light: bool = False, estimator: LightFit | None = None,
+                  grid_pairs: int = 4, save_images: bool = True, progress: bool = True) -> BenchmarkResult:
+    """Relight and score every pair of ``protocols``; write the run's outputs into ``out_dir``."""
+    out_dir = Path(out_dir)
+    estimator = estimator or LightFit()
+    lights = Lights(store, None if oracle_light else estimator)
+    # The Lambertian baseline fits its source light too; report how well (unless lights are oracle).
+    source_fit = isinstance(method, LambertianRatio) and method.estimator is not None
+    result = BenchmarkResult(records=[])
+    for proto, pairs in load_pairs(store, protocols, limit).items():
+        short = PROTOCOLS[proto]
+        grid_rows = []
+        for pair in tqdm(pairs, desc=f"{method.name} {proto}", disable=not progress):
+            light = lights.get(pair.target if oracle_light else pair.light_source)
+            shadow = lights.shadow(pair.target if oracle_light else pair.light_source)
+            if not oracle_light:
+                rel, free = lights.error(light, pair.target, pair.target)
+                result.light_errors.append({"protocol": short, "record_id": pair.id, "light": "target",
+                                            "from": pair.light_source, "rel_error": rel, "rel_error_gain_free": free})
+            if source_fit:
+                rel, free = lights.error(method.estimator.from_store(store, pair.source), pair.source, pair.source)
+                result.light_errors.append({"protocol": short, "record_id": pair.id, "light": "source",
+                                            "from": pair.source, "rel_error": rel, "rel_error_gain_free": free})
+            start = time.perf_counter()
+            relit = method.relight(store, pair.source, light, shadow, target_id=pair.target)
+            seconds = time.perf_counter() - start
+            gt = store.read(pair.target, ["image", "face_mask"])
+            if relit.shape != gt["image"].shape or relit.dtype != np.uint8:
+                raise ValueError(f"{method.name} returned {relit.dtype} {relit.shape}; expected uint8 "
+                                 f"{gt['image'].shape}")
+            s = score(relit, gt["image"], gt["face_mask"])
+            result.records.append(tables.Record(method.name, short, pair.id, s["dssim"], s["mse"], s["lpips"], seconds))
+            if save_images:
+                viz.save_png(relit, out_dir / "relit" / proto / f"{pair.id}.png")
+            if len(grid_rows) < grid_pairs:
+                src, lsrc = (store.read(r, ["image"])["image"] for r in (pair.source, pair.light_source))
+                grid_rows.append([np.asarray(src), np.asarray(lsrc), relit, np.asarray(gt["image"])])
+        if grid_rows:
+            result.paths[f"comparison_{proto}"] = viz.save_png(viz.grid(grid_rows), out_dir / f"comparison_{proto}.png")
+    result.paths.update(write_outputs(result, out_dir, caption=f"{method.name} on {Path(store.root).name}"))
+    return result
+
+
+def write_outputs(result: BenchmarkResult, out_dir: Path, caption: str | None = None) -> dict[str, Path]:
+    """Per-image CSV, summary tables (Markdown with the light-estimation errors, CSV, LaTeX), light CSV."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    table = result.table
+    paths = {"per_image": tables.write_records(out_dir / tables.PER_IMAGE_CSV, result.records)}
+    md = table.to_markdown()
+    if result.light_errors:
+        md += "\nLight estimation (relative irradiance error on the ground truth's face normals):\n\n"
+        md += result.light_summary()
+    paths["summary_md"] = out_dir / "summary.md"
+    paths["summary_md"].write_text(md)
+    paths["summary_csv"] = out_dir / "summary.csv"
+    table.to_csv(paths["summary_csv"])
+    paths["summary_tex"] = out_dir / "summary.tex"
+    paths["summary_tex"].write_text(table.to_latex(caption=caption))
+    if result.light_errors:
+        cols = ["protocol", "record_id", "light", "from", "rel_error", "rel_error_gain_free"]
+        lines = [",".join(cols)] + [",".join(str(e[c]) for c in cols) for e in result.light_errors]
+        paths["light_csv"] = out_dir / LIGHT_CSV
+        paths["light_csv"].write_text("\n".join(lines) + "\n")
+    return paths

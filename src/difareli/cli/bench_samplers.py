@@ -1,0 +1,76 @@
+"""difareli-bench-samplers: seconds per relight vs error for each sampler x step count (SPEC 10).
+
+Writes ``bench_samplers.csv``, ``bench_samplers.png`` (the Pareto plot) and, with a trained checkpoint,
+``bench_samplers_grid.png`` (one record relit by every sampler at every step count) into the run dir.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import hydra
+from omegaconf import DictConfig, OmegaConf
+
+from difareli import speed
+from difareli.cli import common
+from difareli.relighting import resolve_device
+from difareli.store import EncodingStore
+
+
+def run(cfg: DictConfig) -> dict:
+    """Benchmark as configured; returns ``{"rows", "paths"}``."""
+    device = resolve_device(cfg.device)
+    configured = OmegaConf.to_container(cfg.samplers, resolve=True)
+    names = list(cfg.names) if cfg.names is not None else list(configured)
+    unknown = [n for n in names if n not in configured]
+    if unknown:
+        raise KeyError(f"names {unknown} are not configured under samplers ({sorted(configured)}); add one with "
+                       "+sampler@samplers.<name>=<conf/sampler file>")
+    samplers = {n: configured[n] for n in names}
+    steps = sorted({int(n) for n in cfg.steps})
+    if cfg.checkpoint is not None:
+        from difareli.lit import load_checkpoint
+
+        if cfg.store is None:
+            raise ValueError("store=... is required with a checkpoint (the records to relight)")
+        ckpt = load_checkpoint(cfg.checkpoint, device)
+        model = ckpt.model.to(device)
+        cases = speed.store_cases(EncodingStore.open(cfg.store), ckpt.config.get("spatial_inputs") or [],
+                                  ckpt.config.get("nonspatial_inputs") or [],
+                                  records=list(cfg.records) if cfg.records is not None else None, limit=cfg.limit,
+                                  device=device)
+        reference = (cfg.reference.sampler, int(cfg.reference.steps)) if cfg.reference is not None else None
+        if reference is not None and reference[0] not in configured:
+            raise KeyError(f"reference.sampler={reference[0]!r} is not configured under samplers ({sorted(configured)})")
+        what = f"{cfg.checkpoint} on {len(cases)} record(s) of {cfg.store}"
+    else:
+        if cfg.model is None:
+            raise ValueError("give checkpoint=... (trained, with quality columns) or a model preset (timing only)")
+        model, res, sc, nd = speed.untrained_model(cfg.model.preset, cfg.model.variant, cfg.model.resolution,
+                                                   device, seed=cfg.seed)
+        cases = speed.random_cases(cfg.limit or 1, res, sc, nd, device, seed=cfg.seed)
+        reference = None  # an untrained network's relights say nothing about quality
+        what = f"untrained {cfg.model.preset} ({cfg.model.variant}, {res} px), timing only"
+    print(f"bench-samplers: {what}, device {device}, {cfg.precision}")
+    rows, outputs = speed.benchmark(model, cases, samplers, steps, reference=reference,
+                                    reference_config=configured[reference[0]] if reference else None,
+                                    mean_matching=cfg.mean_matching, precision=cfg.precision, repeats=cfg.repeats,
+                                    warmup=cfg.warmup, progress=cfg.progress)
+    out = Path(cfg.out_dir)
+    paths = {"csv": speed.write_csv(rows, out / "bench_samplers.csv"),
+             "plot": speed.pareto_plot(rows, out / "bench_samplers.png")}
+    if cfg.checkpoint is not None:
+        paths["grid"] = speed.comparison_grid(cases, outputs, steps, out / "bench_samplers_grid.png")
+    print(speed.format_table(rows))
+    for k, p in paths.items():
+        print(f"{k}: {p}")
+    return {"rows": rows, "paths": paths}
+
+
+@hydra.main(version_base="1.3", config_path=common.CONFIG_PATH, config_name="bench_samplers")
+def main(cfg: DictConfig) -> None:
+    run(cfg)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,60 @@
+"""difareli-table: merge benchmark run dirs into one table (rows = methods, column groups = protocols)."""
+
+from __future__ import annotations
+
+import glob
+from pathlib import Path
+from typing import Iterable
+
+import hydra
+from omegaconf import DictConfig
+
+from difareli import tables
+
+#: conf/ as an absolute path: a relative config_path is resolved as a Python package under a console
+#: script (see cli/synth.py), and conf/ is not one.
+CONFIG_DIR = str(Path(__file__).resolve().parents[3] / "conf")
+
+
+def expand_runs(patterns: Iterable[str]) -> list[Path]:
+    """Run dirs from dirs and glob patterns. A glob keeps only dirs holding a per-image CSV (a multirun
+    folder also holds multirun.yaml); a plain path must hold one."""
+    found: list[Path] = []
+    for pat in patterns:
+        pat = str(pat)
+        if glob.has_magic(pat):
+            hits = [Path(p) for p in sorted(glob.glob(pat)) if (Path(p) / tables.PER_IMAGE_CSV).is_file()]
+            if not hits:
+                raise FileNotFoundError(f"no run dir with {tables.PER_IMAGE_CSV} matches {pat!r}")
+            found += hits
+        else:
+            if not (Path(pat) / tables.PER_IMAGE_CSV).is_file():
+                raise FileNotFoundError(f"no {tables.PER_IMAGE_CSV} in run dir {pat}")
+            found.append(Path(pat))
+    return list(dict.fromkeys(found))
+
+
+def run(cfg: DictConfig) -> tables.Table:
+    """Merge, print the Markdown table, write table.{md,csv,tex} into ``cfg.out``."""
+    runs = [cfg.runs] if isinstance(cfg.runs, str) else list(cfg.runs)
+    dirs = expand_runs(runs)
+    table = tables.merge_runs(dirs, methods=list(cfg.methods) if cfg.methods else None)
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    md = table.to_markdown(digits=int(cfg.digits))
+    (out / "table.md").write_text(md)
+    table.to_csv(out / "table.csv")
+    (out / "table.tex").write_text(table.to_latex(digits=int(cfg.digits), caption=cfg.caption))
+    print(f"{len(dirs)} run(s): " + ", ".join(str(d) for d in dirs) + "\n")
+    print(md)
+    print(f"written: {out / 'table.md'}, table.csv, table.tex")
+    return table
+
+
+@hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="table")
+def main(cfg: DictConfig) -> None:
+    run(cfg)
+
+
+if __name__ == "__main__":
+    main()

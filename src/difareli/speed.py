@@ -1,0 +1,332 @@
+"""Sampler speed/quality benchmark (SPEC 10): seconds per relight against error, per sampler and step count.
+
+A *relight* is the whole per-image pipeline of :mod:`difareli.diffusion.relight` at batch 1: Modulator on the
+source condition, inversion, the mean-matching self-decode, Modulator on the target condition, and the decode.
+Only these network passes are timed: encodings are read, retargeted and moved to the device beforehand
+(:class:`Case`), the device is synchronised around the timed region, and each sampler runs once untimed first.
+
+Quality is measured on the face mask with :mod:`difareli.metrics` (MSE, DSSIM, images in [0, 1]) against two
+references: the reference sampler's relight of the same input and target (DDIM-1000 by default: the
+discretisation error alone) and, on SynthFaces, the ground truth: the same subject's record under the target
+light. The target condition is that record's own light-dependent encodings (shading, shadow map, light, c),
+which SynthFaces renders exactly for the same geometry, so the benchmark needs no retargeting (no depth).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterable, Mapping, Sequence
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+from tqdm.auto import tqdm
+
+from difareli import metrics, viz
+from difareli.data import image_to_tensor, prepare_nonspatial, prepare_spatial
+from difareli.diffusion.relight import SamplerSpec, decode, invert
+from difareli.diffusion.schedule import DiffusionSchedule
+from difareli.store import EncodingStore
+
+#: Encodings that change with the light; a target condition takes them from the target record.
+LIGHT_DEPENDENT = ("shading", "shadow_map", "light", "shadow")
+#: Error columns (present only when cases carry a reference or a ground truth).
+ERROR_COLUMNS = ("ref/mse", "ref/dssim", "gt/mse", "gt/dssim")
+
+
+@dataclass
+class Case:
+    """One benchmark relight with everything but the network passes prepared (tensors on the device)."""
+
+    record: str
+    target: str | None
+    x0: Tensor                               # [1, 3, H, W] in [-1, 1]
+    source: tuple[Tensor | None, Tensor | None]  # (spatial, nonspatial) of the input
+    target_cond: tuple[Tensor | None, Tensor | None]
+    gt: Tensor | None = None                 # [1, 3, H, W] in [-1, 1]: the target record's image
+    mask: Tensor | None = None               # [1, H, W] bool face mask
+
+
+class NetModel(nn.Module):
+    """An untrained :class:`~difareli.nn.DiffusionNet` behind the ``condition``/``denoiser``/``schedule``
+    interface of :class:`~difareli.lit.DiffusionModule` (timing only)."""
+
+    def __init__(self, net: nn.Module, schedule: DiffusionSchedule | None = None):
+        super().__init__()
+        self.net, self.schedule = net, schedule or DiffusionSchedule()
+
+    def condition(self, spatial, nonspatial):
+        return self.net.condition(spatial, nonspatial)
+
+    def denoiser(self, cond):
+        return self.net.bind(cond)
+
+
+def untrained_model(preset: str = "ffhq256", variant: str = "difareli++", resolution: int | None = None,
+                    device: str | torch.device = "cpu", seed: int = 0) -> tuple[NetModel, int, int, int]:
+    """``(model, resolution, spatial_channels, nonspatial_dim)``: a randomly initialised network of a preset with
+    the input sizes of a paper variant (``difareli.nn.presets.VARIANTS``), in eval mode on ``device``."""
+    from difareli.nn import VARIANTS, build_network, get_config
+
+    if variant not in VARIANTS:
+        raise KeyError(f"unknown variant {variant!r}; known: {sorted(VARIANTS)}")
+    sc, nd = VARIANTS[variant]
+    res = int(resolution or get_config(preset).image_size)
+    torch.manual_seed(seed)
+    net = build_network(preset, "modulator", sc, nd, overrides={"image_size": res})
+    return NetModel(net).to(device).eval().requires_grad_(False), res, sc, nd
+
+
+def random_cases(n: int, resolution: int, spatial_channels: int, nonspatial_dim: int,
+                 device: str | torch.device = "cpu", seed: int = 0) -> list[Case]:
+    """Random inputs of the right shapes for timing an untrained network (no references)."""
+    g = torch.Generator().manual_seed(seed)
+
+    def cond():
+        sp = torch.rand(1, spatial_channels, resolution, resolution, generator=g) if spatial_channels else None
+        ns = torch.randn(1, nonspatial_dim, generator=g) if nonspatial_dim else None
+        return tuple(None if v is None else v.to(device) for v in (sp, ns))
+
+    return [Case(f"random{i}", None, (torch.rand(1, 3, resolution, resolution, generator=g) * 2 - 1).to(device),
+                 cond(), cond()) for i in range(n)]
+
+
+def same_subject_target(store: EncodingStore, record_id: str) -> str | None:
+    """The first other record of the same subject (another light: SynthFaces' ground truth), or None."""
+    subject = store.meta(record_id).get("subject")
+    others = [r for r in store.ids(subject=subject) if r != record_id] if subject is not None else []
+    return others[0] if others else None
+
+
+def store_cases(store: EncodingStore, spatial: Sequence[str], nonspatial: Sequence[str],
+                records: Iterable[str] | None = None, limit: int | None = 2,
+                device: str | torch.device = "cpu") -> list[Case]:
+    """Cases for ``records`` (default: the test split, else every record) under another light of the same subject.
+
+    The target condition is the source's encodings with :data:`LIGHT_DEPENDENT` ones taken from the target
+    record; the ground truth is the target record's image and the mask the source's ``face_mask``.
+    """
+    ids = list(records) if records is not None else (store.ids(split="test") or store.ids())
+    names = list(dict.fromkeys(["image", *spatial, *nonspatial] + (["face_mask"] if store.available("face_mask") else [])))
+    cases = []
+    for rid in ids:
+        if limit is not None and len(cases) >= limit:
+            break
+        tid = same_subject_target(store, rid)
+        if tid is None:
+            continue
+        src, tgt = store.read(rid, names), store.read(tid, names)
+        tgt = {**src, **{k: tgt[k] for k in LIGHT_DEPENDENT if k in tgt}}
+
+        def cond(arrays):
+            sp = prepare_spatial(spatial, arrays)[None].to(device) if spatial else None
+            ns = prepare_nonspatial(nonspatial, arrays)[None].to(device) if nonspatial else None
+            return sp, ns
+
+        mask = torch.from_numpy(np.array(src["face_mask"]))[None].bool().to(device) if "face_mask" in src else None
+        cases.append(Case(rid, tid, image_to_tensor(src["image"])[None].to(device), cond(src), cond(tgt),
+                          gt=image_to_tensor(store.read(tid, ["image"])["image"])[None].to(device), mask=mask))
+    if not cases:
+        raise ValueError(f"no record of {ids[:5]}{'...' if len(ids) > 5 else ''} in {store.root} has another record "
+                         "of the same subject to relight toward (the benchmark's target and ground truth)")
+    return cases
+
+
+def synchronize(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def autocast(device: torch.device, precision: str):
+    """``fp32`` -> no autocast; ``bf16`` -> bfloat16 autocast on the device."""
+    if precision in ("fp32", "32", "32-true"):
+        return contextlib.nullcontext()
+    if precision in ("bf16", "bf16-mixed"):
+        return torch.autocast(device.type, dtype=torch.bfloat16)
+    raise ValueError(f"precision must be 'fp32' or 'bf16', got {precision!r}")
+
+
+@torch.no_grad()
+def relight_case(model, case: Case, spec: SamplerSpec, mean_matching: bool = True) -> Tensor:
+    """The network passes of one relight (both Modulator runs, inversion, self-decode, decode) -> [1, 3, H, W]."""
+    src = model.condition(*case.source)
+    inv = invert(model.denoiser(src), case.x0, model.schedule, spec, mean_matching=mean_matching)
+    tgt = model.condition(*case.target_cond)
+    return decode(model.denoiser(tgt), inv, model.schedule)
+
+
+def timed_relight(model, case: Case, spec: SamplerSpec, *, mean_matching: bool = True, precision: str = "fp32",
+                  device: torch.device | None = None) -> tuple[Tensor, float]:
+    """``(relit float32, seconds)`` with the device synchronised before and after."""
+    device = device or case.x0.device
+    synchronize(device)
+    start = time.perf_counter()
+    with autocast(device, precision):
+        out = relight_case(model, case, spec, mean_matching)
+    synchronize(device)
+    return out.float(), time.perf_counter() - start
+
+
+def face_errors(pred: Tensor, ref: Tensor, mask: Tensor | None) -> dict[str, float]:
+    """MSE and DSSIM of [-1, 1] images on the mask (whole image without one), in [0, 1] units."""
+    p, r = metrics.from_signed(pred.float().clamp(-1, 1)), metrics.from_signed(ref.float().clamp(-1, 1))
+    m = mask if mask is not None else torch.ones(p.shape[0], *p.shape[-2:], dtype=torch.bool, device=p.device)
+    return {"mse": float(metrics.masked_mse(p, r, m).mean()), "dssim": float(metrics.dssim(p, r, m).mean())}
+
+
+def spec_for(sampler_cfg: Mapping[str, Any], steps: int) -> SamplerSpec:
+    return SamplerSpec.from_config({**dict(sampler_cfg), "steps": int(steps)})
+
+
+def benchmark(model, cases: Sequence[Case], samplers: Mapping[str, Mapping[str, Any]], steps: Sequence[int], *,
+              reference: tuple[str, int] | None = ("ddim", 1000), reference_config: Mapping[str, Any] | None = None,
+              mean_matching: bool = True,
+              precision: str = "fp32", repeats: int = 1, warmup: bool = True,
+              progress: bool = False) -> tuple[list[dict[str, Any]], dict]:
+    """Time every ``samplers`` entry (name -> sampler config) at every step count on every case.
+
+    ``reference`` = (sampler name, steps); its config is ``samplers[name]`` unless ``reference_config`` gives
+    one (a reference sampler that is not benchmarked itself). Returns ``(rows, outputs)``: one row per (sampler, steps) with the mean seconds per relight, the network
+    evaluations per relight (UNet passes) and, when available, mean errors against the reference relight and
+    the ground truth; ``outputs[(sampler, steps)]`` holds the relit images (one per case).
+    """
+    if not cases:
+        raise ValueError("no cases to benchmark")
+    if reference is not None and reference_config is None:
+        if reference[0] not in samplers:
+            raise KeyError(f"reference sampler {reference[0]!r} is not among the samplers {sorted(samplers)}")
+        reference_config = samplers[reference[0]]
+    device = cases[0].x0.device
+    passes = 3 if mean_matching else 2
+    if warmup:  # first calls pay for allocation, kernel selection and lazy initialisation
+        for cfg in samplers.values():
+            relight_case(model, cases[0], spec_for(cfg, min(steps)), mean_matching)
+    rows, outputs = [], {}
+    jobs = [(name, n) for name in samplers for n in steps]
+    for name, n in tqdm(jobs, desc="bench", disable=not progress):
+        spec = spec_for(samplers[name], n)
+        secs, outs = [], []
+        for case in cases:
+            for r in range(repeats):
+                out, sec = timed_relight(model, case, spec, mean_matching=mean_matching, precision=precision,
+                                         device=device)
+                secs.append(sec)
+            outs.append(out)
+        outputs[(name, n)] = outs
+        rows.append({"sampler": name, "steps": n, "nfe": passes * n, "records": len(cases),
+                     "time/seconds": float(np.mean(secs)), "time/std": float(np.std(secs))})
+    ref_out = None
+    if reference is not None:
+        same = reference[0] in samplers and dict(samplers[reference[0]]) == dict(reference_config)
+        ref_out = outputs.get(tuple(reference)) if same else None
+        if ref_out is None:
+            spec = spec_for(reference_config, reference[1])
+            with autocast(device, precision):
+                ref_out = [relight_case(model, c, spec, mean_matching).float() for c in
+                           tqdm(cases, desc=f"reference {reference[0]}-{reference[1]}", disable=not progress)]
+        outputs["reference"] = ref_out
+    for row in rows:
+        outs = outputs[(row["sampler"], row["steps"])]
+        for key, refs in (("ref", ref_out), ("gt", [c.gt for c in cases])):
+            if refs is None or any(r is None for r in refs):
+                continue
+            errs = [face_errors(o, r, c.mask) for o, r, c in zip(outs, refs, cases)]
+            for m in ("mse", "dssim"):
+                row[f"{key}/{m}"] = float(np.mean([e[m] for e in errs]))
+    return rows, outputs
+
+
+# ------------------------------------------------------------------------------------------ reporting
+def columns(rows: Sequence[Mapping[str, Any]]) -> list[str]:
+    keys = ["sampler", "steps", "nfe", "records", "time/seconds", "time/std"]
+    return keys + [c for c in ERROR_COLUMNS if any(c in r for r in rows)]
+
+
+def write_csv(rows: Sequence[Mapping[str, Any]], path: str | Path) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=columns(rows), extrasaction="ignore")
+        w.writeheader()
+        w.writerows(rows)
+    return path
+
+
+def format_table(rows: Sequence[Mapping[str, Any]]) -> str:
+    """A plain-text table, one line per (sampler, steps)."""
+    cols = columns(rows)
+    widths = {c: max(len(c), 14 if c == "sampler" else 9) for c in cols}
+
+    def cell(c, v):
+        if isinstance(v, str):
+            return f"{v:<{widths[c]}}"
+        if isinstance(v, int):
+            return f"{v:>{widths[c]}d}"
+        return f"{v:>{widths[c]}.4g}" if v is not None and math.isfinite(v) else f"{'-':>{widths[c]}}"
+
+    head = "  ".join(f"{c:<{widths[c]}}" if c == "sampler" else f"{c:>{widths[c]}}" for c in cols)
+    return "\n".join([head] + ["  ".join(cell(c, r.get(c)) for c in cols) for r in rows])
+
+
+def pareto_plot(rows: Sequence[Mapping[str, Any]], path: str | Path) -> Path:
+    """Seconds per relight against each error column (log-log, one line per sampler, points labelled by steps);
+    timing-only rows plot seconds against steps. Zero errors (the reference against itself) cannot sit on a
+    log axis and are left out."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    errs = [c for c in ERROR_COLUMNS if any(c in r for r in rows)]
+    panels = errs or [None]
+    ncol = min(2, len(panels))
+    nrow = math.ceil(len(panels) / ncol)
+    fig, axes = plt.subplots(nrow, ncol, figsize=(5.5 * ncol, 4.2 * nrow), squeeze=False)
+    samplers = list(dict.fromkeys(r["sampler"] for r in rows))
+    for ax, col in zip(axes.flat, panels):
+        for name in samplers:
+            if col is None:
+                pts = sorted((r["steps"], r["time/seconds"], r["steps"]) for r in rows if r["sampler"] == name)
+            else:
+                pts = sorted((r["time/seconds"], r[col], r["steps"]) for r in rows
+                             if r["sampler"] == name and col in r and r[col] > 0 and r["time/seconds"] > 0)
+            if not pts:
+                continue
+            x, y, n = zip(*pts)
+            (line,) = ax.plot(x, y, "o-", label=name)
+            for xi, yi, ni in zip(x, y, n):
+                ax.annotate(str(ni), (xi, yi), fontsize=7, color=line.get_color(), xytext=(3, 3),
+                            textcoords="offset points")
+        ax.set(xscale="log", yscale="log")
+        if col is None:
+            ax.set(xlabel="steps", ylabel="seconds per relight", title="timing only (untrained network)")
+        else:
+            ax.set(xlabel="seconds per relight (network passes)", ylabel=col, title=f"{col} vs time")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=8)
+    for ax in list(axes.flat)[len(panels):]:
+        ax.axis("off")
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def comparison_grid(cases: Sequence[Case], outputs: Mapping, steps: Sequence[int], path: str | Path,
+                    case_index: int = 0) -> Path:
+    """One image of one case: a first row (input, ground truth, reference), then per sampler its relights
+    at each step count, left to right."""
+    c = cases[case_index]
+    head = [viz.to_uint8(c.x0[0])]
+    head += [viz.to_uint8(c.gt[0])] if c.gt is not None else []
+    head += [viz.to_uint8(outputs["reference"][case_index][0].clamp(-1, 1))] if "reference" in outputs else []
+    samplers = list(dict.fromkeys(k[0] for k in outputs if k != "reference"))
+    rows = [head] + [[viz.to_uint8(outputs[(s, n)][case_index][0].clamp(-1, 1)) for n in steps] for s in samplers]
+    return viz.save_png(viz.grid(rows), path)
