@@ -1,13 +1,11 @@
 """Relighting (SPEC 5): conditions prepared once, mean-matching, batching, shadow control, and the extremes.
 
 Each property is checked on a toy model (fast, exact counts) and on the tiny trained checkpoint (the real
-network). SynthFaces stores carry no ``depth``, which DiFaReli++ retargeting ray-marches; ``depth_store``
-adds the renderer's depth for the test subjects (and a few extreme input images).
+network). ``depth_store`` is the conftest SynthFaces store plus a few extreme input images.
 """
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import numpy as np
@@ -32,7 +30,6 @@ SAMPLERS = {  # name -> sampler config (conf/sampler/*.yaml keys)
     "unipc_bh1": {"name": "unipc", "order": 2, "variant": "bh1"},
     "unipc_bh2": {"name": "unipc", "order": 2, "variant": "bh2"},
 }
-SUBJECTS = ("s00006", "s00007")  # the test split of the conftest store (its default relight records)
 EXTREMES = ("x_black", "x_white", "x_saturated")
 
 
@@ -41,32 +38,38 @@ def spec(name: str, steps: int, **kw) -> SamplerSpec:
 
 
 # ------------------------------------------------------------------------------------------ fixtures
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    # Batch-1 passes of a tiny network: a second intra-op thread on the shared 2-core CPU made each pass
+    # ~20x slower (0.6 s instead of 0.03 s) under load.
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+_STORES: dict[Path, Path] = {}
+
+
 @pytest.fixture(scope="session")
 def depth_store(synth_store, tmp_path_factory) -> Path:
-    """The conftest store plus the renderer's depth for SUBJECTS, and EXTREMES: s00006_l0 with an all-black,
-    an all-white and a saturated (random 0/255) image."""
-    from difareli.synth.generator import SynthConfig, build_subject
-
+    """The conftest store (with the depth DiFaReli++ retargeting ray-marches on) plus EXTREMES: s00006_l0 with
+    an all-black, an all-white and a saturated (random 0/255) image. Built once per session (other test
+    modules import this fixture)."""
+    if synth_store in _STORES:
+        return _STORES[synth_store]
     src = EncodingStore.open(synth_store)
-    names = list(src.encodings)
-    head = src.store_meta
-    cfg = SynthConfig(**{k: head[k] for k in SynthConfig.__dataclass_fields__ if k in head})
-    dst = EncodingStore.create(tmp_path_factory.mktemp("depth") / "store", src.dims, [*names, "depth"], head)
-    depth = {}
-    for subject in SUBJECTS:
-        gb = build_subject(int(subject[1:]), cfg).gbuffer
-        depth[subject] = np.where(gb.hit, gb.depth, 0).astype(np.float32)
+    assert src.available("depth"), "SynthFaces stores carry depth (target shadow maps are ray-marched on it)"
+    dst = EncodingStore.create(tmp_path_factory.mktemp("relight") / "store", src.dims, src.encodings, src.store_meta)
     for rid in src.ids():
-        meta, arrays = src.meta(rid), {k: np.asarray(v) for k, v in src.read(rid, names).items()}
-        if meta["subject"] in depth:
-            arrays["depth"] = depth[meta["subject"]]
-        dst.write(rid, arrays, meta)
+        dst.write(rid, {k: np.asarray(v) for k, v in src.read(rid).items()}, src.meta(rid))
     base = {k: np.asarray(v) for k, v in dst.read("s00006_l0").items()}
     rng = np.random.default_rng(0)
     images = {"x_black": np.zeros_like(base["image"]), "x_white": np.full_like(base["image"], 255),
               "x_saturated": (rng.integers(0, 2, base["image"].shape) * 255).astype(np.uint8)}
     for rid, image in images.items():
         dst.write(rid, {**base, "image": image}, {**src.meta("s00006_l0"), "subject": "extreme"})
+    _STORES[synth_store] = dst.root
     return dst.root
 
 
@@ -90,6 +93,7 @@ class ToyModel(nn.Module):
         self.register_buffer("abar", torch.as_tensor(self.schedule.alphas_cumprod, dtype=torch.float32))
         self.conditions: list[tuple[torch.Tensor, torch.Tensor]] = []
         self.denoiser_batches: list[int] = []
+        self.eval().requires_grad_(False)
 
     def condition(self, spatial, nonspatial):
         self.conditions.append((spatial.clone(), nonspatial.clone()))
@@ -295,7 +299,9 @@ def test_few_steps_relight_toy(name, n):
     model = ToyModel(18, 184)
     src, tgt = toy_inputs(model), toy_inputs(model, 2, seed=5)
     out = relight(model, toy_image(), src, tgt, spec(name, n))
-    assert torch.isfinite(out).all() and float(out.abs().max()) < 3
+    # One step from T-1 divides the eps mismatch between two conditions by alpha_{T-1} = 0.0064: the toy's
+    # relight is then ~30 in magnitude (clamped in images), but must stay finite and below ~1 / alpha_{T-1}.
+    assert torch.isfinite(out).all() and float(out.abs().max()) < 160
     if n == 1 or (n == 2 and name.startswith("dpm")):  # every step is first order here: identical to DDIM
         torch.testing.assert_close(out, relight(model, toy_image(), src, tgt, spec("ddim", n)), atol=1e-5, rtol=0)
 
@@ -308,8 +314,10 @@ def test_thousand_steps_relight_toy(name):
     src = toy_inputs(model)
     x0 = toy_image()
     out = relight(model, x0, src, src, spec(name, 1000))
-    # Decoding with the source's own condition after mean-matching returns the input (to the solver's error).
-    assert torch.isfinite(out).all() and float((out - x0).abs().max()) < 2e-3
+    # Decoding with the source's own condition returns the input up to the round trip's discretisation error;
+    # measured max |error|: ddim 0.0098 (first order: 0.19 at 50 steps, 0.049 at 200), dpm_solver_pp 2.3e-5,
+    # unipc 1.5e-4.
+    assert torch.isfinite(out).all() and float((out - x0).abs().max()) < (0.02 if name == "ddim" else 1e-3)
 
 
 @pytest.mark.parametrize("name", ["ddim", "dpm_solver", "dpm_solver_pp", "unipc_bh2"])
@@ -324,8 +332,9 @@ def test_few_steps_relight_checkpoint(name, pp_model, depth_store):
 
 
 #: Max |bf16 autocast - float32| of the relit [-1, 1] image through the tiny network (inversion + self-decode +
-#: decode, 10 steps), measured: ddim 0.070, unipc 0.078 (mean |error| ~0.01). Bound with ~2x margin.
-BF16_BOUND = 0.15
+#: decode, 10 steps), measured 0.042-0.051 (ddim) and 0.043-0.048 (unipc bh2) depending on the thread count,
+#: mean |error| ~0.01. Bound with ~2x margin.
+BF16_BOUND = 0.1
 
 
 @pytest.mark.parametrize("name", ["ddim", "unipc_bh2"])

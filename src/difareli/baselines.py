@@ -94,7 +94,8 @@ class LightFit:
         return self(store.read(record_id, names))
 
 
-def irradiance_error(estimate: np.ndarray, truth: np.ndarray, normals: np.ndarray, mask: np.ndarray) -> tuple[float, float]:
+def irradiance_error(estimate: np.ndarray, truth: np.ndarray, normals: np.ndarray,
+                     mask: np.ndarray) -> tuple[float, float]:
     """Relative irradiance error ``|E_est - E_gt| / |E_gt|`` over the masked pixels (all channels), and the
     same after the best scalar scale of ``E_est`` (the part an albedo-scale error cannot explain)."""
     n = np.asarray(normals, dtype=np.float64)[mask]

@@ -128,7 +128,8 @@ class BenchmarkResult:
         keys = list(dict.fromkeys((e["protocol"], e["light"]) for e in self.light_errors))
         for p, which in keys:
             rows = [e for e in self.light_errors if e["protocol"] == p and e["light"] == which]
-            rel, free = tables.mean_se(r["rel_error"] for r in rows), tables.mean_se(r["rel_error_gain_free"] for r in rows)
+            rel = tables.mean_se(r["rel_error"] for r in rows)
+            free = tables.mean_se(r["rel_error_gain_free"] for r in rows)
             lines.append(f"| {tables.PROTOCOL_LABELS.get(p, p)} | {which} | {rel.n} | {_pm(rel)} | {_pm(free)} |")
         return "\n".join(lines) + "\n"
 

@@ -10,11 +10,8 @@ from omegaconf import DictConfig, OmegaConf
 
 from difareli.baselines import build_method, light_fit_from_config
 from difareli.benchmark import BenchmarkResult, run_benchmark
+from difareli.cli import common
 from difareli.store import EncodingStore
-
-#: conf/ as an absolute path: a relative config_path is resolved as a Python package under a console
-#: script (see cli/synth.py), and conf/ is not one.
-CONFIG_DIR = str(Path(__file__).resolve().parents[3] / "conf")
 
 
 def run(cfg: DictConfig) -> BenchmarkResult:
@@ -37,7 +34,7 @@ def run(cfg: DictConfig) -> BenchmarkResult:
     return result
 
 
-@hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="benchmark")
+@hydra.main(version_base="1.3", config_path=common.CONFIG_PATH, config_name="benchmark")
 def main(cfg: DictConfig) -> None:
     run(cfg)
 

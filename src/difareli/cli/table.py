@@ -10,10 +10,7 @@ import hydra
 from omegaconf import DictConfig
 
 from difareli import tables
-
-#: conf/ as an absolute path: a relative config_path is resolved as a Python package under a console
-#: script (see cli/synth.py), and conf/ is not one.
-CONFIG_DIR = str(Path(__file__).resolve().parents[3] / "conf")
+from difareli.cli import common
 
 
 def expand_runs(patterns: Iterable[str]) -> list[Path]:
@@ -51,7 +48,7 @@ def run(cfg: DictConfig) -> tables.Table:
     return table
 
 
-@hydra.main(version_base="1.3", config_path=CONFIG_DIR, config_name="table")
+@hydra.main(version_base="1.3", config_path=common.CONFIG_PATH, config_name="table")
 def main(cfg: DictConfig) -> None:
     run(cfg)
 
