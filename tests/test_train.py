@@ -16,9 +16,11 @@ from difareli.data import MissingEncodingError
 from difareli.lit import load_checkpoint
 from difareli.store import EncodingStore
 
-from .helpers import compose_train
+from .helpers import CONF, compose_train
 
 MODELS = ["difareli", "difareli_pp"]
+#: Every model config (variants and ablations): each must run through the whole loop.
+ALL_MODELS = sorted(str(p.relative_to(CONF / "model").with_suffix("")) for p in (CONF / "model").rglob("*.yaml"))
 
 
 def _cpu_overrides(store: Path) -> list[str]:
@@ -26,7 +28,7 @@ def _cpu_overrides(store: Path) -> list[str]:
             "model.preset=tiny", "trainer=cpu", "sample_grid=false"]
 
 
-@pytest.mark.parametrize("model", MODELS)
+@pytest.mark.parametrize("model", ALL_MODELS)
 def test_fast_dev_run_each_model(model, synth_store, tmp_path):
     cfg = compose_train(tmp_path, [*_cpu_overrides(synth_store), f"model={model}", "debug=fdr"])
     out = train(cfg)
@@ -65,7 +67,7 @@ def test_overfit_eight_images_loss_falls_tenfold(synth_store, tmp_path):
     import lightning as L
     from hydra.utils import instantiate
 
-    # A micro network (base 16, one downsampling, no attention) keeps 150 CPU steps to ~a minute.
+    # A micro network (base 16, one downsampling, no attention) keeps 200 CPU steps to ~a minute.
     cfg = compose_train(tmp_path, [*_cpu_overrides(synth_store), "model=difareli_pp", "data.batch_size=8",
                                    "model.lr=3e-3", "+model.net_overrides.base_channels=16",
                                    "+model.net_overrides.channel_mult=[1,2]", "+model.net_overrides.norm_groups=8",
@@ -84,7 +86,7 @@ def test_overfit_eight_images_loss_falls_tenfold(synth_store, tmp_path):
             return float(np.mean([model.diffusion_loss(batch, generator=g).item() for _ in range(16)]))
 
     before = fixed_loss()
-    trainer = L.Trainer(max_steps=150, accelerator="cpu", logger=False, enable_checkpointing=False,
+    trainer = L.Trainer(max_steps=200, accelerator="cpu", logger=False, enable_checkpointing=False,
                         enable_progress_bar=False, limit_val_batches=0, enable_model_summary=False)
     trainer.fit(model, datamodule=dm)
     after = fixed_loss()

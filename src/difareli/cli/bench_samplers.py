@@ -9,6 +9,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import hydra
+import torch
 from omegaconf import DictConfig, OmegaConf
 
 from difareli import speed
@@ -20,6 +21,8 @@ from difareli.store import EncodingStore
 def run(cfg: DictConfig) -> dict:
     """Benchmark as configured; returns ``{"rows", "paths"}``."""
     device = resolve_device(cfg.device)
+    if cfg.threads:
+        torch.set_num_threads(int(cfg.threads))
     configured = OmegaConf.to_container(cfg.samplers, resolve=True)
     names = list(cfg.names) if cfg.names is not None else list(configured)
     unknown = [n for n in names if n not in configured]

@@ -1,0 +1,155 @@
+"""difareli-bench-samplers and difareli.speed: what is timed, the error columns, and the written table/plots."""
+
+from __future__ import annotations
+
+import csv
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from difareli import speed
+from difareli.cli.bench_samplers import run
+from difareli.diffusion.schedule import DiffusionSchedule
+from difareli.store import EncodingStore
+
+from .helpers import compose_train
+from .test_relight import _one_thread  # noqa: F401 (fixture)
+
+
+def compose(out: Path, overrides: list[str]):
+    return compose_train(out, [*overrides, "progress=false", "device=cpu"], config_name="bench_samplers")
+
+
+def read_csv(path: Path) -> list[dict]:
+    with open(path) as f:
+        return list(csv.DictReader(f))
+
+
+class SleepyModel(nn.Module):
+    """Every network pass sleeps a known time: the Modulator 20 ms, the denoiser 5 ms."""
+
+    MOD, DEN = 0.02, 0.005
+
+    def __init__(self):
+        super().__init__()
+        self.schedule = DiffusionSchedule()
+
+    def condition(self, spatial, nonspatial):
+        time.sleep(self.MOD)
+        return None
+
+    def denoiser(self, cond):
+        def eps(x, t):
+            time.sleep(self.DEN)
+            return 0.1 * x
+        return eps
+
+
+def test_timer_counts_the_network_passes():
+    cases = speed.random_cases(1, 16, 2, 3)
+    n = 4
+    rows, _ = speed.benchmark(SleepyModel(), cases, {"ddim": {"name": "ddim"}}, [n], reference=None, warmup=False)
+    (row,) = rows
+    assert row["nfe"] == 3 * n and row["records"] == 1
+    floor = 2 * SleepyModel.MOD + 3 * n * SleepyModel.DEN  # two Modulator runs + invert, self-decode, decode
+    assert floor <= row["time/seconds"] < floor + 0.3  # the slack is other processes on a shared CPU
+    rows, _ = speed.benchmark(SleepyModel(), cases, {"ddim": {"name": "ddim"}}, [n], reference=None, warmup=False,
+                              mean_matching=False)
+    assert rows[0]["nfe"] == 2 * n and rows[0]["time/seconds"] < floor
+
+
+def test_face_errors_known_values():
+    g = torch.Generator().manual_seed(0)
+    ref = torch.rand(1, 3, 24, 24, generator=g) * 1.6 - 0.8
+    mask = torch.zeros(1, 24, 24, dtype=torch.bool)
+    mask[:, 4:20, 6:18] = True
+    pred = torch.where(mask[:, None], ref + 0.1, -ref)  # 0.1 in [-1, 1] is 0.05 in [0, 1]; outside: anything
+    errs = speed.face_errors(pred, ref, mask)
+    assert errs["mse"] == pytest.approx(0.05**2, rel=1e-6)
+    assert 0 < errs["dssim"] < 0.05
+    assert speed.face_errors(ref, ref, mask) == {"mse": 0.0, "dssim": pytest.approx(0.0, abs=1e-12)}
+    assert speed.face_errors(pred, ref, None)["mse"] > errs["mse"]  # no mask: the whole image counts
+
+
+def test_store_cases_target_is_same_subject_other_light(synth_store):
+    store = EncodingStore.open(synth_store)
+    spatial, nonspatial = ["shading", "shadow_map", "masks"], ["shape", "cam", "identity"]
+    cases = speed.store_cases(store, spatial, nonspatial, records=["s00006_l1", "s00007_l0"], limit=None)
+    assert [(c.record, c.target) for c in cases] == [("s00006_l1", "s00006_l0"), ("s00007_l0", "s00007_l1")]
+    c = cases[0]
+    tgt = store.read("s00006_l0", ["image", "shading", "shadow_map", "masks"])
+    src = store.read("s00006_l1", ["masks", "face_mask"])
+    np.testing.assert_array_equal(c.target_cond[0][0, :3].permute(1, 2, 0).numpy(), tgt["shading"])
+    np.testing.assert_array_equal(c.target_cond[0][0, 3].numpy(), tgt["shadow_map"])
+    assert torch.equal(c.target_cond[0][0, 4:], c.source[0][0, 4:])  # masks: the input's
+    assert torch.equal(c.target_cond[1], c.source[1])  # shape, cam, identity: the input's
+    assert torch.equal(c.mask[0], torch.from_numpy(np.array(src["face_mask"])))
+    assert torch.equal(((c.gt[0] + 1) * 127.5).round().byte().permute(1, 2, 0), torch.from_numpy(np.array(tgt["image"])))
+    assert len(speed.store_cases(store, spatial, nonspatial, limit=1)) == 1  # default: the test split
+
+
+def test_bench_checkpoint_writes_table_and_plots(tiny_checkpoint, synth_store, tmp_path, capsys):
+    cfg = compose(tmp_path, [f"checkpoint={tiny_checkpoint('difareli_pp')}", f"store={synth_store}",
+                             "names=[ddim,unipc]", "steps=[2,5]", "reference.steps=5", "limit=1"])
+    out = run(cfg)
+    rows = out["rows"]
+    assert [(r["sampler"], r["steps"], r["nfe"]) for r in rows] == [("ddim", 2, 6), ("ddim", 5, 15),
+                                                                      ("unipc", 2, 6), ("unipc", 5, 15)]
+    by = {(r["sampler"], r["steps"]): r for r in rows}
+    assert by[("ddim", 5)]["ref/mse"] == 0 and by[("ddim", 5)]["ref/dssim"] == pytest.approx(0, abs=1e-12)
+    assert by[("unipc", 5)]["ref/mse"] > 0 and by[("ddim", 2)]["ref/mse"] > 0
+    # Two steps: every sampler's steps are first order (no history, last step), so all agree exactly.
+    for k in ("ref/mse", "ref/dssim", "gt/mse", "gt/dssim"):
+        assert by[("unipc", 2)][k] == by[("ddim", 2)][k]
+    assert all(0 < r["gt/mse"] < 1 and 0 < r["gt/dssim"] < 0.5 and r["time/seconds"] > 0 for r in rows)
+    table = read_csv(out["paths"]["csv"])
+    assert list(table[0]) == ["sampler", "steps", "nfe", "records", "time/seconds", "time/std", "ref/mse",
+                              "ref/dssim", "gt/mse", "gt/dssim"]
+    assert float(table[3]["gt/dssim"]) == pytest.approx(rows[3]["gt/dssim"])
+    assert iio.imread(out["paths"]["plot"]).ndim == 3
+    grid = iio.imread(out["paths"]["grid"])  # 32 px cells enlarged 4x: a head row + one row per sampler
+    assert grid.shape[:2] == (3 * (128 + 2) + 2, 3 * (128 + 2) + 2)
+    assert "time/seconds" in capsys.readouterr().out
+
+
+def test_bench_reference_sampler_need_not_be_benchmarked(tiny_checkpoint, synth_store, tmp_path):
+    cfg = compose(tmp_path, [f"checkpoint={tiny_checkpoint('difareli_pp')}", f"store={synth_store}",
+                             "names=[dpm_solver_pp]", "steps=[3]", "reference.steps=6", "limit=1"])
+    rows = run(cfg)["rows"]
+    assert [r["sampler"] for r in rows] == ["dpm_solver_pp"] and rows[0]["ref/mse"] > 0
+
+
+def test_bench_untrained_preset_timing_only(tmp_path):
+    cfg = compose(tmp_path, ["model.preset=tiny", "model.resolution=32", "names=[ddim,dpm_solver]", "steps=[1,3]",
+                             "limit=1"])
+    out = run(cfg)
+    table = read_csv(out["paths"]["csv"])
+    assert list(table[0]) == ["sampler", "steps", "nfe", "records", "time/seconds", "time/std"]
+    assert [int(r["nfe"]) for r in table] == [3, 9, 3, 9] and all(float(r["time/seconds"]) > 0 for r in table)
+    assert "grid" not in out["paths"] and out["paths"]["plot"].is_file()
+
+
+def test_bench_bad_configs(tiny_checkpoint, tmp_path):
+    with pytest.raises(ValueError, match="store="):
+        run(compose(tmp_path, [f"checkpoint={tiny_checkpoint('difareli_pp')}"]))
+    with pytest.raises(KeyError, match="heun"):
+        run(compose(tmp_path, ["names=[ddim,heun]"]))
+    with pytest.raises(ValueError, match="precision"):
+        speed.autocast(torch.device("cpu"), "fp8")
+
+
+@pytest.mark.slow
+def test_console_script_untrained(tmp_path):
+    exe = Path(sys.executable).with_name("difareli-bench-samplers")
+    res = subprocess.run([str(exe), "model.preset=tiny", "model.resolution=32", "names=[unipc]", "steps=[2]",
+                          "limit=1", "threads=1", "progress=false", f"hydra.run.dir={tmp_path}"], check=True,
+                         capture_output=True, text=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert "unipc" in res.stdout and (tmp_path / "bench_samplers.csv").is_file()
