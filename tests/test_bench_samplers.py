@@ -98,7 +98,7 @@ def test_store_cases_target_is_same_subject_other_light(synth_store):
 
 def test_bench_checkpoint_writes_table_and_plots(tiny_checkpoint, synth_store, tmp_path, capsys):
     cfg = compose(tmp_path, [f"checkpoint={tiny_checkpoint('difareli_pp')}", f"store={synth_store}",
-                             "names=[ddim,unipc]", "steps=[2,5]", "reference.steps=5", "limit=1"])
+                             "names=[ddim,unipc]", "steps=[2,5]", "reference.steps=5", "limit=1", "warmup=false"])
     out = run(cfg)
     rows = out["rows"]
     assert [(r["sampler"], r["steps"], r["nfe"]) for r in rows] == [("ddim", 2, 6), ("ddim", 5, 15),
@@ -122,7 +122,7 @@ def test_bench_checkpoint_writes_table_and_plots(tiny_checkpoint, synth_store, t
 
 def test_bench_reference_sampler_need_not_be_benchmarked(tiny_checkpoint, synth_store, tmp_path):
     cfg = compose(tmp_path, [f"checkpoint={tiny_checkpoint('difareli_pp')}", f"store={synth_store}",
-                             "names=[dpm_solver_pp]", "steps=[3]", "reference.steps=6", "limit=1"])
+                             "names=[dpm_solver_pp]", "steps=[3]", "reference.steps=6", "limit=1", "warmup=false"])
     rows = run(cfg)["rows"]
     assert [r["sampler"] for r in rows] == ["dpm_solver_pp"] and rows[0]["ref/mse"] > 0
 

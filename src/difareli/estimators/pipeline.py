@@ -77,7 +77,10 @@ class Pipeline:
         from .geometry import SHAPE_DIM
         from .identity import IDENTITY_DIM
 
-        return {"H": self.size, "W": self.size, "S": SHAPE_DIM, "D": IDENTITY_DIM}
+        # S belongs to whichever estimator writes ``shape`` (FaceMesh points: 1404, BFM fit: 53).
+        producer = next((e for e in self.estimators if "shape" in e.provides), None)  # as in ``plan``
+        shape_dim = getattr(producer, "shape_dim", SHAPE_DIM)
+        return {"H": self.size, "W": self.size, "S": shape_dim, "D": IDENTITY_DIM}
 
     def process(self, rgb: np.ndarray) -> tuple[dict[str, np.ndarray], dict, dict]:
         """Encodings of one decoded photo, its meta, and the full context (for previews)."""
@@ -93,7 +96,7 @@ class Pipeline:
             ctx["notes"] += out.pop("notes", [])
             ctx.update(out)
         meta["seconds"] = {k: round(v, 4) for k, v in timings.items()}
-        for key in ("reprojection_px", "light_fit", "shadow_info"):
+        for key in ("reprojection_px", "bfm_fit", "light_fit", "shadow_info"):
             if key in ctx:
                 meta[key] = ctx[key]
         arrays = {name: ctx[name] for name in self.encodings}
@@ -160,7 +163,7 @@ def run(pipeline: Pipeline, in_dir: str, out_dir: str, *, overwrite: bool = Fals
 
                 save_preview(out / PREVIEWS / f"{rid}.png", ctx)
             entry.update(status="ok", notes=notes, faces=meta["faces"])
-            for key in ("reprojection_px", "light_fit"):
+            for key in ("reprojection_px", "bfm_fit", "light_fit"):
                 if key in meta:
                     entry[key] = meta[key]
             summary.written += 1

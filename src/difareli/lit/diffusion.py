@@ -65,6 +65,25 @@ class DiffusionModule(L.LightningModule):
         """Store the training split's non-spatial mean/std (they go into the checkpoint)."""
         self.ns_mean.copy_(torch.as_tensor(mean, dtype=torch.float32))
         self.ns_std.copy_(torch.as_tensor(std, dtype=torch.float32))
+        self._exact_stats = (self.ns_mean.detach().clone(), self.ns_std.detach().clone())
+
+    # The EMA callback averages buffers too: for constants, decay * x + (1 - decay) * x drifts by rounding, so
+    # the exact statistics are written back into the saved (EMA) state and into the model after training.
+    _exact_stats: tuple[torch.Tensor, torch.Tensor] | None = None
+
+    def on_load_checkpoint(self, checkpoint) -> None:
+        sd = checkpoint["state_dict"]
+        self._exact_stats = (sd["ns_mean"].detach().clone(), sd["ns_std"].detach().clone())
+
+    def on_save_checkpoint(self, checkpoint) -> None:
+        if self._exact_stats is not None:
+            checkpoint["state_dict"]["ns_mean"], checkpoint["state_dict"]["ns_std"] = (
+                t.clone() for t in self._exact_stats)
+
+    def on_train_end(self) -> None:
+        if self._exact_stats is not None:
+            self.ns_mean.copy_(self._exact_stats[0])
+            self.ns_std.copy_(self._exact_stats[1])
 
     def normalize_nonspatial(self, v: torch.Tensor) -> torch.Tensor | None:
         if v is None or v.shape[-1] == 0:
