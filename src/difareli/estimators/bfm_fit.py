@@ -108,7 +108,7 @@ def fit_bfm(landmarks_xy: np.ndarray, H: int, W: int, *, model: FaceModel | None
             sigma: float = 0.01, iterations: int = 8, polish: int = 10) -> BFMFit:
     """Fit BFM identity/expression, pose and the DECA camera to 68 iBUG points in pixels (see module doc).
 
-    ``sigma``: landmark noise in model units (the face is ~1 wide, so 0.01 ~ 1 px on a 256 crop); the
+    ``sigma``: landmark noise in model units (the face is ~1 wide, so 0.01 ~ 1.5 px on a 256 FFHQ crop); the
     ridge weight on the whitened coefficients is ``sigma^2`` per unit-weight point.
     """
     model = model or FaceModel.load()
