@@ -51,3 +51,13 @@ def tiny_checkpoint(synth_store, tmp_path_factory):
         return cache[model]
 
     return get
+
+
+@pytest.fixture(scope="module")
+def one_thread():
+    """One intra-op thread for modules of small-tensor tests: on a shared 2-core CPU a second OpenMP thread
+    spin-waits and made tiny convolutions 16-100x slower; restored afterwards."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)

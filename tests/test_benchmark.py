@@ -15,15 +15,8 @@ from .helpers import compose_train
 BOTH = ["same_subject", "different_subject"]
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """Per-image metrics are many tiny convolutions: one thread is far faster on a shared 2-core CPU."""
-    import torch
-
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+# Small tensors: one intra-op thread (conftest.one_thread) avoids OpenMP spin-waits on a shared CPU.
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 @pytest.fixture(scope="module")

@@ -30,13 +30,8 @@ VARIANTS = {
 }
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """These networks are small: one intra-op thread avoids OpenMP spin-waiting on a shared 2-core machine."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+# Small tensors: one intra-op thread (conftest.one_thread) avoids OpenMP spin-waits on a shared CPU.
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def randomize(net: torch.nn.Module, seed: int = 0) -> torch.nn.Module:

@@ -38,14 +38,8 @@ def spec(name: str, steps: int, **kw) -> SamplerSpec:
 
 
 # ------------------------------------------------------------------------------------------ fixtures
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    # Batch-1 passes of a tiny network: a second intra-op thread on the shared 2-core CPU made each pass
-    # ~20x slower (0.6 s instead of 0.03 s) under load.
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+# Small tensors: one intra-op thread (conftest.one_thread) avoids OpenMP spin-waits on a shared CPU.
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 _STORES: dict[Path, Path] = {}

@@ -25,13 +25,8 @@ UNIPC = ("unipc_bh1", "unipc_bh2")
 DIRS = ("generate", "invert")
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    # Tiny tensors: intra-op threads only add contention on the shared CPU.
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+# Small tensors: one intra-op thread (conftest.one_thread) avoids OpenMP spin-waits on a shared CPU.
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def _orders(result, ns):

@@ -27,13 +27,8 @@ TOL = 1e-5
 
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    # Tiny tensors: intra-op threads only add contention on the shared CPU (16x slower observed).
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+# Small tensors: one intra-op thread (conftest.one_thread) avoids OpenMP spin-waits on a shared CPU.
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 class ToyEps:
     """eps(x, t) = channel mix of x + a smooth per-channel function of t (deterministic, any dtype)."""

@@ -26,13 +26,8 @@ BF16_BOUND = {"generate": 0.03, "invert": 0.1}
 
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    # Tiny tensors: intra-op threads only add contention on the shared CPU (16x slower observed).
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+# Small tensors: one intra-op thread (conftest.one_thread) avoids OpenMP spin-waits on a shared CPU.
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 class ConvEps(nn.Module):
     """Stands in for the UNet: the optimal eps of N(0, 0.5^2) data plus a small random conv net with a time
