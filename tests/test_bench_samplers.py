@@ -21,7 +21,8 @@ from difareli.diffusion.schedule import DiffusionSchedule
 from difareli.store import EncodingStore
 
 from .helpers import compose_train
-from .test_relight import _one_thread  # noqa: F401 (fixture)
+
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def compose(out: Path, overrides: list[str]):

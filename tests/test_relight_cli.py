@@ -18,7 +18,9 @@ from difareli.relighting import Relighter
 from difareli.store import EncodingStore
 
 from .helpers import compose_train
-from .test_relight import _one_thread, depth_store  # noqa: F401 (fixtures)
+from .test_relight import depth_store  # noqa: F401 (fixture)
+
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 CELL = 32 + 2  # a 32 px image plus the grid's 2 px padding
 
