@@ -203,15 +203,7 @@ class BFMGeometry(FaceMeshGeometry):
     def __call__(self, ctx: dict, needed: set[str]) -> dict:
         image = ctx["image"]
         H, W = image.shape[:2]
-        found = self.detect(image)
-        notes = []
-        if found:
-            lm = found[0]
-        elif ctx.get("landmarks_from_alignment") is not None:
-            lm = ctx["landmarks_from_alignment"]
-            notes.append("FaceMesh failed on the aligned crop; used landmarks from the detection pass")
-        else:
-            raise BadInput("FaceMesh found no face in the aligned crop")
+        lm, notes = self.landmarks(ctx)
         fit = fit_bfm(facemesh_to_68(lm[:, :2]), H, W, **self.fit_options)
         if not fit.rmse_px <= self.max_rmse * max(H, W):
             raise BadInput(f"BFM fit failed: landmark RMSE {fit.rmse_px:.2f} px")

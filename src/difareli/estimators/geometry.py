@@ -98,18 +98,25 @@ class FaceMeshGeometry:
         self.mesh = FaceMeshRunner(min_detection_confidence)
         self.max_reprojection_px = max_reprojection_px
 
+    def detect(self, image: np.ndarray) -> list[np.ndarray]:
+        """FaceMesh landmarks of each face in ``image`` (subclasses may detect differently)."""
+        return self.mesh(image)
+
+    def landmarks(self, ctx: dict) -> tuple[np.ndarray, list[str]]:
+        """The aligned crop's landmarks and notes; falls back to the detection pass's landmarks."""
+        found = self.detect(ctx["image"])
+        if found:
+            return found[0], []
+        if ctx.get("landmarks_from_alignment") is not None:
+            # FaceMesh missed the aligned crop: reuse the detection pass.
+            return ctx["landmarks_from_alignment"], [
+                "FaceMesh failed on the aligned crop; used landmarks from the detection pass"]
+        raise BadInput("FaceMesh found no face in the aligned crop")
+
     def __call__(self, ctx: dict, needed: set[str]) -> dict:
         image = ctx["image"]
         H, W = image.shape[:2]
-        found = self.mesh(image)
-        notes = []
-        if found:
-            lm = found[0]
-        elif ctx.get("landmarks_from_alignment") is not None:
-            lm = ctx["landmarks_from_alignment"]  # FaceMesh missed the aligned crop: reuse the detection pass
-            notes.append("FaceMesh failed on the aligned crop; used landmarks from the detection pass")
-        else:
-            raise BadInput("FaceMesh found no face in the aligned crop")
+        lm, notes = self.landmarks(ctx)
         verts, _, _ = normalise(camera_space(lm[:NUM_VERTICES]))
         cam, err = fit_camera(verts, lm[:NUM_VERTICES, :2], H, W)
         if not err <= self.max_reprojection_px:
