@@ -3,7 +3,7 @@
 Variants differ only by configuration: which encodings feed the spatial conditioning (and through which
 component) and which feed AdaGN. Hyperparameters are plain config values so checkpoints load with
 ``torch.load(weights_only=True)``; the non-spatial normalisation statistics are buffers, so they travel in
-the checkpoint's ``state_dict`` (EMA-averaged copies are identical, buffers are not trained).
+the checkpoint's ``state_dict`` (written back exactly: the EMA callback would otherwise average them too).
 """
 
 from __future__ import annotations
