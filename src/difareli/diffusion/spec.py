@@ -154,9 +154,9 @@ class SamplerSpec:
         return cls(**fields, options={**opts, **cfg})
 
     @classmethod
-    def preset(cls, name: str, **overrides) -> "SamplerSpec":
+    def preset(cls, preset: str, /, **overrides) -> "SamplerSpec":
         """The named preset (``PRESETS``), with fields or options overridden, e.g. ``preset("paper", steps=50)``."""
-        return cls.from_config({"preset": name, **overrides})
+        return cls.from_config({"preset": preset, **overrides})
 
     def to_config(self) -> dict[str, Any]:
         """The flat mapping ``conf/sampler/*.yaml`` holds; ``from_config(spec.to_config()) == spec``."""
