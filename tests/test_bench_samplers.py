@@ -17,12 +17,14 @@ from torch import nn
 
 from difareli import speed
 from difareli.cli.bench_samplers import run
+from difareli.diffusion import PRESETS
 from difareli.diffusion.schedule import DiffusionSchedule
 from difareli.store import EncodingStore
 
 from .helpers import compose_train
 
 pytestmark = pytest.mark.usefixtures("one_thread")
+DDIM = PRESETS["ddim"].to_config()  # a sampler config as conf/sampler/ddim.yaml holds it
 
 
 def compose(out: Path, overrides: list[str]):
@@ -57,12 +59,12 @@ class SleepyModel(nn.Module):
 def test_timer_counts_the_network_passes():
     cases = speed.random_cases(1, 16, 2, 3)
     n = 4
-    rows, _ = speed.benchmark(SleepyModel(), cases, {"ddim": {"name": "ddim"}}, [n], reference=None, warmup=False)
+    rows, _ = speed.benchmark(SleepyModel(), cases, {"ddim": DDIM}, [n], reference=None, warmup=False)
     (row,) = rows
     assert row["nfe"] == 3 * n and row["records"] == 1
     floor = 2 * SleepyModel.MOD + 3 * n * SleepyModel.DEN  # two Modulator runs + invert, self-decode, decode
     assert floor <= row["time/seconds"] < floor + 0.3  # the slack is other processes on a shared CPU
-    rows, _ = speed.benchmark(SleepyModel(), cases, {"ddim": {"name": "ddim"}}, [n], reference=None, warmup=False,
+    rows, _ = speed.benchmark(SleepyModel(), cases, {"ddim": DDIM}, [n], reference=None, warmup=False,
                               mean_matching=False)
     assert rows[0]["nfe"] == 2 * n and rows[0]["time/seconds"] < floor
 
