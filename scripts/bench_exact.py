@@ -6,7 +6,7 @@ Rows: relative L2 error per step count for generation (x_{T-1} -> x_0), inversio
 invert-then-generate round trip; the last column is the order fitted on ``--fit`` step counts.
 
     python scripts/bench_exact.py                       # uniform grid, clean ends, float64
-    python scripts/bench_exact.py --grid logsnr --end t0 --samplers ddim unipc_bh2
+    python scripts/bench_exact.py --grid logsnr --end t0 --samplers ddim unipc paper
 """
 
 from __future__ import annotations
@@ -18,11 +18,13 @@ import torch
 
 from difareli.diffusion.exact import DEFAULT_NS, SAMPLER_CONFIGS, format_table, gaussian_ode_errors
 from difareli.diffusion.schedule import GRID_KINDS
+from difareli.diffusion.spec import PRESETS
 
 
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--samplers", nargs="+", default=list(SAMPLER_CONFIGS), choices=list(SAMPLER_CONFIGS))
+    p.add_argument("--samplers", nargs="+", default=list(SAMPLER_CONFIGS), choices=list(PRESETS),
+                   help="presets (difareli.diffusion.spec.PRESETS); steps, grid and clipping are this table's")
     p.add_argument("--ns", nargs="+", type=int, default=list(DEFAULT_NS), help="step counts")
     p.add_argument("--fit", nargs="+", type=int, default=[50, 100, 200],
                    help="step counts the order is fitted on (asymptotic range, before float64 round-off)")

@@ -17,12 +17,14 @@ from torch import nn
 
 from difareli import speed
 from difareli.cli.bench_samplers import run
+from difareli.diffusion import PRESETS
 from difareli.diffusion.schedule import DiffusionSchedule
 from difareli.store import EncodingStore
 
 from .helpers import compose_train
 
 pytestmark = pytest.mark.usefixtures("one_thread")
+DDIM = PRESETS["ddim"].to_config()  # a sampler config as conf/sampler/ddim.yaml holds it
 
 
 def compose(out: Path, overrides: list[str]):
@@ -59,12 +61,12 @@ def test_timer_counts_the_network_passes():
     cases = speed.random_cases(1, SleepyModel(), 16)
     assert cases[0].source[0].shape == (1, 1, 16, 16) and cases[0].source[1].shape == (1, 3)
     n = 8
-    rows, _ = speed.benchmark(SleepyModel(), cases, {"ddim": {"name": "ddim"}}, [n], reference=None, warmup=False)
+    rows, _ = speed.benchmark(SleepyModel(), cases, {"ddim": DDIM}, [n], reference=None, warmup=False)
     (row,) = rows
     assert row["nfe"] == 3 * n and row["records"] == 1
     floor = 2 * SleepyModel.MOD + 3 * n * SleepyModel.DEN  # two Modulator runs + invert, self-decode, decode
     assert floor <= row["time/seconds"] < floor + 0.3  # the slack is other processes on a shared CPU
-    rows, _ = speed.benchmark(SleepyModel(), cases, {"ddim": {"name": "ddim"}}, [n], reference=None, warmup=False,
+    rows, _ = speed.benchmark(SleepyModel(), cases, {"ddim": DDIM}, [n], reference=None, warmup=False,
                               mean_matching=False)
     # No self-decode: n fewer passes (40 ms here), measured against the run above rather than a fixed slack.
     assert rows[0]["nfe"] == 2 * n

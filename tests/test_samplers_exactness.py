@@ -21,7 +21,7 @@ from difareli.diffusion.exact import (DEFAULT_NS, SAMPLER_CONFIGS, GaussianData,
                                      gaussian_ode_errors)
 
 SECOND_ORDER = ("dpm_solver", "dpm_solver_pp")
-UNIPC = ("unipc_bh1", "unipc_bh2")
+UNIPC = ("unipc_bh1", "unipc")
 DIRS = ("generate", "invert")
 
 

@@ -18,7 +18,7 @@ import torch
 
 diffusers = pytest.importorskip("diffusers")
 
-from difareli.diffusion import DiffusionSchedule, get_sampler  # noqa: E402
+from difareli.diffusion import DiffusionSchedule, SamplerSpec  # noqa: E402
 
 SCHED = DiffusionSchedule()
 T = SCHED.T
@@ -68,6 +68,11 @@ def _f64_tables(sched):
     return sched
 
 
+def _run(preset: str, model, x: torch.Tensor, grid, **options) -> torch.Tensor:
+    """The preset (its options overridden) over ``grid``: every sampler is run through SamplerSpec."""
+    return SamplerSpec.preset(preset, **options).run(model, x, grid, SCHED)
+
+
 def _rel(a: torch.Tensor, b: torch.Tensor) -> float:
     return float((a - b).abs().max() / b.abs().max())
 
@@ -89,7 +94,7 @@ def test_ddim_generation_matches_diffusers(n):
     assert sched.timesteps.tolist() + [-1] == grid.tolist()
     model, x = ToyEps(), _x(1)
     ref = _diffusers_loop(sched, model, x, sched.timesteps.tolist(), sched.timesteps.tolist())
-    ours = get_sampler("ddim")(model, x, grid, SCHED)
+    ours = _run("ddim", model, x, grid)
     assert ours.dtype == torch.float64
     assert _rel(ours, ref) < TOL
 
@@ -107,7 +112,7 @@ def test_ddim_inversion_matches_diffusers(n):
     # clean end), so the oracle is fed exactly that.
     ref = _diffusers_loop(sched, model, x, grid.tolist()[:-1], sched.timesteps.tolist())
     model.calls.clear()
-    ours = get_sampler("ddim")(model, x, grid, SCHED)
+    ours = _run("ddim", model, x, grid)
     assert model.calls == [0] + grid.tolist()[1:-1]
     assert _rel(ours, ref) < TOL
 
@@ -131,7 +136,7 @@ def test_dpm_solver_generation_matches_diffusers(n, algorithm, name, final):
     sched.sigmas = _sigmas64(grid.tolist())
     model, x = ToyEps(), _x(3)
     ref = _diffusers_loop(sched, model, x, sched.timesteps.tolist(), sched.timesteps.tolist())
-    ours = get_sampler(name)(model, x, grid, SCHED)
+    ours = _run(name, model, x, grid)
     assert _rel(ours, ref) < TOL
 
 
@@ -147,10 +152,10 @@ def test_dpm_solver_inversion_matches_diffusers(n, algorithm, name):
     sched.sigmas = _sigmas64(grid.tolist())
     model, x = ToyEps(), _x(4)
     ref = _diffusers_loop(sched, model, x, sched.timesteps.tolist(), sched.timesteps.tolist())
-    ours = get_sampler(name)(model, x, grid, SCHED)
+    ours = _run(name, model, x, grid)
     assert _rel(ours, ref) < TOL
     # Guard against a vacuous pass: order 1 (DDIM) on the same grid differs clearly.
-    assert _rel(get_sampler("ddim")(model, x, grid, SCHED), ref) > 1e-3
+    assert _rel(_run("ddim", model, x, grid), ref) > 1e-3
 
 
 @pytest.mark.parametrize("n", NS)
@@ -168,10 +173,10 @@ def test_unipc_generation_matches_diffusers(n, variant, final):
     sched.sigmas = _sigmas64(grid.tolist())
     model, x = ToyEps(), _x(5)
     ref = _diffusers_loop(sched, model, x, sched.timesteps.tolist(), sched.timesteps.tolist())
-    ours = get_sampler("unipc")(model, x, grid, SCHED, variant=variant)
+    ours = _run("unipc", model, x, grid, variant=variant)
     assert _rel(ours, ref) < TOL
     # The corrector matters (it is what the oracle checks beyond DPM-Solver++).
-    no_corr = get_sampler("unipc")(model, x, grid, SCHED, variant=variant, corrector=False)
+    no_corr = _run("unipc", model, x, grid, variant=variant, corrector=False)
     assert _rel(no_corr, ref) > 1e-4
 
 
@@ -180,7 +185,7 @@ def test_parity_float32_close():
     model, x = ToyEps(), _x(6)
     grid = SCHED.time_grid(10)
     for name in ("ddim", "dpm_solver", "dpm_solver_pp", "unipc"):
-        y32 = get_sampler(name)(model, x.float(), grid, SCHED)
-        y64 = get_sampler(name)(model, x, grid, SCHED)
+        y32 = _run(name, model, x.float(), grid)
+        y64 = _run(name, model, x, grid)
         assert y32.dtype == torch.float32
         assert _rel(y32.double(), y64) < 1e-5, name

@@ -14,47 +14,14 @@ on denoisers; :mod:`difareli.relighting` runs them for models (conditions, runti
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Callable, Mapping
+from typing import Callable
 
 import torch
 
-from difareli.diffusion.samplers import get_sampler, sampler_options
 from difareli.diffusion.schedule import DiffusionSchedule
+from difareli.diffusion.spec import SamplerSpec
 
 Denoiser = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
-
-
-@dataclass(frozen=True)
-class SamplerSpec:
-    """Which sampler, how many steps on which grid, and the x0-clipping options per direction."""
-
-    name: str = "ddim"
-    steps: int = 50
-    grid: str = "uniform"
-    clip_x0_invert: bool = False
-    clip_x0_generate: bool = False
-    alpha_zero_end: bool = False
-    options: tuple[tuple[str, Any], ...] = ()
-
-    @classmethod
-    def from_config(cls, cfg: Mapping[str, Any]) -> "SamplerSpec":
-        """From a ``conf/sampler/*.yaml`` mapping (extra keys such as ``order`` go to the sampler)."""
-        return cls(name=cfg["name"], steps=int(cfg["steps"]), grid=cfg.get("grid", "uniform"),
-                   clip_x0_invert=bool(cfg.get("clip_x0_invert", False)),
-                   clip_x0_generate=bool(cfg.get("clip_x0_generate", False)),
-                   alpha_zero_end=bool(cfg.get("alpha_zero_end", False) or False),
-                   options=tuple(sorted(sampler_options(cfg).items())))
-
-    def grids(self, schedule: DiffusionSchedule) -> tuple[torch.Tensor, torch.Tensor]:
-        """(inversion grid ascending, generation grid descending), mirrors of each other except that with
-        ``alpha_zero_end`` the inversion's last point is T (abar = 0) while generation starts at T-1."""
-        inv = schedule.time_grid(self.steps, kind=self.grid, direction="invert", alpha_zero_end=self.alpha_zero_end)
-        return inv, schedule.time_grid(self.steps, kind=self.grid, direction="generate")
-
-    def run(self, denoiser: Denoiser, x: torch.Tensor, grid: torch.Tensor, schedule: DiffusionSchedule, *,
-            clip_x0: bool, callback=None, progress: bool = False) -> torch.Tensor:
-        return get_sampler(self.name)(denoiser, x, grid, schedule, clip_x0=clip_x0, callback=callback,
-                                      progress=progress, **dict(self.options))
 
 
 def _channel_means(x: torch.Tensor) -> torch.Tensor:

@@ -34,7 +34,7 @@ Conventions shared by all (and matching diffusers' schedulers, which the parity 
 from __future__ import annotations
 
 import math
-from typing import Callable, Mapping, Sequence
+from typing import Callable, Literal
 
 import torch
 from tqdm.auto import tqdm
@@ -133,7 +133,7 @@ def _dpm_multistep(denoiser, x, timesteps, schedule, *, data_pred: bool, order: 
 
 
 def dpm_solver(denoiser: Denoiser, x: torch.Tensor, timesteps, schedule: DiffusionSchedule, *, clip_x0=False,
-               callback: Callback | None = None, progress: bool = False, order: int = 2,
+               callback: Callback | None = None, progress: bool = False, order: Literal[1, 2] = 2,
                lower_order_final: bool = True) -> torch.Tensor:
     """DPM-Solver multistep (noise prediction), order 2 by default."""
     return _dpm_multistep(denoiser, x, timesteps, schedule, data_pred=False, order=order, clip_x0=clip_x0,
@@ -142,8 +142,8 @@ def dpm_solver(denoiser: Denoiser, x: torch.Tensor, timesteps, schedule: Diffusi
 
 
 def dpm_solver_pp(denoiser: Denoiser, x: torch.Tensor, timesteps, schedule: DiffusionSchedule, *,
-                  clip_x0=False, callback: Callback | None = None, progress: bool = False, order: int = 2,
-                  lower_order_final: bool = True) -> torch.Tensor:
+                  clip_x0=False, callback: Callback | None = None, progress: bool = False,
+                  order: Literal[1, 2] = 2, lower_order_final: bool = True) -> torch.Tensor:
     """DPM-Solver++ multistep (data prediction), order 2 by default."""
     return _dpm_multistep(denoiser, x, timesteps, schedule, data_pred=True, order=order, clip_x0=clip_x0,
                           callback=callback, progress=progress, lower_order_final=lower_order_final,
@@ -166,8 +166,9 @@ def _unipc_coeffs(h: float, variant: str) -> tuple[float, float, float]:
 
 
 def unipc(denoiser: Denoiser, x: torch.Tensor, timesteps, schedule: DiffusionSchedule, *, clip_x0=False,
-          callback: Callback | None = None, progress: bool = False, order: int = 2, variant: str = "bh2",
-          corrector: bool = True, lower_order_final: bool = True) -> torch.Tensor:
+          callback: Callback | None = None, progress: bool = False, order: Literal[1, 2] = 2,
+          variant: Literal["bh1", "bh2"] = "bh2", corrector: bool = True,
+          lower_order_final: bool = True) -> torch.Tensor:
     """UniPC multistep (UniP-``order`` predictor + UniC corrector), data prediction as in diffusers.
 
     Inversion: no public implementation has one. UniPC's predictor and corrector are exponential-integrator
@@ -227,37 +228,11 @@ def unipc(denoiser: Denoiser, x: torch.Tensor, timesteps, schedule: DiffusionSch
 
 
 # ---------------------------------------------------------------------- registry
+#: Configure and run these through :class:`difareli.diffusion.spec.SamplerSpec`, which reads each function's
+#: keyword-only options (beyond clip_x0 / callback / progress) from its signature.
 SAMPLERS: dict[str, Callable[..., torch.Tensor]] = {
     "ddim": ddim,
     "dpm_solver": dpm_solver,
     "dpm_solver_pp": dpm_solver_pp,
     "unipc": unipc,
 }
-
-#: Which optional keyword options each sampler accepts (beyond clip_x0 / callback / progress).
-SAMPLER_OPTIONS: dict[str, tuple[str, ...]] = {
-    "ddim": (),
-    "dpm_solver": ("order", "lower_order_final"),
-    "dpm_solver_pp": ("order", "lower_order_final"),
-    "unipc": ("order", "variant", "corrector", "lower_order_final"),
-}
-
-
-def get_sampler(name: str) -> Callable[..., torch.Tensor]:
-    """The sampler function registered under ``name``."""
-    try:
-        return SAMPLERS[name]
-    except KeyError:
-        raise KeyError(f"unknown sampler {name!r}; choose from {sorted(SAMPLERS)}") from None
-
-
-def sampler_options(cfg: Mapping) -> dict:
-    """The keyword options of ``cfg["name"]``'s sampler present (and not None) in a sampler config."""
-    keys = SAMPLER_OPTIONS[cfg["name"]]
-    return {k: cfg[k] for k in keys if k in cfg and cfg[k] is not None}
-
-
-def run_sampler(name: str, denoiser: Denoiser, x: torch.Tensor, timesteps: Sequence[int] | torch.Tensor,
-                schedule: DiffusionSchedule, **kwargs) -> torch.Tensor:
-    """``get_sampler(name)(denoiser, x, timesteps, schedule, **kwargs)``."""
-    return get_sampler(name)(denoiser, x, timesteps, schedule, **kwargs)

@@ -3,12 +3,22 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Sequence
+from typing import Any, Mapping, Sequence
 
 import lightning as L
 import torch
 
 from difareli import viz
+from difareli.diffusion.spec import SamplerSpec, as_spec
+
+
+def _validation_items(trainer: L.Trainer, n: int, device) -> tuple[list[dict], torch.Tensor, torch.Tensor]:
+    """The first ``n`` validation records, and their spatial / non-spatial inputs stacked on ``device``."""
+    ds = trainer.datamodule.val_set
+    items = [ds[i] for i in range(min(n, len(ds)))]
+    spatial = torch.stack([b["spatial"] for b in items]).to(device)
+    nonspatial = torch.stack([b["nonspatial"] for b in items]).to(device)
+    return items, spatial, nonspatial
 
 
 class ReconstructionGrid(L.Callback):
@@ -25,13 +35,10 @@ class ReconstructionGrid(L.Callback):
     def on_validation_epoch_end(self, trainer: L.Trainer, pl_module) -> None:
         if trainer.sanity_checking or not trainer.is_global_zero or trainer.datamodule is None:
             return
-        ds = trainer.datamodule.val_set
-        n = min(self.num_images, len(ds))
-        batch = [ds[i] for i in range(n)]
         dev = pl_module.device
+        batch, spatial, nonspatial = _validation_items(trainer, self.num_images, dev)
+        n = len(batch)
         x0 = torch.stack([b["image"] for b in batch]).to(dev)
-        spatial = torch.stack([b["spatial"] for b in batch]).to(dev)
-        nonspatial = torch.stack([b["nonspatial"] for b in batch]).to(dev)
         cond = pl_module.condition(spatial, nonspatial)
         g = torch.Generator(device=dev).manual_seed(self.seed)
         noise = torch.randn(x0.shape, generator=g, device=dev)
@@ -92,3 +99,56 @@ class LossCurve(L.Callback):
         out.parent.mkdir(parents=True, exist_ok=True)
         fig.savefig(out, dpi=100)
         plt.close(fig)
+
+
+class SampleGrid(L.Callback):
+    """Generate ``num_images`` images from fixed noise under the first validation records' encodings with a
+    :class:`~difareli.diffusion.spec.SamplerSpec`, and write ``<run>/sample_grid.png`` (top row: the real
+    images, bottom row: the samples) when training ends.
+
+    ``sampler`` is a preset name (``difareli.diffusion.spec.PRESETS``), a sampler config (``conf/sampler``) or a
+    spec; ``steps`` (None: the sampler's) overrides its step count. At train end the weights are the EMA ones
+    when the EMA callback is listed before this one (it copies its average into the model at ``on_train_end``).
+    ``every_n_validations > 0`` also writes ``grids/sample_grid_step<step>.png`` at the start of every n-th
+    validation (after the EMA callback swapped its weights in). Skipped under ``fast_dev_run`` and when
+    ``enabled`` is false (``sample_grid=false`` in ``conf/train.yaml``).
+    """
+
+    def __init__(self, sampler: SamplerSpec | str | Mapping[str, Any] = "ddim", steps: int | None = None,
+                 num_images: int = 8, seed: int = 0, every_n_validations: int = 0, enabled: bool = True):
+        # Built here so that a bad sampler config fails before training, not after it.
+        self.spec = as_spec(sampler, steps=steps)
+        self.num_images, self.seed = num_images, seed
+        self.every_n_validations, self.enabled = every_n_validations, enabled
+        self._validations = 0
+
+    def _active(self, trainer: L.Trainer) -> bool:
+        return (self.enabled and not trainer.fast_dev_run and not trainer.sanity_checking
+                and trainer.is_global_zero and trainer.datamodule is not None)
+
+    @torch.no_grad()
+    def write(self, trainer: L.Trainer, pl_module, path: str | Path) -> Path:
+        """Sample the grid with ``pl_module``'s current weights (in eval mode) and write it to ``path``."""
+        was_training = pl_module.training
+        pl_module.eval()
+        dev = pl_module.device
+        items, spatial, nonspatial = _validation_items(trainer, self.num_images, dev)
+        cond = pl_module.condition(spatial, nonspatial)
+        g = torch.Generator(device=dev).manual_seed(self.seed)
+        x_T = torch.randn((len(items), *items[0]["image"].shape), generator=g, device=dev)
+        x0 = self.spec.generate(pl_module.denoiser(cond), x_T, pl_module.schedule)
+        pl_module.train(was_training)
+        rows = [[viz.to_uint8(b["image"]) for b in items], [viz.to_uint8(x.clamp(-1, 1)) for x in x0]]
+        return viz.save_png(viz.grid(rows), Path(path))
+
+    def on_validation_epoch_start(self, trainer: L.Trainer, pl_module) -> None:
+        if self.every_n_validations <= 0 or not self._active(trainer):
+            return
+        self._validations += 1
+        if self._validations % self.every_n_validations == 0:
+            name = f"sample_grid_step{trainer.global_step:07d}.png"
+            self.write(trainer, pl_module, Path(trainer.default_root_dir) / "grids" / name)
+
+    def on_train_end(self, trainer: L.Trainer, pl_module) -> None:
+        if self._active(trainer):
+            self.write(trainer, pl_module, Path(trainer.default_root_dir) / "sample_grid.png")
