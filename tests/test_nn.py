@@ -44,10 +44,12 @@ def randomize(net: torch.nn.Module, seed: int = 0) -> torch.nn.Module:
     return net
 
 
-def make(variant: str, preset: str = "tiny", seed: int = 0, **kw) -> DiffusionNet:
+def make(variant: str, preset: str = "tiny", seed: int = 0, spatial_options: dict | None = None,
+         **kw) -> DiffusionNet:
     torch.manual_seed(seed)
     kind, sc, nd = VARIANTS[variant]
-    return randomize(build_network(preset, kind, sc, nd, **kw), seed).eval()
+    spec = {"type": kind, **spatial_options} if spatial_options else kind
+    return randomize(build_network(preset, spec, sc, nd, **kw), seed).eval()
 
 
 def inputs(variant: str, b: int = 2, size: int = 16, seed: int = 1):
@@ -178,7 +180,7 @@ def _capture(net):
 
 @pytest.mark.parametrize("modulate_skips", [False, True])
 def test_modulator_gates_forward_path_and_skips(modulate_skips):
-    net = make("difareli", spatial_kwargs={"modulate_skips": modulate_skips})
+    net = make("difareli", spatial_options={"modulate_skips": modulate_skips})
     x, s, ns = inputs("difareli")
     with torch.no_grad():
         m = net.spatial(s)
@@ -304,8 +306,14 @@ def test_condition_validation():
         make("unconditional").condition(None, ns)
     with pytest.raises(ValueError, match="timesteps"):
         net(torch.zeros(1, 3, 16, 16), torch.tensor([1, 2]), net.condition(s[:1], ns[:1]))
-    with pytest.raises(KeyError, match="unknown spatial_type"):
+    with pytest.raises(KeyError, match="unknown spatial type 'controlnet'"):
         build_network("tiny", "controlnet", 6, 0)
+    with pytest.raises(ValueError, match=r"no option\(s\) \['modulate_skip'\]"):
+        build_network("tiny", {"type": "modulator", "modulate_skip": True}, 6, 0)
+    with pytest.raises(ValueError, match="needs spatial inputs"):
+        build_network("tiny", "concat", 0, 0)
+    with pytest.raises(ValueError, match="model.spatial is null"):
+        build_network("tiny", None, 6, 0)
     with pytest.raises(KeyError, match="unknown UNet option"):
         get_config("tiny", {"base_channel": 64})
 
@@ -365,3 +373,51 @@ def test_resblock_updown_and_head_channels_variant():
     x, s, ns = inputs("difareli")
     with torch.no_grad():
         assert net(x, torch.tensor([1, 2]), net.condition(s, ns)).shape == x.shape
+
+
+def test_spatial_registry_builds_from_the_unet_and_validates():
+    from difareli.nn import SPATIAL_COMPONENTS, register_spatial
+    from difareli.nn.unet import SpatialConditioning, TimestepBlock, UNet
+
+    assert SPATIAL_COMPONENTS["modulator"] is Modulator and SPATIAL_COMPONENTS["concat"] is ConcatSpatial
+    # The nested spec and the bare type name build the same network (same seed, same weights).
+    torch.manual_seed(0)
+    a = build_network("tiny", {"type": "modulator", "modulate_skips": True}, 6, 4)
+    torch.manual_seed(0)
+    b = build_network("tiny", "modulator", 6, 4)
+    assert a.spatial.modulate_skips and not b.spatial.modulate_skips
+    assert all(torch.equal(x, y) for x, y in zip(a.state_dict().values(), b.state_dict().values()))
+
+    seen = {}
+
+    @register_spatial("_test_probe")
+    class Probe(SpatialConditioning):
+        """Adds 2 input channels and records the UNet it was built from."""
+
+        @classmethod
+        def extra_input_channels(cls, channels, **options):
+            return 2
+
+        @classmethod
+        def build(cls, unet, channels, scale=1.0):
+            seen.update(unet=unet, channels=channels, scale=scale)
+            return cls()
+
+        def validate(self, unet, image_channels):
+            if unet.in_channels != image_channels + 2:
+                raise ValueError("probe: wrong input width")
+
+    try:
+        net = build_network("tiny", {"type": "_test_probe", "scale": 3.0}, 5, 0)
+        assert seen["unet"] is net.unet and isinstance(seen["unet"], UNet)  # the builder got the built UNet
+        assert (seen["channels"], seen["scale"]) == (5, 3.0) and net.unet.in_channels == 5
+        with pytest.raises(ValueError, match="already registered"):
+            register_spatial("modulator")(Probe)
+        # A component that does not fit the UNet is refused at construction.
+        with pytest.raises(ValueError, match="do not match"):
+            mod = Modulator(get_config("tiny", {"channel_mult": [1, 2]}), 6)
+            mod.validate(net.unet, 3)
+    finally:
+        SPATIAL_COMPONENTS.pop("_test_probe")
+    # UNet containers dispatch on the TimestepBlock marker, not on concrete classes.
+    assert issubclass(ResBlock, TimestepBlock) and issubclass(AdaGN, TimestepBlock)
