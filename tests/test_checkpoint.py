@@ -43,8 +43,8 @@ def test_old_format_checkpoint_loads_with_identical_outputs():
                                "spatial": {"type": "modulator", "modulate_skips": False}})
     other.load_state_dict(m.state_dict())
     with torch.no_grad():
-        assert not torch.equal(other.denoiser(other.condition(want["spatial"], want["nonspatial"]))(want["x"], want["t"]),
-                               eps)
+        unmodulated = other.denoiser(other.condition(want["spatial"], want["nonspatial"]))(want["x"], want["t"])
+    assert not torch.equal(unmodulated, eps)
 
 
 def test_upgrade_strips_stat_buffers_for_resuming():

@@ -102,6 +102,13 @@ def test_checkpoint_round_trip_weights_only(synth_store, tmp_path):
     last = Path(cfg.paths.output_dir) / "checkpoints" / "last.ckpt"
     raw = torch.load(last, map_location="cpu", weights_only=True)  # must not raise
     assert raw["global_step"] == 3
+    # Plain hyperparameters: the module class, the optimizer's settings, the exact (not EMA-averaged) statistics.
+    hp = raw["hyper_parameters"]
+    assert raw["difareli_module"] == "difareli.lit.diffusion.DiffusionModule" and raw["difareli_format"] == 2
+    assert hp["optimizer"]["lr"] == 1e-4 and hp["spatial"] == {"type": "modulator", "modulate_skips": False}
+    mean, std = out["datamodule"].nonspatial_stats()
+    assert hp["nonspatial_stats"] == {"mean": mean.tolist(), "std": std.tolist()}
+    assert "ns_mean" not in raw["state_dict"] and "ns_mean" not in raw["current_model_state"]
     loaded = load_checkpoint(last)
     assert loaded.config["preset"] == "tiny" and loaded.global_step == 3
     # The EMA callback copies the average into the model at the end of fit: outputs must match exactly.

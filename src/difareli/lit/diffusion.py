@@ -43,9 +43,10 @@ def factory_config(factory: Callable | Mapping[str, Any] | None, what: str) -> d
     if isinstance(factory, Mapping):
         cfg = dict(factory)
     else:
-        func, kwargs = (factory.func, dict(factory.keywords)) if isinstance(factory, functools.partial) else (factory, {})
-        if isinstance(factory, functools.partial) and factory.args:
+        is_partial = isinstance(factory, functools.partial)
+        if is_partial and factory.args:
             raise ValueError(f"model.{what}: positional arguments cannot be recorded; use keywords")
+        func, kwargs = (factory.func, dict(factory.keywords)) if is_partial else (factory, {})
         cfg = {"_target_": f"{func.__module__}.{func.__qualname__}", **kwargs}
     cfg["_partial_"] = True
     if "_target_" not in cfg or not _is_plain(cfg):
