@@ -25,24 +25,21 @@ import torch
 
 CPU_DEFAULT = ["tiny:64:16:32-true", "tiny:64:16:bf16-mixed"]
 GPU_DEFAULT = ["ffhq128:128:32:bf16-mixed", "ffhq128:128:32:32-true", "ffhq256:256:16:bf16-mixed"]
-#: The encodings each paper variant consumes (spatial, non-spatial), as in conf/model/*.yaml.
-VARIANT_INPUTS = {"difareli++": (("shading", "shadow_map", "masks"), ("shape", "cam", "identity")),
-                  "difareli": (("shading", "background"), ("shape", "cam", "identity", "shadow"))}
-#: SynthFaces' data dimensions besides the resolution: shape length S and identity length D.
-SYNTH_DIMS = {"S": 53, "D": 128}
 
 
-def build_module(preset: str, resolution: int, variant: str = "difareli++"):
-    """A ``DiffusionModule`` built as ``difareli-train`` builds it (the one place to adapt to its constructor)."""
-    from difareli.encodings import channels
+def build_module(preset: str, resolution: int, variant: str = "difareli_pp"):
+    """A ``DiffusionModule`` built as ``difareli-train`` builds it (the one place to adapt to its constructor):
+    the variant's inputs from its ``conf/model`` file, their widths from the encoding registry."""
+    from difareli.encodings import PRODUCER_DIMS, total_channels
     from difareli.lit import DiffusionModule
+    from difareli.nn.presets import variant_inputs
 
-    spatial, nonspatial = VARIANT_INPUTS[variant]
-    dims = {"H": resolution, "W": resolution, **SYNTH_DIMS}
-    input_dims = {"spatial_channels": sum(channels(n, dims) for n in spatial),
-                  "nonspatial_dim": sum(channels(n, dims) for n in nonspatial), "resolution": resolution}
-    return DiffusionModule(name=variant, preset=preset, spatial_inputs=list(spatial),
-                           nonspatial_inputs=list(nonspatial), input_dims=input_dims)
+    spatial, nonspatial = variant_inputs(variant)
+    dims = {"H": resolution, "W": resolution, **PRODUCER_DIMS}
+    input_dims = {"spatial_channels": total_channels(spatial, dims),
+                  "nonspatial_dim": total_channels(nonspatial, dims), "resolution": resolution}
+    return DiffusionModule(name=variant, preset=preset, spatial_inputs=spatial, nonspatial_inputs=nonspatial,
+                           input_dims=input_dims)
 
 
 class RandomBatches(torch.utils.data.Dataset):
@@ -100,7 +97,7 @@ def train_step_flops(module, batch: dict) -> int:
 
 
 def run_one(preset: str, res: int, batch: int, precision: str, device: str = "cpu", steps: int = 5,
-            warmup: int = 2, variant: str = "difareli++") -> dict:
+            warmup: int = 2, variant: str = "difareli_pp") -> dict:
     """Train ``warmup + steps`` steps through Lightning and time the last ``steps`` (in this process)."""
     import resource
 

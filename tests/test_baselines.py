@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from difareli import sh
-from difareli.baselines import (Identity, LambertianRatio, LightFit, Method, Oracle, build_method,
-                                irradiance_error, ratio_relight, synthfaces_mean_skin_albedo)
+from difareli.baselines import (DiffusionMethod, Identity, LambertianRatio, LightFit, Method, Oracle,
+                                build_method, irradiance_error, ratio_relight, synthfaces_mean_skin_albedo)
 from difareli.encodings import PART_INDEX
 from difareli.store import EncodingStore
 
@@ -112,12 +112,38 @@ def test_identity_oracle_and_factory(synth_store):
     np.testing.assert_array_equal(Oracle().relight(store, a, light, target_id=b), store.read(b, ["image"])["image"])
     with pytest.raises(ValueError, match="target_id"):
         Oracle().relight(store, a, light)
-    m = build_method({"kind": "lambertian", "name": None, "min_shading": 0.1}, name_suffix="+gt-light")
+    m = build_method({"_target_": "difareli.baselines.LambertianRatio", "name": None, "min_shading": 0.1},
+                     name_suffix="+gt-light")
     assert m.name == "lambertian+gt-light" and m.estimator is None and m.min_shading == 0.1
-    with pytest.raises(ValueError, match="kind"):
-        build_method({"kind": "nope"})
+    fit = LightFit(robust_iters=1)
+    assert build_method({"_target_": "difareli.baselines.LambertianRatio"}, estimator=fit).estimator is fit
+    with pytest.raises(ValueError, match="_target_"):
+        build_method({"kind": "identity"})
+    with pytest.raises(ValueError, match="not an importable class"):
+        build_method({"_target_": "difareli.baselines.Nope"})
     with pytest.raises(ValueError, match="checkpoint"):
-        build_method({"kind": "diffusion", "checkpoint": None}, sampler={"name": "ddim", "steps": 3})
+        build_method({"_target_": "difareli.baselines.DiffusionMethod", "checkpoint": None},
+                     sampler={"name": "ddim", "steps": 3})
+    with pytest.raises(ValueError, match="method.checkpoint must be set"):
+        build_method({"_target_": "difareli.baselines.DiffusionMethod", "checkpoint": "???"})
+
+
+def test_method_configs_declare_what_they_consume():
+    """Each conf/method/*.yaml builds its class from ``_target_``; the classes declare light / light-fit use."""
+    from omegaconf import OmegaConf
+
+    from .helpers import CONF
+
+    want = {"identity": (Identity, False, False), "oracle": (Oracle, False, False),
+            "lambertian": (LambertianRatio, True, True), "diffusion": (DiffusionMethod, True, False)}
+    assert {p.stem for p in (CONF / "method").glob("*.yaml")} == set(want)
+    for stem, (cls, light, fit) in want.items():
+        cfg = OmegaConf.to_container(OmegaConf.load(CONF / "method" / f"{stem}.yaml"))
+        assert cfg["_target_"] == f"difareli.baselines.{cls.__name__}"
+        assert (cls.needs_light, cls.needs_light_fit) == (light, fit)
+    for stem in ("identity", "oracle", "lambertian"):
+        m = build_method(OmegaConf.to_container(OmegaConf.load(CONF / "method" / f"{stem}.yaml")))
+        assert isinstance(m, want[stem][0]) and m.name == stem
 
 
 def test_mean_skin_albedo_prior():

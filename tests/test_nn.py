@@ -16,15 +16,17 @@ from difareli.nn import (
     get_config,
     timestep_embedding,
 )
+from difareli.nn.presets import variant_widths
 from difareli.nn.unet import MLP3, GroupNorm32, ResBlock
 
 # (spatial_type, spatial_channels, nonspatial_dim)
-DIFARELI = ("modulator", 3 + 3, 53 + 3 + 128 + 1)  # shading + background; shape, cam, identity, shadow
-DIFARELI_PP = ("modulator", 3 + 1 + 14, 53 + 3 + 128)  # shading + shadow map + masks; shape, cam, identity
+# Input widths from the variants' conf/model files and the encoding registry (no hard-coded channel counts).
+DIFARELI = ("modulator", *variant_widths("difareli"))  # shading + background; shape, cam, identity, shadow
+DIFARELI_PP = ("modulator", *variant_widths("difareli_pp"))  # shading + shadow map + masks; shape, cam, identity
 VARIANTS = {
     "difareli": DIFARELI,
     "difareli++": DIFARELI_PP,
-    "concat": ("concat", 3, 184),
+    "concat": ("concat", 3, DIFARELI_PP[2]),
     "no_nonspatial": ("modulator", 6, 0),
     "unconditional": (None, 0, 0),
 }
@@ -44,10 +46,12 @@ def randomize(net: torch.nn.Module, seed: int = 0) -> torch.nn.Module:
     return net
 
 
-def make(variant: str, preset: str = "tiny", seed: int = 0, **kw) -> DiffusionNet:
+def make(variant: str, preset: str = "tiny", seed: int = 0, spatial_options: dict | None = None,
+         **kw) -> DiffusionNet:
     torch.manual_seed(seed)
     kind, sc, nd = VARIANTS[variant]
-    return randomize(build_network(preset, kind, sc, nd, **kw), seed).eval()
+    spec = {"type": kind, **spatial_options} if spatial_options else kind
+    return randomize(build_network(preset, spec, sc, nd, **kw), seed).eval()
 
 
 def inputs(variant: str, b: int = 2, size: int = 16, seed: int = 1):
@@ -110,7 +114,7 @@ def test_ffhq128_forward_16px():
 def test_ffhq256_forward_32px():
     torch.manual_seed(0)
     net = build_network("ffhq256", *DIFARELI_PP).eval()
-    x, s, ns = torch.randn(1, 3, 32, 32), torch.randn(1, 18, 32, 32), torch.randn(1, 184)
+    x, s, ns = torch.randn(1, 3, 32, 32), torch.randn(1, DIFARELI_PP[1], 32, 32), torch.randn(1, DIFARELI_PP[2])
     with torch.no_grad():
         assert net(x, torch.tensor([500]), net.condition(s, ns)).shape == (1, 3, 32, 32)
 
@@ -178,7 +182,7 @@ def _capture(net):
 
 @pytest.mark.parametrize("modulate_skips", [False, True])
 def test_modulator_gates_forward_path_and_skips(modulate_skips):
-    net = make("difareli", spatial_kwargs={"modulate_skips": modulate_skips})
+    net = make("difareli", spatial_options={"modulate_skips": modulate_skips})
     x, s, ns = inputs("difareli")
     with torch.no_grad():
         m = net.spatial(s)
@@ -304,8 +308,14 @@ def test_condition_validation():
         make("unconditional").condition(None, ns)
     with pytest.raises(ValueError, match="timesteps"):
         net(torch.zeros(1, 3, 16, 16), torch.tensor([1, 2]), net.condition(s[:1], ns[:1]))
-    with pytest.raises(KeyError, match="unknown spatial_type"):
+    with pytest.raises(KeyError, match="unknown spatial type 'controlnet'"):
         build_network("tiny", "controlnet", 6, 0)
+    with pytest.raises(ValueError, match=r"no option\(s\) \['modulate_skip'\]"):
+        build_network("tiny", {"type": "modulator", "modulate_skip": True}, 6, 0)
+    with pytest.raises(ValueError, match="needs spatial inputs"):
+        build_network("tiny", "concat", 0, 0)
+    with pytest.raises(ValueError, match="model.spatial is null"):
+        build_network("tiny", None, 6, 0)
     with pytest.raises(KeyError, match="unknown UNet option"):
         get_config("tiny", {"base_channel": 64})
 
@@ -351,8 +361,8 @@ def test_compile_fullgraph():
 
 def test_modulator_standalone_levels_match_unet():
     cfg = get_config("tiny")
-    mod = Modulator(cfg, 18)
-    shapes = [m.shape[1:] for m in mod(torch.zeros(1, 18, 32, 32))]
+    mod = Modulator(cfg, DIFARELI_PP[1])
+    shapes = [m.shape[1:] for m in mod(torch.zeros(1, DIFARELI_PP[1], 32, 32))]
     assert [s[0] for s in shapes] == build_network("tiny", *DIFARELI_PP).unet.encoder_channels
     assert [s[1] for s in shapes] == [32, 32, 16, 16, 8, 8, 8]
 
@@ -365,3 +375,51 @@ def test_resblock_updown_and_head_channels_variant():
     x, s, ns = inputs("difareli")
     with torch.no_grad():
         assert net(x, torch.tensor([1, 2]), net.condition(s, ns)).shape == x.shape
+
+
+def test_spatial_registry_builds_from_the_unet_and_validates():
+    from difareli.nn import SPATIAL_COMPONENTS, register_spatial
+    from difareli.nn.unet import SpatialConditioning, TimestepBlock, UNet
+
+    assert SPATIAL_COMPONENTS["modulator"] is Modulator and SPATIAL_COMPONENTS["concat"] is ConcatSpatial
+    # The nested spec and the bare type name build the same network (same seed, same weights).
+    torch.manual_seed(0)
+    a = build_network("tiny", {"type": "modulator", "modulate_skips": True}, 6, 4)
+    torch.manual_seed(0)
+    b = build_network("tiny", "modulator", 6, 4)
+    assert a.spatial.modulate_skips and not b.spatial.modulate_skips
+    assert all(torch.equal(x, y) for x, y in zip(a.state_dict().values(), b.state_dict().values()))
+
+    seen = {}
+
+    @register_spatial("_test_probe")
+    class Probe(SpatialConditioning):
+        """Adds 2 input channels and records the UNet it was built from."""
+
+        @classmethod
+        def extra_input_channels(cls, channels, **options):
+            return 2
+
+        @classmethod
+        def build(cls, unet, channels, scale=1.0):
+            seen.update(unet=unet, channels=channels, scale=scale)
+            return cls()
+
+        def validate(self, unet, image_channels):
+            if unet.in_channels != image_channels + 2:
+                raise ValueError("probe: wrong input width")
+
+    try:
+        net = build_network("tiny", {"type": "_test_probe", "scale": 3.0}, 5, 0)
+        assert seen["unet"] is net.unet and isinstance(seen["unet"], UNet)  # the builder got the built UNet
+        assert (seen["channels"], seen["scale"]) == (5, 3.0) and net.unet.in_channels == 5
+        with pytest.raises(ValueError, match="already registered"):
+            register_spatial("modulator")(Probe)
+        # A component that does not fit the UNet is refused at construction.
+        with pytest.raises(ValueError, match="do not match"):
+            mod = Modulator(get_config("tiny", {"channel_mult": [1, 2]}), 6)
+            mod.validate(net.unet, 3)
+    finally:
+        SPATIAL_COMPONENTS.pop("_test_probe")
+    # UNet containers dispatch on the TimestepBlock marker, not on concrete classes.
+    assert issubclass(ResBlock, TimestepBlock) and issubclass(AdaGN, TimestepBlock)

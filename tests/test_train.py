@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from difareli.cli.train import train
+from difareli.cli.train import nonspatial_stats, train
 from difareli.data import MissingEncodingError
 from difareli.lit import load_checkpoint
 from difareli.store import EncodingStore
@@ -20,7 +20,8 @@ from .helpers import CONF, compose_train
 
 MODELS = ["difareli", "difareli_pp"]
 #: Every model config (variants and ablations): each must run through the whole loop.
-ALL_MODELS = sorted(str(p.relative_to(CONF / "model").with_suffix("")) for p in (CONF / "model").rglob("*.yaml"))
+ALL_MODELS = sorted(str(p.relative_to(CONF / "model").with_suffix("")) for p in (CONF / "model").rglob("*.yaml")
+                    if p.parent.name not in ("spatial", "scheduler"))  # component groups, not models
 
 
 def _cpu_overrides(store: Path) -> list[str]:
@@ -69,16 +70,15 @@ def test_overfit_eight_images_loss_falls_tenfold(synth_store, tmp_path):
 
     # A micro network (base 16, one downsampling, no attention) keeps 200 CPU steps to ~a minute.
     cfg = compose_train(tmp_path, [*_cpu_overrides(synth_store), "model=difareli_pp", "data.batch_size=8",
-                                   "model.lr=3e-3", "+model.net_overrides.base_channels=16",
+                                   "model.optimizer.lr=3e-3", "+model.net_overrides.base_channels=16",
                                    "+model.net_overrides.channel_mult=[1,2]", "+model.net_overrides.norm_groups=8",
                                    "+model.net_overrides.adagn_hidden=64", "+model.net_overrides.attention_resolutions=[]"])
     L.seed_everything(0)
     dm = instantiate(cfg.data)
-    model = instantiate(cfg.model, input_dims=dm.input_dims())
     dm.setup()
     dm.train_set.ids = dm.train_set.ids[:8]  # exactly 8 images: one batch per epoch
+    model = instantiate(cfg.model, input_dims=dm.input_dims(), nonspatial_stats=nonspatial_stats(dm, None))
     batch = next(iter(dm.train_dataloader()))
-    model.set_nonspatial_stats(*dm.nonspatial_stats())
 
     def fixed_loss() -> float:
         g = torch.Generator().manual_seed(0)
@@ -102,6 +102,13 @@ def test_checkpoint_round_trip_weights_only(synth_store, tmp_path):
     last = Path(cfg.paths.output_dir) / "checkpoints" / "last.ckpt"
     raw = torch.load(last, map_location="cpu", weights_only=True)  # must not raise
     assert raw["global_step"] == 3
+    # Plain hyperparameters: the module class, the optimizer's settings, the exact (not EMA-averaged) statistics.
+    hp = raw["hyper_parameters"]
+    assert raw["difareli_module"] == "difareli.lit.diffusion.DiffusionModule" and raw["difareli_format"] == 2
+    assert hp["optimizer"]["lr"] == 1e-4 and hp["spatial"] == {"type": "modulator", "modulate_skips": False}
+    mean, std = out["datamodule"].nonspatial_stats()
+    assert hp["nonspatial_stats"] == {"mean": mean.tolist(), "std": std.tolist()}
+    assert "ns_mean" not in raw["state_dict"] and "ns_mean" not in raw["current_model_state"]
     loaded = load_checkpoint(last)
     assert loaded.config["preset"] == "tiny" and loaded.global_step == 3
     # The EMA callback copies the average into the model at the end of fit: outputs must match exactly.

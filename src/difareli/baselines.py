@@ -1,7 +1,10 @@
 """Relighting methods behind one interface, for benchmarks: classical baselines and the diffusion model.
 
-A :class:`Method` has a ``name`` and ``relight(store, source_id, target_light, target_shadow, target_id=None)
--> uint8 HxWx3``. ``target_id`` (the ground-truth record) is only for the oracle; no other method reads it.
+A :class:`Method` has a ``name``, ``relight(store, source_id, target_light, target_shadow, target_id=None)
+-> uint8 HxWx3`` and two declarations the benchmark reads: ``needs_light`` (it uses the target light, so a run
+under ground-truth lights is marked) and ``needs_light_fit`` (it fits a source light with ``estimator``, whose
+error the benchmark reports). ``target_id`` (the ground-truth record) is only for the oracle. Methods are built
+from ``conf/method/*.yaml`` ``_target_`` configs by :func:`build_method`.
 
 Target (and source) lights "as a user gets them" come from :class:`LightFit`: a least-squares SH fit
 (:func:`difareli.sh.fit`) to one image's face pixels, with that record's normals and a constant albedo prior.
@@ -115,6 +118,8 @@ class Method(Protocol):
     """What the benchmark runs: a name and one relit uint8 image per (source record, target light)."""
 
     name: str
+    needs_light: bool
+    needs_light_fit: bool
 
     def relight(self, store: EncodingStore, source_id: str, target_light: np.ndarray,
                 target_shadow: float | None = None, target_id: str | None = None) -> np.ndarray: ...
@@ -123,8 +128,10 @@ class Method(Protocol):
 class Identity:
     """The input returned unchanged: the score of doing nothing."""
 
-    def __init__(self, name: str = "identity"):
-        self.name = name
+    needs_light, needs_light_fit = False, False
+
+    def __init__(self, name: str | None = None):
+        self.name = name or "identity"
 
     def relight(self, store, source_id, target_light, target_shadow=None, target_id=None) -> np.ndarray:
         return np.array(store.read(source_id, ["image"])["image"])
@@ -133,8 +140,10 @@ class Identity:
 class Oracle:
     """The ground-truth render of the pair: scores exactly 0, a check on the metric pipeline."""
 
-    def __init__(self, name: str = "oracle"):
-        self.name = name
+    needs_light, needs_light_fit = False, False
+
+    def __init__(self, name: str | None = None):
+        self.name = name or "oracle"
 
     def relight(self, store, source_id, target_light, target_shadow=None, target_id=None) -> np.ndarray:
         if target_id is None:
@@ -152,8 +161,10 @@ class LambertianRatio:
     there the input is nearly black and any ratio would only amplify noise. Off the face: unchanged.
     """
 
-    def __init__(self, name: str = "lambertian", estimator: LightFit | None = None, min_shading: float = 0.05):
-        self.name, self.estimator, self.min_shading = name, estimator, float(min_shading)
+    needs_light, needs_light_fit = True, True
+
+    def __init__(self, name: str | None = None, estimator: LightFit | None = None, min_shading: float = 0.05):
+        self.name, self.estimator, self.min_shading = name or "lambertian", estimator, float(min_shading)
 
     def source_light(self, store: EncodingStore, source_id: str) -> np.ndarray:
         if self.estimator is not None:
@@ -190,9 +201,16 @@ class DiffusionMethod:
     target light and shadow strength. Default name: ``<model>/<sampler>-<steps>``, e.g. ``difareli_pp/ddim-20``.
     """
 
-    def __init__(self, checkpoint: str, sampler: Mapping[str, Any], *, name: str | None = None,
-                 runtime: Mapping[str, Any] | None = None, mean_matching: bool = True, batch_size: int = 16):
+    needs_light, needs_light_fit = True, False
+
+    def __init__(self, checkpoint: str | None = None, sampler: Mapping[str, Any] | None = None, *,
+                 name: str | None = None, runtime: Mapping[str, Any] | None = None, mean_matching: bool = True, batch_size: int = 16):
         from difareli.relighting import Relighter
+
+        if not checkpoint or checkpoint == "???":
+            raise ValueError("method=diffusion needs method.checkpoint=<run>/checkpoints/last.ckpt")
+        if sampler is None:
+            raise ValueError("method=diffusion needs a sampler config (the benchmark's `sampler` group)")
 
         self.relighter = Relighter(checkpoint, sampler, runtime=runtime, mean_matching=mean_matching,
                                    batch_size=batch_size)
@@ -204,35 +222,41 @@ class DiffusionMethod:
         return self.relighter.relight_record(store, source_id, [target_light], [target_shadow])[0]
 
 
-KINDS = ("identity", "lambertian", "oracle", "diffusion")
+#: What :func:`build_method` may hand a method's constructor, if its signature asks for it.
+RUNTIME_ARGS = ("sampler", "runtime", "estimator")
 
 
 def build_method(cfg: Mapping[str, Any], *, sampler: Mapping[str, Any] | None = None,
                  runtime: Mapping[str, Any] | None = None,
                  estimator: LightFit | None = None, name_suffix: str = "") -> Method:
-    """A method from a ``conf/method/*.yaml`` mapping (``kind``, optional ``name``, the kind's options).
+    """A method from a ``conf/method/*.yaml`` mapping (``_target_``, optional ``name``, the class's options).
 
-    ``estimator`` fits the Lambertian baseline's source light (None: stored light); ``name_suffix`` is
-    appended to the name (e.g. to mark ground-truth lighting).
+    Run-time values go to the constructors that take them: ``sampler`` and ``runtime`` (the diffusion model),
+    ``estimator`` (the Lambertian baseline's source-light fit; None: stored light). ``name_suffix`` is appended
+    to the name (e.g. to mark ground-truth lighting).
     """
-    kind = cfg.get("kind")
-    if kind not in KINDS:
-        raise ValueError(f"method.kind must be one of {list(KINDS)}, got {kind!r}")
-    name = cfg.get("name")
-    if kind == "identity":
-        m: Method = Identity(name or "identity")
-    elif kind == "oracle":
-        m = Oracle(name or "oracle")
-    elif kind == "lambertian":
-        m = LambertianRatio(name or "lambertian", estimator, float(cfg.get("min_shading", 0.05)))
-    else:
-        if not cfg.get("checkpoint"):
-            raise ValueError("method=diffusion needs method.checkpoint=<run>/checkpoints/last.ckpt")
-        if sampler is None:
-            raise ValueError("method=diffusion needs a sampler config")
-        m = DiffusionMethod(str(cfg["checkpoint"]), sampler, name=name, runtime=runtime,
-                            mean_matching=bool(cfg.get("mean_matching", True)),
-                            batch_size=int(cfg.get("batch_size", 16)))
+    import inspect
+
+    from hydra.utils import get_class, instantiate
+
+    cfg = dict(cfg)
+    if not cfg.get("_target_"):
+        raise ValueError(f"a method config needs a _target_ class (see conf/method/*.yaml, e.g. method=identity); "
+                         f"got keys {sorted(cfg)}")
+    missing = [k for k, v in cfg.items() if v == "???"]
+    if missing:
+        raise ValueError(f"method.{missing[0]} must be set (e.g. method.checkpoint=<run>/checkpoints/last.ckpt)")
+    try:
+        cls = get_class(cfg["_target_"])
+    except Exception as e:
+        raise ValueError(f"method._target_={cfg['_target_']!r} is not an importable class: {e}") from None
+    accepted = inspect.signature(cls).parameters
+    given = {"sampler": sampler, "runtime": runtime, "estimator": estimator}
+    # Run-time objects go to the partial's call, not through OmegaConf (which would turn a LightFit into a config).
+    make = instantiate(cfg, _partial_=True, _convert_="all")
+    m = make(**{k: given[k] for k in RUNTIME_ARGS if k in accepted and k not in cfg})
+    if not isinstance(m, Method):
+        raise TypeError(f"{cfg['_target_']} is not a relighting Method (name, needs_light, needs_light_fit, relight)")
     m.name += name_suffix
     return m
 

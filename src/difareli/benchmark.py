@@ -25,7 +25,7 @@ import torch
 from tqdm.auto import tqdm
 
 from difareli import metrics, tables, viz
-from difareli.baselines import LambertianRatio, LightFit, Method, irradiance_error
+from difareli.baselines import LightFit, Method, irradiance_error
 from difareli.store import EncodingStore
 from difareli.synth.splits import PROTOCOLS_FILE
 
@@ -145,8 +145,8 @@ def run_benchmark(store: EncodingStore, method: Method, protocols: Sequence[str]
     out_dir = Path(out_dir)
     estimator = estimator or LightFit()
     lights = Lights(store, None if oracle_light else estimator)
-    # The Lambertian baseline fits its source light too; report how well (unless lights are oracle).
-    source_fit = isinstance(method, LambertianRatio) and method.estimator is not None
+    # Methods that fit their source light (the Lambertian baseline) are scored on it too (unless lights are oracle).
+    source_fit = method.needs_light_fit and getattr(method, "estimator", None) is not None
     result = BenchmarkResult(records=[])
     for proto, pairs in load_pairs(store, protocols, limit).items():
         short = PROTOCOLS[proto]

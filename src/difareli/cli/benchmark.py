@@ -20,11 +20,13 @@ def run(cfg: DictConfig) -> BenchmarkResult:
         torch.set_num_threads(int(cfg.num_threads))
     store = EncodingStore.open(cfg.store)
     estimator = light_fit_from_config(OmegaConf.to_container(cfg.light_fit, resolve=True))
-    method_cfg = OmegaConf.to_container(cfg.method, resolve=True)
+    method = build_method(OmegaConf.to_container(cfg.method, resolve=True),
+                          sampler=OmegaConf.to_container(cfg.sampler, resolve=True),
+                          runtime=OmegaConf.to_container(cfg.runtime, resolve=True),
+                          estimator=None if cfg.oracle_light else estimator)
     # Methods that use the light get a marked name under ground-truth lights, so merged tables keep both.
-    suffix = "+gt-light" if cfg.oracle_light and method_cfg["kind"] in ("lambertian", "diffusion") else ""
-    method = build_method(method_cfg, sampler=OmegaConf.to_container(cfg.sampler, resolve=True),
-                          runtime=OmegaConf.to_container(cfg.runtime, resolve=True), estimator=None if cfg.oracle_light else estimator, name_suffix=suffix)
+    if cfg.oracle_light and method.needs_light:
+        method.name += "+gt-light"
     limit = int(cfg.limit) if cfg.limit is not None else None
     result = run_benchmark(store, method, list(cfg.protocols), Path(cfg.out_dir), limit=limit,
                            oracle_light=bool(cfg.oracle_light), estimator=estimator, grid_pairs=int(cfg.grid_pairs),

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import hydra
@@ -15,8 +16,10 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     """Fit the configured model; returns the trainer, model, datamodule and the optimized metric."""
     L.seed_everything(cfg.seed, workers=True)
     datamodule = hydra.utils.instantiate(cfg.data)
-    # The network's input sizes come from the data set (which encodings, how many channels).
-    model = hydra.utils.instantiate(cfg.model, input_dims=datamodule.input_dims())
+    # The network's input sizes and the non-spatial statistics come from the data set (the training split),
+    # or, when resuming, from the checkpoint: a resumed run keeps the normalisation it was trained with.
+    model = hydra.utils.instantiate(cfg.model, input_dims=datamodule.input_dims(),
+                                    nonspatial_stats=nonspatial_stats(datamodule, cfg.get("ckpt_path")))
     trainer = hydra.utils.instantiate(
         cfg.trainer,
         callbacks=common.instantiate_group(cfg.get("callbacks")),
@@ -26,6 +29,16 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     trainer.fit(model, datamodule=datamodule, ckpt_path=cfg.get("ckpt_path"))
     metric = common.metric_value(trainer.callback_metrics, cfg.get("optimized_metric"))
     return {"trainer": trainer, "model": model, "datamodule": datamodule, "metric": metric}
+
+
+def nonspatial_stats(datamodule, ckpt_path: str | None) -> dict[str, list[float]] | None:
+    """Plain ``{mean, std}`` lists: from ``ckpt_path`` when resuming, else from the training split."""
+    if ckpt_path and Path(ckpt_path).is_file():  # ("last"/"best" are Lightning's names: no file to read here)
+        from difareli.lit.checkpoint import nonspatial_stats as from_checkpoint
+
+        return from_checkpoint(ckpt_path)
+    mean, std = datamodule.nonspatial_stats()
+    return {"mean": [float(v) for v in mean], "std": [float(v) for v in std]}
 
 
 @hydra.main(version_base="1.3", config_path=common.CONFIG_PATH, config_name="train")

@@ -1,14 +1,18 @@
 """The conditional DDIM as a LightningModule: ``L_simple`` on eps for every model variant (SPEC 4).
 
 Variants differ only by configuration: which encodings feed the spatial conditioning (and through which
-component) and which feed AdaGN. Hyperparameters are plain config values so checkpoints load with
-``torch.load(weights_only=True)``; the non-spatial normalisation statistics are buffers, so they travel in
-the checkpoint's ``state_dict`` (written back exactly: the EMA callback would otherwise average them too).
+component, ``spatial: {type: ..., <options>}``) and which feed AdaGN. Hyperparameters are plain values so
+checkpoints load with ``torch.load(weights_only=True)``: the optimizer and LR schedule arrive as Hydra partials
+and are recorded as their plain config dicts. The non-spatial normalisation statistics arrive at construction
+(``nonspatial_stats``, computed by difareli-train from the training split) and are recorded exactly in the
+hyperparameters; they are constants, not weights, so they stay out of ``state_dict`` and out of the EMA average.
 """
 
 from __future__ import annotations
 
-from typing import Any, Mapping, Sequence
+import functools
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
 
 import lightning as L
 import torch
@@ -17,73 +21,125 @@ import torch.nn.functional as F
 from difareli.diffusion.schedule import DiffusionSchedule
 from difareli.nn import build_network
 
+#: The public code's optimizer (guided-diffusion TrainLoop: AdamW, constant LR, no weight decay).
+DEFAULT_OPTIMIZER = {"_target_": "torch.optim.AdamW", "_partial_": True, "lr": 1e-4, "weight_decay": 0.0}
+#: Written into every checkpoint by ``on_save_checkpoint``; :func:`difareli.lit.load_checkpoint` reads them.
+MODULE_KEY, FORMAT_KEY, FORMAT_VERSION = "difareli_module", "difareli_format", 2
+
+
+def _is_plain(value: Any) -> bool:
+    if isinstance(value, Mapping):
+        return all(isinstance(k, str) and _is_plain(v) for k, v in value.items())
+    if isinstance(value, (list, tuple)):
+        return all(_is_plain(v) for v in value)
+    return value is None or isinstance(value, (bool, int, float, str))
+
+
+def factory_config(factory: Callable | Mapping[str, Any] | None, what: str) -> dict[str, Any] | None:
+    """The plain ``{_target_, _partial_: true, <kwargs>}`` dict of an optimizer/scheduler factory (a Hydra
+    partial, a class, or such a dict already), so checkpoints record e.g. the learning rate as plain values."""
+    if factory is None:
+        return None
+    if isinstance(factory, Mapping):
+        cfg = dict(factory)
+    else:
+        is_partial = isinstance(factory, functools.partial)
+        if is_partial and factory.args:
+            raise ValueError(f"model.{what}: positional arguments cannot be recorded; use keywords")
+        func, kwargs = (factory.func, dict(factory.keywords)) if is_partial else (factory, {})
+        cfg = {"_target_": f"{func.__module__}.{func.__qualname__}", **kwargs}
+    cfg["_partial_"] = True
+    if "_target_" not in cfg or not _is_plain(cfg):
+        raise ValueError(f"model.{what} must be a Hydra partial ({{_target_: ..., _partial_: true}}) with plain "
+                         f"keyword values; got {factory!r}")
+    return cfg
+
+
+def _factory(cfg: Mapping[str, Any] | None) -> Callable | None:
+    if cfg is None:
+        return None
+    from hydra.utils import instantiate
+
+    return instantiate(dict(cfg))
+
 
 class DiffusionModule(L.LightningModule):
-    """Conditional DDIM (UNet + spatial + non-spatial conditioning) trained with ``L_simple``."""
+    """Conditional DDIM (UNet + spatial + non-spatial conditioning) trained with ``L_simple``.
+
+    Implements the relighting-model interface: ``condition(spatial, nonspatial)``, ``denoiser(cond)``,
+    ``schedule``, ``net``, ``spatial_inputs`` / ``nonspatial_inputs`` and ``consumes``.
+    """
 
     def __init__(
         self,
         name: str = "difareli_pp",
         preset: str = "tiny",
-        spatial_type: str | None = "modulator",
+        spatial: str | Mapping[str, Any] | None = "modulator",
         spatial_inputs: Sequence[str] = ("shading", "shadow_map", "masks"),
         nonspatial_inputs: Sequence[str] = ("shape", "cam", "identity"),
         input_dims: Mapping[str, int] | None = None,
-        modulate_skips: bool = False,
         adagn_scale_plus_one: bool = True,
+        adagn_out_silu: bool = False,
         net_overrides: Mapping[str, Any] | None = None,
-        lr: float = 1e-4,
-        weight_decay: float = 0.0,
+        optimizer: Callable | Mapping[str, Any] | None = None,
+        scheduler: Callable | Mapping[str, Any] | None = None,
         schedule: Mapping[str, Any] | None = None,
+        nonspatial_stats: Mapping[str, Sequence[float]] | None = None,
         compile: bool = False,
     ):
         super().__init__()
         if input_dims is None:
             raise ValueError("DiffusionModule needs input_dims (spatial_channels, nonspatial_dim, resolution): "
                              "difareli-train takes them from the DataModule")
-        self.save_hyperparameters()
-        dims = dict(input_dims)
-        spatial_type = spatial_type if spatial_inputs else None
+        dims = {k: int(v) for k, v in dict(input_dims).items()}
+        self.spatial_inputs, self.nonspatial_inputs = list(spatial_inputs), list(nonspatial_inputs)
+        # Recorded in one form, {type: <name>, <options>}; no spatial encodings (an ablation drops them): none.
+        spatial = {"type": spatial} if isinstance(spatial, str) else dict(spatial) if spatial is not None else None
+        if not self.spatial_inputs or (spatial is not None and spatial.get("type") in (None, "none")):
+            spatial = None
+        d = dims["nonspatial_dim"]
+        mean, std = self._check_stats(nonspatial_stats, d)
+        self.save_hyperparameters({
+            "name": name, "preset": preset, "spatial": spatial, "spatial_inputs": self.spatial_inputs,
+            "nonspatial_inputs": self.nonspatial_inputs, "input_dims": dims,
+            "adagn_scale_plus_one": bool(adagn_scale_plus_one), "adagn_out_silu": bool(adagn_out_silu),
+            "net_overrides": dict(net_overrides or {}),
+            "optimizer": factory_config(optimizer if optimizer is not None else DEFAULT_OPTIMIZER, "optimizer"),
+            "scheduler": factory_config(scheduler, "scheduler"), "schedule": dict(schedule or {}),
+            "nonspatial_stats": {"mean": mean.tolist(), "std": std.tolist()}, "compile": bool(compile),
+        })
+        self._optimizer, self._scheduler = optimizer, scheduler
         # Attention resolutions are feature-map sizes at the data resolution unless overridden.
-        overrides = {"image_size": int(dims["resolution"]), "adagn_scale_plus_one": adagn_scale_plus_one,
-                     **dict(net_overrides or {})}
-        self.net = build_network(
-            preset=preset,
-            spatial_type=spatial_type,
-            spatial_channels=int(dims["spatial_channels"]) if spatial_type else 0,
-            nonspatial_dim=int(dims["nonspatial_dim"]),
-            overrides=overrides,
-            spatial_kwargs={"modulate_skips": modulate_skips} if spatial_type == "modulator" else None,
-        )
+        overrides = {"image_size": dims["resolution"], "adagn_scale_plus_one": bool(adagn_scale_plus_one),
+                     "adagn_out_silu": bool(adagn_out_silu), **dict(net_overrides or {})}
+        self.net = build_network(preset, spatial, dims["spatial_channels"] if spatial is not None else 0, d,
+                                 overrides=overrides)
         self.schedule = DiffusionSchedule(**dict(schedule or {}))
-        d = int(dims["nonspatial_dim"])
-        self.register_buffer("ns_mean", torch.zeros(d))
-        self.register_buffer("ns_std", torch.ones(d))
+        self.ns_mean, self.ns_std = mean, std
 
-    # ------------------------------------------------------------------ conditioning
-    def set_nonspatial_stats(self, mean, std) -> None:
-        """Store the training split's non-spatial mean/std (they go into the checkpoint)."""
-        self.ns_mean.copy_(torch.as_tensor(mean, dtype=torch.float32))
-        self.ns_std.copy_(torch.as_tensor(std, dtype=torch.float32))
-        self._exact_stats = (self.ns_mean.detach().clone(), self.ns_std.detach().clone())
+    @staticmethod
+    def _check_stats(stats: Mapping[str, Sequence[float]] | None, dim: int) -> tuple[torch.Tensor, torch.Tensor]:
+        if stats is None:  # identity normalisation (difareli-train always passes the training split's)
+            return torch.zeros(dim), torch.ones(dim)
+        mean = torch.as_tensor(list(stats["mean"]), dtype=torch.float32).reshape(-1)
+        std = torch.as_tensor(list(stats["std"]), dtype=torch.float32).reshape(-1)
+        if mean.numel() != dim or std.numel() != dim or not bool((std > 0).all()):
+            raise ValueError(f"nonspatial_stats needs {dim} means and {dim} positive stds (the non-spatial vector's "
+                             f"width); got {mean.numel()} and {std.numel()}")
+        return mean, std
 
-    # The EMA callback averages buffers too: for constants, decay * x + (1 - decay) * x drifts by rounding, so
-    # the exact statistics are written back into the saved (EMA) state and into the model after training.
-    _exact_stats: tuple[torch.Tensor, torch.Tensor] | None = None
+    def _apply(self, fn, recurse: bool = True):
+        # The statistics move with the module (.to / .cuda) like buffers, but are no buffers: the EMA callback
+        # averages buffers, and decay * x + (1 - decay) * x is not x in float32.
+        super()._apply(fn, recurse)
+        self.ns_mean, self.ns_std = fn(self.ns_mean), fn(self.ns_std)
+        return self
 
-    def on_load_checkpoint(self, checkpoint) -> None:
-        sd = checkpoint["state_dict"]
-        self._exact_stats = (sd["ns_mean"].detach().clone(), sd["ns_std"].detach().clone())
-
-    def on_save_checkpoint(self, checkpoint) -> None:
-        if self._exact_stats is not None:
-            checkpoint["state_dict"]["ns_mean"], checkpoint["state_dict"]["ns_std"] = (
-                t.clone() for t in self._exact_stats)
-
-    def on_train_end(self) -> None:
-        if self._exact_stats is not None:
-            self.ns_mean.copy_(self._exact_stats[0])
-            self.ns_std.copy_(self._exact_stats[1])
+    # ------------------------------------------------------------------ relighting interface
+    @property
+    def consumes(self) -> list[str]:
+        """The encodings a condition is made of (spatial, then non-spatial)."""
+        return list(dict.fromkeys(self.spatial_inputs + self.nonspatial_inputs))
 
     @property
     def spatial_inputs(self) -> list[str]:
@@ -110,17 +166,20 @@ class DiffusionModule(L.LightningModule):
         """The sampler interface: ``eps = denoiser(x_t, t)`` with this condition bound."""
         return self.net.bind(cond)
 
+    # ------------------------------------------------------------------ checkpoints
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        checkpoint[MODULE_KEY] = f"{type(self).__module__}.{type(self).__qualname__}"
+        checkpoint[FORMAT_KEY] = FORMAT_VERSION
+
+    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        from difareli.lit.checkpoint import upgrade_checkpoint
+
+        upgrade_checkpoint(checkpoint)  # resuming from a checkpoint written before the current format
+
     # ------------------------------------------------------------------ training
     def setup(self, stage: str) -> None:
-        dm = getattr(self.trainer, "datamodule", None) if self._trainer is not None else None
-        # Fresh runs take statistics from the training split; a resumed run restores them from the checkpoint.
-        if stage == "fit" and dm is not None and hasattr(dm, "nonspatial_stats") and not self._stats_loaded():
-            self.set_nonspatial_stats(*dm.nonspatial_stats())
         if self.hparams.compile:
             self.net.compile()
-
-    def _stats_loaded(self) -> bool:
-        return bool(self.trainer.ckpt_path)
 
     def diffusion_loss(self, batch: Mapping[str, Any], generator: torch.Generator | None = None) -> torch.Tensor:
         """``L_simple``: MSE between the true and the predicted noise at uniform random t."""
@@ -146,7 +205,13 @@ class DiffusionModule(L.LightningModule):
         return loss
 
     def configure_optimizers(self):
-        return torch.optim.AdamW(self.net.parameters(), lr=self.hparams.lr, weight_decay=self.hparams.weight_decay)
+        """The configured optimizer over the network; with a scheduler, stepped every training step."""
+        make_opt = self._optimizer if callable(self._optimizer) else _factory(self.hparams.optimizer)
+        opt = make_opt(self.net.parameters())
+        make_sched = self._scheduler if callable(self._scheduler) else _factory(self.hparams.scheduler)
+        if make_sched is None:
+            return opt
+        return {"optimizer": opt, "lr_scheduler": {"scheduler": make_sched(opt), "interval": "step"}}
 
     @torch.no_grad()
     def predict_x0(self, x_t: torch.Tensor, t: torch.Tensor, cond) -> torch.Tensor:

@@ -2,7 +2,9 @@
 
 A component subclasses :class:`~difareli.nn.unet.SpatialConditioning`: ``prepare(spatial)`` runs once per condition
 and returns a state; the UNet then calls ``step`` / ``apply_input`` / ``modulate(level, h, state)`` at every step.
-Variants are new components, never UNet edits:
+Variants are new components, never UNet edits. A component registers itself under its config ``type``
+(:func:`register_spatial`); a model config names it as ``spatial: {type: modulator, modulate_skips: false}`` and
+the options go to the class's ``build(unet, channels, **options)``:
 
 - :class:`Modulator` (DiFaReli, DiFaReli++): a time-free copy of the UNet's first half; ``o_i' = o_i * tanh(m_i)``.
 - :class:`ConcatSpatial` (ablation (a), "no Modulator"): the spatial input concatenated to ``x_t`` at every step.
@@ -16,14 +18,57 @@ Non-spatial AdaGN conditioning (the per-block MLP3s) lives in the UNet's residua
 
 from __future__ import annotations
 
+import inspect
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import torch
 from torch import Tensor, nn
 
-from .unet import SpatialConditioning, UNetConfig, build_encoder
+from .unet import SpatialConditioning, UNet, UNetConfig, build_encoder
 
-__all__ = ["SPATIAL_COMPONENTS", "ConcatSpatial", "Modulator", "SpatialConditioning", "build_spatial"]
+__all__ = ["SPATIAL_COMPONENTS", "ConcatSpatial", "Modulator", "SpatialConditioning", "register_spatial",
+           "resolve_spatial"]
+
+#: Spatial components by config ``type``; filled by :func:`register_spatial`.
+SPATIAL_COMPONENTS: dict[str, type[SpatialConditioning]] = {}
+
+
+def register_spatial(name: str) -> Callable[[type[SpatialConditioning]], type[SpatialConditioning]]:
+    """Class decorator: make a :class:`SpatialConditioning` subclass available as ``spatial: {type: name}``."""
+
+    def register(cls: type[SpatialConditioning]) -> type[SpatialConditioning]:
+        if name in SPATIAL_COMPONENTS and SPATIAL_COMPONENTS[name] is not cls:
+            raise ValueError(f"spatial type {name!r} is already registered by {SPATIAL_COMPONENTS[name].__name__}")
+        SPATIAL_COMPONENTS[name] = cls
+        cls.type_name = name
+        return cls
+
+    return register
+
+
+def resolve_spatial(spec: str | Mapping[str, Any] | None, channels: int
+                    ) -> tuple[type[SpatialConditioning] | None, dict[str, Any]]:
+    """``(component class, options)`` for a spatial spec: ``None`` (no spatial conditioning), a registered type
+    name, or a mapping ``{type: <name>, <option>: <value>, ...}``; checks the options against ``build``."""
+    if spec is None or spec == "none":
+        if channels:
+            raise ValueError(f"model.spatial is null but the spatial inputs have {channels} channels; "
+                             "set model.spatial.type or model.spatial_inputs=[]")
+        return None, {}
+    options = {"type": spec} if isinstance(spec, str) else dict(spec)
+    kind = options.pop("type", None)
+    if kind not in SPATIAL_COMPONENTS:
+        raise KeyError(f"unknown spatial type {kind!r} (model.spatial.type); known: {sorted(SPATIAL_COMPONENTS)} "
+                       "or model.spatial=null")
+    cls = SPATIAL_COMPONENTS[kind]
+    if channels <= 0:
+        raise ValueError(f"spatial type {kind!r} needs spatial inputs (model.spatial_inputs), got 0 channels")
+    accepted = [p for p in inspect.signature(cls.build).parameters if p not in ("unet", "channels")]
+    unknown = sorted(set(options) - set(accepted))
+    if unknown:
+        raise ValueError(f"spatial type {kind!r} has no option(s) {unknown}; its options: {accepted}")
+    return cls, options
 
 
 def _check_spatial(name: str, spatial: Tensor | None, channels: int) -> Tensor:
@@ -34,6 +79,7 @@ def _check_spatial(name: str, spatial: Tensor | None, channels: int) -> Tensor:
     return spatial
 
 
+@register_spatial("modulator")
 class Modulator(SpatialConditioning):
     """DiFaReli's Modulator: the UNet's first half (input conv, input blocks, middle block), separate weights, no t.
 
@@ -46,8 +92,19 @@ class Modulator(SpatialConditioning):
 
     def __init__(self, cfg: UNetConfig, in_channels: int, modulate_skips: bool = False):
         super().__init__()
-        self.in_channels, self.modulate_skips = in_channels, modulate_skips
-        self.input_blocks, self.middle_block, _ = build_encoder(cfg, in_channels, emb_dim=0, nonspatial_dim=0)
+        self.in_channels, self.modulate_skips = in_channels, bool(modulate_skips)
+        self.input_blocks, self.middle_block, skips = build_encoder(cfg, in_channels, emb_dim=0, nonspatial_dim=0)
+        self.level_channels = list(skips) + [skips[-1]]  # per level, the middle block keeps the last width
+
+    @classmethod
+    def build(cls, unet: UNet, channels: int, modulate_skips: bool = False) -> Modulator:
+        """A Modulator mirroring ``unet``'s encoder layout (its own weights)."""
+        return cls(unet.cfg, channels, modulate_skips)
+
+    def validate(self, unet: UNet, image_channels: int) -> None:
+        if self.level_channels != unet.encoder_channels:
+            raise ValueError(f"Modulator level widths {self.level_channels} do not match the UNet's "
+                             f"{unet.encoder_channels}")
 
     @property
     def num_levels(self) -> int:
@@ -71,6 +128,7 @@ class Modulator(SpatialConditioning):
         return gated, (gated if self.modulate_skips else h)
 
 
+@register_spatial("concat")
 class ConcatSpatial(SpatialConditioning):
     """Ablation (a): the spatial input (e.g. the shading reference R) concatenated to ``x_t`` at every step."""
 
@@ -78,35 +136,28 @@ class ConcatSpatial(SpatialConditioning):
 
     def __init__(self, in_channels: int):
         super().__init__()
-        self.extra_in_channels = in_channels
+        self.in_channels = in_channels
+
+    @classmethod
+    def extra_input_channels(cls, channels: int, **options: Any) -> int:
+        return channels
+
+    @classmethod
+    def build(cls, unet: UNet, channels: int) -> ConcatSpatial:
+        return cls(channels)
+
+    def validate(self, unet: UNet, image_channels: int) -> None:
+        if unet.in_channels != image_channels + self.in_channels:
+            raise ValueError(f"ConcatSpatial adds {self.in_channels} channels to {image_channels}, but the UNet "
+                             f"takes {unet.in_channels}")
 
     def prepare(self, spatial: Tensor | None) -> Tensor:
-        return _check_spatial("ConcatSpatial", spatial, self.extra_in_channels)
+        return _check_spatial("ConcatSpatial", spatial, self.in_channels)
 
     def apply_input(self, x: Tensor, state: Tensor) -> Tensor:
         if state.shape[0] != x.shape[0]:  # one condition shared by a batch of x_t
             state = state.expand(x.shape[0], -1, -1, -1)
         return torch.cat([x, state.to(x.dtype)], dim=1)
-
-
-#: Spatial components by config name; a new variant registers a builder ``(cfg, channels, **kw) -> component``.
-SPATIAL_COMPONENTS: dict[str, Any] = {
-    "modulator": lambda cfg, channels, **kw: Modulator(cfg, channels, **kw),
-    "concat": lambda cfg, channels, **kw: ConcatSpatial(channels, **kw),
-}
-
-
-def build_spatial(kind: str | None, cfg: UNetConfig, channels: int, **kwargs: Any) -> SpatialConditioning | None:
-    """Build the spatial component named ``kind`` (``None``/``"none"``: no spatial conditioning)."""
-    if kind is None or kind == "none":
-        if channels:
-            raise ValueError(f"spatial_type=None but spatial_channels={channels}")
-        return None
-    if kind not in SPATIAL_COMPONENTS:
-        raise KeyError(f"unknown spatial_type {kind!r}; known: {sorted(SPATIAL_COMPONENTS)} or None")
-    if channels <= 0:
-        raise ValueError(f"spatial_type={kind!r} needs spatial_channels > 0")
-    return SPATIAL_COMPONENTS[kind](cfg, channels, **kwargs)
 
 
 def count_parameters(module: nn.Module | None) -> int:

@@ -2,21 +2,21 @@
 
 ``cond = net.condition(spatial, nonspatial)`` runs everything that does not depend on ``t`` or ``x_t`` once per
 condition (the Modulator); ``net(x_t, t, cond)`` then predicts eps at every step. :func:`build_network` builds one
-from plain values (preset name, component name, channel counts), which is what Hydra configs and checkpoints store.
+from plain values (preset name, spatial spec, channel counts), which is what Hydra configs and checkpoints store.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
 import torch
 from torch import Tensor, nn
 
-from .conditioning import Modulator, build_spatial, count_parameters
+from .conditioning import count_parameters, resolve_spatial
 from .presets import get_config
-from .unet import MLP3, SpatialConditioning, UNet, UNetConfig
+from .unet import MLP3, UNet, UNetConfig
 
 
 @dataclass
@@ -29,18 +29,23 @@ class Condition:
 
 
 class DiffusionNet(nn.Module):
-    """eps-prediction network: :class:`UNet` + optional spatial component + AdaGN non-spatial conditioning."""
+    """eps-prediction network: :class:`UNet` + optional spatial component + AdaGN non-spatial conditioning.
 
-    def __init__(self, config: UNetConfig, spatial: SpatialConditioning | None = None, nonspatial_dim: int = 0,
-                 image_channels: int = 3):
+    ``spatial`` is a spec (``None``, a registered type name, or ``{type: ..., <options>}``); the component is built
+    from the UNet (``SpatialConditioning.build``) and validates itself against it.
+    """
+
+    def __init__(self, config: UNetConfig, spatial: str | Mapping[str, Any] | None = None, spatial_channels: int = 0,
+                 nonspatial_dim: int = 0, image_channels: int = 3):
         super().__init__()
         self.config, self.nonspatial_dim, self.image_channels = config, nonspatial_dim, image_channels
-        extra = spatial.extra_in_channels if spatial is not None else 0
+        component, options = resolve_spatial(spatial, spatial_channels)
+        extra = component.extra_input_channels(spatial_channels, **options) if component is not None else 0
         self.unet = UNet(config, in_channels=image_channels + extra, out_channels=image_channels,
                          nonspatial_dim=nonspatial_dim)
-        self.spatial = spatial
-        if isinstance(spatial, Modulator) and spatial.num_levels != self.unet.num_levels:
-            raise ValueError(f"Modulator has {spatial.num_levels} levels, the UNet {self.unet.num_levels}")
+        self.spatial = component.build(self.unet, spatial_channels, **options) if component is not None else None
+        if self.spatial is not None:
+            self.spatial.validate(self.unet, image_channels)
 
     def condition(self, spatial: Tensor | None = None, nonspatial: Tensor | None = None) -> Condition:
         """Prepare a condition once (runs the Modulator); reuse it for every timestep."""
@@ -79,15 +84,14 @@ class DiffusionNet(nn.Module):
         return {"unet": total - spatial - mlps, "spatial": spatial, "mlps": mlps, "total": total}
 
 
-def build_network(preset: str = "tiny", spatial_type: str | None = "modulator", spatial_channels: int = 0,
-                  nonspatial_dim: int = 0, image_channels: int = 3, overrides: dict[str, Any] | None = None,
-                  spatial_kwargs: dict[str, Any] | None = None) -> DiffusionNet:
+def build_network(preset: str = "tiny", spatial: str | Mapping[str, Any] | None = "modulator",
+                  spatial_channels: int = 0, nonspatial_dim: int = 0, image_channels: int = 3,
+                  overrides: dict[str, Any] | None = None) -> DiffusionNet:
     """Build a :class:`DiffusionNet` from plain values.
 
-    ``spatial_type``: ``"modulator"`` (DiFaReli/++), ``"concat"`` (ablation (a)) or ``None``;
-    ``overrides``: :class:`UNetConfig` fields replacing the preset's; ``spatial_kwargs``: options of the component
-    (e.g. ``{"modulate_skips": True}`` for the Modulator).
+    ``spatial``: ``None``, a registered component type (``"modulator"``: DiFaReli/++, ``"concat"``: ablation (a))
+    or ``{"type": ..., <options>}`` (e.g. ``{"type": "modulator", "modulate_skips": True}``);
+    ``overrides``: :class:`UNetConfig` fields replacing the preset's.
     """
     cfg = get_config(preset, overrides)
-    spatial = build_spatial(spatial_type, cfg, spatial_channels, **(spatial_kwargs or {}))
-    return DiffusionNet(cfg, spatial, nonspatial_dim=nonspatial_dim, image_channels=image_channels)
+    return DiffusionNet(cfg, spatial, spatial_channels, nonspatial_dim=nonspatial_dim, image_channels=image_channels)

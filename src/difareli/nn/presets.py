@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 from .unet import UNetConfig
@@ -25,10 +26,30 @@ PRESETS: dict[str, dict[str, Any]] = {
                     attention_resolutions=[16, 8], image_size=256, num_heads=4),
 }
 
-#: The paper's two variants as (spatial_channels, nonspatial_dim) with SynthFaces-sized encodings (shape 53,
-#: cam 3, identity 128): DiFaReli = (R 3 + background 3; shape+cam+identity+shadow), DiFaReli++ = (R 3 +
-#: shadow map 1 + masks 14; shape+cam+identity).
-VARIANTS: dict[str, tuple[int, int]] = {"difareli": (6, 53 + 3 + 128 + 1), "difareli++": (3 + 1 + 14, 53 + 3 + 128)}
+#: The paper's two variants, reported by :func:`report`: their ``conf/model`` files.
+VARIANTS = ("difareli", "difareli_pp")
+
+
+def variant_inputs(model: str) -> tuple[list[str], list[str]]:
+    """``(spatial inputs, non-spatial inputs)`` declared by ``conf/model/<model>.yaml`` (read as plain YAML, so
+    this works without Hydra, e.g. on a bare GPU image)."""
+    import yaml
+
+    path = Path(__file__).resolve().parents[3] / "conf" / "model" / f"{model}.yaml"
+    if not path.is_file():
+        raise KeyError(f"no model config {path}; known: {sorted(p.stem for p in path.parent.glob('*.yaml'))}")
+    cfg = yaml.safe_load(path.read_text())
+    return list(cfg.get("spatial_inputs") or []), list(cfg.get("nonspatial_inputs") or [])
+
+
+def variant_widths(model: str, dims: dict[str, int] | None = None) -> tuple[int, int]:
+    """``(spatial channels, non-spatial features)`` of a ``conf/model`` variant, from the encoding registry at the
+    producers' dimensions (SynthFaces / difareli-preprocess: shape 53, identity 128)."""
+    from difareli import encodings
+
+    spatial, nonspatial = variant_inputs(model)
+    dims = {"H": 1, "W": 1, **encodings.PRODUCER_DIMS, **(dims or {})}
+    return encodings.total_channels(spatial, dims), encodings.total_channels(nonspatial, dims)
 
 
 def get_config(preset: str, overrides: dict[str, Any] | None = None) -> UNetConfig:
@@ -52,7 +73,8 @@ def report(presets: list[str] | None = None) -> list[dict[str, Any]]:
 
     rows = []
     for preset in presets or list(PRESETS):
-        for variant, (spatial_channels, nonspatial_dim) in VARIANTS.items():
+        for variant in VARIANTS:
+            spatial_channels, nonspatial_dim = variant_widths(variant)
             with torch.device("meta"):
                 net = build_network(preset, "modulator", spatial_channels, nonspatial_dim)
             rows.append({"preset": preset, "variant": variant, **net.parameter_counts()})

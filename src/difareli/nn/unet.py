@@ -92,7 +92,16 @@ class MLP3(nn.Sequential):
         super().__init__(*layers)
 
 
-class AdaGN(nn.Module):
+class TimestepBlock(nn.Module):
+    """Marker interface (guided-diffusion's ``TimestepBlock``): ``forward(h, emb, nonspatial)`` takes the time
+    embedding and the non-spatial vector. Containers dispatch on this marker, never on concrete classes, so a new
+    conditioned layer (e.g. cross-attention) only subclasses it."""
+
+    def forward(self, h: Tensor, emb: Tensor | None = None, nonspatial: Tensor | None = None) -> Tensor:
+        raise NotImplementedError
+
+
+class AdaGN(TimestepBlock):
     """Modified adaptive GroupNorm, ``AdaGN(h) = k * (t_s * GN(h) + t_b)`` (paper Eq. AdaGN, SPEC 4).
 
     ``(t_s, t_b) = Linear(SiLU(emb))`` from the time embedding; ``k = MLP3(nonspatial)`` when ``nonspatial_dim > 0``,
@@ -119,7 +128,7 @@ class AdaGN(nn.Module):
         return out
 
 
-class ResBlock(nn.Module):
+class ResBlock(TimestepBlock):
     """ADM residual block. ``emb_dim > 0``: AdaGN before the second conv; ``emb_dim == 0`` (Modulator): plain GN."""
 
     def __init__(self, channels: int, out_channels: int, emb_dim: int, nonspatial_dim: int, cfg: UNetConfig,
@@ -150,7 +159,7 @@ class ResBlock(nn.Module):
         # up/down-sample after the activation and before the conv, and the skip path alike (ADM)
         h, x = self.resample(h), self.resample(x)
         h = self.in_conv(h)
-        h = self.out_norm(h, emb, nonspatial) if isinstance(self.out_norm, AdaGN) else self.out_norm(h)
+        h = self.out_norm(h, emb, nonspatial) if isinstance(self.out_norm, TimestepBlock) else self.out_norm(h)
         h = self.out_conv(self.dropout(F.silu(h)))
         return self.skip(x) + h
 
@@ -226,11 +235,12 @@ class AttentionBlock(nn.Module):
 
 
 class Block(nn.ModuleList):
-    """A sequence of layers; residual blocks also receive the time embedding and the non-spatial vector."""
+    """A sequence of layers; :class:`TimestepBlock` layers (residual blocks) also receive the time embedding and
+    the non-spatial vector."""
 
     def forward(self, h: Tensor, emb: Tensor | None = None, nonspatial: Tensor | None = None) -> Tensor:  # type: ignore[override]
         for layer in self:
-            h = layer(h, emb, nonspatial) if isinstance(layer, ResBlock) else layer(h)
+            h = layer(h, emb, nonspatial) if isinstance(layer, TimestepBlock) else layer(h)
         return h
 
 
@@ -271,11 +281,29 @@ class SpatialConditioning(nn.Module):
     ``step`` (per-step work that needs ``x_t``/``t``, e.g. a ControlNet encoder; identity here), ``apply_input``
     (e.g. concatenate to ``x_t``) and, after every encoder level, ``modulate`` which returns the tensors for the
     forward path and for the skip connection (the Modulator multiplies, a ControlNet would add to the skip).
-    ``extra_in_channels`` is how many channels ``apply_input`` adds to ``x_t``.
+
+    Construction (``conditioning.py`` registers components by config ``type``): ``extra_input_channels`` says how
+    many channels ``apply_input`` adds to ``x_t`` *before* the UNet exists (its input conv depends on it); then
+    ``build(unet, channels, **options)`` receives the built UNet (a ControlNet copies its encoder) and
+    ``validate(unet, image_channels)`` checks the component against it.
     """
 
-    extra_in_channels: int = 0
     needs_input: bool = False
+    #: the config ``type`` this class is registered under (set by ``conditioning.register_spatial``)
+    type_name: str = ""
+
+    @classmethod
+    def extra_input_channels(cls, channels: int, **options: Any) -> int:
+        """Channels ``apply_input`` adds to ``x_t`` for a spatial input of ``channels`` channels."""
+        return 0
+
+    @classmethod
+    def build(cls, unet: UNet, channels: int, **options: Any) -> SpatialConditioning:
+        """The component for ``unet`` and a spatial input of ``channels`` channels."""
+        raise NotImplementedError(f"{cls.__name__} does not define build(unet, channels, **options)")
+
+    def validate(self, unet: UNet, image_channels: int) -> None:
+        """Raise ``ValueError`` if this component does not fit ``unet`` (levels, widths, input channels)."""
 
     def prepare(self, spatial: Tensor | None) -> Any:
         return None
@@ -298,7 +326,7 @@ class UNet(nn.Module):
 
     def __init__(self, cfg: UNetConfig, in_channels: int = 3, out_channels: int = 3, nonspatial_dim: int = 0):
         super().__init__()
-        self.cfg, self.nonspatial_dim = cfg, nonspatial_dim
+        self.cfg, self.nonspatial_dim, self.in_channels = cfg, nonspatial_dim, in_channels
         base = cfg.base_channels
         emb_dim = 4 * base
         self.time_embed = nn.Sequential(nn.Linear(base, emb_dim), nn.SiLU(), nn.Linear(emb_dim, emb_dim))
