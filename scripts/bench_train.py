@@ -15,6 +15,7 @@ subprocess so the peak memory (CPU resident set, or CUDA allocation) is its own.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import subprocess
 import sys
@@ -38,8 +39,9 @@ def build_module(preset: str, resolution: int, variant: str = "difareli_pp"):
     dims = {"H": resolution, "W": resolution, **PRODUCER_DIMS}
     input_dims = {"spatial_channels": total_channels(spatial, dims),
                   "nonspatial_dim": total_channels(nonspatial, dims), "resolution": resolution}
+    # The optimizer as a callable partial: a config dict would need Hydra, which a bare GPU image lacks.
     return DiffusionModule(name=variant, preset=preset, spatial_inputs=spatial, nonspatial_inputs=nonspatial,
-                           input_dims=input_dims)
+                           input_dims=input_dims, optimizer=functools.partial(torch.optim.AdamW, lr=1e-4))
 
 
 class RandomBatches(torch.utils.data.Dataset):

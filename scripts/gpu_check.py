@@ -29,9 +29,8 @@ import torch  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_train  # noqa: E402
 
-from difareli.diffusion.relight import SamplerSpec, decode, invert  # noqa: E402
-from difareli.diffusion.schedule import DiffusionSchedule  # noqa: E402
-from difareli.encodings import channels  # noqa: E402
+from difareli.diffusion.relight import SamplerSpec  # noqa: E402
+from difareli.relighting import invert_image, relight  # noqa: E402
 from difareli.runtime import Runtime, count_flops, peak_flops  # noqa: E402
 
 MODES = {"fp32": {}, "bf16": {"precision": "bf16"}, "cuda_graphs": {"precision": "bf16", "cuda_graphs": True},
@@ -48,9 +47,9 @@ SMALL = dict(sizes=[("tiny", 32)], batches=[1, 2], iters={1: 3, 2: 2}, warmup=1,
 
 def widths(res: int) -> tuple[int, int]:
     """(spatial channels, non-spatial width) of DiFaReli++ at ``res`` from the encodings registry."""
-    spatial, nonspatial = bench_train.VARIANT_INPUTS["difareli++"]
-    dims = {"H": res, "W": res, **bench_train.SYNTH_DIMS}
-    return sum(channels(n, dims) for n in spatial), sum(channels(n, dims) for n in nonspatial)
+    from difareli.nn.presets import variant_widths
+
+    return variant_widths("difareli_pp", {"H": res, "W": res})
 
 
 def network(preset: str, res: int, device: torch.device):
@@ -85,17 +84,16 @@ def unet_ms(net, rt: Runtime, batch: int, res: int, iters: int, warmup: int) -> 
     return run.seconds / iters * 1e3, setup.seconds
 
 
-def relight_s(net, rt: Runtime, spec: SamplerSpec, res: int, targets: int) -> dict:
-    """Seconds of a relight: Modulator + inversion + mean-matching self-decode (batch 1), then Modulator + one
-    batched decode of ``targets`` conditions."""
-    dev, schedule = rt.torch_device, DiffusionSchedule()
+def relight_s(model, rt: Runtime, spec: SamplerSpec, res: int, targets: int) -> dict:
+    """Seconds of a relight through the relighting core: Modulator + inversion + mean-matching self-decode
+    (batch 1), then Modulator + one batched decode of ``targets`` conditions."""
+    dev = rt.torch_device
     x0 = torch.rand(1, 3, res, res, device=dev) * 2 - 1
     src, tgt = inputs(1, res, dev), inputs(targets, res, dev)
-    with torch.no_grad():
-        with rt.timed() as t_inv:
-            inv = invert(rt.denoiser(net, net.condition(*src)), x0, schedule, spec)
-        with rt.timed() as t_dec:
-            out = decode(rt.denoiser(net, net.condition(*tgt)), inv.expand(targets), schedule)
+    with rt.timed() as t_inv:
+        inv = invert_image(model, x0, src, spec, runtime=rt)
+    with rt.timed() as t_dec:
+        out = relight(model, x0, src, tgt, spec, runtime=rt, inversion=inv)
     if not torch.isfinite(out).all():
         raise FloatingPointError(f"{spec.name}-{spec.steps} relight produced non-finite pixels")
     return {"sampler": spec.name, "steps": spec.steps, "targets": targets, "passes": 3 * spec.steps,
@@ -156,7 +154,8 @@ def unet_modes(report: dict, plan: dict, nets: dict, dev: torch.device, modes: l
 
 def relights(report: dict, plan: dict, nets: dict, dev: torch.device, modes: list) -> None:
     preset, res = plan["relight"]
-    net = nets.get((preset, res)) or network(preset, res, dev)
+    torch.manual_seed(0)
+    net = bench_train.build_module(preset, res).to(dev).eval().requires_grad_(False)  # a Relightable model
     best = "cuda_graphs" if "cuda_graphs" in modes and dev.type == "cuda" else "bf16"
     rt_best = Runtime(device=str(dev), **MODES[best])
     warm = SamplerSpec(name="ddim", steps=2)

@@ -141,16 +141,6 @@ class DiffusionModule(L.LightningModule):
         """The encodings a condition is made of (spatial, then non-spatial)."""
         return list(dict.fromkeys(self.spatial_inputs + self.nonspatial_inputs))
 
-    @property
-    def spatial_inputs(self) -> list[str]:
-        """Encodings fed to the spatial component (the Relightable interface)."""
-        return list(self.hparams.spatial_inputs or [])
-
-    @property
-    def nonspatial_inputs(self) -> list[str]:
-        """Encodings fed to AdaGN (the Relightable interface)."""
-        return list(self.hparams.nonspatial_inputs or [])
-
     def normalize_nonspatial(self, v: torch.Tensor) -> torch.Tensor | None:
         if v is None or v.shape[-1] == 0:
             return None

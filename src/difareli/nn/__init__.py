@@ -20,6 +20,8 @@ _HOMES = {
     "build_network": "network",
     "PRESETS": "presets",
     "VARIANTS": "presets",
+    "variant_inputs": "presets",
+    "variant_widths": "presets",
     "get_config": "presets",
     "AdaGN": "unet",
     "SpatialConditioning": "unet",
