@@ -19,7 +19,7 @@ import math
 
 import numpy as np
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 
 #: The ``shadow`` logit c and the ``shadow_map`` scaling: ``shadow_map = binary cast map * normalise_c(c)``
 #: with a fixed range, so records can be written one at a time and stores compared. ``c = logit(s)`` where s
@@ -105,6 +105,12 @@ _ENCODINGS = (
     Encoding("depth", ("H", "W"), "float32", "camera-space z of the face mesh (toward the viewer), 0 off-mesh; "
              "used to ray-march target shadow maps", spatial=True),
     Encoding("face_mask", ("H", "W"), "bool", "face region (FACE_PARTS), used by metrics", spatial=True),
+    # SynthFaces v2: the exact values of the model inputs, which hold estimated ones in v2 stores (oracle studies).
+    Encoding("light_gt", (9, 3), "float32", "exact SH light (ambient + every sun), as `light`"),
+    Encoding("shading_gt", ("H", "W", 3), "float32", "shading reference of light_gt, as `shading`", spatial=True),
+    Encoding("shadow_gt", (1,), "float32", "exact cast-shadow logit c (all suns), as `shadow`"),
+    Encoding("shadow_map_gt", ("H", "W"), "float32", "exact cast-shadow map (union over suns) times "
+             "normalised shadow_gt, as `shadow_map`", spatial=True),
 )
 
 #: All encodings by name, in schema order.
