@@ -178,7 +178,7 @@ class EncodingStore:
         if version not in READABLE_VERSIONS:
             raise ValueError(
                 f"store {root} has schema_version {header['schema_version']} but this code reads versions "
-                f"{list(READABLE_VERSIONS)} (difareli.encodings.SCHEMA_VERSION = {enc.SCHEMA_VERSION}); "
+                f"{list(READABLE_VERSIONS)} (it writes version {enc.SCHEMA_VERSION}, difareli.encodings.SCHEMA_VERSION); "
                 "regenerate the store with this code, or use the code version that wrote it"
             )
         store = cls(root, header, durable=durable)
