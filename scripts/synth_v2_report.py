@@ -121,7 +121,7 @@ def main(argv=None) -> int:
         store = work / f"{tag}_{preset}_{args.resolution}"
         ips = synth(store, preset, args.subjects, args.lights, args.resolution, args.workers)
         if ips:
-            speeds[(preset, args.resolution)] = ips
+            speeds[(preset, args.resolution, args.subjects * args.lights)] = ips
         runs = benchmark(store, work / f"bench_{tag}", args.limit)
         table_out = work / f"table_{tag}"
         cli("table", "runs=[" + ",".join(str(r) for r in runs) + "]", f"out={table_out}",
@@ -137,11 +137,11 @@ def main(argv=None) -> int:
         for res, subjects in ((64, 40), (256, 10)):
             for preset in PRESETS.values():
                 store = work / f"speed_{preset}_{res}"
-                speeds[(preset, res)] = synth(store, preset, subjects, 4, res, args.workers, preview=False)
+                speeds[(preset, res, subjects * 4)] = synth(store, preset, subjects, 4, res, args.workers, preview=False)
     if speeds:
         lines += ["## Generation speed (images/s as difareli-synth prints it; shared, loaded 2-core CPU)", "",
-                  "| preset | resolution | images/s |", "|---|---:|---:|"]
-        lines += [f"| {p} | {r} | {v:.2f} |" for (p, r), v in sorted(speeds.items())]
+                  "| preset | resolution | images | images/s |", "|---|---:|---:|---:|"]
+        lines += [f"| {p} | {r} | {n} | {v:.2f} |" for (p, r, n), v in sorted(speeds.items()) if v]
         lines.append("")
     (docs / "table.md").write_text("\n".join(lines) + "\n")
     effects_preview(docs / "effects_preview.png")
