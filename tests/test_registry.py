@@ -19,7 +19,8 @@ DIMS = {"H": 8, "W": 8, **encodings.PRODUCER_DIMS}
 
 
 def test_light_dependence_is_declared_once_and_resolves():
-    assert encodings.light_dependent() == ["light", "shadow", "shadow_map", "shading"]
+    assert encodings.light_dependent() == ["light", "shadow", "shadow_map", "shading", "light_gt", "shading_gt",
+                                           "shadow_gt", "shadow_map_gt"]
     for name in encodings.light_dependent():
         e = encodings.get(name)
         module, func = e.rerender.split(":")

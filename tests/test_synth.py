@@ -176,7 +176,7 @@ def test_image_is_albedo_times_irradiance(subject):
     # No sun: the image is albedo x irradiance of the stored light, exactly up to uint8 rounding.
     amb = li.ambient_sh(np.random.default_rng(0), [0.7, 0.6, 0.5], gradient=0.4, band2=0.2)
     soft = li.Light("soft", amb, np.array([0.0, 0.0, 1.0]), np.zeros(3))
-    arr = gen.shade(subject, soft, None, CFG)
+    arr, _ = gen.shade(subject, soft, None, CFG)
     want = np.clip(subject.albedo * sh.irradiance(arr["light"].astype(np.float64), n), 0, 1) * 255
     assert np.abs(arr["image"][gb.hit] - want[gb.hit]).max() <= 0.5 + 1e-3
     np.testing.assert_array_equal(arr["image"][~gb.hit], np.round(subject.background[~gb.hit] * 255))
@@ -185,7 +185,7 @@ def test_image_is_albedo_times_irradiance(subject):
     d = li.direction(-60, 30)
     hard = li.Light("hard", amb * 0.3, d, np.array([1.0, 1.0, 1.0]))
     cast = gen.cast_shadows(subject.scene, gb, d[None])[0]
-    arr = gen.shade(subject, hard, cast, CFG)
+    arr, _ = gen.shade(subject, hard, cast, CFG)
     e_amb = sh.irradiance(hard.ambient, n)
     e_sun = np.maximum(n @ d, 0)[..., None] * hard.sun_rgb
     lit = np.clip(subject.albedo * (e_amb + e_sun * (~cast)[..., None]), 0, 1) * 255

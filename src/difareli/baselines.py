@@ -97,6 +97,11 @@ class LightFit:
         return self(store.read(record_id, names))
 
 
+def exact_light_name(store: EncodingStore) -> str:
+    """The encoding holding a record's exact light: ``light_gt`` in SynthFaces v2 stores, else ``light``."""
+    return "light_gt" if store.available("light_gt") else "light"
+
+
 def irradiance_error(estimate: np.ndarray, truth: np.ndarray, normals: np.ndarray,
                      mask: np.ndarray) -> tuple[float, float]:
     """Relative irradiance error ``|E_est - E_gt| / |E_gt|`` over the masked pixels (all channels), and the
@@ -167,9 +172,12 @@ class LambertianRatio:
         self.name, self.estimator, self.min_shading = name or "lambertian", estimator, float(min_shading)
 
     def source_light(self, store: EncodingStore, source_id: str) -> np.ndarray:
+        """The fitted source light, or (no estimator: the oracle) the exact one: ``light_gt`` where the store
+        has it (SynthFaces v2, whose ``light`` is itself estimated), else ``light``."""
         if self.estimator is not None:
             return self.estimator.from_store(store, source_id)
-        return np.asarray(store.read(source_id, ["light"])["light"], dtype=np.float64)
+        name = exact_light_name(store)
+        return np.asarray(store.read(source_id, [name])[name], dtype=np.float64)
 
     def relight(self, store, source_id, target_light, target_shadow=None, target_id=None,
                 source_light: np.ndarray | None = None) -> np.ndarray:

@@ -4,7 +4,8 @@ For each pair of ``protocols.json`` (written with the store by ``synth.splits``)
 light estimated from ``light_source`` (protocol (i) ``same_subject``: the same person under the target light;
 (ii) ``different_subject``: another person under that very light) and score the result against ``target``
 on the target's ``face_mask``. The light is fitted from the light-source image (:class:`baselines.LightFit`)
-as a user would get it; ``oracle_light`` takes the stored ground truth instead.
+as a user would get it, with the stored (v2: estimated) shadow strength c; ``oracle_light`` takes the exact
+light and c instead (``light_gt``/``shadow_gt`` in SynthFaces v2 stores, whose ``light``/``shadow`` are estimated).
 
 Outputs in the run dir: ``relit/<protocol>/<pair id>.png``, ``metrics_per_image.csv`` (tables.py schema),
 ``summary.{md,csv,tex}``, ``light_estimation.csv`` and ``comparison_<protocol>.png`` (input | light source |
@@ -25,7 +26,7 @@ import torch
 from tqdm.auto import tqdm
 
 from difareli import metrics, tables, viz
-from difareli.baselines import LightFit, Method, irradiance_error
+from difareli.baselines import LambertianRatio, LightFit, Method, exact_light_name, irradiance_error
 from difareli.store import EncodingStore
 from difareli.synth.splits import PROTOCOLS_FILE
 
@@ -90,23 +91,27 @@ class Lights:
 
     def get(self, record_id: str) -> np.ndarray:
         if self.estimator is None:
-            return np.asarray(self.store.read(record_id, ["light"])["light"], dtype=np.float64)
+            name = exact_light_name(self.store)
+            return np.asarray(self.store.read(record_id, [name])[name], dtype=np.float64)
         if record_id not in self._cache:
             self._cache[record_id] = self.estimator.from_store(self.store, record_id)
         return self._cache[record_id]
 
     def shadow(self, record_id: str) -> float | None:
-        """The record's stored cast-shadow strength c (what a shadow estimator would report), if any."""
-        if not self.store.available("shadow"):
+        """The record's cast-shadow strength c: the stored (estimated in v2) one, or the exact one
+        (``shadow_gt``) for oracle lights; None if the store has none."""
+        name = "shadow_gt" if self.estimator is None and self.store.available("shadow_gt") else "shadow"
+        if not self.store.available(name):
             return None
-        return float(np.asarray(self.store.read(record_id, ["shadow"])["shadow"]).reshape(-1)[0])
+        return float(np.asarray(self.store.read(record_id, [name])[name]).reshape(-1)[0])
 
     def error(self, estimate: np.ndarray, truth_id: str, on_id: str) -> tuple[float, float]:
         """:func:`irradiance_error` of ``estimate`` vs ``truth_id``'s light on ``on_id``'s face normals."""
         a = self.store.read(on_id, ["normal", "face_mask"])
         n = np.asarray(a["normal"], dtype=np.float64)
         mask = np.asarray(a["face_mask"], dtype=bool) & (np.linalg.norm(n, axis=-1) > 0.5)
-        truth = np.asarray(self.store.read(truth_id, ["light"])["light"], dtype=np.float64)
+        name = exact_light_name(self.store)
+        truth = np.asarray(self.store.read(truth_id, [name])[name], dtype=np.float64)
         return irradiance_error(estimate, truth, n, mask)
 
 

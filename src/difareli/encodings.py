@@ -19,7 +19,7 @@ import math
 
 import numpy as np
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 
 #: The ``shadow`` logit c and the ``shadow_map`` scaling: ``shadow_map = binary cast map * normalise_c(c)``
 #: with a fixed range, so records can be written one at a time and stores compared. ``c = logit(s)`` where s
@@ -157,6 +157,17 @@ _ENCODINGS = (
     Encoding("depth", ("H", "W"), "float32", "camera-space z of the face mesh (toward the viewer), 0 off-mesh; "
              "used to ray-march target shadow maps", spatial=True),
     Encoding("face_mask", ("H", "W"), "bool", "face region (FACE_PARTS), used by metrics", spatial=True),
+    # SynthFaces v2: the exact values of the model inputs, which hold estimated ones in v2 stores (oracle studies).
+    # As model inputs (oracle studies) they re-render under a target light exactly like their estimated twins.
+    Encoding("light_gt", (9, 3), "float32", "exact SH light (ambient + every sun), as `light`",
+             rerender="difareli.targets:render_light"),
+    Encoding("shading_gt", ("H", "W", 3), "float32", "shading reference of light_gt, as `shading`", spatial=True,
+             rerender="difareli.targets:render_shading", needs=("normal",)),
+    Encoding("shadow_gt", (1,), "float32", "exact cast-shadow logit c (all suns), as `shadow`",
+             rerender="difareli.targets:render_shadow"),
+    Encoding("shadow_map_gt", ("H", "W"), "float32", "exact cast-shadow map (union over suns) times "
+             "normalised shadow_gt, as `shadow_map`", spatial=True,
+             rerender="difareli.targets:render_shadow_map", needs=("depth", "normal", "cam", "shadow")),
 )
 
 #: All encodings by name, in schema order.

@@ -28,6 +28,9 @@ import numpy as np
 from difareli import encodings as enc
 
 HEADER = "store.json"
+#: Schema versions this code reads. v2 only appended encodings (SynthFaces v2's ``*_gt`` block) and changed none,
+#: so a v1 store reads unchanged (it simply lacks the v2 encodings; ``available`` says so).
+READABLE_VERSIONS = (1, enc.SCHEMA_VERSION)
 RECORDS = "records"
 META = "meta.json"
 _TMP = ".tmp-"
@@ -171,10 +174,12 @@ class EncodingStore:
         missing = {"schema_version", "dims", "encodings"} - set(header)
         if missing:
             raise ValueError(f"store header {path} lacks {sorted(missing)}")
-        if int(header["schema_version"]) != enc.SCHEMA_VERSION:
+        version = int(header["schema_version"])
+        if version not in READABLE_VERSIONS:
             raise ValueError(
-                f"store {root} has schema_version {header['schema_version']} but this code reads version "
-                f"{enc.SCHEMA_VERSION} (difareli.encodings.SCHEMA_VERSION); regenerate or convert the store"
+                f"store {root} has schema_version {header['schema_version']} but this code reads versions "
+                f"{list(READABLE_VERSIONS)} (it writes version {enc.SCHEMA_VERSION}, difareli.encodings.SCHEMA_VERSION); "
+                "regenerate the store with this code, or use the code version that wrote it"
             )
         store = cls(root, header, durable=durable)
         (root / RECORDS).mkdir(exist_ok=True)

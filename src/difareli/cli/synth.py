@@ -27,6 +27,14 @@ def validate(cfg: DictConfig) -> None:
             raise ConfigError(f"{key}={value!r} is invalid: must be an integer >= {lo}")
     if cfg.shading_region not in ("face", "mesh"):
         raise ConfigError(f"shading_region={cfg.shading_region!r} is invalid: use 'face' or 'mesh'")
+    from difareli.synth.effects import Effects
+
+    try:
+        Effects.resolve(cfg.realism, OmegaConf.to_container(cfg.effects))
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
+    if cfg.inputs not in ("estimated", "exact"):
+        raise ConfigError(f"inputs={cfg.inputs!r} is invalid: use 'estimated' or 'exact'")
     fr = cfg.splits
     if any(float(v) < 0 for v in fr.values()) or sum(float(v) for v in fr.values()) <= 0:
         raise ConfigError(f"splits={OmegaConf.to_container(fr)} is invalid: fractions must be >= 0, sum > 0")
@@ -48,12 +56,14 @@ def run(cfg: DictConfig):
         cfg.out_dir, cfg.subjects, cfg.lights, cfg.resolution, cfg.seed, workers=cfg.workers,
         durable=cfg.durable, progress=progress, light_group_size=cfg.light_group_size,
         splits=OmegaConf.to_container(cfg.splits), shading_region=cfg.shading_region, cam_jitter=cfg.cam_jitter,
+        realism=cfg.realism, effects=OmegaConf.to_container(cfg.effects), inputs=cfg.inputs,
     )
     if report.written == 0:
         print(f"nothing to do: all {n} records already exist in {cfg.out_dir} (skipped {report.skipped})")
     else:
         print(f"wrote {report.written} records, skipped {report.skipped} existing, in {report.seconds:.1f} s "
-              f"({report.images_per_second:.1f} images/s at {cfg.resolution}px, {cfg.workers} worker(s))")
+              f"({report.images_per_second:.1f} images/s at {cfg.resolution}px, {cfg.workers} worker(s), "
+              f"realism={cfg.realism}, inputs={cfg.inputs})")
     if report.problems:
         print(f"{len(report.problems)} problems:\n  " + "\n  ".join(report.problems[:20]), file=sys.stderr)
         raise SystemExit(1)

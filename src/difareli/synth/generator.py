@@ -21,6 +21,14 @@ i.e. the fraction of the foreground's light that cast shadows remove (``Y`` = Re
 ``c = logit(S_MIN)`` ≈ -6.9 means no visible cast shadow. ``shadow_map`` = binary cast-shadow map on the
 mesh times ``normalise_c(c)`` = ``(c - C_LO) / (C_HI - C_LO)`` clipped to [0, 1], a fixed range (not a
 data-set min/max) so that records can be written one at a time and stores compared.
+
+SynthFaces v2 (``docs/synthfaces_v2.md``): ``realism`` selects appearance effects (``synth/effects.py``:
+specular, subsurface wrap, ambient occlusion, key + fill + rim suns; ``lambertian`` = the formation above,
+bit for bit). With several suns, every sun casts its own shadow: ``s`` sums the light each one's cast
+shadow removes (``cast_i * Y(sun_i f_i(n)) / Y(E_unshadowed)``) and the binary map is the union of their cast
+maps. ``inputs: estimated`` stores the estimated ``light``/``shading``/``shadow``/``shadow_map``
+(``synth/estimated.py``); the exact ones are always kept as ``light_gt``, ``shading_gt``, ``shadow_gt``,
+``shadow_map_gt``.
 """
 
 from __future__ import annotations
@@ -44,11 +52,14 @@ from difareli.encodings import (FACE_PARTS, FOREGROUND_PARTS, PART_INDEX, SHADOW
 from difareli.render import OrthoCamera, Scene, cast_shadows, render_gbuffer
 from difareli.store import EncodingStore
 from difareli.synth import splits as sp
+from difareli.synth import effects as fx_mod
 from difareli.synth.appearance import albedo_image, sample_appearance, sample_background
-from difareli.synth.lights import Light, light_rng, sample_light
+from difareli.synth.lights import Light, add_suns, extra_sun_rng, light_rng, sample_light
 
 ENCODINGS = ("image", "light", "shape", "cam", "identity", "shadow", "background", "masks", "shadow_map",
-             "shading", "normal", "depth", "face_mask")
+             "shading", "normal", "depth", "face_mask", "light_gt", "shading_gt", "shadow_gt", "shadow_map_gt")
+#: ``inputs``: what the model-input encodings hold (the exact values are always in the ``*_gt`` ones).
+INPUTS = ("estimated", "exact")
 IDENTITY_DIM = 128  # matches the dlib face descriptor used for real photos
 # The c range lives in the schema (shared with targets for relighting); re-exported under short names.
 S_MIN, C_LO, C_HI = SHADOW_S_MIN, SHADOW_C_LO, SHADOW_C_HI
@@ -73,6 +84,9 @@ class SynthConfig:
     splits: dict = field(default_factory=lambda: {"train": 0.8, "val": 0.1, "test": 0.1})
     shading_region: str = "face"       # "face": R/normal on the BFM face triangles (SPEC 3); "mesh": everywhere
     cam_jitter: float = 0.05           # relative scale jitter; translation jitter is half of it in NDC
+    realism: str = "lambertian"        # effects preset (synth/effects.py); "lambertian" = SynthFaces v1 images
+    effects: dict = field(default_factory=dict)  # per-effect overrides of the preset (None keeps it)
+    inputs: str = "exact"              # "estimated": light/shading/shadow(_map) as a user's estimators give them
 
     def __post_init__(self):
         for key, lo in (("subjects", 1), ("lights", 1), ("resolution", 16), ("light_group_size", 1)):
@@ -81,6 +95,16 @@ class SynthConfig:
         object.__setattr__(self, "splits", {str(k): float(v) for k, v in dict(self.splits).items()})
         if self.shading_region not in ("face", "mesh"):
             raise ConfigError(f"shading_region={self.shading_region!r} is invalid: use 'face' or 'mesh'")
+        try:  # stored resolved, so the header (and a resume check) names every effect
+            object.__setattr__(self, "effects", fx_mod.Effects.resolve(self.realism, self.effects).as_dict())
+        except ValueError as e:
+            raise ConfigError(str(e)) from None
+        if self.inputs not in INPUTS:
+            raise ConfigError(f"inputs={self.inputs!r} is invalid: use 'estimated' or 'exact'")
+
+    @property
+    def fx(self) -> "fx_mod.Effects":
+        return fx_mod.Effects(**self.effects)
 
     def header_meta(self) -> dict:
         return {"generator": "synthfaces", **asdict(self), "gamma": "none", "identity_dim": IDENTITY_DIM,
@@ -133,6 +157,10 @@ class Subject:
     cam: np.ndarray
     identity: np.ndarray
     meta: dict
+    ao: np.ndarray | None = None        # HxW ambient occlusion (effects.ambient_occlusion), once per subject
+    spec_ks: np.ndarray | None = None   # HxW specular strength / exponent maps (effects.specular)
+    spec_s: np.ndarray | None = None
+    sss: np.ndarray | None = None       # HxW bool, where the subsurface wrap applies (effects.subsurface)
 
 
 def build_subject(k: int, cfg: SynthConfig) -> Subject:
@@ -163,28 +191,74 @@ def build_subject(k: int, cfg: SynthConfig) -> Subject:
     face_mesh = gb.hit & (gb.triangle >= 0) & (gb.triangle < head.n_face_faces)
     meta = {"skin_tone": round(appearance.skin_tone, 4), "hair": appearance.hair_name,
             "hat": accessories.hat, "bald": accessories.bald, "background": background.kind}
-    return Subject(k, scene, gb, face_mesh, albedo, background.render(H, W),
-                   np.asarray(head.shape_vector, np.float32), cam.to_array(), identity.astype(np.float32), meta)
+    subject = Subject(k, scene, gb, face_mesh, albedo, background.render(H, W),
+                      np.asarray(head.shape_vector, np.float32), cam.to_array(), identity.astype(np.float32), meta)
+    fx = cfg.fx  # v2 effects: their own streams, so the v1 draws above stay the same
+    if fx.ambient_occlusion:
+        from difareli.render.ao import ambient_occlusion
+
+        subject.ao = ambient_occlusion(scene, gb, fx_mod.AO_RAYS, fx_mod.AO_DISTANCE, seed=[cfg.seed, k, 3])
+    if fx.specular:
+        subject.spec_ks, subject.spec_s = fx_mod.specular_maps(gb.label, gb.points, gb.hit)
+    if fx.subsurface:
+        subject.sss = fx_mod.sss_mask(gb.label, gb.hit)
+    return subject
 
 
-def shade(subject: Subject, light: Light, cast: np.ndarray | None, cfg: SynthConfig) -> dict[str, np.ndarray]:
-    """All encodings of ``subject`` under ``light``; ``cast`` is its bool cast-shadow map (None: no sun)."""
+def _cast_list(cast, n: int, hit: np.ndarray) -> list[np.ndarray]:
+    # None (no sun), one bool map (the key sun, v1 callers) or one map per sun -> a list of n maps on the mesh.
+    if cast is None:
+        maps = [np.zeros_like(hit)] * n
+    elif isinstance(cast, np.ndarray) and cast.ndim == 2:
+        maps = [cast]
+    else:
+        maps = list(cast)
+    if len(maps) != n:
+        raise ValueError(f"{len(maps)} cast-shadow maps for {n} suns")
+    return [m & hit for m in maps]
+
+
+def shade(subject: Subject, light: Light, cast, cfg: SynthConfig) -> tuple[dict[str, np.ndarray], dict]:
+    """All encodings of ``subject`` under ``light`` and the record's effect meta; ``cast``: one bool cast-shadow
+    map per sun of ``light.suns()`` (a single map or None are accepted for one sun or none)."""
     gb = subject.gbuffer
     hit = gb.hit
     n = gb.normal.astype(np.float64)
-    e_amb = sh.irradiance(light.ambient, n)
-    ndl = np.maximum(n @ light.sun_dir, 0.0)
-    sun = ndl[..., None] * light.sun_rgb
-    cast = np.zeros_like(hit) if cast is None else (cast & hit)
-    e = e_amb + sun * (~cast)[..., None]
-    lit = np.clip(subject.albedo * e, 0.0, 1.0)
+    e_amb_open = sh.irradiance(light.ambient, n)
+    e_amb = e_amb_open if subject.ao is None else e_amb_open * subject.ao[..., None]
+    suns = light.suns()
+    casts = _cast_list(cast, len(suns), hit) if suns else []
+    e, e_open = e_amb, e_amb
+    spec = sss_gain = None
+    sun_terms = []
+    for (d, rgb), c in zip(suns, casts):
+        ndl = n @ d
+        sun = np.maximum(ndl, 0.0)[..., None] * rgb
+        if subject.sss is not None:
+            wrapped = np.where(subject.sss[..., None], fx_mod.wrap(ndl, fx_mod.WRAP_RGB) * rgb, sun)
+            gain = (wrapped - sun) * (~c)[..., None]
+            sss_gain = gain if sss_gain is None else sss_gain + gain
+            sun = wrapped
+        if subject.spec_ks is not None:
+            lobe = (subject.spec_ks * fx_mod.blinn_phong(n, d, subject.spec_s) * ~c)[..., None] * rgb
+            spec = lobe if spec is None else spec + lobe
+        e = e + sun * (~c)[..., None]
+        e_open = e_open + sun
+        sun_terms.append(sun)
+    diffuse = subject.albedo * e
+    lit = np.clip(diffuse if spec is None else diffuse + spec, 0.0, 1.0)
     img = np.where(hit[..., None], lit, subject.background)
     image = np.round(img * 255.0).astype(np.uint8)
 
-    lost = (sun @ _LUMA) / np.maximum((e_amb + sun) @ _LUMA, 1e-6)
-    strength = float((cast * lost).sum() / max(hit.sum(), 1))
+    # c: the fraction of the light that every sun's cast shadow removes (one sun: exactly v1's expression).
+    den = np.maximum(e_open @ _LUMA, 1e-6)
+    strength = float(sum((c * ((sun @ _LUMA) / den)).sum() for sun, c in zip(sun_terms, casts))
+                     / max(hit.sum(), 1))
     s = float(np.clip(strength, S_MIN, 1 - S_MIN))
     c = math.log(s / (1 - s))
+    cast_any = np.zeros_like(hit)
+    for m in casts:
+        cast_any = cast_any | m
 
     label = gb.label.astype(np.uint8)
     face = np.isin(label, _FACE_IDX)
@@ -193,14 +267,34 @@ def shade(subject: Subject, light: Light, cast: np.ndarray | None, cfg: SynthCon
     light_sh = light.sh()
     shading = np.asarray(sh.shading_reference(light_sh, normal, mask=region), dtype=np.float32)
     background = np.where(np.isin(label, _FG_IDX)[..., None], 0, image).astype(np.uint8)
-    return {
+    shadow = np.array([c], np.float32)
+    shadow_map = (cast_any * normalise_c(c)).astype(np.float32)
+    arrays = {
         "image": image, "light": light_sh, "shape": subject.shape, "cam": subject.cam,
-        "identity": subject.identity, "shadow": np.array([c], np.float32), "background": background,
-        "masks": label, "shadow_map": (cast * normalise_c(c)).astype(np.float32), "shading": shading,
+        "identity": subject.identity, "shadow": shadow, "background": background,
+        "masks": label, "shadow_map": shadow_map, "shading": shading,
         "normal": normal, "face_mask": face,
         # Whole-mesh depth (hair, hat and neck included) so target shadow maps can be ray-marched from it.
         "depth": np.where(hit, gb.depth, 0.0).astype(np.float32),
+        "light_gt": light_sh, "shading_gt": shading, "shadow_gt": shadow, "shadow_map_gt": shadow_map,
     }
+    # Share of the face pixels' (unclipped) light in each effect's term: what a ratio image cannot redo.
+    total = float((diffuse if spec is None else diffuse + spec)[face].sum()) or 1.0
+    energy = {"specular": 0.0 if spec is None else float(spec[face].sum()) / total,
+              "subsurface": 0.0 if sss_gain is None else float((subject.albedo * sss_gain)[face].sum()) / total,
+              "ao_removed": 0.0 if subject.ao is None else
+              float((subject.albedo * (e_amb_open - e_amb))[face].sum()) / total}
+    meta = {"c_gt": c, "energy": {k: round(v, 6) for k, v in energy.items()}}
+    if cfg.inputs == "estimated":
+        from difareli.synth.estimated import estimate_inputs
+
+        try:
+            est, info = estimate_inputs(arrays, region, gb, subject.scene)
+            arrays.update(est)
+            meta.update(info)
+        except ValueError as err:  # too few usable skin pixels: keep the exact inputs, flagged
+            meta["inputs_fallback"] = f"exact inputs stored: {err}"
+    return arrays, meta
 
 
 def render_records(k: int, light_indices: list[int], cfg: SynthConfig, split: str) -> Iterator[tuple[str, dict, dict]]:
@@ -208,13 +302,19 @@ def render_records(k: int, light_indices: list[int], cfg: SynthConfig, split: st
     subject = build_subject(k, cfg)
     group = sp.light_group(k, cfg.light_group_size)
     lights = [sample_light(light_rng(cfg.seed, group, j)) for j in light_indices]
-    suns = [i for i, l in enumerate(lights) if l.has_sun]
-    maps = cast_shadows(subject.scene, subject.gbuffer, np.array([lights[i].sun_dir for i in suns])) if suns else []
-    cast_of = dict(zip(suns, maps))
-    for i, (j, light) in enumerate(zip(light_indices, lights)):
-        arrays = shade(subject, light, cast_of.get(i), cfg)
+    fx = cfg.fx
+    if fx.multi_sun:
+        lights = [add_suns(light, extra_sun_rng(cfg.seed, group, j)) for j, light in zip(light_indices, lights)]
+    # One cast-shadow pass per sun of every light, in one call (the BVH is built once per subject).
+    dirs = [d for light in lights for d, _ in light.suns()]
+    maps = list(cast_shadows(subject.scene, subject.gbuffer, np.array(dirs))) if dirs else []
+    for j, light in zip(light_indices, lights):
+        k_suns = len(light.suns())
+        casts, maps = maps[:k_suns], maps[k_suns:]
+        arrays, fx_meta = shade(subject, light, casts, cfg)
         meta = {"subject": sp.subject_name(k), "light_index": j, "light_group": group, "split": split,
-                "source": "synthfaces", "c": float(arrays["shadow"][0]), **light.meta(), **subject.meta}
+                "source": "synthfaces", "c": float(arrays["shadow"][0]), **light.meta(), **subject.meta,
+                "realism": cfg.realism, "effects": fx.as_dict(), "inputs": cfg.inputs, **fx_meta}
         yield sp.record_id(k, j), arrays, meta
 
 

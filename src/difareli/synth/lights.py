@@ -1,4 +1,5 @@
-"""The SynthFaces lighting distribution: an ambient SH environment plus one sun (directional light).
+"""The SynthFaces lighting distribution: an ambient SH environment plus one sun (directional light), and
+in SynthFaces v2 (``multi_sun``) up to two more coloured suns: a fill opposite the key and a rim from behind.
 
 A :class:`Light` is rendered exactly (the sun's term ``sun_rgb * visibility * max(0, n.d)`` is ray traced,
 so it casts shadows) while its ground-truth ``light`` encoding is the 9x3 SH of the whole thing,
@@ -12,7 +13,7 @@ the sun, in camera space (x right, y up, z toward the viewer).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -48,19 +49,34 @@ class Light:
     ambient: np.ndarray   # (9, 3) float64
     sun_dir: np.ndarray   # (3,) unit vector toward the sun
     sun_rgb: np.ndarray   # (3,) irradiance on a surface facing the sun; all zero = no sun
+    #: Extra suns (v2 ``multi_sun``): ``(K, 3)`` unit directions and RGB irradiances, fill and rim lights.
+    extra_dirs: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    extra_rgbs: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    extra_names: tuple[str, ...] = ()
 
     @property
     def has_sun(self) -> bool:
         return bool(np.any(self.sun_rgb > 0))
 
+    def suns(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Every sun with light, ``(direction, rgb)``: the key sun first, then the extra ones."""
+        out = [(self.sun_dir, self.sun_rgb)] if self.has_sun else []
+        return out + [(d, c) for d, c in zip(self.extra_dirs, self.extra_rgbs) if np.any(c > 0)]
+
     def sh(self) -> np.ndarray:
-        """The ground-truth ``light`` encoding (9x3 float32): ambient + SH projection of the sun."""
+        """The ground-truth ``light`` encoding (9x3 float32): ambient + SH projection of every sun."""
         full = self.ambient + (sh.directional_light(self.sun_dir, self.sun_rgb) if self.has_sun else 0.0)
+        for d, c in zip(self.extra_dirs, self.extra_rgbs):
+            full = full + sh.directional_light(d, c)
         return full.astype(np.float32)
 
     def meta(self) -> dict:
-        return {"category": self.category, "sun_dir": self.sun_dir.round(6).tolist(),
-                "sun_rgb": self.sun_rgb.round(6).tolist()}
+        out = {"category": self.category, "sun_dir": self.sun_dir.round(6).tolist(),
+               "sun_rgb": self.sun_rgb.round(6).tolist()}
+        if self.extra_names:
+            out["extra_suns"] = [{"name": n, "dir": d.round(6).tolist(), "rgb": c.round(6).tolist()}
+                                 for n, d, c in zip(self.extra_names, self.extra_dirs, self.extra_rgbs)]
+        return out
 
 
 def direction(azimuth_deg: float, elevation_deg: float) -> np.ndarray:
@@ -157,3 +173,30 @@ def light_rng(seed: int, group: int, index: int) -> np.random.Generator:
     The trailing ``index + 1`` keeps the key distinct from the subject streams ``[seed, k]``
     (numpy's SeedSequence ignores trailing zeros)."""
     return np.random.default_rng([seed, group, 1, index + 1])
+
+
+def extra_sun_rng(seed: int, group: int, index: int) -> np.random.Generator:
+    """The stream of light ``index``'s extra suns: separate from :func:`light_rng` (key ``2`` instead of
+    ``1``), so the ambient and key sun of a light are the same with and without ``multi_sun``."""
+    return np.random.default_rng([seed, group, 2, index + 1])
+
+
+def add_suns(light: Light, rng: np.random.Generator) -> Light:
+    """``light`` plus a fill sun (p = 0.7: opposite side of the key, 15-40% of its intensity, tinted) and a
+    rim sun (p = 0.5: from behind, 30-80%, tinted), coloured independently of the key (key + fill + rim)."""
+    key_az = math.degrees(math.atan2(light.sun_dir[0], light.sun_dir[2]))
+    ref = float(light.sun_rgb.mean()) if light.has_sun else float(sh.irradiance(light.ambient, np.eye(3)).mean())
+    ref = max(ref, 0.2)
+    side = -1.0 if key_az > 0 else 1.0
+    names, dirs, rgbs = [], [], []
+    if rng.uniform() < 0.7:
+        names.append("fill")
+        dirs.append(direction(side * rng.uniform(20, 70), rng.uniform(-10, 30)))
+        rgbs.append(ref * rng.uniform(0.15, 0.4) * _tint(rng, 0.25))
+    if rng.uniform() < 0.5:
+        names.append("rim")
+        dirs.append(direction(rng.choice([-1, 1]) * rng.uniform(115, 160), rng.uniform(0, 45)))
+        rgbs.append(ref * rng.uniform(0.3, 0.8) * _tint(rng, 0.3))
+    if not names:
+        return light
+    return replace(light, extra_dirs=np.array(dirs), extra_rgbs=np.array(rgbs), extra_names=tuple(names))
