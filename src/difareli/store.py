@@ -26,6 +26,7 @@ from typing import Any, Iterable, Mapping
 import numpy as np
 
 from difareli import encodings as enc
+from difareli.errors import UserError
 
 HEADER = "store.json"
 RECORDS = "records"
@@ -376,6 +377,13 @@ class EncodingStore:
                     f"encoding {name!r} missing for record {record_id!r} in store {self.root} ({declared}; "
                     f"available: {list(self.encodings)})"
                 ) from None
+            except (ValueError, OSError, EOFError) as e:  # truncated / corrupt .npy: name the file, not mmap
+                raise UserError(f"record {record_id!r}, encoding {name!r} in store {self.root}: {file} is "
+                                f"corrupt or truncated ({str(e)[:100]}); regenerate or remove the record") from None
+            if self.available(name) and out[name].shape != enc.get(name).resolve(self.dims):
+                raise UserError(f"record {record_id!r}, encoding {name!r} in store {self.root} has shape "
+                                f"{out[name].shape}, the store's schema wants {enc.get(name).resolve(self.dims)}; "
+                                "regenerate or remove the record")
         return out
 
     def meta(self, record_id: str) -> dict[str, Any]:
