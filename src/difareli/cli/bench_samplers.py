@@ -12,7 +12,7 @@ import hydra
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from difareli import speed
+from difareli import errors, speed
 from difareli.cli import common
 from difareli.relighting import resolve_device
 from difareli.store import EncodingStore
@@ -20,6 +20,13 @@ from difareli.store import EncodingStore
 
 def run(cfg: DictConfig) -> dict:
     """Benchmark as configured; returns ``{"rows", "paths"}``."""
+    for i, n in enumerate(cfg.steps):
+        errors.check_int(n, f"steps[{i}]", 1)
+    errors.check_int(cfg.limit, "limit", 1, allow_none=True)
+    errors.check_int(cfg.repeats, "repeats", 1)
+    errors.check_out_dir(cfg.out_dir)
+    if cfg.checkpoint is not None:
+        errors.check_file(cfg.checkpoint, "checkpoint")
     device = resolve_device(cfg.device)
     if cfg.threads:
         torch.set_num_threads(int(cfg.threads))
@@ -71,6 +78,7 @@ def run(cfg: DictConfig) -> dict:
 
 
 @hydra.main(version_base="1.3", config_path=common.CONFIG_PATH, config_name="bench_samplers")
+@errors.cli_entry("bench-samplers")
 def main(cfg: DictConfig) -> None:
     run(cfg)
 

@@ -8,11 +8,14 @@ import hydra
 import lightning as L
 from omegaconf import DictConfig
 
+from difareli import errors
 from difareli.cli import common
 
 
 def train(cfg: DictConfig) -> dict[str, Any]:
     """Fit the configured model; returns the trainer, model, datamodule and the optimized metric."""
+    if cfg.get("sample_grid"):
+        errors.check_sampler(cfg.sampler)
     L.seed_everything(cfg.seed, workers=True)
     datamodule = hydra.utils.instantiate(cfg.data)
     # The network's input sizes come from the data set (which encodings, how many channels).
@@ -23,6 +26,8 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         logger=common.instantiate_group(cfg.get("logger")) or False,
     )
     common.log_hyperparameters(trainer, cfg)
+    if cfg.get("ckpt_path"):  # a mismatching config: list what differs, not a size-mismatch dump
+        errors.check_resume(cfg.ckpt_path, model)
     trainer.fit(model, datamodule=datamodule, ckpt_path=cfg.get("ckpt_path"))
     if cfg.get("sample_grid") and not trainer.fast_dev_run:
         common.write_sample_grid(model, datamodule, cfg.sampler, trainer.default_root_dir)
@@ -31,6 +36,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
 
 
 @hydra.main(version_base="1.3", config_path=common.CONFIG_PATH, config_name="train")
+@errors.cli_entry("train")
 def main(cfg: DictConfig) -> float | None:
     return train(cfg)["metric"]
 
