@@ -423,6 +423,6 @@ class EncodingStore:
                                         f"{enc.get(name).dtype}")
                     elif check_values:
                         enc.get(name).validate(np.asarray(arr), self.dims)
-                except (OSError, ValueError) as e:
+                except (OSError, ValueError, EOFError) as e:  # EOFError: an empty (truncated) file
                     problems.append(f"{rid}: {name} unreadable ({type(e).__name__}: {e})")
         return problems
