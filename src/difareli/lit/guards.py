@@ -45,6 +45,13 @@ class NonFiniteGuard(L.Callback):
         if not bool(torch.isfinite(loss.detach()).all()):
             self._fail(trainer, f"training loss is {float(loss.detach().float().reshape(-1)[0])}")
 
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx: int) -> None:
+        # Finite loss and gradients can still step into Inf weights (e.g. an absurd learning rate); this runs
+        # before ModelCheckpoint's hook (Lightning calls checkpoint callbacks last), so nothing poisoned is saved.
+        params = [p.detach() for p in pl_module.parameters()]
+        if params and not bool(torch.stack([torch.isfinite(p).all() for p in params]).all()):
+            self._fail(trainer, "the weights became non-finite after the optimizer step")
+
     def on_before_optimizer_step(self, trainer, pl_module, optimizer) -> None:
         # fp16 loss scaling makes inf gradients on purpose (the scaler then skips the step): not an error.
         if not self.check_gradients or str(trainer.precision).startswith("16"):
