@@ -7,7 +7,7 @@ from pathlib import Path
 from typing import Iterable
 
 import hydra
-from omegaconf import DictConfig
+from omegaconf import DictConfig, ListConfig
 
 from difareli import errors, tables
 from difareli.cli import common
@@ -35,6 +35,8 @@ def run(cfg: DictConfig) -> tables.Table:
     """Merge, print the Markdown table, write table.{md,csv,tex} into ``cfg.out``."""
     errors.check_int(cfg.digits, "digits", 0)
     errors.check_out_dir(cfg.out, "out")
+    if not isinstance(cfg.runs, (str, ListConfig)):
+        raise errors.UserError(f"runs={cfg.runs!r} is not a run dir, a glob or a list; e.g. 'runs=[logs/a,logs/b]'")
     runs = [cfg.runs] if isinstance(cfg.runs, str) else list(cfg.runs)
     dirs = expand_runs(runs)
     table = tables.merge_runs(dirs, methods=list(cfg.methods) if cfg.methods else None,
