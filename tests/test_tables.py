@@ -78,24 +78,25 @@ def test_markdown_has_numbers_and_bold_best(two_runs):
     md = T.merge_runs(two_runs).to_markdown()
     lines = md.strip().splitlines()
     assert lines[0].startswith("| Method | (i) same subject DSSIM | (i) same subject MSE")
-    assert lines[0].endswith("(ii) different subject LPIPS | s/img |")
+    assert lines[0].endswith("(ii) different subject LPIPS | (ii) different subject n | s/img |")
     assert len(lines) == 4
     difa, ss = lines[2], lines[3]
     assert "0.0750 ± 0.0050" in difa and "0.0130 ± 0.0010" in difa and "| 3 |" in difa
     assert "**0.0550 ± 0.0050**" in ss and "**0.0850 ± 0.0050**" in ss  # (i) and (ii) DSSIM best
     assert "0.0950 ± 0.0050" in difa and "**" not in difa.split("|")[4]  # (ii) DSSIM: loser not bold
-    assert difa.count("|") == ss.count("|") == 2 + 6 + 1
+    assert difa.count("|") == ss.count("|") == 2 + 8 + 1
+    assert difa.split("|")[5].strip() == "2" and difa.split("|")[9].strip() == "2"  # every mean shows its n
 
 
 def test_latex_table_shape_and_escaping(two_runs):
     tex = T.merge_runs(two_runs).to_latex(caption="Multi-PIE relighting")
-    assert r"\begin{tabular}{lccccccc}" in tex
-    assert r"\multicolumn{3}{c}{(i) same subject} & \multicolumn{3}{c}{(ii) different subject}" in tex
-    assert r"\cmidrule(lr){2-4}\cmidrule(lr){5-7}" in tex
+    assert r"\begin{tabular}{lcccrcccrc}" in tex
+    assert r"\multicolumn{4}{c}{(i) same subject} & \multicolumn{4}{c}{(ii) different subject}" in tex
+    assert r"\cmidrule(lr){2-5}\cmidrule(lr){6-9}" in tex
     row = next(line for line in tex.splitlines() if line.startswith("DiFaReli++"))
     assert row.startswith(r"DiFaReli++\_ss & $\mathbf{0.0550} \pm 0.0050$ & $\mathbf{0.0080} \pm 0.0010$")
     assert row.endswith(r"& 0.075 \\")
-    assert row.count("&") == 7
+    assert row.count("&") == 9 and row.split("&")[4].strip() == "2"
     difa = next(line for line in tex.splitlines() if line.startswith("DiFaReli &"))
     assert r"$0.0750 \pm 0.0050$" in difa and r"\mathbf" not in difa.split("&")[1]
 

@@ -14,7 +14,9 @@ relit | ground truth for the first pairs).
 
 from __future__ import annotations
 
+import csv
 import json
+import sys
 import math
 import time
 from dataclasses import dataclass, field
@@ -25,14 +27,46 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from difareli import metrics, tables, viz
-from difareli.baselines import LambertianRatio, LightFit, Method, exact_light_name, irradiance_error
+from difareli import errors, metrics, tables, viz
+from difareli.baselines import LightFit, Method, exact_light_name, irradiance_error
 from difareli.store import EncodingStore
 from difareli.synth.splits import PROTOCOLS_FILE
 
 #: protocols.json key -> the ``protocol`` column of the per-image CSV (tables.PROTOCOL_LABELS).
 PROTOCOLS = {"same_subject": "same", "different_subject": "different"}
 LIGHT_CSV = "light_estimation.csv"
+#: Rows scored so far, appended one by one: a killed run resumes from them (removed when the run completes).
+PARTIAL_CSV = ".metrics_per_image.partial.csv"
+
+
+def _scored_so_far(out_dir: Path, method: str) -> dict[tuple[str, str], tables.Record]:
+    """Rows of an interrupted run of ``method`` in ``out_dir`` by (protocol, pair id); a cut last row is dropped."""
+    path = out_dir / PARTIAL_CSV
+    if not path.is_file():
+        return {}
+    try:
+        rows, _ = tables.read_records_checked(path, drop_bad_rows=True)
+    except errors.UserError:
+        return {}
+    return {(r.protocol, r.record_id): r for r in rows if r.method == method}
+
+
+def _read_png(path: Path) -> np.ndarray:
+    import imageio.v3 as iio
+
+    return np.asarray(iio.imread(path))[..., :3]
+
+
+def _append_row(out_dir: Path, r: tables.Record) -> None:
+    path = out_dir / PARTIAL_CSV
+    new = not path.is_file()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    with open(path, "a", newline="") as f:
+        w = csv.writer(f)
+        if new:
+            w.writerow((*tables.COLUMNS, "status"))
+        w.writerow([r.method, r.protocol, r.record_id] + ["" if math.isnan(x) else repr(float(x))
+                   for x in (r.dssim, r.mse, r.lpips, r.seconds)] + [r.status])
 
 
 @dataclass(frozen=True)
@@ -153,6 +187,7 @@ def run_benchmark(store: EncodingStore, method: Method, protocols: Sequence[str]
     # Methods that fit their source light (the Lambertian baseline) are scored on it too (unless lights are oracle).
     source_fit = method.needs_light_fit and getattr(method, "estimator", None) is not None
     result = BenchmarkResult(records=[])
+    done = _scored_so_far(out_dir, method.name)
     for proto, pairs in load_pairs(store, protocols, limit).items():
         short = PROTOCOLS[proto]
         grid_rows = []
@@ -167,23 +202,47 @@ def run_benchmark(store: EncodingStore, method: Method, protocols: Sequence[str]
                 rel, free = lights.error(method.estimator.from_store(store, pair.source), pair.source, pair.source)
                 result.light_errors.append({"protocol": short, "record_id": pair.id, "light": "source",
                                             "from": pair.source, "rel_error": rel, "rel_error_gain_free": free})
-            start = time.perf_counter()
-            relit = method.relight(store, pair.source, light, shadow, target_id=pair.target)
-            seconds = time.perf_counter() - start
             gt = store.read(pair.target, ["image", "face_mask"])
-            if relit.shape != gt["image"].shape or relit.dtype != np.uint8:
-                raise ValueError(f"{method.name} returned {relit.dtype} {relit.shape}; expected uint8 "
-                                 f"{gt['image'].shape}")
-            s = score(relit, gt["image"], gt["face_mask"])
-            result.records.append(tables.Record(method.name, short, pair.id, s["dssim"], s["mse"], s["lpips"], seconds))
+            png = out_dir / "relit" / proto / f"{pair.id}.png"
+            prev = done.get((short, pair.id))
+            if prev is not None and (len(grid_rows) >= grid_pairs or prev.status != "ok" or png.is_file()):
+                result.records.append(prev)  # scored before the run was killed: not redone
+                if len(grid_rows) < grid_pairs and prev.status == "ok":
+                    src, lsrc = (store.read(r, ["image"])["image"] for r in (pair.source, pair.light_source))
+                    grid_rows.append([np.asarray(src), np.asarray(lsrc), _read_png(png), np.asarray(gt["image"])])
+                continue
+            start = time.perf_counter()
+            try:  # a non-finite input or result is a failed row, reported as failed, never a score
+                errors.check_record(store.read(pair.source), pair.source, store.root)
+                errors.check_light(light, f"target light of pair {pair.id}")
+                errors.check_number(shadow, f"target shadow of pair {pair.id}")
+                relit = errors.check_output(method.relight(store, pair.source, light, shadow, target_id=pair.target),
+                                            f"{method.name} relight of pair {pair.id}")
+                seconds = time.perf_counter() - start
+                if relit.shape != gt["image"].shape or relit.dtype != np.uint8:
+                    raise ValueError(f"{method.name} returned {relit.dtype} {relit.shape}; expected uint8 "
+                                     f"{gt['image'].shape}")
+                s = score(relit, gt["image"], gt["face_mask"])
+                errors.check_finite(list(s.values()), f"scores of pair {pair.id} (is its face_mask empty?)")
+            except errors.UserError as e:
+                print(f"FAILED {proto} {pair.id}: {e}", file=sys.stderr)
+                rec = tables.Record(method.name, short, pair.id, math.nan, math.nan, math.nan,
+                                    time.perf_counter() - start, status="failed")
+                result.records.append(rec)
+                _append_row(out_dir, rec)
+                continue
+            rec = tables.Record(method.name, short, pair.id, s["dssim"], s["mse"], s["lpips"], seconds)
+            result.records.append(rec)
             if save_images:
-                viz.save_png(relit, out_dir / "relit" / proto / f"{pair.id}.png")
+                viz.save_png(relit, png)
+            _append_row(out_dir, rec)  # after the image: a resumed run finds both
             if len(grid_rows) < grid_pairs:
                 src, lsrc = (store.read(r, ["image"])["image"] for r in (pair.source, pair.light_source))
                 grid_rows.append([np.asarray(src), np.asarray(lsrc), relit, np.asarray(gt["image"])])
         if grid_rows:
             result.paths[f"comparison_{proto}"] = viz.save_png(viz.grid(grid_rows), out_dir / f"comparison_{proto}.png")
     result.paths.update(write_outputs(result, out_dir, caption=f"{method.name} on {Path(store.root).name}"))
+    (out_dir / PARTIAL_CSV).unlink(missing_ok=True)
     return result
 
 

@@ -17,6 +17,7 @@ import torch
 from torch.utils.data import DataLoader, Dataset
 
 from difareli import encodings as enc
+from difareli.errors import UserError, check_record
 from difareli.store import EncodingStore
 
 
@@ -58,7 +59,7 @@ class EncodingsDataset(Dataset):
 
     def __getitem__(self, i: int) -> dict[str, Any]:
         rid = self.ids[i]
-        arrays = self.store.read(rid, self.names)
+        arrays = check_record(self.store.read(rid, self.names), rid, self.store.root)  # NaN would poison training
         return {
             "image": image_to_tensor(arrays["image"]),
             "spatial": prepare_spatial(self.spatial, arrays),
@@ -85,6 +86,7 @@ class EncodingsDataModule(L.LightningDataModule):
         synth: Mapping[str, Any] | None = None,
         train_split: str = "train",
         val_split: str = "val",
+        allow_split_fallback: bool = False,
     ):
         super().__init__()
         self.root = Path(root)
@@ -97,6 +99,7 @@ class EncodingsDataModule(L.LightningDataModule):
         self.resolution, self.batch_size, self.num_workers = resolution, batch_size, num_workers
         self.synth = dict(synth) if synth else None
         self.train_split, self.val_split = train_split, val_split
+        self.allow_split_fallback = bool(allow_split_fallback)
         self.store: EncodingStore | None = None
         self.train_set = self.val_set = None
 
@@ -149,6 +152,11 @@ class EncodingsDataModule(L.LightningDataModule):
         store = self._open()
         train, val = store.ids(split=self.train_split), store.ids(split=self.val_split)
         if not train:  # a store without split metadata: hold out every 20th record, deterministically
+            if not self.allow_split_fallback:
+                found = sorted({str(m.get("split")) for m in store.index.values()})
+                raise UserError(f"store {self.root} has no records in split {self.train_split!r} (splits: {found}); "
+                                "set data.train_split=<split>, or data.allow_split_fallback=true to train on all "
+                                "records, holding out every 20th")
             ids = store.ids()
             val = ids[::20]
             held = set(val)
@@ -171,6 +179,10 @@ class EncodingsDataModule(L.LightningDataModule):
             return np.zeros(0, np.float32), np.ones(0, np.float32)
         vecs = np.stack([prepare_nonspatial(self.nonspatial, store.read(r, self.nonspatial)).numpy()
                          for r in self.train_set.ids])
+        bad = [r for r, v in zip(self.train_set.ids, vecs) if not np.isfinite(v).all()]
+        if bad:  # found before the first step: the statistics (and every weight after them) would be NaN
+            raise UserError(f"{len(bad)} training record(s) of store {self.root} have non-finite {self.nonspatial} "
+                            f"values: {bad[:10]}; regenerate or remove them (difareli-store verify {self.root})")
         mean, std = vecs.mean(0), vecs.std(0)
         # Constant features (e.g. a fixed camera) would divide by ~0: leave them unscaled instead.
         std = np.where(std < 1e-6, 1.0, std)

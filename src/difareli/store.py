@@ -26,6 +26,7 @@ from typing import Any, Iterable, Mapping
 import numpy as np
 
 from difareli import encodings as enc
+from difareli.errors import UserError
 
 HEADER = "store.json"
 #: Schema versions this code reads. v2 only appended encodings (SynthFaces v2's ``*_gt`` block) and changed none,
@@ -381,6 +382,13 @@ class EncodingStore:
                     f"encoding {name!r} missing for record {record_id!r} in store {self.root} ({declared}; "
                     f"available: {list(self.encodings)})"
                 ) from None
+            except (ValueError, OSError, EOFError) as e:  # truncated / corrupt .npy: name the file, not mmap
+                raise UserError(f"record {record_id!r}, encoding {name!r} in store {self.root}: {file} is "
+                                f"corrupt or truncated ({str(e)[:100]}); regenerate or remove the record") from None
+            if self.available(name) and out[name].shape != enc.get(name).resolve(self.dims):
+                raise UserError(f"record {record_id!r}, encoding {name!r} in store {self.root} has shape "
+                                f"{out[name].shape}, the store's schema wants {enc.get(name).resolve(self.dims)}; "
+                                "regenerate or remove the record")
         return out
 
     def meta(self, record_id: str) -> dict[str, Any]:
@@ -420,6 +428,6 @@ class EncodingStore:
                                         f"{enc.get(name).dtype}")
                     elif check_values:
                         enc.get(name).validate(np.asarray(arr), self.dims)
-                except (OSError, ValueError) as e:
+                except (OSError, ValueError, EOFError) as e:  # EOFError: an empty (truncated) file
                     problems.append(f"{rid}: {name} unreadable ({type(e).__name__}: {e})")
         return problems

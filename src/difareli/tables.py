@@ -10,8 +10,14 @@ wall time spent relighting that image (empty if unknown). Metric values are thos
 :mod:`difareli.metrics` (``[0, 1]`` images).
 
 Statistics per (method, protocol) and metric: mean and standard error
-``SE = std(ddof=1) / sqrt(n)`` (sample standard deviation; SE is NaN when n < 2). Non-finite values
-(e.g. an empty face mask) are left out of that metric's statistics.
+``SE = std(ddof=1) / sqrt(n)`` (sample standard deviation; SE is NaN when n < 2). Every rendered table
+shows the n each mean is over.
+
+An optional last column ``status`` marks rows whose relight ``failed`` (a non-finite result, issue 15):
+they have no scores, count as failed in the table and never enter a mean. Reading checks every row: a
+malformed row (wrong field count, a cut last line), a non-finite or empty metric of a scored row, or a file
+with no rows is a :class:`TableError` naming the file and line, or with ``drop_bad_rows`` the row is left out
+and the count is shown under the table.
 """
 
 from __future__ import annotations
@@ -19,11 +25,13 @@ from __future__ import annotations
 import csv
 import io
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterable, Sequence
 
 import numpy as np
+
+from difareli.errors import UserError
 
 PER_IMAGE_CSV = "metrics_per_image.csv"
 COLUMNS = ("method", "protocol", "record_id", "dssim", "mse", "lpips", "seconds")
@@ -43,6 +51,7 @@ class Record:
     mse: float
     lpips: float
     seconds: float = math.nan
+    status: str = "ok"  # "failed": the relight was invalid (no scores)
 
 
 @dataclass(frozen=True)
@@ -68,32 +77,90 @@ def mean_se(values: Iterable[float]) -> Stat:
 # ---------------------------------------------------------------------------------------- CSV I/O
 
 
+class TableError(UserError):
+    """A per-image CSV that cannot be summarised honestly (names the file and line)."""
+
+
 def _num(s: str) -> float:
     return math.nan if s.strip() == "" else float(s)
+
+
+def _row_problem(row: list[str], header: list[str], last: bool, cut: bool) -> tuple[str, Record | None]:
+    """(problem, None) for a bad row, else ("", Record)."""
+    if len(row) != len(header):
+        why = " (the file ends inside it: cut?)" if last and cut else ""
+        return f"{len(row)} fields, the header has {len(header)}{why}", None
+    if last and cut:
+        return "the file ends inside this row (no line end): cut?", None
+    d = dict(zip(header, row))
+    status = d.get("status", "ok").strip() or "ok"
+    if status not in ("ok", "failed"):
+        return f"status {status!r} is neither 'ok' nor 'failed'", None
+    if not all(d[k].strip() for k in ("method", "protocol", "record_id")):
+        return "empty method, protocol or record_id", None
+    vals = {}
+    for k in (*METRICS, "seconds"):
+        try:
+            vals[k] = _num(d[k])
+        except ValueError:
+            return f"{k}={d[k]!r} is not a number", None
+        if d[k].strip() and not math.isfinite(vals[k]):
+            return f"{k}={d[k]!r} is not finite", None
+        if k != "seconds" and status == "ok" and not d[k].strip():
+            return f"{k} is empty in a scored row", None
+    return "", Record(d["method"], d["protocol"], d["record_id"], *(vals[k] for k in (*METRICS, "seconds")),
+                      status=status)
+
+
+def read_records_checked(path: str | Path, drop_bad_rows: bool = False) -> tuple[list[Record], list[str]]:
+    """Read a per-image CSV, checking every row; returns (records, "file:line: problem" of dropped rows).
+
+    Without ``drop_bad_rows`` the first bad row, or a file without rows, raises :class:`TableError`."""
+    with open(path, newline="") as f:
+        text = f.read()
+    rows = list(csv.reader(io.StringIO(text)))
+    header = rows[0] if rows else []
+    missing = set(COLUMNS) - set(header)
+    if missing:
+        raise TableError(f"{path}: missing columns {sorted(missing)} (header: {header}); is it a "
+                         f"{PER_IMAGE_CSV} written by difareli-benchmark?")
+    cut = not text.endswith(("\n", "\r"))
+    records, dropped = [], []
+    for i, row in enumerate(rows[1:], start=2):
+        problem, rec = _row_problem(row, header, i == len(rows), cut)
+        if rec is not None:
+            records.append(rec)
+        elif not drop_bad_rows:
+            raise TableError(f"{path}:{i}: {problem}; fix or remove the row, or pass drop_bad_rows=true to "
+                             "leave bad rows out (the table then shows how many)")
+        else:
+            dropped.append(f"{path}:{i}: {problem}")
+    if not records:
+        raise TableError(f"{path}: no usable rows ({len(rows) - 1} row(s), {len(dropped)} bad); rerun the "
+                         "benchmark for this run dir or leave it out of runs=[...]")
+    return records, dropped
 
 
 def write_records(path: str | Path, records: Iterable[Record]) -> Path:
     """Write per-image records to a CSV with :data:`COLUMNS` (full float precision)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    records = list(records)
+    # The status column only when a row failed: runs without failures keep the original format.
+    status = any(r.status != "ok" for r in records)
     with open(path, "w", newline="") as f:
         w = csv.writer(f)
-        w.writerow(COLUMNS)
+        w.writerow(COLUMNS + (("status",) if status else ()))
         for r in records:
             w.writerow([r.method, r.protocol, r.record_id]
-                       + ["" if math.isnan(x) else repr(float(x)) for x in (r.dssim, r.mse, r.lpips, r.seconds)])
+                       + ["" if math.isnan(x) else repr(float(x)) for x in (r.dssim, r.mse, r.lpips, r.seconds)]
+                       + ([r.status] if status else []))
     return path
 
 
 def read_records(path: str | Path) -> list[Record]:
-    """Read a per-image CSV; the header must contain all of :data:`COLUMNS`."""
-    with open(path, newline="") as f:
-        reader = csv.DictReader(f)
-        missing = set(COLUMNS) - set(reader.fieldnames or ())
-        if missing:
-            raise ValueError(f"{path}: missing columns {sorted(missing)}")
-        return [Record(row["method"], row["protocol"], row["record_id"],
-                       *(_num(row[k]) for k in ("dssim", "mse", "lpips", "seconds"))) for row in reader]
+    """Read a per-image CSV, strictly (see :func:`read_records_checked`)."""
+    return read_records_checked(path)[0]
 
 
 # ------------------------------------------------------------------------------------- the table
@@ -112,6 +179,10 @@ class Table:
     protocols: list[str]
     cells: dict[tuple[str, str], dict[str, Stat]]
     seconds: dict[str, Stat]
+    #: failed relights per (method, protocol): counted, never averaged
+    failed: dict[tuple[str, str], int] = field(default_factory=dict)
+    #: "file:line: problem" of rows left out by ``drop_bad_rows``
+    dropped: list[str] = field(default_factory=list)
 
     # -- formatting helpers
     def _best(self) -> dict[tuple[str, str], float]:
@@ -129,10 +200,31 @@ class Table:
             return "--" if latex else "–"
         pm = r" \pm " if latex else " ± "
         se = f"{s.se:.{digits}f}" if math.isfinite(s.se) else "n/a"
+        # A metric over fewer images than its protocol's n column says so in the cell.
+        group_n = max(x.n for x in self.cells[(method, protocol)].values())
+        se += f" (n={s.n})" if s.n != group_n else ""
         body = f"{s.mean:.{digits}f}{pm}{se}"
         if latex:
             return f"$\\mathbf{{{s.mean:.{digits}f}}}{pm}{se}$" if bold else f"${body}$"
         return f"**{body}**" if bold else body
+
+    def _n(self, method: str, protocol: str) -> str:
+        """The n of the protocol's means, with failed relights counted next to it."""
+        stats = self.cells.get((method, protocol), {})
+        n = max((s.n for s in stats.values()), default=0)
+        k = self.failed.get((method, protocol), 0)
+        return f"{n} (+{k} failed)" if k else str(n)
+
+    def notes(self) -> list[str]:
+        """Lines to print under a table: failed relights and rows left out."""
+        out = []
+        fails = sum(self.failed.values())
+        if fails:
+            out.append(f"{fails} relight(s) failed (non-finite result): counted in n as '+k failed', not averaged.")
+        if self.dropped:
+            out.append(f"{len(self.dropped)} bad row(s) dropped (drop_bad_rows=true): " + "; ".join(self.dropped[:5])
+                       + (" ..." if len(self.dropped) > 5 else ""))
+        return out
 
     def _time(self, method: str) -> str:
         # 3 significant digits: spans 0.07 s (DiFaReli++) to minutes (DiFaReli) without zeros.
@@ -147,16 +239,20 @@ class Table:
 
     # -- renderers
     def to_markdown(self, digits: int = 4, bold_best: bool = True) -> str:
-        """GitHub Markdown: one row per method, columns ``<protocol> <metric>`` then ``s/img``."""
+        """GitHub Markdown: one row per method, columns ``<protocol> <metric>`` and ``<protocol> n``, then
+        ``s/img``; notes (failed relights, dropped rows) follow the table."""
         best = self._best()
-        head = ["Method"] + [f"{PROTOCOL_LABELS.get(p, p)} {METRIC_LABELS[k]}"
-                             for p in self.protocols for k in METRICS] + ["s/img"]
+        head = ["Method"] + [f"{PROTOCOL_LABELS.get(p, p)} {c}" for p in self.protocols
+                             for c in [*(METRIC_LABELS[k] for k in METRICS), "n"]] + ["s/img"]
         lines = ["| " + " | ".join(head) + " |", "|" + "---|" + "---:|" * (len(head) - 1)]
         for m in self.methods:
-            row = [m] + [self._cell(m, p, k, digits, False, bold_best and self._is_best(best, m, p, k, digits))
-                         for p in self.protocols for k in METRICS] + [self._time(m)]
-            lines.append("| " + " | ".join(row) + " |")
-        return "\n".join(lines) + "\n"
+            row = [m]
+            for p in self.protocols:
+                row += [self._cell(m, p, k, digits, False, bold_best and self._is_best(best, m, p, k, digits))
+                        for k in METRICS] + [self._n(m, p)]
+            lines.append("| " + " | ".join(row + [self._time(m)]) + " |")
+        notes = self.notes()
+        return "\n".join(lines) + "\n" + ("\n" + "\n".join(notes) + "\n" if notes else "")
 
     def to_latex(self, digits: int = 4, bold_best: bool = True, caption: str | None = None) -> str:
         """Booktabs table: a column group per protocol (DSSIM, MSE, LPIPS), then seconds/image."""
@@ -164,17 +260,19 @@ class Table:
         out = [r"\begin{table}[t]", r"\centering"]
         if caption:
             out.append(f"\\caption{{{_tex_escape(caption)}}}")
-        out += [r"\begin{tabular}{l" + "ccc" * len(self.protocols) + "c}", r"\toprule"]
-        groups = " & ".join(f"\\multicolumn{{3}}{{c}}{{{_tex_escape(PROTOCOL_LABELS.get(p, p))}}}"
+        out += [r"\begin{tabular}{l" + "cccr" * len(self.protocols) + "c}", r"\toprule"]
+        groups = " & ".join(f"\\multicolumn{{4}}{{c}}{{{_tex_escape(PROTOCOL_LABELS.get(p, p))}}}"
                             for p in self.protocols)
         out.append(f" & {groups} & \\\\")
-        out.append("".join(f"\\cmidrule(lr){{{2 + 3 * i}-{4 + 3 * i}}}" for i in range(len(self.protocols))))
-        out.append("Method & " + " & ".join(METRIC_LABELS[k] for _ in self.protocols for k in METRICS)
-                   + r" & s/img \\")
+        out.append("".join(f"\\cmidrule(lr){{{2 + 4 * i}-{5 + 4 * i}}}" for i in range(len(self.protocols))))
+        out.append("Method & " + " & ".join(c for _ in self.protocols for c in [*(METRIC_LABELS[k] for k in METRICS),
+                                                                              "$n$"]) + r" & s/img \\")
         out.append(r"\midrule")
         for m in self.methods:
-            cells = [self._cell(m, p, k, digits, True, bold_best and self._is_best(best, m, p, k, digits))
-                     for p in self.protocols for k in METRICS]
+            cells = []
+            for p in self.protocols:
+                cells += [self._cell(m, p, k, digits, True, bold_best and self._is_best(best, m, p, k, digits))
+                          for k in METRICS] + [_tex_escape(self._n(m, p))]
             out.append(" & ".join([_tex_escape(m)] + cells + [self._time(m)]) + r" \\")
         out += [r"\bottomrule", r"\end{tabular}", r"\end{table}"]
         return "\n".join(out) + "\n"
@@ -182,8 +280,10 @@ class Table:
     def to_csv(self, path: str | Path | None = None) -> str:
         """Wide CSV, full precision: ``method, <protocol>_<metric>_{mean,se}, <protocol>_n, seconds_per_image``."""
         header = ["method"]
+        failed = any(self.failed.values())  # the column only when a relight failed: otherwise unchanged
         for p in self.protocols:
             header += [f"{p}_{k}_{s}" for k in METRICS for s in ("mean", "se")] + [f"{p}_n"]
+            header += [f"{p}_failed"] if failed else []
         header.append("seconds_per_image")
         buf = io.StringIO()
         w = csv.writer(buf, lineterminator="\n")
@@ -196,6 +296,7 @@ class Table:
                     s = stats.get(k, Stat(math.nan, math.nan, 0))
                     row += [_fmt(s.mean), _fmt(s.se)]
                 row.append(str(max((s.n for s in stats.values()), default=0)))
+                row += [str(self.failed.get((m, p), 0))] if failed else []
             row.append(_fmt(self.seconds[m].mean) if m in self.seconds else "")
             w.writerow(row)
         text = buf.getvalue()
@@ -224,34 +325,45 @@ def summarize(records: Sequence[Record], methods: Sequence[str] | None = None) -
     ``different``, then others alphabetically.
     """
     keys: dict[tuple[str, str], list[Record]] = {}
+    failed: dict[tuple[str, str], int] = {}
     for r in records:
-        keys.setdefault((r.method, r.protocol), []).append(r)
+        keys.setdefault((r.method, r.protocol), [])
+        if r.status != "ok":  # failed relights are counted, never averaged
+            failed[(r.method, r.protocol)] = failed.get((r.method, r.protocol), 0) + 1
+        else:
+            keys[(r.method, r.protocol)].append(r)
     seen = list(dict.fromkeys(r.method for r in records))
     order = list(methods) + [m for m in seen if m not in methods] if methods else seen
     protocols = sorted({p for _, p in keys}, key=_protocol_key)
     cells = {k: {m: mean_se(getattr(r, m) for r in rs) for m in METRICS} for k, rs in keys.items()}
-    seconds = {m: mean_se(r.seconds for r in records if r.method == m) for m in order}
-    return Table(order, protocols, cells, seconds)
+    seconds = {m: mean_se(r.seconds for r in records if r.method == m and r.status == "ok") for m in order}
+    return Table(order, protocols, cells, seconds, failed)
 
 
 def merge_runs(run_dirs: Iterable[str | Path], filename: str = PER_IMAGE_CSV,
-               methods: Sequence[str] | None = None) -> Table:
-    """Read each run's per-image CSV and summarise them as one table.
+               methods: Sequence[str] | None = None, drop_bad_rows: bool = False) -> Table:
+    """Read each run's per-image CSV (checked row by row, see :func:`read_records_checked`) and summarise
+    them as one table.
 
     The same (method, protocol, record_id) appearing twice (e.g. a run listed twice) is an error:
     it would silently double-count an image.
     """
     records: list[Record] = []
+    dropped: list[str] = []
     where: dict[tuple[str, str, str], Path] = {}
     for d in run_dirs:
         path = Path(d) / filename
         if not path.is_file():
             raise FileNotFoundError(f"no {filename} in run dir {d}")
-        for r in read_records(path):
+        rows, bad = read_records_checked(path, drop_bad_rows)
+        dropped += bad
+        for r in rows:
             key = (r.method, r.protocol, r.record_id)
             if key in where:
                 raise ValueError(f"duplicate record {key} in {where[key]} and {path}")
             where[key] = path
             records.append(r)
-    return summarize(records, methods)
+    table = summarize(records, methods)
+    table.dropped = dropped
+    return table
 

@@ -19,6 +19,7 @@ from difareli.render.camera import OrthoCamera
 from difareli.render.screen_shadow import march_shadow
 from difareli import encodings
 from difareli.encodings import normalise_c
+from difareli.errors import UserError, check_finite, check_light, check_number
 
 
 def load_sh_file(path: str | Path) -> np.ndarray:
@@ -26,12 +27,16 @@ def load_sh_file(path: str | Path) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"target light file {path} does not exist")
-    arr = np.load(path) if path.suffix == ".npy" else np.loadtxt(path, dtype=np.float64).reshape(-1)
-    arr = np.asarray(arr, dtype=np.float64)
+    try:
+        arr = np.load(path, allow_pickle=False) if path.suffix == ".npy" else np.loadtxt(path, dtype=np.float64)
+        arr = np.asarray(arr, dtype=np.float64).reshape(-1)
+    except (ValueError, TypeError, EOFError, OSError) as e:
+        raise UserError(f"target light file {path} is not 27 numbers ({(str(e).splitlines() or [type(e).__name__])[0][:120]}); give a "
+                        ".npy 9x3 array or a text file of 27 numbers") from None
     if arr.size != 27:
-        raise ValueError(f"target light file {path} holds {arr.size} numbers; a 9x3 SH light needs 27 "
-                         "(row-major, DECA basis order)")
-    return arr.reshape(9, 3)
+        raise UserError(f"target light file {path} holds {arr.size} numbers; a 9x3 SH light needs 27 "
+                        "(row-major, DECA basis order)")
+    return check_light(arr.reshape(9, 3), f"target light file {path}")
 
 
 def load_envmap(path: str | Path) -> np.ndarray:
@@ -40,7 +45,11 @@ def load_envmap(path: str | Path) -> np.ndarray:
     if not path.is_file():
         raise FileNotFoundError(f"environment map {path} does not exist")
     if path.suffix == ".npy":
-        env = np.load(path)
+        try:
+            env = np.load(path, allow_pickle=False)
+        except (ValueError, EOFError, OSError) as e:
+            raise UserError(f"environment map {path} is not a readable .npy array ({str(e)[:120]}); save it "
+                            "as a float HxWx3 .npy") from None
     else:
         import imageio.v3 as iio
 
@@ -48,7 +57,10 @@ def load_envmap(path: str | Path) -> np.ndarray:
             env = iio.imread(path)
         except Exception as e:  # imageio raises plugin-specific errors
             raise ValueError(f"cannot read environment map {path} ({e}); save it as a float HxWx3 .npy") from e
-    env = np.asarray(env, dtype=np.float64)
+    if np.asarray(env).dtype.kind not in "biuf":
+        raise UserError(f"environment map {path} holds {np.asarray(env).dtype} values, not numbers")
+    env = check_finite(np.asarray(env, dtype=np.float64), f"environment map {path}", max_abs=1e30,
+                       fix="save finite radiance values")
     if env.ndim != 3 or env.shape[2] < 3 or env.shape[1] != 2 * env.shape[0]:
         raise ValueError(f"environment map {path} has shape {env.shape}; expected equirectangular HxWx3 with W = 2H")
     return env[..., :3]
@@ -65,12 +77,13 @@ def target_lights(source_light: np.ndarray, *, light: str | None = None, other_l
     if light is not None:
         return load_sh_file(light)
     if other_light is not None:
-        return np.asarray(other_light, dtype=np.float64)
+        return check_light(other_light, "target.record's light")
+    src = check_light(source_light, "the source record's light")
     if yaw is not None:
-        return sh.yaw(source_light, float(yaw))
+        return sh.yaw(src, check_number(yaw, "target.yaw", allow_none=False))
     if roll is not None:
-        return sh.roll(source_light, float(roll))
-    return sh.project_envmap(load_envmap(envmap))
+        return sh.roll(src, check_number(roll, "target.roll", allow_none=False))
+    return check_light(sh.project_envmap(load_envmap(envmap)), f"the SH projection of environment map {envmap}")
 
 
 def rotation_lights(source_light: np.ndarray, axis: str, frames: int = 60) -> np.ndarray:

@@ -12,7 +12,7 @@ import hydra
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from difareli import speed
+from difareli import errors, speed
 from difareli.cli import common
 from difareli.runtime import Runtime
 from difareli.store import EncodingStore
@@ -20,6 +20,13 @@ from difareli.store import EncodingStore
 
 def run(cfg: DictConfig) -> dict:
     """Benchmark as configured; returns ``{"rows", "paths"}``."""
+    for i, n in enumerate(cfg.steps):
+        errors.check_int(n, f"steps[{i}]", 1)
+    errors.check_int(cfg.limit, "limit", 1, allow_none=True)
+    errors.check_int(cfg.repeats, "repeats", 1)
+    errors.check_out_dir(cfg.out_dir)
+    if cfg.checkpoint is not None:
+        errors.check_file(cfg.checkpoint, "checkpoint")
     runtime = Runtime.from_config(cfg.runtime)
     device = runtime.torch_device
     if cfg.threads:
@@ -69,6 +76,7 @@ def run(cfg: DictConfig) -> dict:
 
 
 @hydra.main(version_base="1.3", config_path=common.CONFIG_PATH, config_name="bench_samplers")
+@errors.cli_entry("bench-samplers")
 def main(cfg: DictConfig) -> None:
     run(cfg)
 

@@ -8,6 +8,7 @@ import hydra
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from difareli import errors
 from difareli.baselines import build_method, light_fit_from_config
 from difareli.benchmark import BenchmarkResult, run_benchmark
 from difareli.cli import common
@@ -16,6 +17,7 @@ from difareli.store import EncodingStore
 
 def run(cfg: DictConfig) -> BenchmarkResult:
     """Benchmark the configured method; prints and returns the summary."""
+    validate(cfg)
     if cfg.num_threads:
         torch.set_num_threads(int(cfg.num_threads))
     store = EncodingStore.open(cfg.store)
@@ -36,7 +38,19 @@ def run(cfg: DictConfig) -> BenchmarkResult:
     return result
 
 
+def validate(cfg: DictConfig) -> None:
+    """Config values, checked before any work (issue 15): a bad value is a UserError naming the key."""
+    errors.check_int(cfg.limit, "limit", 1, allow_none=True)
+    errors.check_int(cfg.grid_pairs, "grid_pairs", 0)
+    errors.check_int(cfg.num_threads, "num_threads", 1, allow_none=True)
+    errors.check_out_dir(cfg.out_dir)
+    if cfg.method.get("kind") == "diffusion":
+        errors.check_sampler(cfg.sampler)
+        errors.check_file(cfg.method.get("checkpoint") or "", "method.checkpoint")
+
+
 @hydra.main(version_base="1.3", config_path=common.CONFIG_PATH, config_name="benchmark")
+@errors.cli_entry("benchmark")
 def main(cfg: DictConfig) -> None:
     run(cfg)
 

@@ -9,11 +9,13 @@ Exits with status 1 if any input failed (all good images are still written; see 
 from __future__ import annotations
 
 import sys
+from pathlib import Path
 
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
 from difareli.cli.common import CONFIG_PATH
+from difareli.errors import UserError, check_out_dir, cli_entry
 
 ROLES = ("geometry", "masks", "light", "identity", "shadow")
 
@@ -39,8 +41,13 @@ def build_pipeline(cfg: DictConfig):
 
 
 @hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name="preprocess")
+@cli_entry("preprocess")
 def main(cfg: DictConfig) -> None:
     from difareli.estimators.pipeline import REPORT, run
+
+    if not Path(str(cfg.in_dir)).is_dir():
+        raise UserError(f"in_dir={cfg.in_dir} is not a folder; give the folder of face photos, in_dir=<dir>")
+    check_out_dir(cfg.out_dir)
 
     pipeline = build_pipeline(cfg)
     names = [type(s).__name__ for s in pipeline.steps]
@@ -52,6 +59,11 @@ def main(cfg: DictConfig) -> None:
     for e in summary.entries:
         if e["status"] == "failed":
             print(f"  FAILED {e['file']}: {e['reason']}", file=sys.stderr)
+    missing = sorted({e["reason"] for e in summary.entries if e["status"] == "failed"
+                      and "No module named" in str(e["reason"])})
+    if missing:  # every image would fail the same way: the estimators' optional packages are not installed
+        raise UserError(f"{summary.failed} image(s) failed: {missing[0]}; install the preprocess extras "
+                        "(DIFARELI_PREPROCESS=1 bash scripts/install.sh), then rerun")
     if summary.failed:
         sys.exit(1)
 

@@ -9,7 +9,7 @@ import hydra
 import numpy as np
 from omegaconf import DictConfig
 
-from difareli import viz
+from difareli import errors, viz
 from difareli.cli import common
 from difareli.relighting import Relighter, write_video
 from difareli.store import EncodingStore
@@ -18,11 +18,12 @@ from difareli.targets import rotation_lights, target_lights
 
 def run(cfg: DictConfig) -> dict[str, Path]:
     """Relight as configured; returns the paths written."""
+    validate(cfg)
     store = EncodingStore.open(cfg.store)
     rid = cfg.record or (store.ids(split="test") or store.ids())[0]
     relighter = Relighter(cfg.checkpoint, cfg.sampler, runtime=cfg.runtime, mean_matching=cfg.mean_matching,
                           batch_size=cfg.batch_size, progress=cfg.progress)
-    src = relighter.read(store, rid)
+    src = errors.check_record(relighter.read(store, rid), rid, store.root)
     out_dir, written = Path(cfg.out_dir), {}
     t = cfg.target
     want_image = any(t[k] is not None for k in ("light", "record", "yaw", "roll", "envmap"))
@@ -33,6 +34,7 @@ def run(cfg: DictConfig) -> dict[str, Path]:
         light = target_lights(src["light"], light=t.light, other_light=other.get("light"), yaw=t.yaw,
                               roll=t.roll, envmap=t.envmap)
         shadow = t.shadow if t.shadow is not None else (float(other["shadow"][0]) if "shadow" in other else None)
+        errors.check_number(shadow, f"target shadow (target.shadow or record {t.record}'s shadow)")
         start = time.perf_counter()
         relit = relighter.relight_record(store, rid, [light], [shadow])[0]
         print(f"relit {rid} in {time.perf_counter() - start:.2f} s ({cfg.sampler.name}, {cfg.sampler.steps} steps, "
@@ -40,12 +42,14 @@ def run(cfg: DictConfig) -> dict[str, Path]:
         row = [src["image"], relit]
         if t.record is not None and store.meta(t.record).get("subject") == store.meta(rid).get("subject"):
             row.append(np.asarray(store.read(t.record, ["image"])["image"]))  # ground truth: same subject
+        errors.check_output(relit, f"relight of record {rid!r}")
         written["image"] = viz.save_png(relit, out_dir / "relit.png")
         written["comparison"] = viz.save_png(viz.grid([row]), out_dir / "comparison.png")
     if cfg.video.axis is not None:
         lights = rotation_lights(src["light"], cfg.video.axis, cfg.video.frames)
         start = time.perf_counter()
         frames = relighter.relight_record(store, rid, lights, [t.shadow] * len(lights))
+        errors.check_output(np.concatenate(list(frames), 1), f"rotation video of record {rid!r}")
         print(f"{len(frames)} frames in {time.perf_counter() - start:.1f} s")
         written["video"] = write_video(frames, out_dir / f"rotation_{cfg.video.axis}.{cfg.video.format}", cfg.video.fps)
         sheet = [list(frames[i:i + 10]) for i in range(0, len(frames), 10)]
@@ -55,7 +59,23 @@ def run(cfg: DictConfig) -> dict[str, Path]:
     return written
 
 
+def validate(cfg: DictConfig) -> None:
+    """Config values and input files, checked before any work (issue 15)."""
+    errors.check_sampler(cfg.sampler)
+    errors.check_file(cfg.checkpoint, "checkpoint")
+    errors.check_int(cfg.video.frames, "video.frames", 1)
+    errors.check_int(cfg.video.fps, "video.fps", 1)
+    errors.check_int(cfg.batch_size, "batch_size", 1)
+    errors.check_out_dir(cfg.out_dir)
+    for key in ("yaw", "roll", "shadow"):
+        errors.check_number(cfg.target[key], f"target.{key}")
+    for key in ("light", "envmap"):
+        if cfg.target[key] is not None:
+            errors.check_file(cfg.target[key], f"target.{key}")
+
+
 @hydra.main(version_base="1.3", config_path=common.CONFIG_PATH, config_name="relight")
+@errors.cli_entry("relight")
 def main(cfg: DictConfig) -> None:
     run(cfg)
 

@@ -9,6 +9,7 @@ import hydra
 from omegaconf import DictConfig, OmegaConf
 
 from difareli.cli.common import CONFIG_PATH
+from difareli.errors import check_out_dir, cli_entry
 
 
 #: Integer keys and their smallest valid values, checked before any work starts.
@@ -21,6 +22,7 @@ def validate(cfg: DictConfig) -> None:
 
     if OmegaConf.is_missing(cfg, "out_dir") or not str(cfg.out_dir):
         raise ConfigError("out_dir is required: the store root, e.g. out_dir=data/synthfaces_64")
+    check_out_dir(cfg.out_dir)
     for key, lo in _MINIMA.items():
         value = cfg[key]
         if not isinstance(value, int) or isinstance(value, bool) or value < lo:
@@ -75,13 +77,9 @@ def run(cfg: DictConfig):
 
 
 @hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name="synth")
+@cli_entry("synth")  # a bad or mismatching configuration (ConfigError): one clear line, exit 2
 def main(cfg: DictConfig) -> None:
-    from difareli.synth.generator import ConfigError
-
-    try:
-        run(cfg)
-    except ConfigError as e:  # bad or mismatching configuration: one clear line, no traceback
-        raise SystemExit(f"difareli-synth: {e}") from None
+    run(cfg)
 
 
 if __name__ == "__main__":

@@ -7,9 +7,9 @@ from pathlib import Path
 from typing import Iterable
 
 import hydra
-from omegaconf import DictConfig
+from omegaconf import DictConfig, ListConfig
 
-from difareli import tables
+from difareli import errors, tables
 from difareli.cli import common
 
 
@@ -33,9 +33,14 @@ def expand_runs(patterns: Iterable[str]) -> list[Path]:
 
 def run(cfg: DictConfig) -> tables.Table:
     """Merge, print the Markdown table, write table.{md,csv,tex} into ``cfg.out``."""
+    errors.check_int(cfg.digits, "digits", 0)
+    errors.check_out_dir(cfg.out, "out")
+    if not isinstance(cfg.runs, (str, ListConfig)):
+        raise errors.UserError(f"runs={cfg.runs!r} is not a run dir, a glob or a list; e.g. 'runs=[logs/a,logs/b]'")
     runs = [cfg.runs] if isinstance(cfg.runs, str) else list(cfg.runs)
     dirs = expand_runs(runs)
-    table = tables.merge_runs(dirs, methods=list(cfg.methods) if cfg.methods else None)
+    table = tables.merge_runs(dirs, methods=list(cfg.methods) if cfg.methods else None,
+                              drop_bad_rows=bool(cfg.get("drop_bad_rows", False)))
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     md = table.to_markdown(digits=int(cfg.digits))
@@ -49,6 +54,7 @@ def run(cfg: DictConfig) -> tables.Table:
 
 
 @hydra.main(version_base="1.3", config_path=common.CONFIG_PATH, config_name="table")
+@errors.cli_entry("table")
 def main(cfg: DictConfig) -> None:
     run(cfg)
 

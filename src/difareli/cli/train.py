@@ -9,11 +9,14 @@ import hydra
 import lightning as L
 from omegaconf import DictConfig
 
+from difareli import errors
 from difareli.cli import common
 
 
 def train(cfg: DictConfig) -> dict[str, Any]:
     """Fit the configured model; returns the trainer, model, datamodule and the optimized metric."""
+    if cfg.get("sample_grid"):
+        errors.check_sampler(cfg.sampler)
     L.seed_everything(cfg.seed, workers=True)
     datamodule = hydra.utils.instantiate(cfg.data)
     # The network's input sizes and the non-spatial statistics come from the data set (the training split),
@@ -26,6 +29,8 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         logger=common.instantiate_group(cfg.get("logger")) or False,
     )
     common.log_hyperparameters(trainer, cfg)
+    if cfg.get("ckpt_path"):  # a mismatching config: list what differs, not a size-mismatch dump
+        errors.check_resume(cfg.ckpt_path, model)
     trainer.fit(model, datamodule=datamodule, ckpt_path=cfg.get("ckpt_path"))
     metric = common.metric_value(trainer.callback_metrics, cfg.get("optimized_metric"))
     return {"trainer": trainer, "model": model, "datamodule": datamodule, "metric": metric}
@@ -42,6 +47,7 @@ def nonspatial_stats(datamodule, ckpt_path: str | None) -> dict[str, list[float]
 
 
 @hydra.main(version_base="1.3", config_path=common.CONFIG_PATH, config_name="train")
+@errors.cli_entry("train")
 def main(cfg: DictConfig) -> float | None:
     return train(cfg)["metric"]
 

@@ -16,6 +16,7 @@ from typing import Any
 import lightning as L
 import torch
 
+from difareli.errors import load_torch_file
 from difareli.lit.diffusion import FORMAT_KEY, FORMAT_VERSION, MODULE_KEY
 
 #: The class of checkpoints that predate ``difareli_module`` (all of them were DiffusionModules).
@@ -84,7 +85,7 @@ def read_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"checkpoint {path} does not exist (difareli-train writes <run>/checkpoints/last.ckpt)")
-    ckpt = torch.load(path, map_location=map_location, weights_only=True)
+    ckpt = load_torch_file(path, "checkpoint", map_location)  # torch.load(weights_only=True), errors name the file
     if "hyper_parameters" not in ckpt or "state_dict" not in ckpt:
         raise ValueError(f"{path} is not a difareli Lightning checkpoint (no hyper_parameters/state_dict)")
     return upgrade_checkpoint(ckpt)

@@ -47,6 +47,7 @@ from typing import Callable, Iterator
 import numpy as np
 
 from difareli import sh
+from difareli.processes import die_with_parent
 from difareli.encodings import (FACE_PARTS, FOREGROUND_PARTS, PART_INDEX, SHADOW_C_HI, SHADOW_C_LO, SHADOW_S_MIN,
                                 normalise_c)
 from difareli.render import OrthoCamera, Scene, cast_shadows, render_gbuffer
@@ -392,7 +393,9 @@ def generate(out_dir: str, subjects: int, lights: int, resolution: int, seed: in
 
             _template()
             ctx = mp.get_context("fork") if "fork" in mp.get_all_start_methods() else None
-            with ProcessPoolExecutor(max_workers=min(workers, len(tasks)), mp_context=ctx) as pool:
+            # Workers die with this process (SIGKILL included) instead of lingering as orphans.
+            with ProcessPoolExecutor(max_workers=min(workers, len(tasks)), mp_context=ctx,
+                                     initializer=die_with_parent, initargs=(os.getpid(),)) as pool:
                 for n in pool.map(_work, tasks, chunksize=1):
                     written += n
                     if progress:

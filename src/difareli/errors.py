@@ -1,0 +1,292 @@
+"""User errors: one style for every console script, and the input checks that raise them (issue 15).
+
+A *user error* (bad config value, unreadable or corrupt file, non-finite input) ends a CLI with one or two
+lines ``difareli-<name>: <input>: <what is wrong>; <the fix>`` on stderr and exit status 2, no traceback.
+Anything else is an internal error and keeps its traceback. ``DIFARELI_DEBUG=1`` (or ``HYDRA_FULL_ERROR=1``)
+re-raises user errors too, with the traceback.
+
+What counts as a user error (:func:`user_message`):
+
+- :class:`UserError` and its subclasses (raised by the checks below);
+- the project's own user-facing types: ``data.MissingEncodingError``, ``synth.generator.ConfigError``;
+- ``ValueError`` / ``KeyError`` / ``FileNotFoundError`` raised *explicitly* by difareli code (the innermost
+  frame is a ``raise`` line of this package): those are our validation messages. The same types raised inside
+  numpy/torch (a broadcast error, a bad index) are bugs or unchecked inputs, so they keep the traceback;
+- ``OSError`` naming a file with errno ENOENT/EACCES/EPERM/EROFS/ENOSPC/EISDIR/ENOTDIR/EEXIST (the
+  environment, not the code);
+- OmegaConf's missing-mandatory-value and unknown-key errors (a config the user composed).
+
+Hydra's ``InstantiationException`` is unwrapped to the exception that caused it.
+"""
+
+from __future__ import annotations
+
+import errno
+import functools
+import linecache
+import math
+import os
+import signal
+import sys
+from pathlib import Path
+from typing import Any, Callable, Mapping
+
+import numpy as np
+
+_PACKAGE_DIR = str(Path(__file__).resolve().parent)
+#: Exit status of a user error (like argparse's usage errors).
+EXIT_USER = 2
+#: SH light coefficients beyond this are not a light a face can be lit with (DECA lights stay within ~10).
+LIGHT_MAX_ABS = 1e4
+_USER_ERRNOS = {errno.ENOENT, errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOSPC, errno.EISDIR, errno.ENOTDIR,
+                errno.EEXIST}
+
+
+class UserError(ValueError):
+    """A bad input: the message names the input, what is wrong and the fix (one or two lines).
+
+    A ValueError, so code that already catches validation ValueErrors keeps working."""
+
+
+class NonFiniteError(UserError):
+    """An array that must be finite holds NaN or Inf (or absurd magnitudes)."""
+
+
+# ---------------------------------------------------------------------------------------------- classifying
+def _raised_here(exc: BaseException) -> bool:
+    """Whether the innermost frame of ``exc`` is an explicit ``raise`` in difareli's own source."""
+    tb = exc.__traceback__
+    if tb is None:
+        return False
+    while tb.tb_next is not None:
+        tb = tb.tb_next
+    file = tb.tb_frame.f_code.co_filename
+    return file.startswith(_PACKAGE_DIR) and linecache.getline(file, tb.tb_lineno).strip().startswith("raise")
+
+
+def _text(exc: BaseException) -> str:
+    # KeyError's str() quotes its message; show the message itself.
+    return str(exc.args[0]) if isinstance(exc, KeyError) and len(exc.args) == 1 else str(exc)
+
+
+def user_message(exc: BaseException) -> str | None:
+    """The one/two-line message if ``exc`` is a user error (see the module docstring), else None."""
+    from omegaconf.errors import ConfigAttributeError, ConfigKeyError, MissingMandatoryValue
+
+    try:
+        from hydra.errors import InstantiationException
+    except ImportError:  # pragma: no cover - hydra is a dependency
+        InstantiationException = ()  # type: ignore[assignment]
+    while isinstance(exc, InstantiationException) and exc.__cause__ is not None:
+        exc = exc.__cause__
+    if isinstance(exc, UserError):
+        return str(exc)
+    if type(exc).__name__ in ("MissingEncodingError", "ConfigError"):
+        return _text(exc)
+    if isinstance(exc, MissingMandatoryValue):
+        key = getattr(exc, "full_key", None) or "a value"
+        return f"{key} is required (it is ??? in the config); give it on the command line: {key}=..."
+    if isinstance(exc, (ConfigKeyError, ConfigAttributeError)):
+        return f"{str(exc).splitlines()[0]}; check the spelling against the config (--cfg job prints it)"
+    if isinstance(exc, (ValueError, KeyError, FileNotFoundError)) and _raised_here(exc):
+        return _text(exc)
+    if isinstance(exc, OSError) and exc.errno in _USER_ERRNOS and exc.filename is not None:
+        return f"{exc.filename}: {exc.strerror}; check the path and its permissions"
+    return None
+
+
+def _debug() -> bool:
+    return os.environ.get("DIFARELI_DEBUG", "") not in ("", "0") or os.environ.get("HYDRA_FULL_ERROR") == "1"
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, turned into an exception so ``finally`` blocks and atomic writers clean up."""
+
+
+def _on_sigterm(signum, frame):
+    raise Terminated()
+
+
+def cli_entry(name: str) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
+    """Decorate a console script's task function (inside ``@hydra.main``, which would print a traceback):
+    user errors -> ``difareli-<name>: <message>`` and exit 2; SIGTERM/SIGINT -> a clean stop (exit 143/130)."""
+    prog = f"difareli-{name}"
+
+    def wrap(fn):
+        @functools.wraps(fn)
+        def task(*args, **kwargs):
+            if threading_main():
+                signal.signal(signal.SIGTERM, _on_sigterm)
+            try:
+                return fn(*args, **kwargs)
+            except KeyboardInterrupt as e:
+                how = "SIGTERM" if isinstance(e, Terminated) else "interrupted"
+                print(f"{prog}: stopped ({how}); records already written are complete, rerun to resume",
+                      file=sys.stderr)
+                sys.exit(143 if isinstance(e, Terminated) else 130)
+            except Exception as e:
+                msg = user_message(e)
+                if msg is None or _debug():
+                    raise
+                print(f"{prog}: {msg}", file=sys.stderr)
+                sys.exit(EXIT_USER)
+
+        return task
+
+    return wrap
+
+
+def threading_main() -> bool:
+    """Signal handlers can only be installed from the main thread."""
+    import threading
+
+    return threading.current_thread() is threading.main_thread()
+
+
+# ------------------------------------------------------------------------------------------ config values
+def check_int(value: Any, key: str, minimum: int = 1, *, allow_none: bool = False) -> int | None:
+    """``value`` as an int >= ``minimum`` (``None`` allowed if ``allow_none``); bools and 2.7 are errors."""
+    if value is None and allow_none:
+        return None
+    ok = isinstance(value, (int, np.integer)) and not isinstance(value, bool)
+    if not ok or value < minimum:
+        none = " or null" if allow_none else ""
+        raise UserError(f"{key}={value!r} is invalid: must be an integer >= {minimum}{none}; "
+                        f"e.g. {key}={max(minimum, 1)}")
+    return int(value)
+
+
+def check_number(value: Any, key: str, *, allow_none: bool = True, limit: float = 1e6) -> float | None:
+    """``value`` as a finite float with ``|value| <= limit`` (``None`` allowed if ``allow_none``)."""
+    if value is None and allow_none:
+        return None
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        raise UserError(f"{key}={value!r} is invalid: must be a number") from None
+    if not math.isfinite(x) or abs(x) > limit:
+        raise UserError(f"{key}={value!r} is invalid: must be a finite number with magnitude <= {limit:g}")
+    return x
+
+
+def check_sampler(cfg: Mapping[str, Any], key: str = "sampler") -> None:
+    """A sampler config: a registered ``name`` and an integer ``steps`` >= 1."""
+    from difareli.diffusion.samplers import SAMPLERS
+
+    if cfg.get("name") not in SAMPLERS:
+        raise UserError(f"{key}.name={cfg.get('name')!r} is not a sampler; choose from {sorted(SAMPLERS)} "
+                        f"(or pick a config: {key}=ddim|dpm_solver|dpm_solver_pp|unipc)")
+    check_int(cfg.get("steps"), f"{key}.steps", 1)
+
+
+def check_out_dir(path: Any, key: str = "out_dir") -> Path:
+    """An output folder that is (or can be created as) a writable directory; checked before any work."""
+    if path is None or str(path) == "":
+        raise UserError(f"{key} is empty: give an output folder, {key}=<dir>")
+    p = Path(str(path))
+    probe = p
+    while not probe.exists():
+        if probe.parent == probe:
+            break
+        probe = probe.parent
+    if probe.exists() and not probe.is_dir():
+        what = "is a file" if probe == p else f"is below {probe}, which is a file"
+        raise UserError(f"{key}={p} {what}, not a folder; give a folder path, {key}=<dir>")
+    if not os.access(probe, os.W_OK | os.X_OK):
+        raise UserError(f"{key}={p}: {probe} is not writable; choose a writable folder or fix its permissions")
+    return p
+
+
+def check_file(path: Any, key: str) -> Path:
+    """An input file that exists and is readable."""
+    p = Path(str(path))
+    if not p.is_file():
+        what = "is a folder" if p.is_dir() else "does not exist"
+        raise UserError(f"{key}={p} {what}; give the path of an existing file")
+    if not os.access(p, os.R_OK):
+        raise UserError(f"{key}={p} is not readable; fix its permissions")
+    return p
+
+
+# ------------------------------------------------------------------------------------------ array values
+def check_finite(array: Any, what: str, *, max_abs: float | None = None, fix: str = "") -> np.ndarray:
+    """``array`` as a numpy array if every value is finite (and ``|x| <= max_abs``), else NonFiniteError."""
+    a = np.asarray(array)
+    if a.dtype.kind not in "fc":
+        if a.dtype.kind not in "biu":
+            raise NonFiniteError(f"{what}: values of type {a.dtype} are not numbers{'; ' + fix if fix else ''}")
+        return a
+    bad = ~np.isfinite(a)
+    tail = f"; {fix}" if fix else ""
+    if bad.any():
+        first = np.unravel_index(int(np.argmax(bad)), a.shape) if a.ndim else ()
+        raise NonFiniteError(f"{what}: {int(bad.sum())} of {a.size} values are NaN or Inf "
+                             f"(first at index {tuple(int(i) for i in first)}){tail}")
+    if max_abs is not None and a.size and float(np.abs(a).max()) > max_abs:
+        raise NonFiniteError(f"{what}: magnitude {float(np.abs(a).max()):.3g} exceeds {max_abs:g}, not a "
+                             f"plausible value{tail}")
+    return a
+
+
+def check_light(light: Any, what: str) -> np.ndarray:
+    """A finite 9x3 SH light of plausible magnitude, as float64."""
+    a = check_finite(np.asarray(light, dtype=np.float64) if np.asarray(light).dtype.kind in "biuf" else light,
+                     what, max_abs=LIGHT_MAX_ABS, fix="give a 9x3 SH light in DECA's basis (difareli.sh)")
+    return a.astype(np.float64)
+
+
+def check_record(arrays: Mapping[str, Any], record_id: str, store_root: Any) -> Mapping[str, Any]:
+    """Every float encoding of a record read for relighting or training is finite; the error names the
+    record, the encoding and the store."""
+    for name, arr in arrays.items():
+        check_finite(arr, f"record {record_id!r}, encoding {name!r} in store {store_root}",
+                     fix=f"regenerate or remove the record (difareli-store verify {store_root} lists all)")
+    return arrays
+
+
+def check_output(image: Any, what: str) -> np.ndarray:
+    """A result image before it is written or scored: finite floats, or a uint8 HxWx3 image."""
+    a = np.asarray(image)
+    if a.ndim != 3 or a.shape[-1] != 3:
+        raise NonFiniteError(f"{what}: result has shape {a.shape}, expected HxWx3")
+    return check_finite(a, what, fix="the model or its inputs produced invalid values")
+
+
+# ------------------------------------------------------------------------------------------ checkpoints
+def load_torch_file(path: Any, what: str = "checkpoint", map_location: Any = "cpu") -> Any:
+    """``torch.load(path, weights_only=True)``; a missing, truncated or non-torch file is a UserError naming
+    it (never a hint to load untrusted pickles)."""
+    import torch
+
+    p = Path(str(path))
+    if not p.is_file():
+        raise UserError(f"{what} {p} does not exist (difareli-train writes <run>/checkpoints/last.ckpt)")
+    try:
+        return torch.load(p, map_location=map_location, weights_only=True)
+    except Exception as e:  # random bytes reach the unpickler's internals: KeyError, struct.error, ...
+        size = p.stat().st_size
+        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        if "weights_only" in first or "Weights only load failed" in first:
+            first = "it holds objects other than tensors and plain containers"
+        raise UserError(f"{what} {p} ({size} bytes) is not a readable PyTorch file ({first[:160]}); it may be "
+                        "truncated or corrupt: copy it again or use another checkpoint") from None
+
+
+def check_resume(ckpt_path: Any, model: Any) -> None:
+    """Resuming ``model`` from ``ckpt_path``: if state-dict keys or shapes differ, raise a UserError listing
+    the differing hyperparameters (or tensors), instead of PyTorch's size-mismatch dump."""
+    ckpt = load_torch_file(ckpt_path, "ckpt_path")
+    if not isinstance(ckpt, dict) or "state_dict" not in ckpt:
+        raise UserError(f"ckpt_path={ckpt_path} is not a Lightning checkpoint (no state_dict)")
+    have = {k: tuple(v.shape) for k, v in ckpt["state_dict"].items() if hasattr(v, "shape")}
+    want = {k: tuple(v.shape) for k, v in model.state_dict().items()}
+    bad = sorted(k for k in set(have) | set(want) if have.get(k) != want.get(k))
+    if not bad:
+        return
+    saved = dict(ckpt.get("hyper_parameters") or {})
+    now = dict(getattr(model, "hparams", {}) or {})
+    diff = [f"{k}: checkpoint {saved.get(k)!r}, config {now.get(k)!r}" for k in sorted(set(saved) | set(now))
+            if k != "compile" and saved.get(k) != now.get(k)]
+    listed = "; ".join(diff[:8]) if diff else f"tensors {', '.join(bad[:5])}"
+    raise UserError(f"ckpt_path={ckpt_path} does not match this model config ({len(bad)} tensors differ): "
+                    f"{listed}\nresume with the model config it was trained with (see <run>/.hydra/config.yaml)")
