@@ -25,6 +25,7 @@ import torch
 from tqdm.auto import tqdm
 
 from difareli import metrics, tables, viz
+from difareli import shard as sharding
 from difareli.baselines import LambertianRatio, LightFit, Method, irradiance_error
 from difareli.store import EncodingStore
 from difareli.synth.splits import PROTOCOLS_FILE
@@ -140,8 +141,12 @@ def _pm(s: tables.Stat) -> str:
 
 def run_benchmark(store: EncodingStore, method: Method, protocols: Sequence[str], out_dir: str | Path, *,
                   limit: int | None = None, oracle_light: bool = False, estimator: LightFit | None = None,
-                  grid_pairs: int = 4, save_images: bool = True, progress: bool = True) -> BenchmarkResult:
-    """Relight and score every pair of ``protocols``; write the run's outputs into ``out_dir``."""
+                  grid_pairs: int = 4, save_images: bool = True, progress: bool = True,
+                  shard: str | None = None) -> BenchmarkResult:
+    """Relight and score every pair of ``protocols``; write the run's outputs into ``out_dir``.
+
+    ``shard="i/n"`` scores only that shard's pairs (by pair id, after ``limit``): the n shards' per-image
+    CSVs together hold exactly the unsharded run's rows (``difareli-table`` merges them)."""
     out_dir = Path(out_dir)
     estimator = estimator or LightFit()
     lights = Lights(store, None if oracle_light else estimator)
@@ -149,6 +154,7 @@ def run_benchmark(store: EncodingStore, method: Method, protocols: Sequence[str]
     source_fit = isinstance(method, LambertianRatio) and method.estimator is not None
     result = BenchmarkResult(records=[])
     for proto, pairs in load_pairs(store, protocols, limit).items():
+        pairs = sharding.select(pairs, shard, key=lambda p: p.id)
         short = PROTOCOLS[proto]
         grid_rows = []
         for pair in tqdm(pairs, desc=f"{method.name} {proto}", disable=not progress):

@@ -10,12 +10,17 @@ from omegaconf import DictConfig, OmegaConf
 
 from difareli.baselines import build_method, light_fit_from_config
 from difareli.benchmark import BenchmarkResult, run_benchmark
+from difareli import shard as sharding
 from difareli.cli import common
 from difareli.store import EncodingStore
+
+#: The config keys that define a benchmark job; shards of one job differ only by ``shard``.
+SHARD_JOB_KEYS = ("store", "method", "sampler", "protocols", "limit", "oracle_light", "light_fit")
 
 
 def run(cfg: DictConfig) -> BenchmarkResult:
     """Benchmark the configured method; prints and returns the summary."""
+    spec = sharding.parse(cfg.get("shard"))  # before any work: a bad value fails in one line
     if cfg.num_threads:
         torch.set_num_threads(int(cfg.num_threads))
     store = EncodingStore.open(cfg.store)
@@ -28,7 +33,11 @@ def run(cfg: DictConfig) -> BenchmarkResult:
     limit = int(cfg.limit) if cfg.limit is not None else None
     result = run_benchmark(store, method, list(cfg.protocols), Path(cfg.out_dir), limit=limit,
                            oracle_light=bool(cfg.oracle_light), estimator=estimator, grid_pairs=int(cfg.grid_pairs),
-                           save_images=bool(cfg.save_images), progress=bool(cfg.progress))
+                           save_images=bool(cfg.save_images), progress=bool(cfg.progress), shard=spec)
+    if spec is not None:  # what difareli-table checks before merging shards: same job, every shard once
+        job = {k: OmegaConf.to_container(cfg[k], resolve=True) if OmegaConf.is_config(cfg[k]) else cfg[k]
+               for k in SHARD_JOB_KEYS}
+        sharding.write_marker(cfg.out_dir, spec, {**job, "store": str(Path(cfg.store).resolve())})
     print(result.paths["summary_md"].read_text())
     print(f"per-image scores: {result.paths['per_image']}")
     return result
@@ -36,6 +45,10 @@ def run(cfg: DictConfig) -> BenchmarkResult:
 
 @hydra.main(version_base="1.3", config_path=common.CONFIG_PATH, config_name="benchmark")
 def main(cfg: DictConfig) -> None:
+    try:
+        sharding.parse(cfg.get("shard"))
+    except ValueError as e:
+        raise SystemExit(f"difareli-benchmark: {e}") from None
     run(cfg)
 
 

@@ -9,6 +9,7 @@ from typing import Iterable
 import hydra
 from omegaconf import DictConfig
 
+from difareli import shard as sharding
 from difareli import tables
 from difareli.cli import common
 
@@ -35,6 +36,7 @@ def run(cfg: DictConfig) -> tables.Table:
     """Merge, print the Markdown table, write table.{md,csv,tex} into ``cfg.out``."""
     runs = [cfg.runs] if isinstance(cfg.runs, str) else list(cfg.runs)
     dirs = expand_runs(runs)
+    sharding.check_complete(dirs)  # sharded benchmark runs: every shard of each job exactly once
     table = tables.merge_runs(dirs, methods=list(cfg.methods) if cfg.methods else None)
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
