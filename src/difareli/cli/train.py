@@ -24,7 +24,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     )
     common.log_hyperparameters(trainer, cfg)
     trainer.fit(model, datamodule=datamodule, ckpt_path=cfg.get("ckpt_path"))
-    if cfg.get("sample_grid") and not trainer.fast_dev_run:
+    if cfg.get("sample_grid") and not trainer.fast_dev_run and trainer.is_global_zero:
         common.write_sample_grid(model, datamodule, cfg.sampler, trainer.default_root_dir)
     metric = common.metric_value(trainer.callback_metrics, cfg.get("optimized_metric"))
     return {"trainer": trainer, "model": model, "datamodule": datamodule, "metric": metric}

@@ -106,6 +106,8 @@ class DiffusionModule(L.LightningModule):
         # Fresh runs take statistics from the training split; a resumed run restores them from the checkpoint.
         if stage == "fit" and dm is not None and hasattr(dm, "nonspatial_stats") and not self._stats_loaded():
             self.set_nonspatial_stats(*dm.nonspatial_stats())
+        if stage == "fit" and self._trainer is not None and self.trainer.world_size > 1:  # decorrelate ranks
+            torch.manual_seed(torch.initial_seed() + self.trainer.global_rank)
         if self.hparams.compile:
             self.net.compile()
 
@@ -132,7 +134,7 @@ class DiffusionModule(L.LightningModule):
         # Fixed noise and timesteps per batch so val/loss is comparable across validations.
         g = torch.Generator(device=batch["image"].device).manual_seed(1000 + batch_idx)
         loss = self.diffusion_loss(batch, generator=g)
-        self.log("val/loss", loss, prog_bar=True, batch_size=batch["image"].shape[0])
+        self.log("val/loss", loss, prog_bar=True, batch_size=batch["image"].shape[0], sync_dist=True)
         return loss
 
     def configure_optimizers(self):
