@@ -12,6 +12,7 @@ from difareli.baselines import build_method, light_fit_from_config
 from difareli.benchmark import BenchmarkResult, run_benchmark
 from difareli import shard as sharding
 from difareli.cli import common
+from difareli.lit import logging as lit_logging
 from difareli.store import EncodingStore
 
 #: The config keys that define a benchmark job; shards of one job differ only by ``shard``.
@@ -38,6 +39,8 @@ def run(cfg: DictConfig) -> BenchmarkResult:
         job = {k: OmegaConf.to_container(cfg[k], resolve=True) if OmegaConf.is_config(cfg[k]) else cfg[k]
                for k in SHARD_JOB_KEYS}
         sharding.write_marker(cfg.out_dir, spec, {**job, "store": str(Path(cfg.store).resolve())})
+    if cfg.get("logger"):  # the summary table and comparison grids to wandb / TensorBoard (logger=many_loggers)
+        lit_logging.log_benchmark(cfg, result)
     print(result.paths["summary_md"].read_text())
     print(f"per-image scores: {result.paths['per_image']}")
     return result

@@ -9,6 +9,7 @@ import lightning as L
 from omegaconf import DictConfig
 
 from difareli.cli import common
+from difareli.lit import logging as lit_logging
 
 
 def train(cfg: DictConfig) -> dict[str, Any]:
@@ -23,9 +24,11 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         logger=common.instantiate_group(cfg.get("logger")) or False,
     )
     common.log_hyperparameters(trainer, cfg)
+    lit_logging.log_run_info(trainer, cfg)  # git commit + resolved config as text
     trainer.fit(model, datamodule=datamodule, ckpt_path=cfg.get("ckpt_path"))
     if cfg.get("sample_grid") and not trainer.fast_dev_run and trainer.is_global_zero:
-        common.write_sample_grid(model, datamodule, cfg.sampler, trainer.default_root_dir)
+        lit_logging.log_image(trainer, "samples/grid",
+                              common.write_sample_grid(model, datamodule, cfg.sampler, trainer.default_root_dir))
     metric = common.metric_value(trainer.callback_metrics, cfg.get("optimized_metric"))
     return {"trainer": trainer, "model": model, "datamodule": datamodule, "metric": metric}
 

@@ -9,6 +9,7 @@ import lightning as L
 import torch
 
 from difareli import viz
+from difareli.lit.logging import log_image
 
 
 class ReconstructionGrid(L.Callback):
@@ -43,7 +44,7 @@ class ReconstructionGrid(L.Callback):
             cols.append([viz.to_uint8(x) for x in pl_module.predict_x0(x_t, t, cond)])
         rows = [[c[i] for c in cols] for i in range(n)]
         path = Path(trainer.default_root_dir) / "grids" / f"reconstruction_step{trainer.global_step:07d}.png"
-        viz.save_png(viz.grid(rows), path)
+        log_image(trainer, "val/reconstruction_grid", viz.save_png(viz.grid(rows), path))
 
 
 class LossCurve(L.Callback):
@@ -91,4 +92,5 @@ class LossCurve(L.Callback):
         out = Path(trainer.default_root_dir) / "loss_curve.png"
         out.parent.mkdir(parents=True, exist_ok=True)
         fig.savefig(out, dpi=100)
+        log_image(trainer, "train/loss_curve", out)
         plt.close(fig)
