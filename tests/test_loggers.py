@@ -100,3 +100,16 @@ def test_training_logs_grids_loss_curve_samples_and_config(synth_store, tmp_path
     grid = iio.imread(io.BytesIO(ea.Images("samples/grid")[0].encoded_image_string))
     assert np.array_equal(grid, iio.imread(tmp_path / "sample_grid.png")[..., :3])
     assert "git commit" in _text(ea, "config") and "preset: tiny" in _text(ea, "config")
+
+
+def test_benchmark_logs_summary_table_and_comparisons(synth_store, tmp_path):
+    from difareli.cli.benchmark import run
+
+    cfg = compose_train(tmp_path, [f"store={synth_store}", "progress=false", "num_threads=null", "method=identity",
+                                   "limit=2", "grid_pairs=1", "save_images=false", "logger=tensorboard"],
+                        config_name="benchmark")
+    result = run(cfg)
+    ea = _events(tmp_path / "tensorboard")
+    assert set(ea.Tags()["images"]) == {"benchmark/comparison_same_subject", "benchmark/comparison_different_subject"}
+    assert _text(ea, "benchmark/summary") == result.table.to_markdown(digits=4)
+    assert "kind: identity" in _text(ea, "config") and "git commit" in _text(ea, "config")
