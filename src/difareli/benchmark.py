@@ -28,6 +28,7 @@ import torch
 from tqdm.auto import tqdm
 
 from difareli import errors, metrics, tables, viz
+from difareli import shard as sharding
 from difareli.baselines import LightFit, Method, exact_light_name, irradiance_error
 from difareli.store import EncodingStore
 from difareli.synth.splits import PROTOCOLS_FILE
@@ -179,8 +180,12 @@ def _pm(s: tables.Stat) -> str:
 
 def run_benchmark(store: EncodingStore, method: Method, protocols: Sequence[str], out_dir: str | Path, *,
                   limit: int | None = None, oracle_light: bool = False, estimator: LightFit | None = None,
-                  grid_pairs: int = 4, save_images: bool = True, progress: bool = True) -> BenchmarkResult:
-    """Relight and score every pair of ``protocols``; write the run's outputs into ``out_dir``."""
+                  grid_pairs: int = 4, save_images: bool = True, progress: bool = True,
+                  shard: str | None = None) -> BenchmarkResult:
+    """Relight and score every pair of ``protocols``; write the run's outputs into ``out_dir``.
+
+    ``shard="i/n"`` scores only that shard's pairs (by pair id, after ``limit``): the n shards' per-image
+    CSVs together hold exactly the unsharded run's rows (``difareli-table`` merges them)."""
     out_dir = Path(out_dir)
     estimator = estimator or LightFit()
     lights = Lights(store, None if oracle_light else estimator)
@@ -189,6 +194,7 @@ def run_benchmark(store: EncodingStore, method: Method, protocols: Sequence[str]
     result = BenchmarkResult(records=[])
     done = _scored_so_far(out_dir, method.name)
     for proto, pairs in load_pairs(store, protocols, limit).items():
+        pairs = sharding.select(pairs, shard, key=lambda p: p.id)
         short = PROTOCOLS[proto]
         grid_rows = []
         for pair in tqdm(pairs, desc=f"{method.name} {proto}", disable=not progress):

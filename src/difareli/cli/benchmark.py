@@ -9,15 +9,24 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from difareli import errors
+from difareli import shard as sharding
 from difareli.baselines import build_method, light_fit_from_config
 from difareli.benchmark import BenchmarkResult, run_benchmark
 from difareli.cli import common
+from difareli.lit import logging as lit_logging
 from difareli.store import EncodingStore
+
+#: The config keys that define a benchmark job; shards of one job differ only by ``shard``.
+SHARD_JOB_KEYS = ("store", "method", "sampler", "protocols", "limit", "oracle_light", "light_fit")
 
 
 def run(cfg: DictConfig) -> BenchmarkResult:
     """Benchmark the configured method; prints and returns the summary."""
     validate(cfg)
+    try:
+        spec = sharding.parse(cfg.get("shard"))  # before any work: a bad value fails in one line
+    except ValueError as e:
+        raise errors.UserError(f"shard={cfg.get('shard')!r}: {e}") from None
     if cfg.num_threads:
         torch.set_num_threads(int(cfg.num_threads))
     store = EncodingStore.open(cfg.store)
@@ -32,7 +41,13 @@ def run(cfg: DictConfig) -> BenchmarkResult:
     limit = int(cfg.limit) if cfg.limit is not None else None
     result = run_benchmark(store, method, list(cfg.protocols), Path(cfg.out_dir), limit=limit,
                            oracle_light=bool(cfg.oracle_light), estimator=estimator, grid_pairs=int(cfg.grid_pairs),
-                           save_images=bool(cfg.save_images), progress=bool(cfg.progress))
+                           save_images=bool(cfg.save_images), progress=bool(cfg.progress), shard=spec)
+    if spec is not None:  # what difareli-table checks before merging shards: same job, every shard once
+        job = {k: OmegaConf.to_container(cfg[k], resolve=True) if OmegaConf.is_config(cfg[k]) else cfg[k]
+               for k in SHARD_JOB_KEYS}
+        sharding.write_marker(cfg.out_dir, spec, {**job, "store": str(Path(cfg.store).resolve())})
+    if cfg.get("logger"):  # the summary table and comparison grids to wandb / TensorBoard (logger=many_loggers)
+        lit_logging.log_benchmark(cfg, result)
     print(result.paths["summary_md"].read_text())
     print(f"per-image scores: {result.paths['per_image']}")
     return result
@@ -44,7 +59,7 @@ def validate(cfg: DictConfig) -> None:
     errors.check_int(cfg.grid_pairs, "grid_pairs", 0)
     errors.check_int(cfg.num_threads, "num_threads", 1, allow_none=True)
     errors.check_out_dir(cfg.out_dir)
-    if cfg.method.get("kind") == "diffusion":
+    if "checkpoint" in cfg.method:  # a trained model (the diffusion method): its sampler and file
         errors.check_sampler(cfg.sampler)
         errors.check_file(cfg.method.get("checkpoint") or "", "method.checkpoint")
 

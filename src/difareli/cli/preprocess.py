@@ -44,16 +44,22 @@ def build_pipeline(cfg: DictConfig):
 @cli_entry("preprocess")
 def main(cfg: DictConfig) -> None:
     from difareli.estimators.pipeline import REPORT, run
+    from difareli.shard import parse as parse_shard
 
     if not Path(str(cfg.in_dir)).is_dir():
         raise UserError(f"in_dir={cfg.in_dir} is not a folder; give the folder of face photos, in_dir=<dir>")
     check_out_dir(cfg.out_dir)
 
+    try:
+        parse_shard(cfg.get("shard"))
+    except ValueError as e:
+        raise UserError(f"shard={cfg.get('shard')!r}: {e}") from None
     pipeline = build_pipeline(cfg)
     names = [type(s).__name__ for s in pipeline.steps]
     print(f"encodings: {', '.join(pipeline.encodings)}\nestimators: {', '.join(names) or '(alignment only)'}")
     summary = run(pipeline, str(cfg.in_dir), str(cfg.out_dir), overwrite=bool(cfg.overwrite),
-                  previews=bool(cfg.previews), durable=bool(cfg.durable), progress=bool(cfg.progress))
+                  previews=bool(cfg.previews), durable=bool(cfg.durable), progress=bool(cfg.progress),
+                  shard=cfg.get("shard"))
     print(f"written {summary.written}, skipped {summary.skipped}, failed {summary.failed}; "
           f"{summary.images_per_second:.2f} images/s at {pipeline.size}px; report: {cfg.out_dir}/{REPORT}")
     for e in summary.entries:

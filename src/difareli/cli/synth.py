@@ -10,6 +10,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from difareli.cli.common import CONFIG_PATH
 from difareli.errors import check_out_dir, cli_entry
+from difareli.shard import parse as parse_shard
 
 
 #: Integer keys and their smallest valid values, checked before any work starts.
@@ -37,6 +38,10 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError(str(e)) from None
     if cfg.inputs not in ("estimated", "exact"):
         raise ConfigError(f"inputs={cfg.inputs!r} is invalid: use 'estimated' or 'exact'")
+    try:
+        parse_shard(cfg.get("shard"))
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
     fr = cfg.splits
     if any(float(v) < 0 for v in fr.values()) or sum(float(v) for v in fr.values()) <= 0:
         raise ConfigError(f"splits={OmegaConf.to_container(fr)} is invalid: fractions must be >= 0, sum > 0")
@@ -59,6 +64,7 @@ def run(cfg: DictConfig):
         durable=cfg.durable, progress=progress, light_group_size=cfg.light_group_size,
         splits=OmegaConf.to_container(cfg.splits), shading_region=cfg.shading_region, cam_jitter=cfg.cam_jitter,
         realism=cfg.realism, effects=OmegaConf.to_container(cfg.effects), inputs=cfg.inputs,
+        shard=cfg.get("shard"),
     )
     if report.written == 0:
         print(f"nothing to do: all {n} records already exist in {cfg.out_dir} (skipped {report.skipped})")
@@ -69,7 +75,8 @@ def run(cfg: DictConfig):
     if report.problems:
         print(f"{len(report.problems)} problems:\n  " + "\n  ".join(report.problems[:20]), file=sys.stderr)
         raise SystemExit(1)
-    if cfg.preview.enabled and report.written > 0:
+    # A shard sees only its own subjects: the preview is left to an unsharded (or final) run.
+    if cfg.preview.enabled and report.written > 0 and not cfg.get("shard"):
         path = write_preview(cfg.out_dir, subjects=cfg.preview.subjects, lights=cfg.preview.lights,
                              cell=cfg.preview.cell)
         print(f"preview: {path}")

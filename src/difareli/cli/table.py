@@ -10,6 +10,7 @@ import hydra
 from omegaconf import DictConfig, ListConfig
 
 from difareli import errors, tables
+from difareli import shard as sharding
 from difareli.cli import common
 
 
@@ -39,6 +40,7 @@ def run(cfg: DictConfig) -> tables.Table:
         raise errors.UserError(f"runs={cfg.runs!r} is not a run dir, a glob or a list; e.g. 'runs=[logs/a,logs/b]'")
     runs = [cfg.runs] if isinstance(cfg.runs, str) else list(cfg.runs)
     dirs = expand_runs(runs)
+    sharding.check_complete(dirs)  # sharded benchmark runs: every shard of each job exactly once
     table = tables.merge_runs(dirs, methods=list(cfg.methods) if cfg.methods else None,
                               drop_bad_rows=bool(cfg.get("drop_bad_rows", False)))
     out = Path(cfg.out)

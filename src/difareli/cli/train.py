@@ -11,6 +11,7 @@ from omegaconf import DictConfig
 
 from difareli import errors
 from difareli.cli import common
+from difareli.lit import logging as lit_logging
 
 
 def train(cfg: DictConfig) -> dict[str, Any]:
@@ -31,6 +32,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     common.log_hyperparameters(trainer, cfg)
     if cfg.get("ckpt_path"):  # a mismatching config: list what differs, not a size-mismatch dump
         errors.check_resume(cfg.ckpt_path, model)
+    lit_logging.log_run_info(trainer, cfg)  # git commit + resolved config as text
     trainer.fit(model, datamodule=datamodule, ckpt_path=cfg.get("ckpt_path"))
     metric = common.metric_value(trainer.callback_metrics, cfg.get("optimized_metric"))
     return {"trainer": trainer, "model": model, "datamodule": datamodule, "metric": metric}

@@ -125,14 +125,20 @@ def _write_json(path: Path, obj: Any) -> None:
 
 
 def run(pipeline: Pipeline, in_dir: str, out_dir: str, *, overwrite: bool = False, previews: bool = True,
-        durable: bool = False, progress: bool = True) -> RunSummary:
+        durable: bool = False, progress: bool = True, shard: str | None = None) -> RunSummary:
     """Process every file of ``in_dir`` (or the single file) into the store at ``out_dir``; never raises
-    for a bad image: each gets a report entry and nothing is written for it."""
+    for a bad image: each gets a report entry and nothing is written for it. ``shard="i/n"`` processes only
+    the records of that shard (``difareli.shard``; shards may run concurrently into one store) and writes
+    its report as ``preprocess_report.shard-i-of-n.json``."""
     from tqdm import tqdm
 
+    from difareli import shard as sharding
+
     out = Path(out_dir)
+    spec = sharding.parse(shard)
     files = list_inputs(in_dir)
     ids = record_ids(files)
+    files = sharding.select(files, spec, key=lambda f: ids[f])
     store = EncodingStore.create(out, pipeline.dims(), pipeline.encodings,
                                  {"source": "difareli-preprocess", "size": pipeline.size, "gamma": "none"},
                                  durable=durable)
@@ -185,5 +191,5 @@ def run(pipeline: Pipeline, in_dir: str, out_dir: str, *, overwrite: bool = Fals
               "size": pipeline.size, "written": summary.written, "skipped": summary.skipped,
               "failed": summary.failed, "images_per_second": round(summary.images_per_second, 3),
               "wall_seconds": round(time.perf_counter() - t_start, 3), "images": summary.entries}
-    _write_json(out / REPORT, report)
+    _write_json(out / (REPORT if spec is None else REPORT.replace(".json", f".{spec.suffix}.json")), report)
     return summary

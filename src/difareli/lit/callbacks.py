@@ -10,6 +10,7 @@ import torch
 
 from difareli import viz
 from difareli.diffusion.spec import SamplerSpec, as_spec
+from difareli.lit.logging import log_image
 
 
 def _validation_items(trainer: L.Trainer, n: int, device) -> tuple[list[dict], torch.Tensor, torch.Tensor]:
@@ -50,7 +51,7 @@ class ReconstructionGrid(L.Callback):
             cols.append([viz.to_uint8(x) for x in pl_module.predict_x0(x_t, t, cond)])
         rows = [[c[i] for c in cols] for i in range(n)]
         path = Path(trainer.default_root_dir) / "grids" / f"reconstruction_step{trainer.global_step:07d}.png"
-        viz.save_png(viz.grid(rows), path)
+        log_image(trainer, "val/reconstruction_grid", viz.save_png(viz.grid(rows), path))
 
 
 class LossCurve(L.Callback):
@@ -98,6 +99,7 @@ class LossCurve(L.Callback):
         out = Path(trainer.default_root_dir) / "loss_curve.png"
         out.parent.mkdir(parents=True, exist_ok=True)
         fig.savefig(out, dpi=100)
+        log_image(trainer, "train/loss_curve", out)
         plt.close(fig)
 
 
@@ -147,8 +149,10 @@ class SampleGrid(L.Callback):
         self._validations += 1
         if self._validations % self.every_n_validations == 0:
             name = f"sample_grid_step{trainer.global_step:07d}.png"
-            self.write(trainer, pl_module, Path(trainer.default_root_dir) / "grids" / name)
+            path = self.write(trainer, pl_module, Path(trainer.default_root_dir) / "grids" / name)
+            log_image(trainer, "samples/grid", path)
 
     def on_train_end(self, trainer: L.Trainer, pl_module) -> None:
         if self._active(trainer):
-            self.write(trainer, pl_module, Path(trainer.default_root_dir) / "sample_grid.png")
+            path = self.write(trainer, pl_module, Path(trainer.default_root_dir) / "sample_grid.png")
+            log_image(trainer, "samples/grid", path)

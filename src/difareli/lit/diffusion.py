@@ -168,6 +168,8 @@ class DiffusionModule(L.LightningModule):
 
     # ------------------------------------------------------------------ training
     def setup(self, stage: str) -> None:
+        if stage == "fit" and self._trainer is not None and self.trainer.world_size > 1:  # decorrelate ranks
+            torch.manual_seed(torch.initial_seed() + self.trainer.global_rank)
         if self.hparams.compile:
             self.net.compile()
 
@@ -191,7 +193,7 @@ class DiffusionModule(L.LightningModule):
         # Fixed noise and timesteps per batch so val/loss is comparable across validations.
         g = torch.Generator(device=batch["image"].device).manual_seed(1000 + batch_idx)
         loss = self.diffusion_loss(batch, generator=g)
-        self.log("val/loss", loss, prog_bar=True, batch_size=batch["image"].shape[0])
+        self.log("val/loss", loss, prog_bar=True, batch_size=batch["image"].shape[0], sync_dist=True)
         return loss
 
     def configure_optimizers(self):

@@ -51,6 +51,7 @@ from difareli.processes import die_with_parent
 from difareli.encodings import (FACE_PARTS, FOREGROUND_PARTS, PART_INDEX, SHADOW_C_HI, SHADOW_C_LO, SHADOW_S_MIN,
                                 normalise_c)
 from difareli.render import OrthoCamera, Scene, cast_shadows, render_gbuffer
+from difareli.shard import select as shard_select
 from difareli.store import EncodingStore
 from difareli.synth import splits as sp
 from difareli.synth import effects as fx_mod
@@ -361,13 +362,14 @@ class GenerateReport:
 
 def generate(out_dir: str, subjects: int, lights: int, resolution: int, seed: int = 0, *, workers: int = 1,
              durable: bool = False, progress: Callable[[int, int], None] | None = None,
-             **options) -> GenerateReport:
+             shard: str | None = None, **options) -> GenerateReport:
     """Generate (or complete) the data set in ``out_dir``; existing records are skipped.
 
     ``options`` are the other :class:`SynthConfig` fields (``light_group_size``, ``splits``, ...).
     ``workers > 1`` renders subjects in a process pool; results do not depend on it.
     ``durable`` fsyncs every file (atomicity against a killed run does not need it: records are renamed
-    into place whole either way).
+    into place whole either way). ``shard="i/n"`` renders only the subjects of that shard (``difareli.shard``);
+    shards may run concurrently into one ``out_dir``.
     """
     cfg = SynthConfig(subjects=subjects, lights=lights, resolution=resolution, seed=seed, **options)
     try:
@@ -378,7 +380,8 @@ def generate(out_dir: str, subjects: int, lights: int, resolution: int, seed: in
     split_of = sp.split_of(splits)
     existing = set(store.ids())
     tasks, skipped = [], 0
-    for k in range(cfg.subjects):
+    mine = shard_select(range(cfg.subjects), shard, key=sp.subject_name)  # a subject's lights stay together
+    for k in mine:
         todo = [j for j in range(cfg.lights) if sp.record_id(k, j) not in existing]
         skipped += cfg.lights - len(todo)
         if todo:
@@ -408,7 +411,7 @@ def generate(out_dir: str, subjects: int, lights: int, resolution: int, seed: in
     seconds = time.perf_counter() - t0
     sp.write_split_files(out_dir, splits, cfg.lights, cfg.light_group_size, cfg.seed)
     store.refresh()
-    missing = [sp.record_id(k, j) for k in range(cfg.subjects) for j in range(cfg.lights)
+    missing = [sp.record_id(k, j) for k in mine for j in range(cfg.lights)
                if not store.has(sp.record_id(k, j))]
     problems = [f"{rid}: missing" for rid in missing]
     return GenerateReport(written, skipped, seconds, problems)
