@@ -6,8 +6,7 @@ Names are imported lazily (PEP 562) so that ``python -m difareli.nn.presets`` do
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from difareli.lazy import lazy_attributes
 
 _HOMES = {
     "SPATIAL_COMPONENTS": "conditioning",
@@ -32,13 +31,4 @@ _HOMES = {
 }
 
 __all__ = sorted(_HOMES)
-
-
-def __getattr__(name: str) -> Any:
-    if name not in _HOMES:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    return getattr(importlib.import_module(f".{_HOMES[name]}", __name__), name)
-
-
-def __dir__() -> list[str]:
-    return sorted(list(globals()) + __all__)
+__getattr__, __dir__ = lazy_attributes(__name__, _HOMES, globals())

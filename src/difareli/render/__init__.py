@@ -6,31 +6,15 @@ must import on machines without trimesh/embree (a bare GPU image).
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from difareli.lazy import lazy_attributes
 
-_HOMES = {
-    "OrthoCamera": "camera",
-    "GBuffer": "raycast",
-    "Scene": "raycast",
-    "interpolate_vertex_attribute": "raycast",
-    "render_gbuffer": "raycast",
-    "render_sh": "shading",
-    "shading_reference": "shading",
-    "DEFAULT_EPS": "shadow",
-    "cast_shadow": "shadow",
-    "cast_shadows": "shadow",
-    "lit_candidates": "shadow",
+_NAMES = {
+    "camera": ("OrthoCamera",),
+    "raycast": ("GBuffer", "Scene", "interpolate_vertex_attribute", "render_gbuffer"),
+    "shading": ("render_sh", "shading_reference"),
+    "shadow": ("DEFAULT_EPS", "cast_shadow", "cast_shadows", "lit_candidates"),
 }
+_HOMES = {name: module for module, names in _NAMES.items() for name in names}
 
 __all__ = sorted(_HOMES)
-
-
-def __getattr__(name: str) -> Any:
-    if name not in _HOMES:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    return getattr(importlib.import_module(f".{_HOMES[name]}", __name__), name)
-
-
-def __dir__() -> list[str]:
-    return sorted(list(globals()) + __all__)
+__getattr__, __dir__ = lazy_attributes(__name__, _HOMES, globals())

@@ -1,0 +1,78 @@
+"""Seconds per relight of one checkpoint under several runtimes, side by side in one process (issue 9).
+
+    python scripts/bench_runtime.py --checkpoint <ckpt> --store <store> [--sampler unipc --steps 20]
+        [--modes fp32 bf16 compile] [--repeats 3] [--records 2]
+
+Each mode is a :class:`difareli.runtime.Runtime`; every relight goes through :class:`difareli.relighting.Relighter`
+(inversion + mean-matching self-decode + decode of one target, the inversion cache cleared each time), after one
+untimed warm-up per mode (compilation, allocation). Prints the median seconds and the largest pixel difference
+against fp32 (uint8 levels), so a faster mode that changes the picture is visible.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import numpy as np
+import torch
+
+from difareli import sh
+from difareli.diffusion.spec import SamplerSpec
+from difareli.lit import load_checkpoint
+from difareli.relighting import Relighter
+from difareli.runtime import Runtime
+from difareli.store import EncodingStore
+
+MODES = {"fp32": {}, "bf16": {"precision": "bf16"}, "compile": {"compile": True},
+         "bf16+compile": {"precision": "bf16", "compile": True}, "cuda_graphs": {"cuda_graphs": True}}
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--checkpoint", required=True)
+    p.add_argument("--store", required=True)
+    p.add_argument("--sampler", default="unipc")
+    p.add_argument("--steps", type=int, default=20)
+    p.add_argument("--modes", nargs="+", default=["fp32", "bf16", "compile"], choices=list(MODES))
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--records", type=int, default=2)
+    p.add_argument("--device", default="auto")
+    p.add_argument("--threads", type=int, default=None)
+    args = p.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    store = EncodingStore.open(args.store)
+    ids = (store.ids(split="test") or store.ids())[: args.records]
+    spec = SamplerSpec.preset(args.sampler, steps=args.steps)
+    ckpt = load_checkpoint(args.checkpoint)
+    results, reference = {}, {}
+    for mode in args.modes:
+        rt = Runtime(device=args.device, **MODES[mode])
+        r = Relighter(ckpt, spec, runtime=rt)
+        lights = {rid: [sh.yaw(np.asarray(r.read(store, rid)["light"], np.float64), 60.0)] for rid in ids}
+        r.relight_record(store, ids[0], lights[ids[0]])  # warm-up: compile, allocate
+        secs, outs = [], {}
+        for _ in range(args.repeats):
+            for rid in ids:
+                r._inversions.clear()  # time the whole relight, inversion included
+                rt.synchronize()
+                start = time.perf_counter()
+                outs[rid] = r.relight_record(store, rid, lights[rid])
+                rt.synchronize()
+                secs.append(time.perf_counter() - start)
+        if mode == args.modes[0]:
+            reference = outs
+        diff = max(int(np.abs(outs[k].astype(int) - reference[k].astype(int)).max()) for k in ids)
+        results[mode] = (statistics.median(secs), min(secs), diff)
+    print(f"{args.checkpoint}: {args.sampler}-{args.steps}, {len(ids)} record(s) x {args.repeats}, "
+          f"device {Runtime(device=args.device).torch_device}, torch threads {torch.get_num_threads()}")
+    print(f"| mode | s/relight (median) | min | max pixel diff vs {args.modes[0]} (of 255) |")
+    print("|---|---|---|---|")
+    for mode, (med, low, diff) in results.items():
+        print(f"| {mode} | {med:.3f} | {low:.3f} | {diff} |")
+
+
+if __name__ == "__main__":
+    main()
