@@ -184,10 +184,11 @@ def test_relight_validates_before_any_work(tmp_path):
              "video.frames=0": "video.frames=0 is invalid",
              "target.shadow=nan": "target.shadow=nan is invalid: must be a finite number",
              f"out_dir={ckpt}": "is a file, not a folder",
-             f"target.light={tmp_path}/none.npy": "target.light=" }
+             f"target.light={tmp_path}/none.npy": "target.light=.* does not exist; give the path of an existing file"}
     for override, want in cases.items():
         cfg = compose_train(tmp_path / "run", [*base, override], config_name="relight")
-        with pytest.raises(UserError, match=want.replace("(", r"\(").replace(")", r"\)")):
+        kind = FileNotFoundError if "target.light" in override else UserError  # a user error either way
+        with pytest.raises(kind, match=want.replace("(", r"\(").replace(")", r"\)")):
             validate(cfg)
 
 

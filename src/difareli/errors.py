@@ -198,11 +198,11 @@ def check_out_dir(path: Any, key: str = "out_dir") -> Path:
 
 
 def check_file(path: Any, key: str) -> Path:
-    """An input file that exists and is readable."""
+    """An input file that exists and is readable (a missing one is a FileNotFoundError, as callers expect)."""
     p = Path(str(path))
     if not p.is_file():
         what = "is a folder" if p.is_dir() else "does not exist"
-        raise UserError(f"{key}={p} {what}; give the path of an existing file")
+        raise FileNotFoundError(f"{key}={p} {what}; give the path of an existing file")
     if not os.access(p, os.R_OK):
         raise UserError(f"{key}={p} is not readable; fix its permissions")
     return p
@@ -260,7 +260,7 @@ def load_torch_file(path: Any, what: str = "checkpoint", map_location: Any = "cp
 
     p = Path(str(path))
     if not p.is_file():
-        raise UserError(f"{what} {p} does not exist (difareli-train writes <run>/checkpoints/last.ckpt)")
+        raise FileNotFoundError(f"{what} {p} does not exist (difareli-train writes <run>/checkpoints/last.ckpt)")
     try:
         return torch.load(p, map_location=map_location, weights_only=True)
     except Exception as e:  # random bytes reach the unpickler's internals: KeyError, struct.error, ...
