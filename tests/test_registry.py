@@ -9,6 +9,7 @@ import torch
 
 from difareli import encodings, sh
 from difareli.encodings import ENCODINGS, NUM_MASK_PARTS
+from difareli.errors import NonFiniteError
 from difareli.lit import LoadedCheckpoint
 from difareli.relighting import (DiffusionRelightable, OnePassRelightable, Relightable, Relighter, needed_encodings,
                                  relight)
@@ -110,5 +111,5 @@ def test_in_memory_record_relights_like_the_store_record(tiny_checkpoint, synth_
     np.testing.assert_array_equal(from_store, in_memory)
     bad = {**arrays, "image": arrays["image"].copy()}
     bad["shape"] = np.full_like(arrays["shape"], np.nan)
-    with pytest.raises(FloatingPointError, match="in-memory record"):
+    with pytest.raises(NonFiniteError, match="in-memory record, encoding 'shape'"):
         r.relight_arrays(bad, [light])

@@ -23,7 +23,7 @@ import torch
 from torch import Tensor
 from tqdm.auto import tqdm
 
-from difareli import encodings, viz
+from difareli import encodings, errors, viz
 from difareli.data import image_to_tensor, prepare_nonspatial, prepare_spatial
 from difareli.diffusion.relight import Inversion, SamplerSpec, decode, invert
 from difareli.runtime import Runtime
@@ -156,12 +156,13 @@ class Relighter:
         return needed_encodings(self.model)
 
     def read(self, store: EncodingStore, record_id: str) -> dict[str, np.ndarray]:
-        """The encodings relighting this record reads (and nothing else)."""
+        """The encodings relighting this record reads (and nothing else), checked finite."""
         missing = [n for n in self.needed_encodings() if not store.available(n)]
         if missing:
             raise KeyError(f"relighting with this model needs encoding(s) {missing}, which the store at "
                            f"{store.root} does not have")
-        return {k: np.asarray(v) for k, v in store.read(record_id, self.needed_encodings()).items()}
+        arrays = {k: np.asarray(v) for k, v in store.read(record_id, self.needed_encodings()).items()}
+        return dict(errors.check_record(arrays, record_id, store.root))
 
     def _condition_tensors(self, arrays_list: Sequence[Mapping[str, np.ndarray]]) -> Condition:
         return condition_tensors(self.model, arrays_list, self.device)
@@ -193,10 +194,15 @@ class Relighter:
                        what: str = "in-memory record") -> np.ndarray:
         """Relit images (N, H, W, 3) uint8 of one record given as arrays under N target lights (and shadow
         logits c'); ``key`` caches its inversion (records of a store use ``(store root, id)``)."""
-        lights = [np.asarray(l, dtype=np.float64) for l in lights]
+        # Non-finite inputs would decode to a black image without a word: stop here, naming what is wrong.
+        for name in self.needed_encodings():
+            errors.check_finite(arrays[name], f"{what}, encoding {name!r}")
+        lights = [errors.check_light(l, f"target light {i} of {what}") for i, l in enumerate(lights)]
         shadows = list(shadows) if shadows is not None else [None] * len(lights)
         if len(shadows) != len(lights):
             raise ValueError(f"{len(lights)} target lights but {len(shadows)} shadow values")
+        for s in shadows:
+            errors.check_number(s, f"target shadow strength for {what}")
         inv = self.inversion(None, arrays=arrays, key=key)
         x0 = image_to_tensor(arrays["image"])[None].to(self.device)
         source = self._condition_tensors([arrays])
@@ -207,9 +213,8 @@ class Relighter:
                      for l, s in zip(lights[start:start + self.batch_size], shadows[start:start + self.batch_size])]
             x = relight(self.model, x0, source, self._condition_tensors(batch), self.spec, runtime=self.runtime,
                         mean_matching=self.mean_matching, inversion=inv)
-            if not torch.isfinite(x).all():
-                raise FloatingPointError(f"relighting {what} gave non-finite pixels (check its encodings and the "
-                                         "target light for NaN/Inf, or use precision=fp32)")
+            errors.check_finite(x.float().cpu().numpy(), f"relight of {what}",
+                                fix="the model produced NaN/Inf; try precision=fp32 or another checkpoint")
             out.extend(viz.to_uint8(xi.clamp(-1, 1)) for xi in x)
         return np.stack(out)
 
