@@ -36,10 +36,11 @@ from difareli.runtime import Runtime, count_flops, peak_flops  # noqa: E402
 MODES = {"fp32": {}, "bf16": {"precision": "bf16"}, "cuda_graphs": {"precision": "bf16", "cuda_graphs": True},
          "compile": {"precision": "bf16", "compile": True},
          "compile_graphs": {"precision": "bf16", "compile": True, "cuda_graphs": True}}
+STAGES = ("unet", "relight", "train")
 FULL = dict(sizes=[("ffhq128", 128), ("ffhq256", 256)], batches=[1, 16], iters={1: 20, 16: 5}, warmup=3,
             relight=("ffhq256", 256), ddim_steps=1000, unipc_steps=20, frames=60,
             train=dict(preset="ffhq128", res=128, batch=32, precision="bf16-mixed", steps=10, warmup=3),
-            modes=list(MODES), compile_estimate_s=90)
+            modes=list(MODES), compile_estimate_s=120)
 SMALL = dict(sizes=[("tiny", 32)], batches=[1, 2], iters={1: 3, 2: 2}, warmup=1, relight=("tiny", 32), ddim_steps=4,
              unipc_steps=3, frames=3, train=dict(preset="tiny", res=32, batch=2, precision="bf16-mixed", steps=1,
                                                  warmup=1), modes=["fp32", "bf16", "cuda_graphs"], compile_estimate_s=300)
@@ -103,8 +104,14 @@ def relight_s(model, rt: Runtime, spec: SamplerSpec, res: int, targets: int) -> 
 def check(args) -> dict:
     dev = torch.device("cuda" if torch.cuda.is_available() and not args.cpu else "cpu")
     small = args.small or dev.type != "cuda"
-    plan = SMALL if small else FULL
+    plan = dict(SMALL if small else FULL)
+    if args.sizes:
+        plan["sizes"] = [(p, int(r)) for p, r in (s.split(":") for s in args.sizes)]
+    if args.batches:
+        plan["batches"] = args.batches
+        plan["iters"] = {b: plan["iters"].get(b, max(2, 40 // b)) for b in args.batches}
     modes = args.modes or plan["modes"]
+    stages = args.stages or STAGES
     start = time.perf_counter()
     left = lambda: args.budget - (time.perf_counter() - start)  # noqa: E731
     peak, peak_how = peak_flops(dev, "bf16")
@@ -127,10 +134,14 @@ def check(args) -> dict:
         report["flops"].append({"preset": preset, "resolution": res, "unet_pass_GFLOP": unet / 1e9,
                                 "modulator_GFLOP": mod / 1e9, "params_M": sum(p.numel() for p in net.parameters()) / 1e6})
     eager = [m for m in modes if "compile" not in m]
-    unet_modes(report, plan, nets, dev, eager, peak, left)
-    relights(report, plan, nets, dev, modes)  # before compiling: compiles may use up the budget
-    train(report, plan, dev)
-    unet_modes(report, plan, nets, dev, [m for m in modes if m not in eager], peak, left)
+    if "unet" in stages:
+        unet_modes(report, plan, nets, dev, eager, peak, left)
+    if "relight" in stages:
+        relights(report, plan, nets, dev, modes)  # before compiling: compiles may use up the budget
+    if "train" in stages:
+        train(report, plan, dev)
+    if "unet" in stages:
+        unet_modes(report, plan, nets, dev, [m for m in modes if m not in eager], peak, left)
     report["env"]["wall_s"] = time.perf_counter() - start
     return report
 
@@ -221,7 +232,10 @@ def main() -> None:
     p.add_argument("--small", action="store_true", help="toy sizes (automatic without CUDA)")
     p.add_argument("--cpu", action="store_true", help="run on the CPU even when CUDA is available")
     p.add_argument("--modes", nargs="*", choices=list(MODES), help=f"default: all on CUDA, {SMALL['modes']} small")
-    p.add_argument("--budget", type=float, default=420.0, help="seconds; compile modes are skipped past it")
+    p.add_argument("--budget", type=float, default=400.0, help="seconds; compile modes are skipped past it")
+    p.add_argument("--sizes", nargs="*", help="preset:resolution pairs replacing the plan's (e.g. tiny:64)")
+    p.add_argument("--batches", nargs="*", type=int, help="UNet batch sizes replacing the plan's")
+    p.add_argument("--stages", nargs="*", choices=STAGES, help="stages to run (default: all)")
     p.add_argument("--out", help="output folder (default: $OUT, else docs/perf)")
     args = p.parse_args()
     out = Path(args.out or os.environ.get("OUT") or Path(__file__).resolve().parents[1] / "docs" / "perf")
