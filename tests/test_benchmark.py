@@ -116,7 +116,7 @@ def test_diffusion_method_in_merged_table(synth_store, tiny_checkpoint, tmp_path
 
     ckpt = tiny_checkpoint("difareli_pp")
     res = run(_bench_cfg(tmp_path / "diff", synth_store, "method=diffusion", f"method.checkpoint={ckpt}",
-                         "sampler=ddim", "sampler.steps=3", "limit=2", "device=cpu"))
+                         "sampler=ddim", "sampler.steps=3", "limit=2", "runtime.device=cpu"))
     assert {r.method for r in res.records} == {"difareli_pp/ddim-3"} and len(res.records) == 4
     assert all(np.isfinite([r.dssim, r.mse, r.lpips, r.seconds]).all() for r in res.records)
     run(_bench_cfg(tmp_path / "id", synth_store, "method=identity", "limit=2"))

@@ -149,7 +149,7 @@ def test_preprocessed_store_relights_with_a_synthfaces_checkpoint(tiny_checkpoin
     ckpt = tiny_checkpoint("difareli_pp")
     rcfg = compose_train(tmp_path / "relit", [f"checkpoint={ckpt}", f"store={tmp_path / 'store'}",
                                               "record=astronaut", "target.yaw=45", "sampler=ddim",
-                                              "sampler.steps=5", "progress=false", "device=cpu"],
+                                              "sampler.steps=5", "progress=false", "runtime.device=cpu"],
                          config_name="relight")
     written = relight(rcfg)
     relit = iio.imread(written["image"])

@@ -13,8 +13,9 @@ import pytest
 import torch
 from torch import nn
 
-from difareli import sh
-from difareli.diffusion.relight import SamplerSpec, decode, invert, relight
+from difareli import encodings, sh
+from difareli.diffusion.relight import SamplerSpec, decode, invert
+from difareli.relighting import relight
 from difareli.diffusion.schedule import DiffusionSchedule
 from difareli.encodings import normalise_c
 from difareli.lit import LoadedCheckpoint, load_checkpoint
@@ -77,8 +78,13 @@ class ToyModel(nn.Module):
     "Modulator" prepares the condition; the denoiser is the optimal eps of N(0, 0.5^2) data plus a small
     condition-dependent conv term, so targets change the result. Records conditions and denoiser batches."""
 
-    def __init__(self, spatial_channels: int, nonspatial_dim: int, seed: int = 0):
+    def __init__(self, inputs=PP, seed: int = 0):
         super().__init__()
+        self.spatial_inputs, self.nonspatial_inputs = list(inputs["spatial_inputs"]), list(inputs["nonspatial_inputs"])
+        # Widths from the encoding registry at the producers' dimensions (18 / 184 for DiFaReli++).
+        dims = {"H": 32, "W": 32, **encodings.PRODUCER_DIMS}
+        spatial_channels = encodings.total_channels(self.spatial_inputs, dims)
+        nonspatial_dim = encodings.total_channels(self.nonspatial_inputs, dims)
         torch.manual_seed(seed)
         self.modulator = nn.Conv2d(spatial_channels, 3, 3, padding=1)
         self.ns = nn.Linear(nonspatial_dim, 3)
@@ -104,9 +110,7 @@ class ToyModel(nn.Module):
 
 
 def toy_checkpoint(inputs=PP, seed: int = 0) -> LoadedCheckpoint:
-    sc = 3 + 1 + 14 if inputs is PP else 3 + 3
-    nd = 53 + 3 + 128 + (inputs is DR)
-    return LoadedCheckpoint(ToyModel(sc, nd, seed), dict(inputs), {}, 0)
+    return LoadedCheckpoint(ToyModel(inputs, seed), dict(inputs), {}, 0)
 
 
 def toy_inputs(model: ToyModel, b: int = 1, seed: int = 0):
@@ -195,7 +199,7 @@ def _decode_means(denoiser, inv, schedule) -> list[torch.Tensor]:
 @pytest.mark.parametrize("steps,extra", [(7, {}), (20, {"grid": "logsnr"}), (6, {"alpha_zero_end": True}),
                                          (5, {"clip_x0_invert": True, "clip_x0_generate": True})])
 def test_self_decode_reproduces_inversion_means_toy(name, steps, extra):
-    model = ToyModel(18, 184)
+    model = ToyModel(PP)
     sp = spec(name, steps, **extra)
     den = model.denoiser(model.condition(*toy_inputs(model)))
     x0 = toy_image()
@@ -238,7 +242,7 @@ def _batched_vs_separate(model, source, targets, x0, sp) -> float:
 
 @pytest.mark.parametrize("name", ["ddim", "unipc_bh2"])
 def test_batched_targets_equal_separate_toy(name):
-    model = ToyModel(18, 184)
+    model = ToyModel(PP)
     assert _batched_vs_separate(model, toy_inputs(model), toy_inputs(model, 4, seed=3), toy_image(), spec(name, 8)) < 1e-5
 
 
@@ -290,7 +294,7 @@ def test_difareli_pp_shadow_map_from_target_and_own_map_for_inversion(depth_stor
 @pytest.mark.parametrize("n", [1, 2, 3, 7])
 @pytest.mark.parametrize("name", list(SAMPLERS))
 def test_few_steps_relight_toy(name, n):
-    model = ToyModel(18, 184)
+    model = ToyModel(PP)
     src, tgt = toy_inputs(model), toy_inputs(model, 2, seed=5)
     out = relight(model, toy_image(), src, tgt, spec(name, n))
     # One step from T-1 divides the eps mismatch between two conditions by alpha_{T-1} = 0.0064: the toy's
@@ -304,7 +308,7 @@ def test_few_steps_relight_toy(name, n):
                                   pytest.param("dpm_solver_pp", marks=pytest.mark.slow),
                                   pytest.param("unipc_bh2", marks=pytest.mark.slow)])
 def test_thousand_steps_relight_toy(name):
-    model = ToyModel(18, 184)
+    model = ToyModel(PP)
     src = toy_inputs(model)
     x0 = toy_image()
     out = relight(model, x0, src, src, spec(name, 1000))

@@ -26,7 +26,7 @@ CELL = 32 + 2  # a 32 px image plus the grid's 2 px padding
 
 
 def compose(out: Path, overrides: list[str]):
-    return compose_train(out, [*overrides, "progress=false", "device=cpu"], config_name="relight")
+    return compose_train(out, [*overrides, "progress=false", "runtime.device=cpu"], config_name="relight")
 
 
 @pytest.fixture(scope="module")

@@ -191,10 +191,10 @@ class DiffusionMethod:
     """
 
     def __init__(self, checkpoint: str, sampler: Mapping[str, Any], *, name: str | None = None,
-                 device: str = "auto", mean_matching: bool = True, batch_size: int = 16):
+                 runtime: Mapping[str, Any] | None = None, mean_matching: bool = True, batch_size: int = 16):
         from difareli.relighting import Relighter
 
-        self.relighter = Relighter(checkpoint, sampler, device=device, mean_matching=mean_matching,
+        self.relighter = Relighter(checkpoint, sampler, runtime=runtime, mean_matching=mean_matching,
                                    batch_size=batch_size)
         spec = self.relighter.spec
         model = self.relighter.config.get("name") or "diffusion"
@@ -207,7 +207,8 @@ class DiffusionMethod:
 KINDS = ("identity", "lambertian", "oracle", "diffusion")
 
 
-def build_method(cfg: Mapping[str, Any], *, sampler: Mapping[str, Any] | None = None, device: str = "auto",
+def build_method(cfg: Mapping[str, Any], *, sampler: Mapping[str, Any] | None = None,
+                 runtime: Mapping[str, Any] | None = None,
                  estimator: LightFit | None = None, name_suffix: str = "") -> Method:
     """A method from a ``conf/method/*.yaml`` mapping (``kind``, optional ``name``, the kind's options).
 
@@ -229,7 +230,7 @@ def build_method(cfg: Mapping[str, Any], *, sampler: Mapping[str, Any] | None = 
             raise ValueError("method=diffusion needs method.checkpoint=<run>/checkpoints/last.ckpt")
         if sampler is None:
             raise ValueError("method=diffusion needs a sampler config")
-        m = DiffusionMethod(str(cfg["checkpoint"]), sampler, name=name, device=device,
+        m = DiffusionMethod(str(cfg["checkpoint"]), sampler, name=name, runtime=runtime,
                             mean_matching=bool(cfg.get("mean_matching", True)),
                             batch_size=int(cfg.get("batch_size", 16)))
     m.name += name_suffix

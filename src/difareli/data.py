@@ -28,29 +28,16 @@ class MissingEncodingError(KeyError):
 
 
 def prepare_spatial(names: Sequence[str], arrays: Mapping[str, np.ndarray]) -> torch.Tensor:
-    """Concatenate spatial encodings into a float tensor ``[C, H, W]`` in the declared order.
-
-    uint8 images map to [-1, 1], part masks become one-hot over ``MASK_PARTS``, float maps pass unchanged
-    (the shading reference stays unclipped, SPEC 3).
-    """
-    chans = []
-    for name in names:
-        a = np.asarray(arrays[name])
-        if name == "masks":
-            labels = torch.from_numpy(a.astype(np.int64))
-            chans.append(torch.nn.functional.one_hot(labels, enc.NUM_MASK_PARTS).permute(2, 0, 1).float())
-            continue
-        t = torch.from_numpy(np.array(a))
-        t = t.float() / 127.5 - 1.0 if a.dtype == np.uint8 else t.float()
-        chans.append(t.permute(2, 0, 1) if t.ndim == 3 else t[None])
-    return torch.cat(chans, 0)
+    """Concatenate spatial encodings into a float tensor ``[C, H, W]`` in the declared order, each prepared as
+    the encoding registry says (:meth:`difareli.encodings.Encoding.to_tensor`)."""
+    return torch.cat([enc.get(n).to_tensor(arrays[n]) for n in names], 0)
 
 
 def prepare_nonspatial(names: Sequence[str], arrays: Mapping[str, np.ndarray]) -> torch.Tensor:
     """Concatenate non-spatial encodings into one raw float vector ``[D]`` in the declared order."""
     if not names:
         return torch.zeros(0)
-    return torch.cat([torch.from_numpy(np.asarray(arrays[n], dtype=np.float32).reshape(-1).copy()) for n in names])
+    return torch.cat([enc.get(n).to_tensor(arrays[n]) for n in names])
 
 
 def image_to_tensor(image: np.ndarray) -> torch.Tensor:
@@ -153,8 +140,8 @@ class EncodingsDataModule(L.LightningDataModule):
         """Sizes the network needs: spatial channels, non-spatial vector length, image resolution."""
         store = self._open()
         return {
-            "spatial_channels": sum(enc.channels(n, store.dims) for n in self.spatial),
-            "nonspatial_dim": sum(enc.channels(n, store.dims) for n in self.nonspatial),
+            "spatial_channels": enc.total_channels(self.spatial, store.dims),
+            "nonspatial_dim": enc.total_channels(self.nonspatial, store.dims),
             "resolution": int(store.dims["H"]),
         }
 

@@ -62,13 +62,28 @@ FOREGROUND_PARTS: tuple[str, ...] = FACE_PARTS + ("neck", "hair")
 
 @dataclass(frozen=True)
 class Encoding:
-    """One per-image encoding: its stored shape (symbolic), dtype, and meaning."""
+    """One per-image encoding: its stored shape (symbolic), dtype and meaning, how it becomes a network tensor,
+    and, for encodings that depend on the light, how it is re-rendered under a target light.
+
+    ``onehot``: number of classes when a label map is fed to a network one-hot (0: fed as values);
+    ``rerender``: ``"module:function"`` computing the encoding under a target light as
+    ``function(arrays, light, shadow) -> array`` (``shadow``: the target logit c', or the input's own when the
+    user gave none); ``needs``: the encodings that function reads besides the light. An encoding is
+    light-dependent exactly when it has a ``rerender`` (this table is the only list of them).
+    """
 
     name: str
     shape: tuple[int | str, ...]
     dtype: str
     meaning: str
     spatial: bool = False
+    onehot: int = 0
+    rerender: str | None = None
+    needs: tuple[str, ...] = ()
+
+    @property
+    def light_dependent(self) -> bool:
+        return self.rerender is not None
 
     def resolve(self, dims: dict[str, int]) -> tuple[int, ...]:
         """Concrete shape given the data set's dimensions (``H``, ``W``, ``S``, ``D``)."""
@@ -76,6 +91,39 @@ class Encoding:
             return tuple(d if isinstance(d, int) else int(dims[d]) for d in self.shape)
         except KeyError as e:
             raise KeyError(f"encoding {self.name!r} needs dimension {e.args[0]!r}; known: {sorted(dims)}") from None
+
+    def channels(self, dims: dict[str, int]) -> int:
+        """Channels (spatial) or features (non-spatial) once prepared as a network input."""
+        if self.onehot:
+            return self.onehot
+        shape = self.resolve(dims)
+        if self.spatial:
+            return shape[2] if len(shape) == 3 else 1
+        return int(np.prod(shape))
+
+    def to_tensor(self, array):
+        """The network input: spatial ``[C, H, W]`` float (uint8 images in [-1, 1], label maps one-hot, float
+        maps unchanged: the shading reference stays unclipped, SPEC 3), non-spatial a flat float ``[D]``."""
+        import torch  # the schema is imported by light processes (synth workers) that need no torch
+
+        a = np.asarray(array)
+        if not self.spatial:
+            return torch.from_numpy(np.asarray(a, dtype=np.float32).reshape(-1).copy())
+        if self.onehot:
+            labels = torch.from_numpy(a.astype(np.int64))
+            return torch.nn.functional.one_hot(labels, self.onehot).permute(2, 0, 1).float()
+        t = torch.from_numpy(np.array(a))
+        t = t.float() / 127.5 - 1.0 if a.dtype == np.uint8 else t.float()
+        return t.permute(2, 0, 1) if t.ndim == 3 else t[None]
+
+    def render(self, arrays, light: np.ndarray, shadow: float | None) -> np.ndarray:
+        """This encoding under a target ``light`` (and shadow logit ``shadow``) from a record's ``arrays``."""
+        if self.rerender is None:
+            raise ValueError(f"encoding {self.name!r} does not depend on the light; nothing to re-render")
+        import importlib
+
+        module, func = self.rerender.split(":")
+        return getattr(importlib.import_module(module), func)(arrays, light, shadow)
 
     def validate(self, array: np.ndarray, dims: dict[str, int]) -> np.ndarray:
         """Return ``array`` cast to the schema dtype, or raise naming the encoding and the mismatch."""
@@ -92,15 +140,19 @@ class Encoding:
 
 _ENCODINGS = (
     Encoding("image", ("H", "W", 3), "uint8", "the face photo, RGB", spatial=True),
-    Encoding("light", (9, 3), "float32", "2nd-order SH lighting, DECA basis order and constants (sh.py)"),
+    Encoding("light", (9, 3), "float32", "2nd-order SH lighting, DECA basis order and constants (sh.py)",
+             rerender="difareli.targets:render_light"),
     Encoding("shape", ("S",), "float32", "face shape / expression / pose parameters (source-specific length S)"),
     Encoding("cam", (3,), "float32", "orthographic camera (scale, tx, ty), DECA convention"),
     Encoding("identity", ("D",), "float32", "identity embedding (length D)"),
-    Encoding("shadow", (1,), "float32", "cast-shadow intensity c, a logit"),
+    Encoding("shadow", (1,), "float32", "cast-shadow intensity c, a logit", rerender="difareli.targets:render_shadow"),
     Encoding("background", ("H", "W", 3), "uint8", "image with face, hair and neck pixels set to 0", spatial=True),
-    Encoding("masks", ("H", "W"), "uint8", "part label per pixel, indices into MASK_PARTS", spatial=True),
-    Encoding("shadow_map", ("H", "W"), "float32", "binary cast-shadow map times normalised c", spatial=True),
-    Encoding("shading", ("H", "W", 3), "float32", "shading reference R = 0.7 * SH irradiance, unclipped", spatial=True),
+    Encoding("masks", ("H", "W"), "uint8", "part label per pixel, indices into MASK_PARTS", spatial=True,
+             onehot=NUM_MASK_PARTS),
+    Encoding("shadow_map", ("H", "W"), "float32", "binary cast-shadow map times normalised c", spatial=True,
+             rerender="difareli.targets:render_shadow_map", needs=("depth", "normal", "cam", "shadow")),
+    Encoding("shading", ("H", "W", 3), "float32", "shading reference R = 0.7 * SH irradiance, unclipped", spatial=True,
+             rerender="difareli.targets:render_shading", needs=("normal",)),
     Encoding("normal", ("H", "W", 3), "float32", "camera-space unit normal of the face mesh, 0 off-mesh", spatial=True),
     Encoding("depth", ("H", "W"), "float32", "camera-space z of the face mesh (toward the viewer), 0 off-mesh; "
              "used to ray-march target shadow maps", spatial=True),
@@ -110,16 +162,29 @@ _ENCODINGS = (
 #: All encodings by name, in schema order.
 ENCODINGS: dict[str, Encoding] = {e.name: e for e in _ENCODINGS}
 
-#: Channels each encoding contributes when fed to a network as a spatial or non-spatial input.
+#: The shape symbols of the encodings our producers write: ``S`` = 53 BFM parameters (SynthFaces and the
+#: FaceMesh/BFM fit of ``difareli-preprocess``), ``D`` = 128 (dlib's identity descriptor). A store records its own.
+PRODUCER_DIMS: dict[str, int] = {"S": 53, "D": 128}
+
+
 def channels(name: str, dims: dict[str, int]) -> int:
     """Number of network channels/features of an encoding once prepared (masks are one-hot over parts)."""
-    enc = get(name)
-    if name == "masks":
-        return NUM_MASK_PARTS
-    shape = enc.resolve(dims)
-    if enc.spatial:
-        return shape[2] if len(shape) == 3 else 1
-    return int(np.prod(shape))
+    return get(name).channels(dims)
+
+
+def total_channels(names, dims: dict[str, int]) -> int:
+    """Channels of several encodings concatenated (a spatial block or the non-spatial vector)."""
+    return sum(channels(n, dims) for n in names)
+
+
+def light_dependent(names=None) -> list[str]:
+    """The encodings (of ``names``, default all) that change with the light, in the given order."""
+    return [n for n in (ENCODINGS if names is None else names) if get(n).light_dependent]
+
+
+def rerender_needs(names) -> list[str]:
+    """Encodings that re-rendering the light-dependent ones of ``names`` reads (besides themselves)."""
+    return list(dict.fromkeys(x for n in names for x in get(n).needs))
 
 
 def get(name: str) -> Encoding:

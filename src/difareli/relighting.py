@@ -1,105 +1,229 @@
-"""Relight store records from a checkpoint: the API the CLI and the notebooks share.
+"""The relighting core: every model (diffusion, one-pass student, pipelines) relights through here (SPEC 5).
 
-``Relighter(checkpoint, sampler)`` binds a trained model and a sampler; ``relight_record(store, id, lights)``
-inverts the record once (cached, with its mean-matching offsets) and decodes any number of target lights in
-batches. Only the encodings the model consumes, plus those retargeting needs, are read.
+A model offers the :class:`Relightable` interface: the encodings it consumes (``spatial_inputs``,
+``nonspatial_inputs``) and ``condition(spatial, nonspatial)``, run once per condition. A diffusion model adds
+``denoiser(cond)`` and ``schedule`` (:class:`DiffusionRelightable`); a one-pass model adds
+``relight_once(x0, source_cond, target_cond)`` (:class:`OnePassRelightable`). On top of it:
+
+- :func:`condition_tensors` is the one place where named encodings become condition tensors;
+- :func:`relight` is the one tensor-level relight: invert with the input's own condition (mean-matching offsets
+  computed once, :mod:`difareli.diffusion.relight`), then one batched decode under many targets;
+- :class:`Relighter` wraps it over records, from a store or in memory (a dict of arrays), caching inversions.
+The :class:`~difareli.runtime.Runtime` decides device, precision, compile and CUDA graphs.
 """
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any, Iterable, Mapping, Protocol, Sequence, runtime_checkable
 
 import numpy as np
 import torch
+from torch import Tensor
 from tqdm.auto import tqdm
 
-from difareli import viz
+from difareli import encodings, viz
 from difareli.data import image_to_tensor, prepare_nonspatial, prepare_spatial
 from difareli.diffusion.relight import Inversion, SamplerSpec, decode, invert
-from difareli.lit import LoadedCheckpoint, load_checkpoint
+from difareli.runtime import Runtime
 from difareli.store import EncodingStore
 from difareli.targets import retarget
 
-#: Encodings retargeting reads besides the model's own inputs, per model input that depends on the light.
-_RETARGET_NEEDS = {"shading": ("normal",), "shadow_map": ("depth", "normal", "cam", "shadow"), "light": ()}
+Condition = tuple[Tensor | None, Tensor | None]  # (spatial [B, C, H, W], non-spatial [B, D]), raw encodings
 
 
-def resolve_device(device: str = "auto") -> torch.device:
-    if device == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(device)
+@runtime_checkable
+class Relightable(Protocol):
+    """What every relighting model offers: the encodings it consumes and a condition prepared from them."""
+
+    spatial_inputs: list[str]
+    nonspatial_inputs: list[str]
+
+    def condition(self, spatial: Tensor | None, nonspatial: Tensor | None) -> Any: ...
+
+
+@runtime_checkable
+class DiffusionRelightable(Relightable, Protocol):
+    """A conditional diffusion model: ``eps = denoiser(cond)(x_t, t)`` on ``schedule``."""
+
+    schedule: Any
+
+    def denoiser(self, cond: Any): ...
+
+
+@runtime_checkable
+class OnePassRelightable(Relightable, Protocol):
+    """A model that relights in one network pass (the single-shot student)."""
+
+    def relight_once(self, x0: Tensor, source: Any, target: Any) -> Tensor: ...
+
+
+def model_inputs(model: Relightable) -> list[str]:
+    """Every encoding the model consumes, spatial then non-spatial."""
+    return [*model.spatial_inputs, *model.nonspatial_inputs]
+
+
+def needed_encodings(model: Relightable) -> list[str]:
+    """Encodings read per record: the image, its light, the model's inputs and what re-rendering them needs."""
+    names = model_inputs(model)
+    return list(dict.fromkeys(["image", "light", *names, *encodings.rerender_needs(encodings.light_dependent(names))]))
+
+
+def condition_tensors(model: Relightable, arrays_list: Sequence[Mapping[str, np.ndarray]],
+                      device: torch.device | str = "cpu") -> Condition:
+    """Stack the model's inputs of several records (or retargeted records) into ``(spatial, nonspatial)``."""
+    sp, ns = model.spatial_inputs, model.nonspatial_inputs
+    spatial = torch.stack([prepare_spatial(sp, a) for a in arrays_list]).to(device) if sp else None
+    nonspatial = torch.stack([prepare_nonspatial(ns, a) for a in arrays_list]).to(device) if ns else None
+    return spatial, nonspatial
+
+
+def _denoiser(model: DiffusionRelightable, cond: Any, runtime: Runtime | None):
+    forward = getattr(model, "net", None)
+    if runtime is None or forward is None:
+        return model.denoiser(cond)
+    return runtime.denoiser(forward, cond)
+
+
+def _condition(model: Relightable, inputs: Condition, runtime: Runtime | None):
+    if runtime is None:
+        return model.condition(*inputs)
+    with runtime.autocast():
+        return model.condition(*inputs)
+
+
+@torch.no_grad()
+def invert_image(model: DiffusionRelightable, x0: Tensor, source: Condition, spec: SamplerSpec, *,
+                 runtime: Runtime | None = None, mean_matching: bool = True, progress: bool = False) -> Inversion:
+    """Passes 1-2 for one image: inversion with its own condition and the mean-matching offsets."""
+    den = _denoiser(model, _condition(model, source, runtime), runtime)
+    return invert(den, x0, model.schedule, spec, mean_matching=mean_matching, progress=progress)
+
+
+@torch.no_grad()
+def relight(model: Relightable, x0: Tensor, source: Condition, targets: Condition, spec: SamplerSpec | None = None,
+            *, runtime: Runtime | None = None, mean_matching: bool = True, inversion: Inversion | None = None,
+            progress: bool = False) -> Tensor:
+    """Relight one image ``x0`` [1, 3, H, W] under ``B`` targets in one batch -> [B, 3, H, W] float.
+
+    ``source`` is the input's own condition (batch 1), ``targets`` batch ``B``. A diffusion model inverts once
+    (or reuses ``inversion``) and decodes every target in one batch: the Modulator runs once for the source and
+    once for the targets. A one-pass model maps the image in one network pass per target.
+    """
+    n = next(v.shape[0] for v in targets if v is not None)
+    if isinstance(model, OnePassRelightable):
+        src = tuple(None if v is None else v.expand(n, *v.shape[1:]) for v in source)
+        with runtime.autocast() if runtime is not None else contextlib.nullcontext():
+            out = model.relight_once(x0.expand(n, -1, -1, -1), model.condition(*src), model.condition(*targets))
+        return out.float()
+    if spec is None:
+        raise ValueError(f"{type(model).__name__} is a diffusion model: relighting it needs a sampler spec")
+    if inversion is None:
+        inversion = invert_image(model, x0, source, spec, runtime=runtime, mean_matching=mean_matching,
+                                 progress=progress)
+    den = _denoiser(model, _condition(model, targets, runtime), runtime)
+    return decode(den, inversion.expand(n) if inversion.x_T.shape[0] != n else inversion, model.schedule,
+                  progress=progress)
 
 
 class Relighter:
-    """A trained model + a sampler, relighting records of an encodings store."""
+    """A relightable model + a sampler + a runtime, relighting records of a store or in memory."""
 
-    def __init__(self, checkpoint: str | Path | LoadedCheckpoint, sampler: SamplerSpec | Mapping[str, Any],
-                 *, device: str = "auto", mean_matching: bool = True, batch_size: int = 16, progress: bool = False):
-        self.device = resolve_device(device)
+    def __init__(self, checkpoint, sampler: SamplerSpec | Mapping[str, Any] | None = None, *,
+                 runtime: Runtime | Mapping[str, Any] | None = None, device: str | None = None,
+                 mean_matching: bool = True, batch_size: int = 16, progress: bool = False):
+        from difareli.lit import LoadedCheckpoint, load_checkpoint
+
+        rt = runtime if isinstance(runtime, Runtime) else Runtime.from_config(runtime)
+        if device is not None:  # the older keyword: the device alone
+            rt = Runtime.from_config({**_fields(rt), "device": device})
+        self.runtime = rt
+        self.device = rt.torch_device
         ckpt = checkpoint if isinstance(checkpoint, LoadedCheckpoint) else load_checkpoint(checkpoint, self.device)
         self.model = ckpt.model.to(self.device)
         self.config = ckpt.config
-        self.spec = sampler if isinstance(sampler, SamplerSpec) else SamplerSpec.from_config(sampler)
+        self.spec = None if sampler is None else (sampler if isinstance(sampler, SamplerSpec)
+                                                  else SamplerSpec.from_config(sampler))
         self.mean_matching, self.batch_size, self.progress = mean_matching, batch_size, progress
-        self.spatial = list(self.config.get("spatial_inputs") or [])
-        self.nonspatial = list(self.config.get("nonspatial_inputs") or [])
-        self._inversions: dict[tuple[str, str], Inversion] = {}
+        self._inversions: dict[Any, Inversion] = {}
 
     @property
     def model_inputs(self) -> list[str]:
-        return [*self.spatial, *self.nonspatial]
+        return model_inputs(self.model)
 
     def needed_encodings(self) -> list[str]:
-        """Encodings read per record: the image, the model's inputs, and what retargeting them needs."""
-        names = ["image", "light", *self.model_inputs]
-        for n in self.model_inputs:
-            names += _RETARGET_NEEDS.get(n, ())
-        return list(dict.fromkeys(names))
+        return needed_encodings(self.model)
 
     def read(self, store: EncodingStore, record_id: str) -> dict[str, np.ndarray]:
+        """The encodings relighting this record reads (and nothing else)."""
         missing = [n for n in self.needed_encodings() if not store.available(n)]
         if missing:
             raise KeyError(f"relighting with this model needs encoding(s) {missing}, which the store at "
                            f"{store.root} does not have")
         return {k: np.asarray(v) for k, v in store.read(record_id, self.needed_encodings()).items()}
 
-    def _condition_tensors(self, arrays_list: Sequence[Mapping[str, np.ndarray]]):
-        sp = torch.stack([prepare_spatial(self.spatial, a) for a in arrays_list]).to(self.device)
-        ns = torch.stack([prepare_nonspatial(self.nonspatial, a) for a in arrays_list]).to(self.device)
-        return (sp if self.spatial else None), (ns if self.nonspatial else None)
+    def _condition_tensors(self, arrays_list: Sequence[Mapping[str, np.ndarray]]) -> Condition:
+        return condition_tensors(self.model, arrays_list, self.device)
 
-    @torch.no_grad()
-    def inversion(self, store: EncodingStore, record_id: str, arrays: Mapping[str, np.ndarray] | None = None) -> Inversion:
-        """Passes 1-2 for a record (inversion + mean-matching offsets), computed once and cached."""
-        key = (str(store.root), record_id)
-        if key not in self._inversions:
-            arrays = arrays if arrays is not None else self.read(store, record_id)
-            x0 = image_to_tensor(arrays["image"])[None].to(self.device)
-            cond = self.model.condition(*self._condition_tensors([arrays]))
-            self._inversions[key] = invert(self.model.denoiser(cond), x0, self.model.schedule, self.spec,
-                                           mean_matching=self.mean_matching, progress=self.progress)
-        return self._inversions[key]
+    def inversion(self, store: EncodingStore | None, record_id: str | None = None,
+                  arrays: Mapping[str, np.ndarray] | None = None, *, key: Any = None) -> Inversion | None:
+        """Passes 1-2 for a record (from ``store`` or the in-memory ``arrays``), cached under its key;
+        ``None`` for a one-pass model."""
+        if isinstance(self.model, OnePassRelightable):
+            return None
+        key = key if key is not None else ((str(store.root), record_id) if store is not None else None)
+        if key is not None and key in self._inversions:
+            return self._inversions[key]
+        arrays = arrays if arrays is not None else self.read(store, record_id)
+        x0 = image_to_tensor(arrays["image"])[None].to(self.device)
+        inv = invert_image(self.model, x0, self._condition_tensors([arrays]), self._spec(), runtime=self.runtime,
+                           mean_matching=self.mean_matching, progress=self.progress)
+        if key is not None:
+            self._inversions[key] = inv
+        return inv
 
-    @torch.no_grad()
-    def relight_record(self, store: EncodingStore, record_id: str, lights: Iterable[np.ndarray],
-                       shadows: Iterable[float | None] | None = None) -> np.ndarray:
-        """Relit images (N, H, W, 3) uint8 of one record under N target lights (and shadow logits c')."""
-        arrays = self.read(store, record_id)
+    def _spec(self) -> SamplerSpec:
+        if self.spec is None:
+            raise ValueError("this model is a diffusion model: give the Relighter a sampler")
+        return self.spec
+
+    def relight_arrays(self, arrays: Mapping[str, np.ndarray], lights: Iterable[np.ndarray],
+                       shadows: Iterable[float | None] | None = None, *, key: Any = None,
+                       what: str = "in-memory record") -> np.ndarray:
+        """Relit images (N, H, W, 3) uint8 of one record given as arrays under N target lights (and shadow
+        logits c'); ``key`` caches its inversion (records of a store use ``(store root, id)``)."""
         lights = [np.asarray(l, dtype=np.float64) for l in lights]
         shadows = list(shadows) if shadows is not None else [None] * len(lights)
         if len(shadows) != len(lights):
             raise ValueError(f"{len(lights)} target lights but {len(shadows)} shadow values")
-        inv = self.inversion(store, record_id, arrays)
+        inv = self.inversion(None, arrays=arrays, key=key)
+        x0 = image_to_tensor(arrays["image"])[None].to(self.device)
+        source = self._condition_tensors([arrays])
         out = []
         chunks = range(0, len(lights), self.batch_size)
         for start in tqdm(chunks, desc="relight", disable=not self.progress or len(chunks) == 1):
             batch = [retarget(arrays, self.model_inputs, l, s)
                      for l, s in zip(lights[start:start + self.batch_size], shadows[start:start + self.batch_size])]
-            cond = self.model.condition(*self._condition_tensors(batch))
-            x = decode(self.model.denoiser(cond), inv.expand(len(batch)), self.model.schedule)
+            x = relight(self.model, x0, source, self._condition_tensors(batch), self.spec, runtime=self.runtime,
+                        mean_matching=self.mean_matching, inversion=inv)
+            if not torch.isfinite(x).all():
+                raise FloatingPointError(f"relighting {what} gave non-finite pixels (check its encodings and the "
+                                         "target light for NaN/Inf, or use precision=fp32)")
             out.extend(viz.to_uint8(xi.clamp(-1, 1)) for xi in x)
         return np.stack(out)
+
+    def relight_record(self, store: EncodingStore, record_id: str, lights: Iterable[np.ndarray],
+                       shadows: Iterable[float | None] | None = None) -> np.ndarray:
+        """Relit images (N, H, W, 3) uint8 of one store record under N target lights (and shadow logits c')."""
+        return self.relight_arrays(self.read(store, record_id), lights, shadows, key=(str(store.root), record_id),
+                                   what=f"record {record_id!r} of {store.root}")
+
+
+def _fields(rt: Runtime) -> dict[str, Any]:
+    from dataclasses import asdict
+
+    return asdict(rt)
 
 
 def write_video(frames: np.ndarray, path: str | Path, fps: int = 20) -> Path:

@@ -1,9 +1,10 @@
 """Sampler speed/quality benchmark (SPEC 10): seconds per relight against error, per sampler and step count.
 
-A *relight* is the whole per-image pipeline of :mod:`difareli.diffusion.relight` at batch 1: Modulator on the
-source condition, inversion, the mean-matching self-decode, Modulator on the target condition, and the decode.
-Only these network passes are timed: encodings are read, retargeted and moved to the device beforehand
-(:class:`Case`), the device is synchronised around the timed region, and each sampler runs once untimed first.
+A *relight* is the whole per-image pipeline of :func:`difareli.relighting.relight` at batch 1: Modulator on the
+source condition, inversion, the mean-matching self-decode, Modulator on the target condition, and the decode,
+run by a :class:`~difareli.runtime.Runtime` (device, precision, compile, CUDA graphs). Only these network passes
+are timed: encodings are read, retargeted and moved to the device beforehand (:class:`Case`), the device is
+synchronised around the timed region, and each sampler runs once untimed first.
 
 Quality is measured on the face mask with :mod:`difareli.metrics` (MSE, DSSIM, images in [0, 1]) against two
 references: the reference sampler's relight of the same input and target (DDIM-1000 by default: the
@@ -14,27 +15,24 @@ which SynthFaces renders exactly for the same geometry, so the benchmark needs n
 
 from __future__ import annotations
 
-import contextlib
 import csv
 import math
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 from tqdm.auto import tqdm
 
-from difareli import metrics, viz
-from difareli.data import image_to_tensor, prepare_nonspatial, prepare_spatial
-from difareli.diffusion.relight import SamplerSpec, decode, invert
-from difareli.diffusion.schedule import DiffusionSchedule
+from difareli import encodings, metrics, viz
+from difareli.data import image_to_tensor
+from difareli.diffusion.relight import SamplerSpec
+from difareli.relighting import Condition, condition_tensors, relight
+from difareli.runtime import Runtime
 from difareli.store import EncodingStore
 
-#: Encodings that change with the light; a target condition takes them from the target record.
-LIGHT_DEPENDENT = ("shading", "shadow_map", "light", "shadow")
 #: Error columns (present only when cases carry a reference or a ground truth).
 ERROR_COLUMNS = ("ref/mse", "ref/dssim", "gt/mse", "gt/dssim")
 
@@ -46,50 +44,42 @@ class Case:
     record: str
     target: str | None
     x0: Tensor                               # [1, 3, H, W] in [-1, 1]
-    source: tuple[Tensor | None, Tensor | None]  # (spatial, nonspatial) of the input
-    target_cond: tuple[Tensor | None, Tensor | None]
+    source: Condition                        # (spatial, nonspatial) of the input
+    target_cond: Condition
     gt: Tensor | None = None                 # [1, 3, H, W] in [-1, 1]: the target record's image
     mask: Tensor | None = None               # [1, H, W] bool face mask
 
 
-class NetModel(nn.Module):
-    """An untrained :class:`~difareli.nn.DiffusionNet` behind the ``condition``/``denoiser``/``schedule``
-    interface of :class:`~difareli.lit.DiffusionModule` (timing only)."""
+def untrained_model(model_cfg: Mapping[str, Any], preset: str = "ffhq256", resolution: int | None = None,
+                    device: str | torch.device = "cpu", seed: int = 0, dims: Mapping[str, int] | None = None):
+    """``(model, resolution)``: a randomly initialised model of a ``conf/model`` config (its ``_target_`` module
+    built with ``preset``), input sizes from the encoding registry and the producers' dimensions
+    (:data:`difareli.encodings.PRODUCER_DIMS`), in eval mode on ``device``."""
+    import hydra
 
-    def __init__(self, net: nn.Module, schedule: DiffusionSchedule | None = None):
-        super().__init__()
-        self.net, self.schedule = net, schedule or DiffusionSchedule()
+    from difareli.nn import get_config
 
-    def condition(self, spatial, nonspatial):
-        return self.net.condition(spatial, nonspatial)
-
-    def denoiser(self, cond):
-        return self.net.bind(cond)
-
-
-def untrained_model(preset: str = "ffhq256", variant: str = "difareli++", resolution: int | None = None,
-                    device: str | torch.device = "cpu", seed: int = 0) -> tuple[NetModel, int, int, int]:
-    """``(model, resolution, spatial_channels, nonspatial_dim)``: a randomly initialised network of a preset with
-    the input sizes of a paper variant (``difareli.nn.presets.VARIANTS``), in eval mode on ``device``."""
-    from difareli.nn import VARIANTS, build_network, get_config
-
-    if variant not in VARIANTS:
-        raise KeyError(f"unknown variant {variant!r}; known: {sorted(VARIANTS)}")
-    sc, nd = VARIANTS[variant]
     res = int(resolution or get_config(preset).image_size)
+    dims = {"H": res, "W": res, **encodings.PRODUCER_DIMS, **dict(dims or {})}
+    cfg = dict(model_cfg)
+    input_dims = {"spatial_channels": encodings.total_channels(cfg.get("spatial_inputs") or [], dims),
+                  "nonspatial_dim": encodings.total_channels(cfg.get("nonspatial_inputs") or [], dims),
+                  "resolution": res}
     torch.manual_seed(seed)
-    net = build_network(preset, "modulator", sc, nd, overrides={"image_size": res})
-    return NetModel(net).to(device).eval().requires_grad_(False), res, sc, nd
+    model = hydra.utils.instantiate(cfg, preset=preset, input_dims=input_dims)
+    return model.to(device).eval().requires_grad_(False), res
 
 
-def random_cases(n: int, resolution: int, spatial_channels: int, nonspatial_dim: int,
-                 device: str | torch.device = "cpu", seed: int = 0) -> list[Case]:
-    """Random inputs of the right shapes for timing an untrained network (no references)."""
+def random_cases(n: int, model, resolution: int, device: str | torch.device = "cpu", seed: int = 0) -> list[Case]:
+    """Random inputs of the model's input shapes for timing an untrained network (no references)."""
     g = torch.Generator().manual_seed(seed)
+    dims = {"H": resolution, "W": resolution, **encodings.PRODUCER_DIMS}
+    sc = encodings.total_channels(model.spatial_inputs, dims)
+    nd = encodings.total_channels(model.nonspatial_inputs, dims)
 
     def cond():
-        sp = torch.rand(1, spatial_channels, resolution, resolution, generator=g) if spatial_channels else None
-        ns = torch.randn(1, nonspatial_dim, generator=g) if nonspatial_dim else None
+        sp = torch.rand(1, sc, resolution, resolution, generator=g) if model.spatial_inputs else None
+        ns = torch.randn(1, nd, generator=g) if model.nonspatial_inputs else None
         return tuple(None if v is None else v.to(device) for v in (sp, ns))
 
     return [Case(f"random{i}", None, (torch.rand(1, 3, resolution, resolution, generator=g) * 2 - 1).to(device),
@@ -103,16 +93,17 @@ def same_subject_target(store: EncodingStore, record_id: str) -> str | None:
     return others[0] if others else None
 
 
-def store_cases(store: EncodingStore, spatial: Sequence[str], nonspatial: Sequence[str],
-                records: Iterable[str] | None = None, limit: int | None = 2,
+def store_cases(store: EncodingStore, model, records: Iterable[str] | None = None, limit: int | None = 2,
                 device: str | torch.device = "cpu") -> list[Case]:
     """Cases for ``records`` (default: the test split, else every record) under another light of the same subject.
 
-    The target condition is the source's encodings with :data:`LIGHT_DEPENDENT` ones taken from the target
-    record; the ground truth is the target record's image and the mask the source's ``face_mask``.
+    The target condition is the source's encodings with the light-dependent ones (the encoding registry's)
+    taken from the target record, which SynthFaces renders exactly for the same geometry; the ground truth is
+    the target record's image and the mask the source's ``face_mask``.
     """
     ids = list(records) if records is not None else (store.ids(split="test") or store.ids())
-    names = list(dict.fromkeys(["image", *spatial, *nonspatial] + (["face_mask"] if store.available("face_mask") else [])))
+    inputs = [*model.spatial_inputs, *model.nonspatial_inputs]
+    names = list(dict.fromkeys(["image", *inputs] + (["face_mask"] if store.available("face_mask") else [])))
     cases = []
     for rid in ids:
         if limit is not None and len(cases) >= limit:
@@ -121,15 +112,10 @@ def store_cases(store: EncodingStore, spatial: Sequence[str], nonspatial: Sequen
         if tid is None:
             continue
         src, tgt = store.read(rid, names), store.read(tid, names)
-        tgt = {**src, **{k: tgt[k] for k in LIGHT_DEPENDENT if k in tgt}}
-
-        def cond(arrays):
-            sp = prepare_spatial(spatial, arrays)[None].to(device) if spatial else None
-            ns = prepare_nonspatial(nonspatial, arrays)[None].to(device) if nonspatial else None
-            return sp, ns
-
+        tgt = {**src, **{k: tgt[k] for k in encodings.light_dependent(inputs)}}
         mask = torch.from_numpy(np.array(src["face_mask"]))[None].bool().to(device) if "face_mask" in src else None
-        cases.append(Case(rid, tid, image_to_tensor(src["image"])[None].to(device), cond(src), cond(tgt),
+        cases.append(Case(rid, tid, image_to_tensor(src["image"])[None].to(device),
+                          condition_tensors(model, [src], device), condition_tensors(model, [tgt], device),
                           gt=image_to_tensor(store.read(tid, ["image"])["image"])[None].to(device), mask=mask))
     if not cases:
         raise ValueError(f"no record of {ids[:5]}{'...' if len(ids) > 5 else ''} in {store.root} has another record "
@@ -137,39 +123,15 @@ def store_cases(store: EncodingStore, spatial: Sequence[str], nonspatial: Sequen
     return cases
 
 
-def synchronize(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-
-
-def autocast(device: torch.device, precision: str):
-    """``fp32`` -> no autocast; ``bf16`` -> bfloat16 autocast on the device."""
-    if precision in ("fp32", "32", "32-true"):
-        return contextlib.nullcontext()
-    if precision in ("bf16", "bf16-mixed"):
-        return torch.autocast(device.type, dtype=torch.bfloat16)
-    raise ValueError(f"precision must be 'fp32' or 'bf16', got {precision!r}")
-
-
-@torch.no_grad()
-def relight_case(model, case: Case, spec: SamplerSpec, mean_matching: bool = True) -> Tensor:
-    """The network passes of one relight (both Modulator runs, inversion, self-decode, decode) -> [1, 3, H, W]."""
-    src = model.condition(*case.source)
-    inv = invert(model.denoiser(src), case.x0, model.schedule, spec, mean_matching=mean_matching)
-    tgt = model.condition(*case.target_cond)
-    return decode(model.denoiser(tgt), inv, model.schedule)
-
-
-def timed_relight(model, case: Case, spec: SamplerSpec, *, mean_matching: bool = True, precision: str = "fp32",
-                  device: torch.device | None = None) -> tuple[Tensor, float]:
-    """``(relit float32, seconds)`` with the device synchronised before and after."""
-    device = device or case.x0.device
-    synchronize(device)
-    start = time.perf_counter()
-    with autocast(device, precision):
-        out = relight_case(model, case, spec, mean_matching)
-    synchronize(device)
-    return out.float(), time.perf_counter() - start
+def timed_relight(model, case: Case, spec: SamplerSpec, runtime: Runtime, *, mean_matching: bool = True
+                  ) -> tuple[Tensor, float]:
+    """``(relit float32, seconds)`` of the whole per-image relight (both conditions, inversion, self-decode,
+    decode) through the relighting core, the device synchronised before and after."""
+    runtime.synchronize()
+    with runtime.timed() as timer:
+        out = relight(model, case.x0, case.source, case.target_cond, spec, runtime=runtime,
+                      mean_matching=mean_matching)
+    return out.float(), timer.seconds
 
 
 def face_errors(pred: Tensor, ref: Tensor, mask: Tensor | None) -> dict[str, float]:
@@ -180,13 +142,13 @@ def face_errors(pred: Tensor, ref: Tensor, mask: Tensor | None) -> dict[str, flo
 
 
 def spec_for(sampler_cfg: Mapping[str, Any], steps: int) -> SamplerSpec:
+    """The configured sampler at ``steps`` steps."""
     return SamplerSpec.from_config({**dict(sampler_cfg), "steps": int(steps)})
 
 
 def benchmark(model, cases: Sequence[Case], samplers: Mapping[str, Mapping[str, Any]], steps: Sequence[int], *,
               reference: tuple[str, int] | None = ("ddim", 1000), reference_config: Mapping[str, Any] | None = None,
-              mean_matching: bool = True,
-              precision: str = "fp32", repeats: int = 1, warmup: bool = True,
+              mean_matching: bool = True, runtime: Runtime | None = None, repeats: int = 1, warmup: bool = True,
               progress: bool = False) -> tuple[list[dict[str, Any]], dict]:
     """Time every ``samplers`` entry (name -> sampler config) at every step count on every case.
 
@@ -201,11 +163,11 @@ def benchmark(model, cases: Sequence[Case], samplers: Mapping[str, Mapping[str, 
         if reference[0] not in samplers:
             raise KeyError(f"reference sampler {reference[0]!r} is not among the samplers {sorted(samplers)}")
         reference_config = samplers[reference[0]]
-    device = cases[0].x0.device
+    runtime = runtime or Runtime(device=str(cases[0].x0.device))
     passes = 3 if mean_matching else 2
-    if warmup:  # first calls pay for allocation, kernel selection and lazy initialisation
+    if warmup:  # first calls pay for allocation, kernel selection, compilation and lazy initialisation
         for cfg in samplers.values():
-            relight_case(model, cases[0], spec_for(cfg, min(steps)), mean_matching)
+            timed_relight(model, cases[0], spec_for(cfg, min(steps)), runtime, mean_matching=mean_matching)
     rows, outputs = [], {}
     jobs = [(name, n) for name in samplers for n in steps]
     for name, n in tqdm(jobs, desc="bench", disable=not progress):
@@ -213,8 +175,7 @@ def benchmark(model, cases: Sequence[Case], samplers: Mapping[str, Mapping[str, 
         secs, outs = [], []
         for case in cases:
             for r in range(repeats):
-                out, sec = timed_relight(model, case, spec, mean_matching=mean_matching, precision=precision,
-                                         device=device)
+                out, sec = timed_relight(model, case, spec, runtime, mean_matching=mean_matching)
                 secs.append(sec)
             outs.append(out)
         outputs[(name, n)] = outs
@@ -227,9 +188,8 @@ def benchmark(model, cases: Sequence[Case], samplers: Mapping[str, Mapping[str, 
         ref_out = outputs.get(tuple(reference)) if same else None
         if ref_out is None:
             spec = spec_for(reference_config, reference[1])
-            with autocast(device, precision):
-                ref_out = [relight_case(model, c, spec, mean_matching).float() for c in
-                           tqdm(cases, desc=f"reference {reference[0]}-{reference[1]}", disable=not progress)]
+            ref_out = [timed_relight(model, c, spec, runtime, mean_matching=mean_matching)[0] for c in
+                       tqdm(cases, desc=f"reference {reference[0]}-{reference[1]}", disable=not progress)]
         outputs["reference"] = ref_out
     for row in rows:
         outs = outputs[(row["sampler"], row["steps"])]

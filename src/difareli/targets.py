@@ -17,6 +17,7 @@ import numpy as np
 from difareli import sh
 from difareli.render.camera import OrthoCamera
 from difareli.render.screen_shadow import march_shadow
+from difareli import encodings
 from difareli.encodings import normalise_c
 
 
@@ -97,22 +98,41 @@ def target_shadow_map(arrays: Mapping[str, np.ndarray], light: np.ndarray, c: fl
     return (cast * normalise_c(c)).astype(np.float32)
 
 
+def render_shading(arrays: Mapping[str, np.ndarray], light: np.ndarray, shadow: float | None = None) -> np.ndarray:
+    """The shading reference under ``light`` from the stored normals (the ``shading`` encoding's re-render)."""
+    normal = np.asarray(arrays["normal"], dtype=np.float64)
+    mask = np.linalg.norm(normal, axis=-1) > 0.5
+    return sh.shading_reference(light, normal, mask=mask).astype(np.float32)
+
+
+def render_light(arrays: Mapping[str, np.ndarray], light: np.ndarray, shadow: float | None = None) -> np.ndarray:
+    """The target light itself (variants that take the light as a vector)."""
+    return np.asarray(light, dtype=np.float32)
+
+
+def render_shadow(arrays: Mapping[str, np.ndarray], light: np.ndarray, shadow: float | None = None) -> np.ndarray:
+    """DiFaReli's shadow scalar c': the target's when given, else the input's own."""
+    if shadow is None:
+        return np.asarray(arrays["shadow"], dtype=np.float32)
+    return np.array([shadow], dtype=np.float32)
+
+
+def render_shadow_map(arrays: Mapping[str, np.ndarray], light: np.ndarray, shadow: float | None = None) -> np.ndarray:
+    """DiFaReli++'s shadow map toward ``light`` with strength ``shadow`` (a logit c')."""
+    if shadow is None:
+        raise ValueError("a target shadow map needs a shadow strength: give target.shadow or a 'shadow' encoding")
+    return target_shadow_map(arrays, light, shadow)
+
+
 def retarget(arrays: Mapping[str, np.ndarray], names: list[str], light: np.ndarray,
              shadow: float | None = None) -> dict[str, np.ndarray]:
     """The encodings ``names`` under a target ``light`` (and shadow strength ``shadow``, a logit c'),
-    re-rendering only those that depend on the light; the rest are the input's own."""
-    out = {n: arrays[n] for n in names}
-    c = float(np.asarray(arrays["shadow"]).reshape(-1)[0]) if shadow is None and "shadow" in arrays else shadow
-    if "shading" in names:
-        normal = np.asarray(arrays["normal"], dtype=np.float64)
-        mask = np.linalg.norm(normal, axis=-1) > 0.5
-        out["shading"] = sh.shading_reference(light, normal, mask=mask).astype(np.float32)
-    if "light" in names:
-        out["light"] = np.asarray(light, dtype=np.float32)
-    if "shadow" in names and shadow is not None:
-        out["shadow"] = np.array([shadow], dtype=np.float32)
-    if "shadow_map" in names:
-        if c is None:
-            raise ValueError("a target shadow map needs a shadow strength: give target.shadow or a 'shadow' encoding")
-        out["shadow_map"] = target_shadow_map(arrays, light, c)
+    re-rendering only those the encoding registry marks light-dependent; the rest are the input's own.
+    Without ``shadow`` the input's own c (its ``shadow`` encoding, when stored) is kept."""
+    if shadow is None and "shadow" in arrays:
+        shadow = float(np.asarray(arrays["shadow"]).reshape(-1)[0])
+    out = {}
+    for n in names:
+        e = encodings.get(n)
+        out[n] = e.render(arrays, light, shadow) if e.light_dependent else arrays[n]
     return out

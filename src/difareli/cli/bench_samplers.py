@@ -14,13 +14,14 @@ from omegaconf import DictConfig, OmegaConf
 
 from difareli import speed
 from difareli.cli import common
-from difareli.relighting import resolve_device
+from difareli.runtime import Runtime
 from difareli.store import EncodingStore
 
 
 def run(cfg: DictConfig) -> dict:
     """Benchmark as configured; returns ``{"rows", "paths"}``."""
-    device = resolve_device(cfg.device)
+    runtime = Runtime.from_config(cfg.runtime)
+    device = runtime.torch_device
     if cfg.threads:
         torch.set_num_threads(int(cfg.threads))
     configured = OmegaConf.to_container(cfg.samplers, resolve=True)
@@ -36,10 +37,8 @@ def run(cfg: DictConfig) -> dict:
 
         if cfg.store is None:
             raise ValueError("store=... is required with a checkpoint (the records to relight)")
-        ckpt = load_checkpoint(cfg.checkpoint, device)
-        model = ckpt.model.to(device)
-        cases = speed.store_cases(EncodingStore.open(cfg.store), ckpt.config.get("spatial_inputs") or [],
-                                  ckpt.config.get("nonspatial_inputs") or [],
+        model = load_checkpoint(cfg.checkpoint, device).model.to(device)
+        cases = speed.store_cases(EncodingStore.open(cfg.store), model,
                                   records=list(cfg.records) if cfg.records is not None else None, limit=cfg.limit,
                                   device=device)
         reference = (cfg.reference.sampler, int(cfg.reference.steps)) if cfg.reference is not None else None
@@ -47,17 +46,16 @@ def run(cfg: DictConfig) -> dict:
             raise KeyError(f"reference.sampler={reference[0]!r} is not configured under samplers ({sorted(configured)})")
         what = f"{cfg.checkpoint} on {len(cases)} record(s) of {cfg.store}"
     else:
-        if cfg.model is None:
-            raise ValueError("give checkpoint=... (trained, with quality columns) or a model preset (timing only)")
-        model, res, sc, nd = speed.untrained_model(cfg.model.preset, cfg.model.variant, cfg.model.resolution,
-                                                   device, seed=cfg.seed)
-        cases = speed.random_cases(cfg.limit or 1, res, sc, nd, device, seed=cfg.seed)
+        model_cfg = OmegaConf.to_container(cfg.model, resolve=True)
+        model, res = speed.untrained_model(model_cfg, model_cfg.pop("preset"), cfg.resolution, device, seed=cfg.seed)
+        cases = speed.random_cases(cfg.limit or 1, model, res, device, seed=cfg.seed)
         reference = None  # an untrained network's relights say nothing about quality
-        what = f"untrained {cfg.model.preset} ({cfg.model.variant}, {res} px), timing only"
-    print(f"bench-samplers: {what}, device {device}, {cfg.precision}")
+        what = f"untrained {cfg.model.preset} {cfg.model.name} ({res} px), timing only"
+    print(f"bench-samplers: {what}, device {device}, {runtime.precision}"
+          f"{', compiled' if runtime.compile else ''}{', CUDA graphs' if runtime.cuda_graphs else ''}")
     rows, outputs = speed.benchmark(model, cases, samplers, steps, reference=reference,
                                     reference_config=configured[reference[0]] if reference else None,
-                                    mean_matching=cfg.mean_matching, precision=cfg.precision, repeats=cfg.repeats,
+                                    mean_matching=cfg.mean_matching, runtime=runtime, repeats=cfg.repeats,
                                     warmup=cfg.warmup, progress=cfg.progress)
     out = Path(cfg.out_dir)
     paths = {"csv": speed.write_csv(rows, out / "bench_samplers.csv"),

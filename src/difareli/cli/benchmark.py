@@ -24,7 +24,7 @@ def run(cfg: DictConfig) -> BenchmarkResult:
     # Methods that use the light get a marked name under ground-truth lights, so merged tables keep both.
     suffix = "+gt-light" if cfg.oracle_light and method_cfg["kind"] in ("lambertian", "diffusion") else ""
     method = build_method(method_cfg, sampler=OmegaConf.to_container(cfg.sampler, resolve=True),
-                          device=cfg.device, estimator=None if cfg.oracle_light else estimator, name_suffix=suffix)
+                          runtime=OmegaConf.to_container(cfg.runtime, resolve=True), estimator=None if cfg.oracle_light else estimator, name_suffix=suffix)
     limit = int(cfg.limit) if cfg.limit is not None else None
     result = run_benchmark(store, method, list(cfg.protocols), Path(cfg.out_dir), limit=limit,
                            oracle_light=bool(cfg.oracle_light), estimator=estimator, grid_pairs=int(cfg.grid_pairs),

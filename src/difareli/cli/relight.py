@@ -20,7 +20,7 @@ def run(cfg: DictConfig) -> dict[str, Path]:
     """Relight as configured; returns the paths written."""
     store = EncodingStore.open(cfg.store)
     rid = cfg.record or (store.ids(split="test") or store.ids())[0]
-    relighter = Relighter(cfg.checkpoint, cfg.sampler, device=cfg.device, mean_matching=cfg.mean_matching,
+    relighter = Relighter(cfg.checkpoint, cfg.sampler, runtime=cfg.runtime, mean_matching=cfg.mean_matching,
                           batch_size=cfg.batch_size, progress=cfg.progress)
     src = relighter.read(store, rid)
     out_dir, written = Path(cfg.out_dir), {}
@@ -35,7 +35,8 @@ def run(cfg: DictConfig) -> dict[str, Path]:
         shadow = t.shadow if t.shadow is not None else (float(other["shadow"][0]) if "shadow" in other else None)
         start = time.perf_counter()
         relit = relighter.relight_record(store, rid, [light], [shadow])[0]
-        print(f"relit {rid} in {time.perf_counter() - start:.2f} s ({cfg.sampler.name}, {cfg.sampler.steps} steps)")
+        print(f"relit {rid} in {time.perf_counter() - start:.2f} s ({cfg.sampler.name}, {cfg.sampler.steps} steps, "
+              f"{relighter.runtime.precision}{', compiled' if relighter.runtime.compile else ''})")
         row = [src["image"], relit]
         if t.record is not None and store.meta(t.record).get("subject") == store.meta(rid).get("subject"):
             row.append(np.asarray(store.read(t.record, ["image"])["image"]))  # ground truth: same subject

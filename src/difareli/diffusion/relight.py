@@ -7,7 +7,8 @@ Three passes per image, all sampler-agnostic:
    the per-step offsets ``mu_t = mean(x_t^inv) - mean(x_t^self)`` are kept in the :class:`Inversion`;
 3. the decode under one or many target conditions, adding ``mu_t`` after each step.
 
-Passes 1-2 run once per image; any number of targets can then be decoded, in one batch.
+Passes 1-2 run once per image; any number of targets can then be decoded, in one batch. These functions work
+on denoisers; :mod:`difareli.relighting` runs them for models (conditions, runtime, records).
 """
 
 from __future__ import annotations
@@ -96,20 +97,3 @@ def decode(denoiser: Denoiser, inversion: Inversion, schedule: DiffusionSchedule
 
     return inversion.spec.run(denoiser, inversion.x_T, gen_grid, schedule, clip_x0=inversion.spec.clip_x0_generate,
                               callback=step_hook, progress=progress)
-
-
-@torch.no_grad()
-def relight(model, image: torch.Tensor, source: tuple, targets: tuple, spec: SamplerSpec, *,
-            mean_matching: bool = True, progress: bool = False) -> torch.Tensor:
-    """Relight one image under ``B`` targets in one batch.
-
-    ``model`` has ``condition(spatial, nonspatial)``, ``denoiser(cond)`` and ``schedule`` (a
-    :class:`~difareli.lit.DiffusionModule`); ``source`` is the input's own ``(spatial [1,...], nonspatial [1,D])``;
-    ``targets`` the same with batch ``B``. The Modulator runs once for the source and once for the targets.
-    """
-    src_cond = model.condition(*source)
-    inversion = invert(model.denoiser(src_cond), image, model.schedule, spec, mean_matching=mean_matching,
-                       progress=progress)
-    n = targets[0].shape[0] if targets[0] is not None else targets[1].shape[0]
-    tgt_cond = model.condition(*targets)
-    return decode(model.denoiser(tgt_cond), inversion.expand(n), model.schedule, progress=progress)

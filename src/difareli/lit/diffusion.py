@@ -85,6 +85,16 @@ class DiffusionModule(L.LightningModule):
             self.ns_mean.copy_(self._exact_stats[0])
             self.ns_std.copy_(self._exact_stats[1])
 
+    @property
+    def spatial_inputs(self) -> list[str]:
+        """Encodings fed to the spatial component (the Relightable interface)."""
+        return list(self.hparams.spatial_inputs or [])
+
+    @property
+    def nonspatial_inputs(self) -> list[str]:
+        """Encodings fed to AdaGN (the Relightable interface)."""
+        return list(self.hparams.nonspatial_inputs or [])
+
     def normalize_nonspatial(self, v: torch.Tensor) -> torch.Tensor | None:
         if v is None or v.shape[-1] == 0:
             return None

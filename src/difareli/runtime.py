@@ -1,0 +1,306 @@
+"""The inference runtime: device, precision, ``torch.compile``, CUDA graphs and synchronisation, in one place.
+
+``Runtime`` is a frozen value (``conf/runtime/default.yaml``); ``runtime.denoiser(net, cond)`` turns a
+:class:`~difareli.nn.DiffusionNet` (called as ``net(x_t, t, cond) -> eps``) and a prepared condition into the
+sampler-facing ``(x, t) -> eps``. Only the network runs in low precision: the returned eps is float32 and the
+samplers keep their own float32/float64 arithmetic.
+
+CUDA graphs are captured at that denoiser boundary with static ``x``/``t``/condition buffers, one graph per
+(network, batch size, condition structure, precision, compile); a new condition of the same structure is copied
+into the static buffers, so every target of a benchmark reuses one graph. Graphs read the parameters in place:
+call :func:`clear_caches` after replacing a network's parameters (``load_state_dict`` copies in place and is fine).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import os
+import re
+import time
+import warnings
+import weakref
+from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass
+from typing import Any, ContextManager
+
+import torch
+import torch.utils._pytree as pytree
+from torch import Tensor
+
+PRECISIONS = {"fp32": None, "bf16": torch.bfloat16, "fp16": torch.float16}
+#: The Lightning ``Trainer(precision=...)`` matching each inference precision (training benchmarks).
+LIGHTNING_PRECISION = {"fp32": "32-true", "bf16": "bf16-mixed", "fp16": "16-mixed"}
+_DEVICE_RE = re.compile(r"^(auto|cpu|cuda(:\d+)?)$")
+
+# network -> compiled callable; network -> {graph key: _Graph}. Weak keys: a dropped network drops its caches.
+_COMPILED: "weakref.WeakKeyDictionary[Any, Callable]" = weakref.WeakKeyDictionary()
+_GRAPHS: "weakref.WeakKeyDictionary[Any, dict]" = weakref.WeakKeyDictionary()
+
+
+@dataclass(frozen=True)
+class Runtime:
+    """Where and how the denoising network runs at inference (validated on construction)."""
+
+    device: str = "auto"     # auto | cpu | cuda | cuda:N
+    precision: str = "fp32"  # fp32 | bf16 | fp16 (autocast; fp16 only on CUDA)
+    compile: bool = False    # torch.compile of the network forward, cached per network
+    cuda_graphs: bool = False  # CUDA graphs at the denoiser boundary; eager (with a warning) off CUDA
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.device, str) or not _DEVICE_RE.match(self.device):
+            raise ValueError(f"runtime.device={self.device!r} is not one of auto, cpu, cuda, cuda:N")
+        if self.precision not in PRECISIONS:
+            raise ValueError(f"runtime.precision={self.precision!r} is not one of {', '.join(PRECISIONS)}")
+        for key in ("compile", "cuda_graphs"):
+            if not isinstance(getattr(self, key), bool):
+                raise ValueError(f"runtime.{key}={getattr(self, key)!r} must be true or false")
+        if self.device.startswith("cuda") and not torch.cuda.is_available():
+            raise ValueError(f"runtime.device={self.device!r} but CUDA is not available here; use device=cpu or auto")
+        if self.precision == "fp16" and self.torch_device.type != "cuda":
+            raise ValueError("runtime.precision=fp16 needs CUDA (CPU float16 autocast is not supported here); "
+                             "use precision=bf16 or fp32 on CPU")
+
+    @classmethod
+    def from_config(cls, cfg: Mapping | None) -> "Runtime":
+        """From a ``runtime:`` config mapping (None: the defaults); unknown keys are an error naming them."""
+        if cfg is None:
+            return cls()
+        if not isinstance(cfg, Mapping):
+            raise ValueError(f"runtime config must be a mapping of {', '.join(_FIELDS)}, got {type(cfg).__name__}")
+        unknown = sorted(set(map(str, cfg)) - set(_FIELDS))
+        if unknown:
+            raise ValueError(f"unknown runtime key(s) {unknown}; known: {', '.join(_FIELDS)}")
+        return cls(**{str(k): v for k, v in cfg.items()})
+
+    # ------------------------------------------------------------------ device and precision
+    @property
+    def torch_device(self) -> torch.device:
+        if self.device == "auto":
+            return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+        return torch.device(self.device)
+
+    @property
+    def dtype(self) -> torch.dtype | None:
+        """The autocast dtype (None for fp32)."""
+        return PRECISIONS[self.precision]
+
+    @property
+    def lightning_precision(self) -> str:
+        return LIGHTNING_PRECISION[self.precision]
+
+    @property
+    def graphs_active(self) -> bool:
+        """Whether CUDA graphs are really used (asked for and on a CUDA device)."""
+        return self.cuda_graphs and self.torch_device.type == "cuda"
+
+    def autocast(self) -> ContextManager:
+        """Autocast to the configured dtype on the device (a no-op for fp32)."""
+        if self.dtype is None:
+            return contextlib.nullcontext()
+        # No weight-cast cache: it only helps autograd and must stay off inside a CUDA-graph capture.
+        return torch.autocast(self.torch_device.type, dtype=self.dtype, cache_enabled=False)
+
+    def module(self, net: torch.nn.Module) -> torch.nn.Module:
+        """``net`` on the device in eval mode (the inference state every runtime path expects)."""
+        return net.to(self.torch_device).eval()
+
+    # ------------------------------------------------------------------ the denoiser
+    def denoiser(self, forward: Callable, cond: Any) -> Callable[[Tensor, Tensor], Tensor]:
+        """``(x, t) -> eps`` (float32) for ``forward(x, t, cond)``, with autocast inside, compiled and
+        graph-captured as configured."""
+        fn = _compiled(forward) if self.compile else forward
+
+        def eager(x: Tensor, t: Tensor, c: Any = cond) -> Tensor:
+            with self.autocast():
+                return fn(x, t, c).float()
+
+        if not self.cuda_graphs:
+            return eager
+        if self.torch_device.type != "cuda":
+            warnings.warn(f"runtime.cuda_graphs=true on {self.torch_device}: no CUDA, running eagerly", stacklevel=2)
+            return eager
+        return _GraphedDenoiser(self, forward, eager, cond)
+
+    # ------------------------------------------------------------------ timing
+    def synchronize(self) -> None:
+        """Wait for the device's queued work (a no-op on CPU): call before reading a clock."""
+        dev = self.torch_device
+        if dev.type == "cuda":
+            torch.cuda.synchronize(dev)
+
+    @contextlib.contextmanager
+    def timed(self) -> Iterator["Timing"]:
+        """``with rt.timed() as t: ...`` then ``t.seconds``: synchronised at both ends."""
+        timing = Timing()
+        self.synchronize()
+        start = time.perf_counter()
+        try:
+            yield timing
+        finally:
+            self.synchronize()
+            timing.seconds = time.perf_counter() - start
+
+
+_FIELDS = tuple(f.name for f in dataclasses.fields(Runtime))
+
+
+@dataclass
+class Timing:
+    """Filled by :meth:`Runtime.timed` on exit."""
+
+    seconds: float = float("nan")
+
+
+def clear_caches(forward: Any | None = None) -> None:
+    """Forget compiled forwards and CUDA graphs (of one network, or all)."""
+    for cache in (_COMPILED, _GRAPHS):
+        if forward is None:
+            cache.clear()
+        else:
+            cache.pop(forward, None)
+
+
+def _compiled(forward: Callable) -> Callable:
+    # Compiling per condition would recompile at every call of denoiser(): one compiled callable per network.
+    # Static shapes: a batch size is a recompile (like a CUDA graph per batch size); dynamic shapes compiled
+    # several times slower here and give slower kernels.
+    if forward not in _COMPILED:
+        _COMPILED[forward] = torch.compile(forward, dynamic=False)
+    return _COMPILED[forward]
+
+
+# ---------------------------------------------------------------------- CUDA graphs
+def _flatten(cond: Any) -> tuple[list, Any]:
+    """Leaves and structure of a condition; dataclasses (e.g. ``Condition``) become pytree nodes on first use."""
+    _register_dataclasses(cond)
+    return pytree.tree_flatten(cond)
+
+
+def _register_dataclasses(obj: Any) -> None:
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        cls = type(obj)
+        if cls not in pytree.SUPPORTED_NODES:
+            names = tuple(f.name for f in dataclasses.fields(cls))
+            pytree.register_pytree_node(
+                cls, lambda o, names=names: ([getattr(o, n) for n in names], names),
+                lambda values, names, cls=cls: cls(**dict(zip(names, values))))
+        for f in dataclasses.fields(obj):
+            _register_dataclasses(getattr(obj, f.name))
+    elif isinstance(obj, (list, tuple)):
+        for v in obj:
+            _register_dataclasses(v)
+    elif isinstance(obj, dict):
+        for v in obj.values():
+            _register_dataclasses(v)
+
+
+def _signature(v: Any) -> Any:
+    if torch.is_tensor(v):
+        return ("T", tuple(v.shape), v.dtype, v.device, v.stride())
+    return ("V", repr(v))  # None, numbers, strings: part of the graph's identity
+
+
+class _Graph:
+    """One captured graph: static inputs, static output, and which denoiser's condition the buffers hold."""
+
+    def __init__(self, eager: Callable, x: Tensor, t: Tensor, leaves: list, spec: Any, device: torch.device):
+        self.x, self.t = x.clone(), t.clone()
+        self.leaves = [v.clone() if torch.is_tensor(v) else v for v in leaves]
+        self.owner: Any = None
+        cond = pytree.tree_unflatten(self.leaves, spec)
+        # PyTorch's recipe: warm up on a side stream (lazy init, cuDNN/compile choices), then capture.
+        stream = torch.cuda.Stream(device)
+        stream.wait_stream(torch.cuda.current_stream(device))
+        with torch.no_grad(), torch.cuda.stream(stream):
+            for _ in range(3):
+                eager(self.x, self.t, cond)
+        torch.cuda.current_stream(device).wait_stream(stream)
+        self.graph = torch.cuda.CUDAGraph()
+        with torch.no_grad(), torch.cuda.graph(self.graph):
+            self.out = eager(self.x, self.t, cond)
+
+    def load(self, owner: Any, leaves: list) -> None:
+        if self.owner is not owner:
+            for static, v in zip(self.leaves, leaves):
+                if torch.is_tensor(static):
+                    static.copy_(v)
+            self.owner = owner
+
+
+class _GraphedDenoiser:
+    """``(x, t) -> eps`` replaying one CUDA graph per batch size; captured on first use of each."""
+
+    def __init__(self, runtime: Runtime, forward: Callable, eager: Callable, cond: Any):
+        self.runtime, self.eager = runtime, eager
+        self.leaves, self.spec = _flatten(cond)
+        self.graphs = _GRAPHS.setdefault(forward, {})
+        self.cond_key = (runtime.precision, runtime.compile, str(self.spec), tuple(map(_signature, self.leaves)))
+        # Copy the condition now: the caller may free or overwrite its tensors before the first step.
+        for g in self.graphs.values():
+            if g.key_cond == self.cond_key:
+                g.load(self, self.leaves)
+
+    def __call__(self, x: Tensor, t: Tensor) -> Tensor:
+        key = (self.cond_key, _signature(x), _signature(t))
+        graph = self.graphs.get(key)
+        if graph is None:
+            graph = _Graph(self.eager, x, t, self.leaves, self.spec, self.runtime.torch_device)
+            graph.key_cond, graph.owner = self.cond_key, self
+            self.graphs[key] = graph
+        graph.load(self, self.leaves)  # another denoiser may have loaded its condition since
+        graph.x.copy_(x)
+        graph.t.copy_(t)
+        graph.graph.replay()
+        # Multistep samplers keep earlier eps: hand out a copy, never the static buffer.
+        return graph.out.clone()
+
+
+# ---------------------------------------------------------------------- FLOPs and peaks
+def count_flops(fn: Callable, *args: Any, **kwargs: Any) -> int:
+    """FLOPs (2 per multiply-add) of one call of ``fn`` (forward and, if ``fn`` calls backward, backward)."""
+    from torch.utils.flop_counter import FlopCounterMode
+
+    with FlopCounterMode(display=False) as counter:
+        fn(*args, **kwargs)
+    return int(counter.get_total_flops())
+
+
+#: Dense bf16 tensor-core peaks (FLOP/s) by a substring of ``torch.cuda.get_device_name``; H200 is the H100 chip.
+GPU_BF16_PEAK = {"H200": 989e12, "H100 PCIe": 756e12, "H100 NVL": 835e12, "H100": 989e12, "A100": 312e12}
+
+
+def peak_flops(device: torch.device | str, precision: str = "bf16") -> tuple[float | None, str]:
+    """``(peak FLOP/s or None, how it was obtained)`` of a device at a precision (nominal, not measured)."""
+    device = torch.device(device)
+    if device.type == "cuda":
+        name = torch.cuda.get_device_name(device)
+        for key, peak in GPU_BF16_PEAK.items():
+            if key in name:
+                # fp32 runs on the tensor cores as TF32 at half the bf16 rate when allowed; report bf16 only.
+                return (peak, f"{name}: dense bf16 datasheet") if precision != "fp32" else (None, name)
+        return None, f"{name}: peak unknown"
+    return _cpu_peak(precision)
+
+
+def _cpu_peak(precision: str) -> tuple[float | None, str]:
+    try:
+        info = open("/proc/cpuinfo").read()
+    except OSError:
+        return None, "no /proc/cpuinfo"
+    flags = set(re.search(r"^flags\s*:(.*)$", info, re.M).group(1).split())
+    mhz = float(re.search(r"^cpu MHz\s*:\s*([\d.]+)", info, re.M).group(1))
+    family = int(re.search(r"^cpu family\s*:\s*(\d+)", info, re.M).group(1))
+    vendor = re.search(r"^vendor_id\s*:\s*(\S+)", info, re.M).group(1)
+    cores = len(os.sched_getaffinity(0))
+    # FP32 FLOP/cycle/core: two FMA pipes x lanes x 2. AMD Zen 4 (family 25) runs AVX-512 on 256-bit pipes.
+    if "avx512f" in flags:
+        fp32 = 32 if vendor == "AuthenticAMD" and family == 25 else 64
+    elif "fma" in flags:
+        fp32 = 32
+    else:
+        fp32 = 8
+    per_cycle, how = fp32, f"{cores} cores x {mhz:.0f} MHz x {fp32} FP32 FLOP/cycle"
+    if precision in ("bf16", "fp16") and "avx512_bf16" in flags:
+        per_cycle, how = 2 * fp32, f"{cores} cores x {mhz:.0f} MHz x {2 * fp32} bf16 FLOP/cycle (avx512_bf16 dot)"
+    return cores * mhz * 1e6 * per_cycle, how + " (nominal; /proc/cpuinfo clock)"
