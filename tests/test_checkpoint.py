@@ -109,6 +109,13 @@ def test_relightable_interface_and_bad_stats():
     assert m.consumes == ["shading", "background", "cam", "shadow"]
     assert m.hparams["spatial"] == {"type": "modulator"} and m.hparams["nonspatial_stats"]["std"] == [1.0] * 4
     assert "ns_mean" not in m.state_dict()  # constants, not weights: not averaged by the EMA callback
+    # adagn_out_silu (default: the public code's trailing SiLU) reaches every MLP3; old checkpoints are built without.
+    from difareli.nn.unet import MLP3
+
+    last = {type(mlp[-1]).__name__ for mlp in m.net.modules() if isinstance(mlp, MLP3)}
+    assert m.hparams["adagn_out_silu"] is True and last == {"SiLU"}
+    old = load_checkpoint(OLD).model
+    assert {type(mlp[-1]).__name__ for mlp in old.net.modules() if isinstance(mlp, MLP3)} == {"Linear"}
     with pytest.raises(ValueError, match="nonspatial_stats needs 4 means"):
         DiffusionModule(input_dims=dims, spatial_inputs=["shading", "background"],
                         nonspatial_stats={"mean": [0.0], "std": [1.0]})

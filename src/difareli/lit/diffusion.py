@@ -79,7 +79,7 @@ class DiffusionModule(L.LightningModule):
         nonspatial_inputs: Sequence[str] = ("shape", "cam", "identity"),
         input_dims: Mapping[str, int] | None = None,
         adagn_scale_plus_one: bool = True,
-        adagn_out_silu: bool = False,
+        adagn_out_silu: bool = True,
         net_overrides: Mapping[str, Any] | None = None,
         optimizer: Callable | Mapping[str, Any] | None = None,
         scheduler: Callable | Mapping[str, Any] | None = None,

@@ -45,7 +45,9 @@ class UNetConfig:
     norm_groups: int = 32
     adagn_scale_plus_one: bool = True  # (1 + t_s) as in the public code; False: the paper's t_s
     adagn_hidden: int = 512  # hidden width of the per-block MLP3 (paper, Appendix III)
-    adagn_out_silu: bool = False  # the public code ends MLP3 with a SiLU; the paper's Linear-SiLU-...-Linear does not
+    # The public code ends MLP3 with a SiLU, the paper's Linear-SiLU-...-Linear does not; a side-by-side training
+    # found no difference (conf/model/difareli_pp.yaml), so the public code's choice is the default.
+    adagn_out_silu: bool = True
     grad_checkpoint: bool = False  # recompute residual/attention blocks in backward to save memory
 
     @property
