@@ -114,4 +114,4 @@ def test_benchmark_logs_summary_table_and_comparisons(synth_store, tmp_path):
     ea = _events(tmp_path / "tensorboard")
     assert set(ea.Tags()["images"]) == {"benchmark/comparison_same_subject", "benchmark/comparison_different_subject"}
     assert _text(ea, "benchmark/summary") == result.table.to_markdown(digits=4)
-    assert "kind: identity" in _text(ea, "config") and "git commit" in _text(ea, "config")
+    assert "_target_: difareli.baselines.Identity" in _text(ea, "config") and "git commit" in _text(ea, "config")

@@ -72,8 +72,8 @@ def test_optuna_search_space_composes():
     sw = cfg.hydra.sweeper
     assert sw._target_.endswith("OptunaSweeper") and sw.direction == "minimize"
     assert sw.sampler._target_ == "optuna.samplers.TPESampler"
-    assert set(sw.params) == {"model.lr", "data.batch_size", "callbacks.ema.decay"}
-    assert cfg.optimized_metric == "val/loss" and "lr" in cfg.model and "decay" in cfg.callbacks.ema
+    assert set(sw.params) == {"model.optimizer.lr", "data.batch_size", "callbacks.ema.decay"}
+    assert cfg.optimized_metric == "val/loss" and "lr" in cfg.model.optimizer and "decay" in cfg.callbacks.ema
 
 
 @pytest.mark.slow  # three interpreters (the sweep + 2 submitit jobs): ~30 s idle, ~80 s on the loaded 2-core CI

@@ -42,9 +42,9 @@ def test_optuna_three_trials_minimise_val_loss(synth_store, tmp_path):
     assert result["name"] == "optuna" and result["best_value"] == pytest.approx(min(losses), rel=1e-6)
     for p in trials:
         over = dict(o.split("=", 1) for o in yaml.safe_load((p / ".hydra" / "overrides.yaml").read_text()))
-        assert 1e-5 <= float(over["model.lr"]) <= 1e-3
+        assert 1e-5 <= float(over["model.optimizer.lr"]) <= 1e-3
         assert int(over["data.batch_size"]) in (8, 16, 32)
         assert float(over["callbacks.ema.decay"]) in (0.999, 0.9995, 0.9999)
     best = losses.index(min(losses))
     best_over = dict(o.split("=", 1) for o in yaml.safe_load((trials[best] / ".hydra" / "overrides.yaml").read_text()))
-    assert float(result["best_params"]["model.lr"]) == pytest.approx(float(best_over["model.lr"]))
+    assert float(result["best_params"]["model.optimizer.lr"]) == pytest.approx(float(best_over["model.optimizer.lr"]))
