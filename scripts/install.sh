@@ -17,8 +17,10 @@ fi
 cons=$(mktemp)
 python -c "import torch; print('torch==' + torch.__version__.split('+')[0])" > "$cons"
 if [ -n "${DIFARELI_PREPROCESS:-}" ]; then
-  # mediapipe 0.10.21 is the last release that ships its models; it pins numpy<2 and protobuf<5.
-  echo "numpy<2" >> "$cons"
+  # mediapipe 0.10.21 is the last release that ships its models; it pins numpy<2 and protobuf<5. Resolve
+  # everything against protobuf<5 from the start: tensorboard >= 2.20 and wandb >= 0.29 ship protobuf-6 generated
+  # code (import errors under protobuf 4) while their metadata still accepts protobuf 4.
+  printf '%s\n' "numpy<2" "protobuf<5" "tensorboard<2.20" "wandb<0.29" >> "$cons"
 fi
 pip install -q -c "$cons" -e ".[dev]"
 # Data-only packages whose metadata would drag in torchvision (a CUDA build here): install without deps.

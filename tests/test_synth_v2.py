@@ -113,8 +113,15 @@ def test_multi_sun_keeps_key_and_ambient_and_projects_every_sun():
 
 # ------------------------------------------------------------------------------------------ generator
 def test_realism_lambertian_is_v1_bit_for_bit():
-    """Hashes of every encoding written by the v1 generator (commit 4819440) for seed 7, 32 px."""
+    """Hashes of every encoding written by the v1 generator (commit 4819440) for seed 7, 32 px.
+
+    numpy 1.x and 2.x round one subject's whole-mesh depth differently (both taken from the v1 code, each
+    under its numpy: ``_numpy1`` holds the 1.x hashes where they differ; CI runs numpy<2 for mediapipe)."""
     gold = json.loads(GOLDEN.read_text())
+    overrides = gold.pop("_numpy1")
+    if int(np.__version__.split(".")[0]) < 2:
+        for rid, hashes in overrides.items():
+            gold[rid].update(hashes)
     for inputs in ("exact", "estimated"):
         cfg = gen.SynthConfig(subjects=3, lights=3, resolution=32, seed=7, realism="lambertian", inputs=inputs)
         seen = 0

@@ -68,7 +68,8 @@ class Encoding:
     ``onehot``: number of classes when a label map is fed to a network one-hot (0: fed as values);
     ``rerender``: ``"module:function"`` computing the encoding under a target light as
     ``function(arrays, light, shadow) -> array`` (``shadow``: the target logit c', or the input's own when the
-    user gave none); ``needs``: the encodings that function reads besides the light. An encoding is
+    user gave none); ``needs``: the encodings that function reads besides the light; ``oracle``: a ground-truth
+    value of synthetic data, never estimated from a photo. An encoding is
     light-dependent exactly when it has a ``rerender`` (this table is the only list of them).
     """
 
@@ -80,6 +81,7 @@ class Encoding:
     onehot: int = 0
     rerender: str | None = None
     needs: tuple[str, ...] = ()
+    oracle: bool = False  # an exact value only a renderer knows (SynthFaces' *_gt): no estimator produces it
 
     @property
     def light_dependent(self) -> bool:
@@ -160,14 +162,14 @@ _ENCODINGS = (
     # SynthFaces v2: the exact values of the model inputs, which hold estimated ones in v2 stores (oracle studies).
     # As model inputs (oracle studies) they re-render under a target light exactly like their estimated twins.
     Encoding("light_gt", (9, 3), "float32", "exact SH light (ambient + every sun), as `light`",
-             rerender="difareli.targets:render_light"),
+             rerender="difareli.targets:render_light", oracle=True),
     Encoding("shading_gt", ("H", "W", 3), "float32", "shading reference of light_gt, as `shading`", spatial=True,
-             rerender="difareli.targets:render_shading", needs=("normal",)),
+             rerender="difareli.targets:render_shading", needs=("normal",), oracle=True),
     Encoding("shadow_gt", (1,), "float32", "exact cast-shadow logit c (all suns), as `shadow`",
-             rerender="difareli.targets:render_shadow"),
+             rerender="difareli.targets:render_shadow", oracle=True),
     Encoding("shadow_map_gt", ("H", "W"), "float32", "exact cast-shadow map (union over suns) times "
              "normalised shadow_gt, as `shadow_map`", spatial=True,
-             rerender="difareli.targets:render_shadow_map", needs=("depth", "normal", "cam", "shadow")),
+             rerender="difareli.targets:render_shadow_map", needs=("depth", "normal", "cam", "shadow"), oracle=True),
 )
 
 #: All encodings by name, in schema order.

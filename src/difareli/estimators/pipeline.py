@@ -27,13 +27,15 @@ PREVIEWS = "previews"
 
 
 class Pipeline:
-    """An aligner plus estimators; ``encodings`` (default: all of the schema) decide which estimators run."""
+    """An aligner plus estimators; ``encodings`` (default: every encoding of the schema a photo can give, i.e.
+    all but the synthetic ground truth) decide which estimators run."""
 
     def __init__(self, aligner, estimators: Sequence[Any], encodings: Iterable[str] | None = None,
                  min_side: int = 64, max_side: int = 8192):
         self.aligner = aligner
         self.estimators = [e for e in estimators if e is not None]
-        self.encodings = tuple(ENCODINGS) if encodings is None else tuple(dict.fromkeys(encodings))
+        estimable = tuple(n for n, e in ENCODINGS.items() if not e.oracle)
+        self.encodings = estimable if encodings is None else tuple(dict.fromkeys(encodings))
         unknown = [e for e in self.encodings if e not in ENCODINGS]
         if unknown:
             raise ValueError(f"unknown encodings {unknown}; the schema has {list(ENCODINGS)}")
