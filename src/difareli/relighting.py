@@ -15,6 +15,7 @@ The :class:`~difareli.runtime.Runtime` decides device, precision, compile and CU
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 from pathlib import Path
 from typing import Any, Iterable, Mapping, Protocol, Sequence, runtime_checkable
 
@@ -137,7 +138,7 @@ class Relighter:
 
         rt = runtime if isinstance(runtime, Runtime) else Runtime.from_config(runtime)
         if device is not None:  # the older keyword: the device alone
-            rt = Runtime.from_config({**_fields(rt), "device": device})
+            rt = dataclasses.replace(rt, device=device)
         self.runtime = rt
         self.device = rt.torch_device
         ckpt = checkpoint if isinstance(checkpoint, LoadedCheckpoint) else load_checkpoint(checkpoint, self.device)
@@ -193,10 +194,21 @@ class Relighter:
                        shadows: Iterable[float | None] | None = None, *, key: Any = None,
                        what: str = "in-memory record") -> np.ndarray:
         """Relit images (N, H, W, 3) uint8 of one record given as arrays under N target lights (and shadow
-        logits c'); ``key`` caches its inversion (records of a store use ``(store root, id)``)."""
+        logits c'); ``key`` caches its inversion."""
         # Non-finite inputs would decode to a black image without a word: stop here, naming what is wrong.
         for name in self.needed_encodings():
             errors.check_finite(arrays[name], f"{what}, encoding {name!r}")
+        return self._relight(arrays, lights, shadows, key, what)
+
+    def relight_record(self, store: EncodingStore, record_id: str, lights: Iterable[np.ndarray],
+                       shadows: Iterable[float | None] | None = None) -> np.ndarray:
+        """Relit images (N, H, W, 3) uint8 of one store record under N target lights (and shadow logits c')."""
+        # read() has checked the record's encodings; its inversion is cached under (store root, id).
+        return self._relight(self.read(store, record_id), lights, shadows, (str(store.root), record_id),
+                             f"record {record_id!r} of {store.root}")
+
+    def _relight(self, arrays: Mapping[str, np.ndarray], lights: Iterable[np.ndarray],
+                 shadows: Iterable[float | None] | None, key: Any, what: str) -> np.ndarray:
         lights = [errors.check_light(l, f"target light {i} of {what}") for i, l in enumerate(lights)]
         shadows = list(shadows) if shadows is not None else [None] * len(lights)
         if len(shadows) != len(lights):
@@ -217,18 +229,6 @@ class Relighter:
                                 fix="the model produced NaN/Inf; try precision=fp32 or another checkpoint")
             out.extend(viz.to_uint8(xi.clamp(-1, 1)) for xi in x)
         return np.stack(out)
-
-    def relight_record(self, store: EncodingStore, record_id: str, lights: Iterable[np.ndarray],
-                       shadows: Iterable[float | None] | None = None) -> np.ndarray:
-        """Relit images (N, H, W, 3) uint8 of one store record under N target lights (and shadow logits c')."""
-        return self.relight_arrays(self.read(store, record_id), lights, shadows, key=(str(store.root), record_id),
-                                   what=f"record {record_id!r} of {store.root}")
-
-
-def _fields(rt: Runtime) -> dict[str, Any]:
-    from dataclasses import asdict
-
-    return asdict(rt)
 
 
 def write_video(frames: np.ndarray, path: str | Path, fps: int = 20) -> Path:

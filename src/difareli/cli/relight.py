@@ -34,7 +34,6 @@ def run(cfg: DictConfig) -> dict[str, Path]:
         light = target_lights(src["light"], light=t.light, other_light=other.get("light"), yaw=t.yaw,
                               roll=t.roll, envmap=t.envmap)
         shadow = t.shadow if t.shadow is not None else (float(other["shadow"][0]) if "shadow" in other else None)
-        errors.check_number(shadow, f"target shadow (target.shadow or record {t.record}'s shadow)")
         start = time.perf_counter()
         relit = relighter.relight_record(store, rid, [light], [shadow])[0]
         print(f"relit {rid} in {time.perf_counter() - start:.2f} s ({cfg.sampler.name}, {cfg.sampler.steps} steps, "
