@@ -272,10 +272,11 @@ def load_torch_file(path: Any, what: str = "checkpoint", map_location: Any = "cp
                         "truncated or corrupt: copy it again or use another checkpoint") from None
 
 
-def check_resume(ckpt_path: Any, model: Any) -> None:
+def check_resume(ckpt_path: Any, model: Any, ckpt: Mapping[str, Any] | None = None) -> None:
     """Resuming ``model`` from ``ckpt_path``: if state-dict keys or shapes differ, raise a UserError listing
-    the differing hyperparameters (or tensors), instead of PyTorch's size-mismatch dump."""
-    ckpt = load_torch_file(ckpt_path, "ckpt_path")
+    the differing hyperparameters (or tensors), instead of PyTorch's size-mismatch dump. ``ckpt``: the
+    checkpoint dict when the caller has already read it."""
+    ckpt = load_torch_file(ckpt_path, "ckpt_path") if ckpt is None else ckpt
     if not isinstance(ckpt, dict) or "state_dict" not in ckpt:
         raise UserError(f"ckpt_path={ckpt_path} is not a Lightning checkpoint (no state_dict)")
     have = {k: tuple(v.shape) for k, v in ckpt["state_dict"].items() if hasattr(v, "shape")}

@@ -11,6 +11,7 @@ from omegaconf import DictConfig
 
 from difareli import errors
 from difareli.cli import common
+from difareli.lit.checkpoint import read_checkpoint
 from difareli.lit import logging as lit_logging
 
 
@@ -20,30 +21,32 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         errors.check_sampler(cfg.sampler)
     L.seed_everything(cfg.seed, workers=True)
     datamodule = hydra.utils.instantiate(cfg.data)
+    ckpt_path = cfg.get("ckpt_path")
+    # A resumed checkpoint is read once here (its statistics, the config check); Lightning then restores it.
+    # ("last"/"best" are Lightning's names: no file to read here.)
+    ckpt = read_checkpoint(ckpt_path) if ckpt_path and Path(ckpt_path).is_file() else None
     # The network's input sizes and the non-spatial statistics come from the data set (the training split),
     # or, when resuming, from the checkpoint: a resumed run keeps the normalisation it was trained with.
     model = hydra.utils.instantiate(cfg.model, input_dims=datamodule.input_dims(),
-                                    nonspatial_stats=nonspatial_stats(datamodule, cfg.get("ckpt_path")))
+                                    nonspatial_stats=nonspatial_stats(datamodule, ckpt))
     trainer = hydra.utils.instantiate(
         cfg.trainer,
         callbacks=common.instantiate_group(cfg.get("callbacks")),
         logger=common.instantiate_group(cfg.get("logger")) or False,
     )
     common.log_hyperparameters(trainer, cfg)
-    if cfg.get("ckpt_path"):  # a mismatching config: list what differs, not a size-mismatch dump
-        errors.check_resume(cfg.ckpt_path, model)
+    if ckpt_path:  # a mismatching config: list what differs, not a size-mismatch dump
+        errors.check_resume(ckpt_path, model, ckpt)
     lit_logging.log_run_info(trainer, cfg)  # git commit + resolved config as text
-    trainer.fit(model, datamodule=datamodule, ckpt_path=cfg.get("ckpt_path"))
+    trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt_path)
     metric = common.metric_value(trainer.callback_metrics, cfg.get("optimized_metric"))
     return {"trainer": trainer, "model": model, "datamodule": datamodule, "metric": metric}
 
 
-def nonspatial_stats(datamodule, ckpt_path: str | None) -> dict[str, list[float]] | None:
-    """Plain ``{mean, std}`` lists: from ``ckpt_path`` when resuming, else from the training split."""
-    if ckpt_path and Path(ckpt_path).is_file():  # ("last"/"best" are Lightning's names: no file to read here)
-        from difareli.lit.checkpoint import nonspatial_stats as from_checkpoint
-
-        return from_checkpoint(ckpt_path)
+def nonspatial_stats(datamodule, ckpt: dict[str, Any] | None) -> dict[str, list[float]] | None:
+    """Plain ``{mean, std}`` lists: from the checkpoint dict when resuming, else from the training split."""
+    if ckpt is not None:
+        return ckpt["hyper_parameters"].get("nonspatial_stats")
     mean, std = datamodule.nonspatial_stats()
     return {"mean": [float(v) for v in mean], "std": [float(v) for v in std]}
 

@@ -91,11 +91,6 @@ def read_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     return upgrade_checkpoint(ckpt)
 
 
-def nonspatial_stats(path: str | Path) -> dict[str, list[float]] | None:
-    """The non-spatial statistics a checkpoint was trained with (plain lists), e.g. to resume training."""
-    return read_checkpoint(path)["hyper_parameters"].get("nonspatial_stats")
-
-
 def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> LoadedCheckpoint:
     """Load a checkpoint with ``torch.load(weights_only=True)`` into the module class it records.
 
