@@ -12,7 +12,7 @@ import hydra
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from difareli import errors, speed
+from difareli import errors, speed, zoo
 from difareli.cli import common
 from difareli.runtime import Runtime
 from difareli.store import EncodingStore
@@ -26,7 +26,7 @@ def run(cfg: DictConfig) -> dict:
     errors.check_int(cfg.repeats, "repeats", 1)
     errors.check_out_dir(cfg.out_dir)
     if cfg.checkpoint is not None:
-        errors.check_file(cfg.checkpoint, "checkpoint")
+        zoo.resolve(cfg.checkpoint, "checkpoint")
     runtime = Runtime.from_config(cfg.runtime)
     device = runtime.torch_device
     if cfg.threads:

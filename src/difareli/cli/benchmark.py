@@ -8,7 +8,7 @@ import hydra
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from difareli import errors
+from difareli import errors, zoo
 from difareli import shard as sharding
 from difareli.baselines import build_method, light_fit_from_config
 from difareli.benchmark import BenchmarkResult, run_benchmark
@@ -61,7 +61,7 @@ def validate(cfg: DictConfig) -> None:
     errors.check_out_dir(cfg.out_dir)
     if "checkpoint" in cfg.method:  # a trained model (the diffusion method): its sampler and file
         errors.check_sampler(cfg.sampler)
-        errors.check_file(cfg.method.get("checkpoint") or "", "method.checkpoint")
+        zoo.resolve(cfg.method.get("checkpoint") or "", "method.checkpoint")
 
 
 @hydra.main(version_base="1.3", config_path=common.CONFIG_PATH, config_name="benchmark")

@@ -17,9 +17,6 @@ from omegaconf import DictConfig, OmegaConf
 from difareli.cli.common import CONFIG_PATH
 from difareli.errors import UserError, check_out_dir, cli_entry
 
-ROLES = ("geometry", "masks", "light", "identity", "shadow")
-
-
 def requested_encodings(cfg: DictConfig) -> list[str] | None:
     """``cfg.encodings``, else the chosen variant's spatial + non-spatial inputs plus ``image``, else None (all)."""
     if cfg.get("encodings") is not None:
@@ -35,9 +32,8 @@ def build_pipeline(cfg: DictConfig):
     """Instantiate the aligner and the estimators of ``cfg.estimators`` into a Pipeline."""
     from difareli.estimators.pipeline import Pipeline
 
-    est = cfg.estimators
-    return Pipeline(hydra.utils.instantiate(est.align), [hydra.utils.instantiate(est[r]) for r in ROLES if est.get(r)],
-                    requested_encodings(cfg), min_side=int(cfg.min_side), max_side=int(cfg.max_side))
+    return Pipeline.from_config(cfg.estimators, requested_encodings(cfg), min_side=int(cfg.min_side),
+                                max_side=int(cfg.max_side))
 
 
 @hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name="preprocess")

@@ -1,4 +1,9 @@
-"""difareli-relight: relight a store record from a checkpoint under a target light, or render a rotation video."""
+"""difareli-relight: relight a store record or a photo from a checkpoint under a target light, or render a rotation
+video.
+
+    difareli-relight checkpoint=difareli_pp-synth64 image=photo.jpg target.yaw=45
+    difareli-relight checkpoint=<run>/checkpoints/last.ckpt store=data/synthfaces_64 video.axis=yaw
+"""
 
 from __future__ import annotations
 
@@ -9,7 +14,7 @@ import hydra
 import numpy as np
 from omegaconf import DictConfig
 
-from difareli import errors, viz
+from difareli import errors, photo, viz, zoo
 from difareli.cli import common
 from difareli.relighting import Relighter, write_video
 from difareli.store import EncodingStore
@@ -19,11 +24,25 @@ from difareli.targets import rotation_lights, target_lights
 def run(cfg: DictConfig) -> dict[str, Path]:
     """Relight as configured; returns the paths written."""
     validate(cfg)
-    store = EncodingStore.open(cfg.store)
-    rid = cfg.record or (store.ids(split="test") or store.ids())[0]
+    store = EncodingStore.open(cfg.store) if cfg.store is not None else None
     relighter = Relighter(cfg.checkpoint, cfg.sampler, runtime=cfg.runtime, mean_matching=cfg.mean_matching,
                           batch_size=cfg.batch_size, progress=cfg.progress)
-    src = relighter.read(store, rid)  # checked finite by the relighting core
+    if cfg.image is not None:  # a photo: the estimators of difareli-preprocess, in memory, for what the model reads
+        start = time.perf_counter()
+        src = photo.preprocess_photo(photo.read_photo(cfg.image), relighter.needed_encodings(),
+                                     size=int(cfg.photo_size), what=f"image={cfg.image}")
+        print(f"preprocessed {cfg.image} in {time.perf_counter() - start:.1f} s ({cfg.photo_size} px)")
+        rid = Path(str(cfg.image)).stem
+
+        def relight_to(lights, shadows):
+            return relighter.relight_arrays(src, lights, shadows, key=("image", str(cfg.image)),
+                                            what=f"image={cfg.image}")
+    else:
+        rid = cfg.record or (store.ids(split="test") or store.ids())[0]
+        src = relighter.read(store, rid)  # checked finite by the relighting core
+
+        def relight_to(lights, shadows):
+            return relighter.relight_record(store, rid, lights, shadows)
     out_dir, written = Path(cfg.out_dir), {}
     t = cfg.target
     want_image = any(t[k] is not None for k in ("light", "record", "yaw", "roll", "envmap"))
@@ -35,18 +54,18 @@ def run(cfg: DictConfig) -> dict[str, Path]:
                               roll=t.roll, envmap=t.envmap)
         shadow = t.shadow if t.shadow is not None else (float(other["shadow"][0]) if "shadow" in other else None)
         start = time.perf_counter()
-        relit = relighter.relight_record(store, rid, [light], [shadow])[0]
+        relit = relight_to([light], [shadow])[0]
         print(f"relit {rid} in {time.perf_counter() - start:.2f} s ({cfg.sampler.name}, {cfg.sampler.steps} steps, "
               f"{relighter.runtime.precision}{', compiled' if relighter.runtime.compile else ''})")
         row = [src["image"], relit]
-        if t.record is not None and store.meta(t.record).get("subject") == store.meta(rid).get("subject"):
+        if t.record is not None and store is not None and store.meta(t.record).get("subject") == store.meta(rid).get("subject"):
             row.append(np.asarray(store.read(t.record, ["image"])["image"]))  # ground truth: same subject
         written["image"] = viz.save_png(relit, out_dir / "relit.png")
         written["comparison"] = viz.save_png(viz.grid([row]), out_dir / "comparison.png")
     if cfg.video.axis is not None:
         lights = rotation_lights(src["light"], cfg.video.axis, cfg.video.frames)
         start = time.perf_counter()
-        frames = relighter.relight_record(store, rid, lights, [t.shadow] * len(lights))
+        frames = relight_to(lights, [t.shadow] * len(lights))
         print(f"{len(frames)} frames in {time.perf_counter() - start:.1f} s")
         written["video"] = write_video(frames, out_dir / f"rotation_{cfg.video.axis}.{cfg.video.format}", cfg.video.fps)
         sheet = [list(frames[i:i + 10]) for i in range(0, len(frames), 10)]
@@ -59,11 +78,17 @@ def run(cfg: DictConfig) -> dict[str, Path]:
 def validate(cfg: DictConfig) -> None:
     """Config values and input files, checked before any work (issue 15)."""
     errors.check_sampler(cfg.sampler)
-    errors.check_file(cfg.checkpoint, "checkpoint")
+    zoo.resolve(cfg.checkpoint, "checkpoint")
     errors.check_int(cfg.video.frames, "video.frames", 1)
     errors.check_int(cfg.video.fps, "video.fps", 1)
     errors.check_int(cfg.batch_size, "batch_size", 1)
     errors.check_out_dir(cfg.out_dir)
+    if (cfg.image is None) == (cfg.store is None):
+        raise errors.UserError("give the source as either store=<encodings store> (and record=) or image=<photo>; "
+                               f"got store={cfg.store} image={cfg.image}")
+    if cfg.target.record is not None and cfg.store is None:
+        raise errors.UserError(f"target.record={cfg.target.record} names a store record: give store= too")
+    errors.check_int(cfg.photo_size, "photo_size", 16)
     for key in ("yaw", "roll", "shadow"):
         errors.check_number(cfg.target[key], f"target.{key}")
     for key in ("light", "envmap"):

@@ -13,7 +13,7 @@ import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Sequence
+from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 
@@ -23,6 +23,8 @@ from difareli.store import EncodingStore
 from .loading import BadInput, list_inputs, load_image, record_ids
 
 REPORT = "preprocess_report.json"
+#: Estimator roles of a config's ``estimators`` block, in the order they are instantiated.
+ROLES = ("geometry", "masks", "light", "identity", "shadow")
 PREVIEWS = "previews"
 
 
@@ -41,6 +43,16 @@ class Pipeline:
             raise ValueError(f"unknown encodings {unknown}; the schema has {list(ENCODINGS)}")
         self.min_side, self.max_side = min_side, max_side
         self.steps, self.needed = self.plan(self.encodings)
+
+    @classmethod
+    def from_config(cls, estimators: Mapping[str, Any], encodings: Iterable[str] | None = None,
+                    **kwargs: Any) -> "Pipeline":
+        """Instantiate the aligner and the estimators of an ``estimators`` config block (``conf/preprocess/``:
+        ``align`` plus one entry per role) into a Pipeline for ``encodings``."""
+        from hydra.utils import instantiate
+
+        roles = [instantiate(estimators[r]) for r in ROLES if estimators.get(r)]
+        return cls(instantiate(estimators["align"]), roles, encodings, **kwargs)
 
     @property
     def size(self) -> int:

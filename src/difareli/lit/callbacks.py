@@ -156,3 +156,40 @@ class SampleGrid(L.Callback):
         if self._active(trainer):
             path = self.write(trainer, pl_module, Path(trainer.default_root_dir) / "sample_grid.png")
             log_image(trainer, "samples/grid", path)
+
+
+class Throughput(L.Callback):
+    """Logs ``perf/images_per_s`` and ``perf/s_per_step`` over each window of ``every_n_steps`` training steps
+    (device synchronised; validation and checkpointing inside a window are excluded), so a run's speed sits in
+    its metrics beside the loss (the reference recipes read it back)."""
+
+    def __init__(self, every_n_steps: int = 50):
+        self.every = int(every_n_steps)
+        self._start: float | None = None
+        self._steps = self._images = 0
+
+    def _sync(self, module: L.LightningModule) -> None:
+        if module.device.type == "cuda":
+            torch.cuda.synchronize(module.device)
+
+    def on_train_batch_start(self, trainer, module, batch, batch_idx):
+        if self._start is None:
+            import time
+
+            self._sync(module)
+            self._start = time.perf_counter()
+
+    def on_train_batch_end(self, trainer, module, outputs, batch, batch_idx):
+        import time
+
+        self._steps += 1
+        self._images += int(batch["image"].shape[0]) if isinstance(batch, Mapping) else 0
+        if self._steps >= self.every:
+            self._sync(module)
+            seconds = time.perf_counter() - self._start
+            module.log_dict({"perf/images_per_s": self._images / seconds, "perf/s_per_step": seconds / self._steps},
+                            on_step=True, on_epoch=False)
+            self._start, self._steps, self._images = None, 0, 0
+
+    def on_validation_start(self, trainer, module):
+        self._start, self._steps, self._images = None, 0, 0  # a window never spans validation

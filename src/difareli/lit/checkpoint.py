@@ -16,6 +16,7 @@ from typing import Any
 import lightning as L
 import torch
 
+from difareli import zoo
 from difareli.errors import load_torch_file
 from difareli.lit.diffusion import FORMAT_KEY, FORMAT_VERSION, MODULE_KEY
 
@@ -81,10 +82,8 @@ def module_class(path: str) -> type[L.LightningModule]:
 
 
 def read_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:
-    """The checkpoint dict (``torch.load(weights_only=True)``), translated to the current format."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"checkpoint {path} does not exist (difareli-train writes <run>/checkpoints/last.ckpt)")
+    """The checkpoint dict (``path``: a file or a shipped name such as ``difareli_pp-synth64``) (``torch.load(weights_only=True)``), translated to the current format."""
+    path = zoo.resolve(path)  # a file, or the name of a shipped checkpoint (difareli.zoo)
     ckpt = load_torch_file(path, "checkpoint", map_location)  # torch.load(weights_only=True), errors name the file
     if "hyper_parameters" not in ckpt or "state_dict" not in ckpt:
         raise ValueError(f"{path} is not a difareli Lightning checkpoint (no hyper_parameters/state_dict)")

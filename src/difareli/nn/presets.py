@@ -20,6 +20,10 @@ PRESETS: dict[str, dict[str, Any]] = {
     # CPU tests and smoke runs: ~1.5M parameters with a Modulator.
     "tiny": dict(base_channels=32, channel_mult=[1, 2, 2], num_res_blocks=1, attention_resolutions=[8], image_size=32,
                  num_heads=2, adagn_hidden=128),
+    # The GPU reference (experiment=reference_gpu): 7.3M parameters with a Modulator, so its bf16 EMA weights
+    # (14.6 MB) come back from a lent GPU (16 MiB per file) and three references ship under 60 MB.
+    "small": dict(base_channels=64, channel_mult=[1, 2, 2], num_res_blocks=1, attention_resolutions=[16, 8],
+                  image_size=64, num_heads=4, adagn_hidden=192),
     "ffhq128": dict(base_channels=128, channel_mult=[1, 1, 2, 3, 4], num_res_blocks=2, attention_resolutions=[16, 8],
                     image_size=128, num_heads=4),
     "ffhq256": dict(base_channels=128, channel_mult=[1, 1, 2, 2, 4, 4], num_res_blocks=2,

@@ -1,0 +1,53 @@
+"""difareli-demo: the README's main job: a shipped checkpoint relights unseen faces (see ``difareli.demo``)."""
+
+from __future__ import annotations
+
+import time
+
+import hydra
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from difareli import errors, zoo
+from difareli.cli import common
+from difareli.demo import DemoResult, run_demo
+
+
+def run(cfg: DictConfig) -> DemoResult:
+    """Run the demo as configured; prints what it wrote and the benchmark table."""
+    validate(cfg)
+    if cfg.num_threads is not None:
+        torch.set_num_threads(int(cfg.num_threads))
+    start = time.perf_counter()
+    res = run_demo(str(zoo.resolve(cfg.checkpoint)), cfg.out_dir, sampler=OmegaConf.to_container(cfg.sampler),
+                   runtime=OmegaConf.to_container(cfg.runtime), subjects=int(cfg.subjects),
+                   resolution=int(cfg.resolution), seed=int(cfg.seed), frames=int(cfg.frames), pairs=int(cfg.pairs),
+                   rows=int(cfg.rows), photo=bool(cfg.photo), progress=bool(cfg.progress))
+    print(res.table.to_markdown() if res.table is not None else "")
+    for note in res.notes:
+        print(note)
+    for key, path in res.paths.items():
+        print(f"{key}: {path}")
+    print("seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in res.seconds.items())
+          + f"; total {time.perf_counter() - start:.1f}")
+    return res
+
+
+def validate(cfg: DictConfig) -> None:
+    """Config values, checked before any work."""
+    errors.check_sampler(cfg.sampler)
+    zoo.resolve(cfg.checkpoint)
+    for key, low in (("subjects", 10), ("resolution", 16), ("frames", 1), ("pairs", 1), ("rows", 1)):
+        errors.check_int(cfg[key], key, low)
+    errors.check_int(cfg.num_threads, "num_threads", 1, allow_none=True)
+    errors.check_out_dir(cfg.out_dir)
+
+
+@hydra.main(version_base="1.3", config_path=common.CONFIG_PATH, config_name="demo")
+@errors.cli_entry("demo")
+def main(cfg: DictConfig) -> None:
+    run(cfg)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,77 @@
+"""Shipped checkpoints by name (difareli.zoo): slim export round trip, model cards, name resolution, and the
+shipped references themselves (loadable with weights_only=True, they change the light of an unseen face)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from difareli import sh, zoo
+from difareli.lit import load_checkpoint
+from difareli.relighting import Relighter
+from difareli.store import EncodingStore
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+FACTS = {"summary": "a test export", "data": "SynthFaces 32 px", "seed": 42, "licence": "BFM: non-commercial",
+         "benchmark": "| method | DSSIM |\n|---|---|\n| x | 0.1 |", "intended_use": "tests"}
+
+
+def test_export_is_slim_and_relights_bit_for_bit(tiny_checkpoint, synth_store, tmp_path):
+    run = tiny_checkpoint("difareli_pp")
+    path, card = zoo.export(run, "test_pp", FACTS, out_dir=tmp_path)
+    raw = torch.load(path, map_location="cpu", weights_only=True)
+    assert "optimizer_states" not in raw and "callbacks" not in raw
+    assert path.stat().st_size < 0.6 * run.stat().st_size  # no AdamW moments
+    assert raw["model_card"]["seed"] == 42
+    text = card.read_text()
+    for piece in ("# test_pp", "| seed | 42 |", "BFM: non-commercial", "| x | 0.1 |", "| steps | 20 |"):
+        assert piece in text
+    store = EncodingStore.open(synth_store)
+    rid = store.ids(split="test")[0]
+    light = sh.yaw(np.asarray(store.read(rid, ["light"])["light"]), 45.0)
+    spec = {"name": "ddim", "steps": 4}
+    a = Relighter(run, spec, device="cpu").relight_record(store, rid, [light], [0.0])
+    b = Relighter(str(path), spec, device="cpu").relight_record(store, rid, [light], [0.0])
+    np.testing.assert_array_equal(a, b)
+    # bf16 weights (what a lent GPU sends back): half the size, relit images within a few levels
+    half, _ = zoo.export(run, "test_pp_bf16", FACTS, out_dir=tmp_path, dtype=torch.bfloat16)
+    assert half.stat().st_size < 0.6 * path.stat().st_size
+    c = Relighter(str(half), spec, device="cpu").relight_record(store, rid, [light], [0.0])
+    assert np.abs(c.astype(int) - a.astype(int)).mean() < 4
+
+
+def test_names_resolve_and_errors_list_them(tiny_checkpoint, tmp_path, monkeypatch):
+    monkeypatch.setattr(zoo, "SHIPPED_DIR", tmp_path)
+    zoo.export(tiny_checkpoint("difareli"), "mini-synth32", FACTS, out_dir=tmp_path)
+    assert zoo.available() == ["mini-synth32"]
+    assert zoo.resolve("mini-synth32") == tmp_path / "mini-synth32.ckpt"
+    loaded = load_checkpoint("mini-synth32")
+    assert loaded.config["name"] == "difareli" and loaded.global_step == 20
+    with pytest.raises(FileNotFoundError, match="mini-synth32"):
+        zoo.resolve("no-such-model")
+    assert "mini-synth32" in zoo.card("mini-synth32")
+
+
+@pytest.mark.parametrize("name", zoo.available())
+def test_shipped_checkpoint_changes_the_light_of_an_unseen_face(name, tmp_path):
+    card = zoo.card(name)
+    for piece in ("| steps |", "| hardware |", "| precision |", "## Benchmark", "Basel Face Model"):
+        assert piece in card, piece
+    loaded = load_checkpoint(name)
+    res = loaded.config["input_dims"]["resolution"]
+    from difareli.synth.generator import generate
+
+    generate(out_dir=str(tmp_path / "s"), subjects=10, lights=2, resolution=res, seed=77, realism="full",
+             inputs="estimated")
+    store = EncodingStore.open(tmp_path / "s")
+    rid = store.ids(split="test")[0]
+    arrays = store.read(rid, ["image", "light", "shadow"])
+    r = Relighter(loaded, {"name": "unipc", "steps": 10}, device="cpu")
+    own = np.asarray(arrays["light"])
+    c = float(np.asarray(arrays["shadow"]).reshape(-1)[0])
+    same, left, right = r.relight_record(store, rid, [own, sh.yaw(own, -60.0), sh.yaw(own, 60.0)], [c] * 3)
+    image = np.asarray(arrays["image"]).astype(float)
+    # Its own light gives the input back closely; lights from either side change the image visibly and differently.
+    assert np.abs(same - image).mean() < 12
+    assert np.abs(left.astype(float) - right).mean() > 2 * np.abs(same - image).mean()
