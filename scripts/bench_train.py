@@ -28,7 +28,7 @@ CPU_DEFAULT = ["tiny:64:16:32-true", "tiny:64:16:bf16-mixed"]
 GPU_DEFAULT = ["ffhq128:128:32:bf16-mixed", "ffhq128:128:32:32-true", "ffhq256:256:16:bf16-mixed"]
 
 
-def build_module(preset: str, resolution: int, variant: str = "difareli_pp"):
+def build_module(preset: str, resolution: int, variant: str = "difareli_pp", compile: bool = False):
     """A ``DiffusionModule`` built as ``difareli-train`` builds it (the one place to adapt to its constructor):
     the variant's inputs from its ``conf/model`` file, their widths from the encoding registry."""
     from difareli.encodings import PRODUCER_DIMS, total_channels
@@ -41,7 +41,8 @@ def build_module(preset: str, resolution: int, variant: str = "difareli_pp"):
                   "nonspatial_dim": total_channels(nonspatial, dims), "resolution": resolution}
     # The optimizer as a callable partial: a config dict would need Hydra, which a bare GPU image lacks.
     return DiffusionModule(name=variant, preset=preset, spatial_inputs=spatial, nonspatial_inputs=nonspatial,
-                           input_dims=input_dims, optimizer=functools.partial(torch.optim.AdamW, lr=1e-4))
+                           input_dims=input_dims, optimizer=functools.partial(torch.optim.AdamW, lr=1e-4),
+                           compile=compile)
 
 
 class RandomBatches(torch.utils.data.Dataset):
@@ -98,9 +99,18 @@ def train_step_flops(module, batch: dict) -> int:
     return flops
 
 
+def _channels_last(items: list[dict]) -> dict:
+    """Default collation, then NHWC ("channels last") memory for the 4-D tensors."""
+    batch = torch.utils.data.default_collate(items)
+    return {k: v.contiguous(memory_format=torch.channels_last) if v.dim() == 4 else v for k, v in batch.items()}
+
+
 def run_one(preset: str, res: int, batch: int, precision: str, device: str = "cpu", steps: int = 5,
-            warmup: int = 2, variant: str = "difareli_pp") -> dict:
-    """Train ``warmup + steps`` steps through Lightning and time the last ``steps`` (in this process)."""
+            warmup: int = 2, variant: str = "difareli_pp", opts: str = "") -> dict:
+    """Train ``warmup + steps`` steps through Lightning and time the last ``steps`` (in this process).
+
+    ``opts``: comma-separated ``cl`` (channels-last network and batches), ``compile`` (torch.compile the network),
+    ``t<N>`` (N intra-op threads)."""
     import resource
 
     import lightning as L
@@ -108,11 +118,18 @@ def run_one(preset: str, res: int, batch: int, precision: str, device: str = "cp
     from difareli.runtime import peak_flops
 
     dev = torch.device(device)
+    flags = {o for o in opts.split(",") if o}
+    for o in flags:
+        if o.startswith("t") and o[1:].isdigit():
+            torch.set_num_threads(int(o[1:]))
     L.seed_everything(0, verbose=False)
-    module = build_module(preset, res, variant)
+    module = build_module(preset, res, variant, compile="compile" in flags)
+    if "cl" in flags:
+        module.net.to(memory_format=torch.channels_last)
     dims = module.hparams.input_dims
     data = RandomBatches(batch * (warmup + steps), res, dims["spatial_channels"], dims["nonspatial_dim"])
-    loader = torch.utils.data.DataLoader(data, batch_size=batch, num_workers=0)
+    loader = torch.utils.data.DataLoader(data, batch_size=batch, num_workers=0,
+                                         collate_fn=_channels_last if "cl" in flags else None)
     timer = _timer_callback(warmup, dev)
     if dev.type == "cuda":
         torch.cuda.reset_peak_memory_stats(dev)
@@ -127,10 +144,12 @@ def run_one(preset: str, res: int, batch: int, precision: str, device: str = "cp
         raise RuntimeError(f"timed {timer.steps} steps, expected {steps}")
     peak_mem = (torch.cuda.max_memory_allocated(dev) / 2**20 if dev.type == "cuda"
                 else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
-    flops = train_step_flops(module.to(dev), {k: v.to(dev) for k, v in next(iter(loader)).items()})
+    counted = build_module(preset, res, variant) if "compile" in flags else module  # eager: the same arithmetic
+    flops = train_step_flops(counted.to(dev), {k: v.to(dev) for k, v in next(iter(loader)).items()})
     achieved = flops * steps / timer.seconds
     peak, peak_how = peak_flops(dev, "bf16" if "bf16" in precision else "fp32")
-    return {"preset": preset, "res": res, "batch": batch, "precision": precision, "device": str(dev),
+    return {"preset": preset, "res": res, "batch": batch, "precision": precision, "opts": opts or "-",
+            "device": str(dev),
             "params_M": round(sum(p.numel() for p in module.parameters()) / 1e6, 2),
             "threads": torch.get_num_threads(), "steps": steps, "warmup": warmup,
             "images_per_s": round(batch * steps / timer.seconds, 2), "s_per_step": round(timer.seconds / steps, 4),
@@ -143,21 +162,23 @@ def run_one(preset: str, res: int, batch: int, precision: str, device: str = "cp
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--device", default="cpu")
-    p.add_argument("--configs", nargs="*", help="preset:resolution:batch:precision (precision: 32-true | bf16-mixed)")
+    p.add_argument("--configs", nargs="*", help="preset:resolution:batch:precision[:opts] (precision: 32-true | "
+                   "bf16-mixed; opts: comma-separated cl, compile, t<N> threads)")
     p.add_argument("--steps", type=int, default=5)
     p.add_argument("--warmup", type=int, default=2)
     p.add_argument("--json", help="also write the rows to this JSON file")
     p.add_argument("--one", help=argparse.SUPPRESS)  # internal: run one config and print JSON
     a = p.parse_args()
     if a.one:
-        preset, res, batch, prec = a.one.split(":")
-        print(json.dumps(run_one(preset, int(res), int(batch), prec, a.device, a.steps, a.warmup)))
+        preset, res, batch, prec, *opts = a.one.split(":")
+        print(json.dumps(run_one(preset, int(res), int(batch), prec, a.device, a.steps, a.warmup,
+                                 opts=opts[0] if opts else "")))
         return
     configs = a.configs or (GPU_DEFAULT if a.device.startswith("cuda") else CPU_DEFAULT)
     for c in configs:
-        if len(c.split(":")) != 4:
-            sys.exit(f"--configs {c!r}: expected preset:resolution:batch:precision, e.g. tiny:64:16:bf16-mixed")
-    cols = ["preset", "res", "batch", "precision", "params_M", "images_per_s", "s_per_step", "step_GFLOP",
+        if len(c.split(":")) not in (4, 5):
+            sys.exit(f"--configs {c!r}: expected preset:resolution:batch:precision[:opts], e.g. tiny:64:16:bf16-mixed")
+    cols = ["preset", "res", "batch", "precision", "opts", "params_M", "images_per_s", "s_per_step", "step_GFLOP",
             "achieved_GFLOPs", "peak_GFLOPs", "utilisation", "peak_MiB"]
     print("| " + " | ".join(cols) + " |\n|" + "---|" * len(cols))
     rows = []

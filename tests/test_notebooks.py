@@ -121,12 +121,30 @@ def test_relight_notebook(tiny_checkpoint, synth_store, jupyter_path, tmp_path, 
     np.testing.assert_allclose(result["means"], expected, rtol=0, atol=1e-6)
 
 
-def test_relight_notebook_without_checkpoint_says_how_to_get_one(jupyter_path, tmp_path, monkeypatch):
+def test_relight_notebook_with_a_missing_checkpoint_says_how_to_get_one(jupyter_path, tmp_path, monkeypatch):
+    env = {"DIFARELI_CHECKPOINT": str(tmp_path / "nope.ckpt"), "DIFARELI_OUT": str(tmp_path / "out")}
     with pytest.raises(nbclient.exceptions.CellExecutionError) as err:
-        execute("relight_from_checkpoint.ipynb", tmp_path, {"DIFARELI_OUT": str(tmp_path / "out")},
-                jupyter_path, monkeypatch)
+        execute("relight_from_checkpoint.ipynb", tmp_path, env, jupyter_path, monkeypatch)
     assert "No checkpoint found" in str(err.value)
     assert "difareli-train experiment=quickstart" in str(err.value)
+
+
+@pytest.mark.skipif("difareli_pp-synth64" not in __import__("difareli.zoo").zoo.available(),
+                    reason="no shipped difareli_pp-synth64")
+def test_relight_notebook_runs_on_the_shipped_reference_by_default(jupyter_path, tmp_path, monkeypatch):
+    """No parameters but the step count: the shipped checkpoint on SynthFaces generated in the notebook."""
+    import imageio.v3 as iio
+
+    out = tmp_path / "out"
+    env = {"DIFARELI_STEPS": str(STEPS), "DIFARELI_OUT": str(out), "DIFARELI_DEVICE": "cpu", "DIFARELI_THREADS": "1",
+           "DIFARELI_FRAMES": "6"}
+    _, text = execute("relight_from_checkpoint.ipynb", tmp_path, env, jupyter_path, monkeypatch)
+    assert "difareli_pp-synth64.ckpt" in text and f"generated {out / 'synthfaces'}" in text
+    frames = iio.imread(out / "rotation_yaw.gif", index=None)
+    assert frames.shape[:3] == (6, 64, 64)
+    result = json.loads(next(l for l in text.splitlines() if l.startswith("RESULT "))[len("RESULT "):])
+    # the three targets (another record's light, a directional light, a 60-degree yaw) give three different images
+    assert len({round(m, 4) for m in result["means"]}) == 3
 
 
 # ------------------------------------------------------------------------------------------ benchmark_tables
