@@ -213,7 +213,7 @@ class DiffusionMethod:
 
     def __init__(self, checkpoint: str | None = None, sampler: Mapping[str, Any] | None = None, *,
                  name: str | None = None, runtime: Mapping[str, Any] | None = None, mean_matching: bool = True, batch_size: int = 16):
-        from difareli.relighting import Relighter
+        from difareli.relighting import OnePassRelightable, Relighter
 
         if not checkpoint or checkpoint == "???":
             raise ValueError("method=diffusion needs method.checkpoint=<run>/checkpoints/last.ckpt")
@@ -224,7 +224,8 @@ class DiffusionMethod:
                                    batch_size=batch_size)
         spec = self.relighter.spec
         model = self.relighter.config.get("name") or "diffusion"
-        self.name = name or f"{model}/{spec.name}-{spec.steps}"
+        one_pass = isinstance(self.relighter.model, OnePassRelightable)  # a student: the sampler plays no part
+        self.name = name or (model if one_pass else f"{model}/{spec.name}-{spec.steps}")
 
     def relight(self, store, source_id, target_light, target_shadow=None, target_id=None) -> np.ndarray:
         return self.relighter.relight_record(store, source_id, [target_light], [target_shadow])[0]

@@ -87,6 +87,8 @@ class EncodingsDataModule(L.LightningDataModule):
         train_split: str = "train",
         val_split: str = "val",
         allow_split_fallback: bool = False,
+        pairs: str | None = None,
+        teacher_pairs: str | None = None,
     ):
         super().__init__()
         self.root = Path(root)
@@ -100,6 +102,8 @@ class EncodingsDataModule(L.LightningDataModule):
         self.synth = dict(synth) if synth else None
         self.train_split, self.val_split = train_split, val_split
         self.allow_split_fallback = bool(allow_split_fallback)
+        # The student's pair sampler (difareli.pairs.PAIR_SAMPLERS: teacher | gt | mix | identity); None: records.
+        self.pairs, self.teacher_pairs = pairs, teacher_pairs
         self.store: EncodingStore | None = None
         self.train_set = self.val_set = None
 
@@ -168,6 +172,15 @@ class EncodingsDataModule(L.LightningDataModule):
             return
         store = self._open()
         train, val = self._split_ids()
+        if self.pairs:
+            from difareli.pairs import pair_dataset
+
+            teacher = EncodingStore.open(self.teacher_pairs) if self.teacher_pairs else None
+            self.train_set = pair_dataset(self.pairs, store, train, self.spatial, self.nonspatial, teacher)
+            # Validation: ground truth where the store has it (SynthFaces), else the training pairs' kind.
+            kind = "gt" if self.pairs in ("teacher", "mix") and store.meta(val[0]).get("subject") else self.pairs
+            self.val_set = pair_dataset(kind, store, val, self.spatial, self.nonspatial, teacher)
+            return
         self.train_set = EncodingsDataset(store, train, self.spatial, self.nonspatial)
         self.val_set = EncodingsDataset(store, val, self.spatial, self.nonspatial)
 

@@ -123,7 +123,7 @@ def store_cases(store: EncodingStore, model, records: Iterable[str] | None = Non
     return cases
 
 
-def timed_relight(model, case: Case, spec: SamplerSpec, runtime: Runtime, *, mean_matching: bool = True
+def timed_relight(model, case: Case, spec: SamplerSpec | None, runtime: Runtime, *, mean_matching: bool = True
                   ) -> tuple[Tensor, float]:
     """``(relit float32, seconds)`` of the whole per-image relight (both conditions, inversion, self-decode,
     decode) through the relighting core, the device synchronised before and after."""
@@ -202,10 +202,41 @@ def benchmark(model, cases: Sequence[Case], samplers: Mapping[str, Mapping[str, 
     return rows, outputs
 
 
+def add_one_pass(rows: list[dict[str, Any]], outputs: dict, model, cases: Sequence[Case], *, name: str = "student",
+                 runtime: Runtime | None = None, repeats: int = 1, warmup: bool = True) -> dict[str, Any]:
+    """Time a one-pass model (the student) on ``cases`` (the same records and targets as the teacher's rows,
+    conditions prepared for this model) in the same run: append its row (1 network pass, errors against the
+    teacher's reference relights and the ground truth) and give every teacher row its ``speedup`` (teacher
+    seconds / student seconds per relight). Returns the student's row."""
+    runtime = runtime or Runtime(device=str(cases[0].x0.device))
+    if warmup:
+        timed_relight(model, cases[0], None, runtime)
+    secs, outs = [], []
+    for case in cases:
+        for _ in range(repeats):
+            out, sec = timed_relight(model, case, None, runtime)
+            secs.append(sec)
+        outs.append(out)
+    row = {"sampler": name, "steps": 1, "nfe": 1, "records": len(cases), "time/seconds": float(np.median(secs)),
+           "time/std": float(np.std(secs)), "speedup": 1.0}
+    for key, refs in (("ref", outputs.get("reference")), ("gt", [c.gt for c in cases])):
+        if refs is None or any(r is None for r in refs):
+            continue
+        errs = [face_errors(o, r, c.mask) for o, r, c in zip(outs, refs, cases)]
+        for m in ("mse", "dssim"):
+            row[f"{key}/{m}"] = float(np.mean([e[m] for e in errs]))
+    for r in rows:
+        r["speedup"] = r["time/seconds"] / row["time/seconds"]
+    rows.append(row)
+    outputs[(name, 1)] = outs
+    return row
+
+
 # ------------------------------------------------------------------------------------------ reporting
 def columns(rows: Sequence[Mapping[str, Any]]) -> list[str]:
     keys = ["sampler", "steps", "nfe", "records", "time/seconds", "time/std"]
-    return keys + [c for c in ERROR_COLUMNS if any(c in r for r in rows)]
+    return (keys + [c for c in ERROR_COLUMNS if any(c in r for r in rows)]
+            + (["speedup"] if any("speedup" in r for r in rows) else []))
 
 
 def write_csv(rows: Sequence[Mapping[str, Any]], path: str | Path) -> Path:
@@ -289,7 +320,11 @@ def comparison_grid(cases: Sequence[Case], outputs: Mapping, steps: Sequence[int
     head += [viz.to_uint8(c.gt[0])] if c.gt is not None else []
     head += [viz.to_uint8(outputs["reference"][case_index][0].clamp(-1, 1))] if "reference" in outputs else []
     samplers = list(dict.fromkeys(k[0] for k in outputs if k != "reference"))
-    rows = [head] + [[viz.to_uint8(outputs[(s, n)][case_index][0].clamp(-1, 1)) for n in steps] for s in samplers]
+    def row(s):
+        keys = [(s, n) for n in steps if (s, n) in outputs] or [(s, 1)]  # a one-pass model: its one relight
+        return [viz.to_uint8(outputs[k][case_index][0].clamp(-1, 1)) for k in keys]
+
+    rows = [head] + [row(s) for s in samplers]
     k = max(1, 128 // head[0].shape[0])  # small test resolutions: enlarge (nearest) so faces stay visible
     rows = [[im.repeat(k, 0).repeat(k, 1) for im in row] for row in rows]
     return viz.save_png(viz.grid(rows), path)

@@ -64,6 +64,10 @@ def run(cfg: DictConfig) -> dict:
                                     reference_config=configured[reference[0]] if reference else None,
                                     mean_matching=cfg.mean_matching, runtime=runtime, repeats=cfg.repeats,
                                     warmup=cfg.warmup, progress=cfg.progress)
+    if cfg.get("student") is not None:  # the one-pass student timed in this run: one point + every ratio
+        student, student_cases = _student(cfg, cases, device)
+        speed.add_one_pass(rows, outputs, student, student_cases, name=student.hparams.get("name", "student"),
+                           runtime=runtime, repeats=cfg.repeats, warmup=cfg.warmup)
     out = Path(cfg.out_dir)
     paths = {"csv": speed.write_csv(rows, out / "bench_samplers.csv"),
              "plot": speed.pareto_plot(rows, out / "bench_samplers.png")}
@@ -73,6 +77,30 @@ def run(cfg: DictConfig) -> dict:
     for k, p in paths.items():
         print(f"{k}: {p}")
     return {"rows": rows, "paths": paths}
+
+
+def _student(cfg: DictConfig, cases: list, device) -> tuple:
+    """The student (a checkpoint, or ``untrained``: conf/model/student at the teacher's preset and resolution)
+    and its cases: the teacher's records and targets, conditions prepared for the student."""
+    if cfg.student == "untrained":
+        model_cfg = OmegaConf.to_container(cfg.student_model, resolve=True)
+        preset = cfg.model.preset if cfg.checkpoint is None else model_cfg.pop("preset")
+        model_cfg.pop("preset", None)
+        student, res = speed.untrained_model(model_cfg, preset, cases[0].x0.shape[-1], device, seed=cfg.seed)
+        if cfg.checkpoint is None:
+            return student, speed.random_cases(len(cases), student, res, device, seed=cfg.seed)
+    else:
+        from difareli.lit import load_checkpoint
+
+        errors.check_file(cfg.student, "student")
+        student = load_checkpoint(cfg.student, device).model.to(device)
+        if cfg.checkpoint is None:
+            raise ValueError("student=<checkpoint> is timed against a teacher checkpoint: give checkpoint=... and "
+                             "store=..., or student=untrained for timing only")
+    if not hasattr(student, "relight_once"):
+        raise errors.UserError(f"student={cfg.student} is not a one-pass model; give a model=student checkpoint")
+    return student, speed.store_cases(EncodingStore.open(cfg.store), student, records=[c.record for c in cases],
+                                      limit=None, device=device)
 
 
 @hydra.main(version_base="1.3", config_path=common.CONFIG_PATH, config_name="bench_samplers")

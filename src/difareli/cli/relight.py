@@ -16,7 +16,7 @@ from omegaconf import DictConfig
 
 from difareli import errors, photo, viz, zoo
 from difareli.cli import common
-from difareli.relighting import Relighter, write_video
+from difareli.relighting import OnePassRelightable, Relighter, write_video
 from difareli.store import EncodingStore
 from difareli.targets import rotation_lights, target_lights
 
@@ -55,7 +55,9 @@ def run(cfg: DictConfig) -> dict[str, Path]:
         shadow = t.shadow if t.shadow is not None else (float(other["shadow"][0]) if "shadow" in other else None)
         start = time.perf_counter()
         relit = relight_to([light], [shadow])[0]
-        print(f"relit {rid} in {time.perf_counter() - start:.2f} s ({cfg.sampler.name}, {cfg.sampler.steps} steps, "
+        how = "one pass" if isinstance(relighter.model, OnePassRelightable) else \
+            f"{cfg.sampler.name}, {cfg.sampler.steps} steps"
+        print(f"relit {rid} in {time.perf_counter() - start:.2f} s ({how}, "
               f"{relighter.runtime.precision}{', compiled' if relighter.runtime.compile else ''})")
         row = [src["image"], relit]
         if t.record is not None and store is not None and store.meta(t.record).get("subject") == store.meta(rid).get("subject"):

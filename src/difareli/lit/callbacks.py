@@ -41,6 +41,15 @@ class ReconstructionGrid(L.Callback):
         n = len(batch)
         x0 = torch.stack([b["image"] for b in batch]).to(dev)
         cond = pl_module.condition(spatial, nonspatial)
+        if hasattr(pl_module, "relight_once"):  # a one-pass student: input | relit | target per validation pair
+            tgt = pl_module.condition(*(torch.stack([b[k] for b in batch]).to(dev)
+                                        for k in ("target_spatial", "target_nonspatial")))
+            relit = pl_module.relight_once(x0, cond, tgt)
+            rows = [[viz.to_uint8(b["image"]), viz.to_uint8(r.clamp(-1, 1)), viz.to_uint8(b["target_image"])]
+                    for b, r in zip(batch, relit)]
+            path = Path(trainer.default_root_dir) / "grids" / f"relight_step{trainer.global_step:07d}.png"
+            log_image(trainer, "val/relight_grid", viz.save_png(viz.grid(rows), path))
+            return
         g = torch.Generator(device=dev).manual_seed(self.seed)
         noise = torch.randn(x0.shape, generator=g, device=dev)
         cols = [[viz.to_uint8(x) for x in x0]]
@@ -125,8 +134,10 @@ class SampleGrid(L.Callback):
         self._validations = 0
 
     def _active(self, trainer: L.Trainer) -> bool:
+        # A one-pass student has no denoiser to sample from: nothing to draw.
         return (self.enabled and not trainer.fast_dev_run and not trainer.sanity_checking
-                and trainer.is_global_zero and trainer.datamodule is not None)
+                and trainer.is_global_zero and trainer.datamodule is not None
+                and hasattr(trainer.lightning_module, "denoiser"))
 
     @torch.no_grad()
     def write(self, trainer: L.Trainer, pl_module, path: str | Path) -> Path:

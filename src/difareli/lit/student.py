@@ -1,0 +1,187 @@
+"""The single-shot student DiFaReli++_ss (paper Sec. IV-C) as a LightningModule: input image -> relit image.
+
+The same UNet and Modulator as the teacher (:func:`difareli.nn.build_network`), run once: the Modulator takes
+the source's spatial inputs and the target's light-dependent ones (shading reference + shadow map of each, the
+paper's 8 channels, plus the masks where the variant declares them); AdaGN takes the source's non-spatial inputs
+(plus the target's light-dependent non-spatial ones, e.g. c' for a DiFaReli-style variant). The time embedding
+sees a constant ``timestep``. Trained with L2 (optionally + LPIPS) on pairs served by the DataModule's pair
+sampler (``data.pairs``). Implements :class:`~difareli.relighting.OnePassRelightable`, so every relighting CLI,
+the benchmark and the speed tables take its checkpoint unchanged.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
+
+import lightning as L
+import torch
+import torch.nn.functional as F
+
+from difareli import encodings as enc
+from difareli.errors import UserError
+from difareli.lit.diffusion import (DEFAULT_OPTIMIZER, FORMAT_KEY, FORMAT_VERSION, MODULE_KEY, DiffusionModule,
+                                    _factory, factory_config)
+from difareli.nn import build_network
+
+
+def _slices(names: Sequence[str], dims: Mapping[str, int]) -> list[int]:
+    """Channel indices of the light-dependent encodings among ``names`` concatenated in order."""
+    out, start = [], 0
+    for n in names:
+        c = enc.channels(n, dims)
+        if enc.get(n).light_dependent:
+            out.extend(range(start, start + c))
+        start += c
+    return out
+
+
+class StudentModule(L.LightningModule):
+    """One-pass relighting network trained on (source, target light, relit image) pairs.
+
+    Offers ``spatial_inputs``, ``nonspatial_inputs``, ``condition(spatial, nonspatial)`` (no network work: the
+    Modulator needs both conditions) and ``relight_once(x0, source_cond, target_cond)``.
+    """
+
+    def __init__(
+        self,
+        name: str = "student",
+        preset: str = "tiny",
+        spatial: str | Mapping[str, Any] | None = "modulator",
+        spatial_inputs: Sequence[str] = ("shading", "shadow_map", "masks"),
+        nonspatial_inputs: Sequence[str] = ("shape", "cam", "identity"),
+        input_dims: Mapping[str, int] | None = None,
+        adagn_scale_plus_one: bool = True,
+        adagn_out_silu: bool = True,
+        net_overrides: Mapping[str, Any] | None = None,
+        optimizer: Callable | Mapping[str, Any] | None = None,
+        scheduler: Callable | Mapping[str, Any] | None = None,
+        nonspatial_stats: Mapping[str, Sequence[float]] | None = None,
+        residual: bool = True,
+        timestep: int = 0,
+        lpips_weight: float = 0.0,
+        compile: bool = False,
+    ):
+        super().__init__()
+        if input_dims is None:
+            raise ValueError("StudentModule needs input_dims (spatial_channels, nonspatial_dim, resolution): "
+                             "difareli-train takes them from the DataModule")
+        dims = {k: int(v) for k, v in dict(input_dims).items()}
+        self.spatial_inputs, self.nonspatial_inputs = list(spatial_inputs), list(nonspatial_inputs)
+        if not enc.light_dependent(self.spatial_inputs + self.nonspatial_inputs):
+            raise ValueError(f"a student needs light-dependent inputs (e.g. shading, shadow_map) to know the target; "
+                             f"got {self.spatial_inputs + self.nonspatial_inputs}")
+        spatial = {"type": spatial} if isinstance(spatial, str) else dict(spatial) if spatial is not None else None
+        if not self.spatial_inputs:
+            spatial = None
+        mean, std = DiffusionModule._check_stats(nonspatial_stats, dims["nonspatial_dim"])
+        self.save_hyperparameters({
+            "name": name, "preset": preset, "spatial": spatial, "spatial_inputs": self.spatial_inputs,
+            "nonspatial_inputs": self.nonspatial_inputs, "input_dims": dims,
+            "adagn_scale_plus_one": bool(adagn_scale_plus_one), "adagn_out_silu": bool(adagn_out_silu),
+            "net_overrides": dict(net_overrides or {}),
+            "optimizer": factory_config(optimizer if optimizer is not None else DEFAULT_OPTIMIZER, "optimizer"),
+            "scheduler": factory_config(scheduler, "scheduler"),
+            "nonspatial_stats": {"mean": mean.tolist(), "std": std.tolist()}, "residual": bool(residual),
+            "timestep": int(timestep), "lpips_weight": float(lpips_weight), "compile": bool(compile),
+        })
+        self._optimizer, self._scheduler = optimizer, scheduler
+        # Light-dependent channels only depend on H, W (shading 3, shadow map 1, light 27, c 1).
+        hw = {"H": dims["resolution"], "W": dims["resolution"]}
+        self._sp_dep = _slices(self.spatial_inputs, hw)
+        # Non-spatial widths of shape / identity are the producers' (S = 53, D = 128), as the store records.
+        self._ns_dep = _slices(self.nonspatial_inputs, {**hw, **enc.PRODUCER_DIMS})
+        if self._ns_dep and max(self._ns_dep) >= dims["nonspatial_dim"]:
+            raise ValueError(f"light-dependent non-spatial inputs of {self.nonspatial_inputs} lie beyond the "
+                             f"{dims['nonspatial_dim']}-wide vector: list them before shape / identity")
+        sc = dims["spatial_channels"] + len(self._sp_dep) if spatial is not None else 0
+        nd = dims["nonspatial_dim"] + len(self._ns_dep)
+        overrides = {"image_size": dims["resolution"], "adagn_scale_plus_one": bool(adagn_scale_plus_one),
+                     "adagn_out_silu": bool(adagn_out_silu), **dict(net_overrides or {})}
+        self.net = build_network(preset, spatial, sc, nd, overrides=overrides)
+        self.ns_mean, self.ns_std = mean, std
+        self._lpips = None
+
+    def _apply(self, fn, recurse: bool = True):
+        # As DiffusionModule: the statistics follow .to() but are no buffers (kept out of the EMA average).
+        super()._apply(fn, recurse)
+        self.ns_mean, self.ns_std = fn(self.ns_mean), fn(self.ns_std)
+        return self
+
+    # ------------------------------------------------------------------ relighting interface
+    @property
+    def consumes(self) -> list[str]:
+        return list(dict.fromkeys(self.spatial_inputs + self.nonspatial_inputs))
+
+    def condition(self, spatial: torch.Tensor | None, nonspatial: torch.Tensor | None):
+        """One side's condition: the raw spatial maps and the normalised non-spatial vector."""
+        if nonspatial is not None and nonspatial.shape[-1] > 0:
+            nonspatial = (nonspatial.float() - self.ns_mean) / self.ns_std
+        else:
+            nonspatial = None
+        return (spatial if spatial is not None and spatial.shape[1] > 0 else None), nonspatial
+
+    def relight_once(self, x0: torch.Tensor, source, target) -> torch.Tensor:
+        """The relit image [B, 3, H, W] of ``x0`` in [-1, 1] from the source and target conditions."""
+        (s_sp, s_ns), (t_sp, t_ns) = source, target
+        sp = torch.cat([s_sp, t_sp[:, self._sp_dep]], 1) if s_sp is not None and self.net.spatial is not None else None
+        ns = s_ns
+        if self._ns_dep:
+            ns = torch.cat([s_ns, t_ns[:, self._ns_dep]], 1)
+        cond = self.net.condition(sp, ns)
+        t = torch.full((x0.shape[0],), self.hparams.timestep, device=x0.device, dtype=torch.long)
+        out = self.net(x0, t, cond)
+        return x0 + out if self.hparams.residual else out
+
+    # ------------------------------------------------------------------ checkpoints
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        checkpoint[MODULE_KEY] = f"{type(self).__module__}.{type(self).__qualname__}"
+        checkpoint[FORMAT_KEY] = FORMAT_VERSION
+
+    # ------------------------------------------------------------------ training
+    def setup(self, stage: str) -> None:
+        dm = getattr(self._trainer, "datamodule", None) if self._trainer is not None else None
+        if stage == "fit" and dm is not None and not getattr(dm, "pairs", None):
+            raise UserError("model=student trains on pairs: set data.pairs=gt (SynthFaces ground truth), teacher "
+                            "(with data.teacher_pairs=<difareli-teacher-pairs store>) or mix")
+        if self.hparams.compile:
+            self.net.compile()
+
+    def loss(self, batch: Mapping[str, Any]) -> dict[str, torch.Tensor]:
+        """``l2`` (MSE in [-1, 1] units) between the one-pass relight and the pair's target image, plus
+        ``lpips`` when weighted; ``loss`` is their weighted sum."""
+        pred = self.relight_once(batch["image"], self.condition(batch.get("spatial"), batch.get("nonspatial")),
+                                 self.condition(batch.get("target_spatial"), batch.get("target_nonspatial")))
+        out = {"l2": F.mse_loss(pred.float(), batch["target_image"].float())}
+        out["loss"] = out["l2"]
+        if self.hparams.lpips_weight > 0:
+            if self._lpips is None:
+                from difareli.lpips import get_lpips
+
+                self._lpips = [get_lpips("alex", str(pred.device))]  # a list: not a submodule, not in checkpoints
+            out["lpips"] = self._lpips[0](pred.float().clamp(-1, 1), batch["target_image"].float()).mean()
+            out["loss"] = out["loss"] + self.hparams.lpips_weight * out["lpips"]
+        return out
+
+    def training_step(self, batch, batch_idx):
+        losses = self.loss(batch)
+        b = batch["image"].shape[0]
+        self.log("train/loss", losses["loss"], prog_bar=True, batch_size=b)
+        if "lpips" in losses:
+            self.log("train/lpips", losses["lpips"], batch_size=b)
+        return losses["loss"]
+
+    def validation_step(self, batch, batch_idx):
+        losses = self.loss(batch)
+        b = batch["image"].shape[0]
+        self.log("val/loss", losses["loss"], prog_bar=True, batch_size=b, sync_dist=True)
+        self.log("val/l2", losses["l2"], batch_size=b, sync_dist=True)
+        return losses["loss"]
+
+    def configure_optimizers(self):
+        make_opt = self._optimizer if callable(self._optimizer) else _factory(self.hparams.optimizer)
+        opt = make_opt(self.net.parameters())
+        make_sched = self._scheduler if callable(self._scheduler) else _factory(self.hparams.scheduler)
+        if make_sched is None:
+            return opt
+        return {"optimizer": opt, "lr_scheduler": {"scheduler": make_sched(opt), "interval": "step"}}

@@ -1,0 +1,255 @@
+"""Relit pairs for the single-shot student (DiFaReli++_ss, issue 13): pair samplers and teacher-pair stores.
+
+A pair is a source record, a target light (and shadow logit c') and the image under it. The student's
+DataModule (``data.pairs``) serves pairs from one of the samplers of :data:`PAIR_SAMPLERS`:
+
+- ``teacher``: a teacher-pair store written by ``difareli-teacher-pairs`` (:func:`generate_teacher_pairs`);
+- ``gt``: SynthFaces ground truth: the same subject under another light index (that record's image is exact);
+- ``mix``: both, concatenated (each epoch sees every teacher pair and every ground-truth source once);
+- ``identity``: the record itself (target = source), a sanity check.
+
+A teacher-pair store is an :class:`~difareli.store.EncodingStore` whose records hold the relit ``image``, the
+target ``light`` and ``shadow`` (c'), and the target's light-dependent encodings (re-rendered through the
+registry, e.g. the ray-marched shadow map); its per-record meta names the ``source`` and ``light_from`` records.
+Every item's target condition is the source's encodings with the light-dependent ones replaced: exactly what
+:func:`difareli.targets.retarget` gives at inference time.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any, Callable, Mapping, Sequence
+
+import numpy as np
+import torch
+from torch.utils.data import ConcatDataset, Dataset
+from tqdm.auto import tqdm
+
+from difareli import encodings as enc
+from difareli.data import image_to_tensor, prepare_nonspatial, prepare_spatial
+from difareli.errors import UserError, check_record
+from difareli.store import EncodingStore
+from difareli.targets import retarget
+
+#: Meta keys of a teacher-pair record: the input record and the record the target light was taken from.
+SOURCE_KEY, LIGHT_FROM_KEY = "source", "light_from"
+
+
+def target_arrays(src: Mapping[str, np.ndarray], names: Sequence[str], light: np.ndarray,
+                  shadow: float | None) -> dict[str, np.ndarray]:
+    """The source's ``names`` under a target light: light-dependent ones re-rendered (the registry), rest kept."""
+    return {**src, **retarget(src, list(names), np.asarray(light, dtype=np.float64), shadow)}
+
+
+class PairDataset(Dataset):
+    """Base: source ``image``/``spatial``/``nonspatial`` and ``target_image``/``target_spatial``/
+    ``target_nonspatial`` tensors per item; ``ids`` are the source records (the non-spatial statistics)."""
+
+    def __init__(self, store: EncodingStore, ids: Sequence[str], spatial: Sequence[str], nonspatial: Sequence[str]):
+        self.store, self.ids = store, list(ids)
+        self.spatial, self.nonspatial = list(spatial), list(nonspatial)
+        self.inputs = [*self.spatial, *self.nonspatial]
+        self.dependent = enc.light_dependent(self.inputs)
+        # What a target condition re-rendered from the source needs: its light, c and the registry's `needs`.
+        self.names = list(dict.fromkeys(["image", "light", *self.inputs, *enc.rerender_needs(self.dependent)]
+                                        + (["shadow"] if store.available("shadow") else [])))
+        missing = [n for n in self.names if not store.available(n)]
+        if missing:
+            raise UserError(f"student pairs need encoding(s) {missing}, which the store at {store.root} lacks; "
+                            "use a store that has them (SynthFaces, or difareli-preprocess with those estimators)")
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    def source(self, rid: str) -> dict[str, np.ndarray]:
+        return dict(check_record(self.store.read(rid, self.names), rid, self.store.root))
+
+    def item(self, rid: str, src: Mapping[str, np.ndarray], tgt: Mapping[str, np.ndarray],
+             target_image: np.ndarray) -> dict[str, Any]:
+        return {"image": image_to_tensor(src["image"]), "spatial": prepare_spatial(self.spatial, src),
+                "nonspatial": prepare_nonspatial(self.nonspatial, src), "record_id": rid,
+                "target_image": image_to_tensor(target_image), "target_spatial": prepare_spatial(self.spatial, tgt),
+                "target_nonspatial": prepare_nonspatial(self.nonspatial, tgt)}
+
+
+def _shadow(arrays: Mapping[str, np.ndarray]) -> float | None:
+    return float(np.asarray(arrays["shadow"]).reshape(-1)[0]) if "shadow" in arrays else None
+
+
+class IdentityPairs(PairDataset):
+    """Target = source: the record under its own light (its own stored encodings, not re-rendered)."""
+
+    def __getitem__(self, i: int) -> dict[str, Any]:
+        rid = self.ids[i]
+        src = self.source(rid)
+        return self.item(rid, src, src, src["image"])
+
+
+class GroundTruthPairs(PairDataset):
+    """SynthFaces: the target is another light index of the same subject, drawn anew at every visit; its
+    light (the stored one, estimated in v2 stores) and c re-render the source's light-dependent encodings."""
+
+    def __init__(self, store, ids, spatial, nonspatial):
+        super().__init__(store, ids, spatial, nonspatial)
+        by_subject: dict[Any, list[str]] = {}
+        for rid in store.ids():
+            by_subject.setdefault(store.meta(rid).get("subject"), []).append(rid)
+        self.others = {r: [o for o in by_subject.get(store.meta(r).get("subject"), []) if o != r]
+                       for r in self.ids}
+        alone = [r for r, o in self.others.items() if not o or store.meta(r).get("subject") is None]
+        if alone:
+            raise UserError(f"data.pairs=gt: {len(alone)} record(s) of {store.root} (e.g. {alone[:3]}) have no other "
+                            "record of the same subject (the ground truth); use a SynthFaces store with lights >= 2, "
+                            "or data.pairs=teacher")
+
+    def __getitem__(self, i: int) -> dict[str, Any]:
+        rid = self.ids[i]
+        others = self.others[rid]
+        tid = others[int(torch.randint(len(others), (1,)))]  # seeded per worker by Lightning
+        src = self.source(rid)
+        tgt_rec = check_record(self.store.read(tid, ["image", "light"] + (["shadow"] if "shadow" in src else [])),
+                               tid, self.store.root)
+        tgt = target_arrays(src, self.inputs, tgt_rec["light"], _shadow(tgt_rec))
+        return self.item(rid, src, tgt, tgt_rec["image"])
+
+
+class TeacherPairs(PairDataset):
+    """Pairs of a teacher-pair store whose sources are among ``ids`` (the split's records)."""
+
+    def __init__(self, store, ids, spatial, nonspatial, pair_store: EncodingStore):
+        super().__init__(store, ids, spatial, nonspatial)
+        missing = [n for n in ["image", "light", *self.dependent] if not pair_store.available(n)]
+        if missing:
+            raise UserError(f"teacher-pair store {pair_store.root} lacks {missing} (the student's target "
+                            "encodings); regenerate it with difareli-teacher-pairs model=<this student's variant>")
+        wanted = set(self.ids)
+        self.pair_store = pair_store
+        self.pairs = [p for p in pair_store.ids() if pair_store.meta(p).get(SOURCE_KEY) in wanted]
+        self.ids = [pair_store.meta(p)[SOURCE_KEY] for p in self.pairs]
+
+    def __getitem__(self, i: int) -> dict[str, Any]:
+        pid, rid = self.pairs[i], self.ids[i]
+        src = self.source(rid)
+        pair = check_record(self.pair_store.read(pid, ["image", *self.dependent]), pid, self.pair_store.root)
+        tgt = {**src, **{k: pair[k] for k in self.dependent}}
+        return self.item(rid, src, tgt, pair["image"])
+
+
+class MixedPairs(ConcatDataset):
+    """Teacher pairs and ground-truth pairs together."""
+
+    def __init__(self, store, ids, spatial, nonspatial, pair_store: EncodingStore):
+        teacher = TeacherPairs(store, ids, spatial, nonspatial, pair_store)
+        gt = GroundTruthPairs(store, ids, spatial, nonspatial)
+        super().__init__([teacher, gt])
+        self.ids = teacher.ids + gt.ids
+
+
+def _needs_pair_store(cls) -> Callable:
+    def make(store, ids, spatial, nonspatial, pair_store):
+        if pair_store is None:
+            raise UserError("data.pairs=teacher|mix needs data.teacher_pairs=<store written by difareli-teacher-pairs>")
+        return cls(store, ids, spatial, nonspatial, pair_store)
+
+    return make
+
+
+#: data.pairs -> dataset factory ``(store, ids, spatial, nonspatial, pair_store) -> Dataset``.
+PAIR_SAMPLERS: dict[str, Callable[..., Dataset]] = {
+    "teacher": _needs_pair_store(TeacherPairs),
+    "gt": lambda store, ids, sp, ns, pair_store=None: GroundTruthPairs(store, ids, sp, ns),
+    "mix": _needs_pair_store(MixedPairs),
+    "identity": lambda store, ids, sp, ns, pair_store=None: IdentityPairs(store, ids, sp, ns),
+}
+
+
+def pair_dataset(kind: str, store: EncodingStore, ids: Sequence[str], spatial: Sequence[str],
+                 nonspatial: Sequence[str], pair_store: EncodingStore | None = None) -> Dataset:
+    """The ``kind`` pair sampler (``data.pairs``) over the records ``ids``."""
+    if kind not in PAIR_SAMPLERS:
+        raise UserError(f"data.pairs={kind!r} is not a pair sampler; choose one of {sorted(PAIR_SAMPLERS)}")
+    return PAIR_SAMPLERS[kind](store, ids, spatial, nonspatial, pair_store)
+
+
+# ------------------------------------------------------------------------------------------ teacher pairs
+def pair_id(source: str, k: int) -> str:
+    return f"{source}__p{k}"
+
+
+def draw_light_records(ids: Sequence[str], per_record: int, seed: int) -> dict[str, list[str]]:
+    """For each record, ``per_record`` other records (uniform, seeded) whose light becomes its target.
+
+    Drawn all at once from ``seed``, so a resumed run draws exactly the same pairs."""
+    rng = np.random.default_rng(seed)
+    ids = list(ids)
+    if len(ids) < 2:
+        raise UserError(f"teacher pairs need >= 2 training records to take target lights from; got {len(ids)}")
+    out = {}
+    for i, rid in enumerate(ids):
+        draws = rng.integers(0, len(ids) - 1, size=per_record)
+        out[rid] = [ids[j + (j >= i)] for j in draws]  # skip the record itself
+    return out
+
+
+def generate_teacher_pairs(relighter, store: EncodingStore, out: str | Path, *, split: str = "train",
+                           per_record: int = 1, limit: int | None = None, batch_size: int = 8, seed: int = 0,
+                           progress: bool = True, stop_after: int | None = None) -> dict[str, Any]:
+    """Relight every ``split`` record of ``store`` toward another random record's light with the teacher in
+    ``relighter`` (a :class:`~difareli.relighting.Relighter`), ``batch_size`` images per batched relight;
+    write each pair atomically into the pair store at ``out`` and skip pairs already there (resume).
+
+    ``stop_after`` ends after that many new pairs (tests simulate a kill with it). Returns counts and pairs/s.
+    """
+    from difareli import viz
+    from difareli.relighting import condition_tensors, relight
+
+    model = relighter.model
+    inputs = [*model.spatial_inputs, *model.nonspatial_inputs]
+    dependent = enc.light_dependent(inputs)
+    ids = store.ids(split=split) or []
+    if not ids:
+        raise UserError(f"store {store.root} has no records in split {split!r}; set split=<one of its splits>")
+    draws = draw_light_records(ids, per_record, seed)
+    todo = [(rid, k, lid) for rid in ids for k, lid in enumerate(draws[rid])]
+    if limit is not None:
+        todo = todo[:int(limit)]
+    has_c = store.available("shadow")
+    names = list(dict.fromkeys(["image", "light", *(["shadow"] if has_c else []), *dependent]))
+    pairs = EncodingStore.create(out, store.dims, names, meta={"kind": "teacher_pairs", "source_store": str(store.root),
+                                                              "split": split, "seed": seed, "per_record": per_record},
+                                 durable=True)
+    left = [t for t in todo if not pairs.has(pair_id(t[0], t[1]))]
+    done_before, written, start = len(todo) - len(left), 0, time.perf_counter()
+    bar = tqdm(total=len(todo), initial=done_before, desc="teacher pairs", disable=not progress, unit="pair")
+    for b in range(0, len(left), batch_size):
+        batch = left[b:b + batch_size]
+        if stop_after is not None:
+            batch = batch[:max(0, stop_after - written)]
+        if not batch:
+            break
+        srcs = [relighter.read(store, rid) for rid, _, _ in batch]
+        lights = [check_record(store.read(lid, ["light"] + (["shadow"] if has_c else [])), lid, store.root)
+                  for _, _, lid in batch]
+        tgts = [target_arrays(s, inputs, l["light"], _shadow(l)) for s, l in zip(srcs, lights)]
+        x0 = torch.stack([image_to_tensor(s["image"]) for s in srcs]).to(relighter.device)
+        relit = relight(model, x0, condition_tensors(model, srcs, relighter.device),
+                        condition_tensors(model, tgts, relighter.device), relighter.spec, runtime=relighter.runtime,
+                        mean_matching=relighter.mean_matching)
+        if not bool(torch.isfinite(relit).all()):
+            raise UserError(f"the teacher produced NaN/Inf relighting {[t[0] for t in batch]}; try runtime.precision="
+                            "fp32 or another checkpoint")
+        for (rid, k, lid), img, light, tgt in zip(batch, relit, lights, tgts):
+            arrays = {**{n: tgt[n] for n in dependent}, "image": viz.to_uint8(img.clamp(-1, 1)),
+                      "light": light["light"], **({"shadow": light["shadow"]} if has_c else {})}
+            meta = {SOURCE_KEY: rid, LIGHT_FROM_KEY: lid, "split": split, "subject": store.meta(rid).get("subject"),
+                    "shadow": _shadow(light)}
+            pairs.write(pair_id(rid, k), {n: arrays[n] for n in names}, meta)
+            written += 1
+        bar.update(len(batch))
+    bar.close()
+    seconds = time.perf_counter() - start
+    rate = written / seconds if seconds > 0 else float("nan")
+    print(f"teacher pairs: {written} new, {done_before} already in {out}, {len(todo)} planned; {rate:.3f} pairs/s")
+    return {"written": written, "skipped": done_before, "planned": len(todo), "pairs_per_s": rate,
+            "seconds": seconds, "store": pairs}
