@@ -18,7 +18,6 @@ faces the target light's dominant direction (``n.d > FACING``: attached shadow i
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Mapping
@@ -31,8 +30,6 @@ from difareli import sh
 SHADOW_RATIO = 0.6
 FACING = 0.3
 MIN_INPUT_IRRADIANCE = 0.15
-#: A record counts as shadowed when its cast shadows remove at least this share of the light (c >= logit).
-SHADOWED_SHARE = 0.01
 _LUMA = np.array([0.2126, 0.7152, 0.0722])
 
 
@@ -88,33 +85,6 @@ def temporal_error(relit: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> np.nd
     """``mean |(r[t+1] - r[t]) - (g[t+1] - g[t])|`` over the mask, (N - 1,): change the GT does not have."""
     d = (np.diff(_unit(relit), axis=0) - np.diff(_unit(gt), axis=0))[:, mask]
     return np.abs(d).mean(axis=(1, 2))
-
-
-def typical_shadowed_c(shadows: np.ndarray) -> float | None:
-    """The median c of the records whose cast shadows remove at least ``SHADOWED_SHARE`` of the light."""
-    c = np.asarray(shadows, dtype=np.float64).reshape(-1)
-    shadowed = c[np.isfinite(c) & (c >= math.log(SHADOWED_SHARE / (1 - SHADOWED_SHARE)))]
-    return float(np.median(shadowed)) if shadowed.size else None
-
-
-def is_shadowed(c: float) -> bool:
-    return c >= math.log(SHADOWED_SHARE / (1 - SHADOWED_SHARE))
-
-
-def target_shadow(store, record_c: float, given: float | None, split: str = "train") -> tuple[float, str]:
-    """The shadow strength c' for every frame and a sentence saying where it came from: ``given``; else the
-    input's own c when it is shadowed; else the median shadowed c of ``split`` (the training split)."""
-    if given is not None:
-        return float(given), f"target c' = {float(given):.3f} (given: target.shadow)"
-    if is_shadowed(record_c):
-        return record_c, f"target c' = {record_c:.3f} (the input's own c: it has a cast shadow)"
-    ids = store.ids(split=split)
-    c = typical_shadowed_c(np.array([store.read(r, ["shadow"])["shadow"][0] for r in ids])) if ids else None
-    if c is None:
-        raise ValueError(f"the input has no cast shadow (c = {record_c:.2f}) and the {split} split of {store.root} "
-                         "has no shadowed record to take a typical c from; give target.shadow=<logit c'>")
-    return c, (f"target c' = {c:.3f} (the input has no cast shadow, c = {record_c:.2f}: median c of the "
-               f"{split} split's shadowed records, share >= {SHADOWED_SHARE})")
 
 
 @dataclass

@@ -16,7 +16,7 @@ from difareli import video as vid
 from difareli.cli import common
 from difareli.relighting import Relighter, write_video
 from difareli.store import EncodingStore
-from difareli.targets import load_envmap
+from difareli.targets import load_envmap, video_shadow
 
 _MEASURE = ("image", "light", "normal", "face_mask", "shadow_map", "shadow")
 
@@ -61,11 +61,8 @@ def run(cfg: DictConfig) -> dict[str, Path]:
     if cfg.oracle_shadow:
         shadows = [float(c) for c in gt.targets["shadow"][:, 0]]
         c_note = "target c' per frame = the ground truth's exact c (oracle_shadow=true)"
-    elif record_c is None and cfg.target.shadow is None:
-        shadows, c_note = [None] * len(angles), "no shadow strength (the store has no 'shadow' encoding)"
     else:
-        c, c_note = vid.target_shadow(store, record_c if record_c is not None else -np.inf, cfg.target.shadow,
-                                      cfg.shadow_split)
+        c, c_note = video_shadow(store, record_c, cfg.target.shadow, cfg.shadow_split)
         shadows = [c] * len(angles)
     print(f"{rid}: {what}; {c_note}")
 
