@@ -87,6 +87,7 @@ class EncodingsDataModule(L.LightningDataModule):
         train_split: str = "train",
         val_split: str = "val",
         allow_split_fallback: bool = False,
+        versions: Mapping[str, str | None] | None = None,
     ):
         super().__init__()
         self.root = Path(root)
@@ -100,6 +101,8 @@ class EncodingsDataModule(L.LightningDataModule):
         self.synth = dict(synth) if synth else None
         self.train_split, self.val_split = train_split, val_split
         self.allow_split_fallback = bool(allow_split_fallback)
+        #: derived encoding versions read in place of their base (``{"shadow_map": "diff-1a2b"}``; difareli.derived)
+        self.versions = {k: v for k, v in dict(versions or {}).items() if v is not None}
         self.store: EncodingStore | None = None
         self.train_set = self.val_set = None
 
@@ -123,7 +126,7 @@ class EncodingsDataModule(L.LightningDataModule):
     def _open(self) -> EncodingStore:
         if self.store is None:
             self.prepare_data()
-            self.store = EncodingStore.open(self.root)
+            self.store = EncodingStore.open(self.root).use_versions(self.versions)
             missing = [n for n in self.required if not self.store.available(n)]
             if missing:
                 raise MissingEncodingError(

@@ -19,7 +19,7 @@ from difareli.targets import rotation_lights, target_lights
 def run(cfg: DictConfig) -> dict[str, Path]:
     """Relight as configured; returns the paths written."""
     validate(cfg)
-    store = EncodingStore.open(cfg.store)
+    store = EncodingStore.open(cfg.store).use_versions(cfg.get("versions"))
     rid = cfg.record or (store.ids(split="test") or store.ids())[0]
     relighter = Relighter(cfg.checkpoint, cfg.sampler, runtime=cfg.runtime, mean_matching=cfg.mean_matching,
                           batch_size=cfg.batch_size, progress=cfg.progress)

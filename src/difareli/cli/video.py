@@ -35,7 +35,7 @@ def run(cfg: DictConfig) -> dict[str, Path]:
     validate(cfg)
     from difareli.synth.rotation import rotation_matrices
 
-    store = EncodingStore.open(cfg.store)
+    store = EncodingStore.open(cfg.store).use_versions(cfg.get("versions"))
     rid = cfg.record or (store.ids(split="test") or store.ids())[0]
     synth = store.store_meta.get("generator") == "synthfaces"
     with_gt = bool(cfg.ground_truth) and synth
