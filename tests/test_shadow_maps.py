@@ -142,3 +142,27 @@ def test_derived_versions_are_checked(store):
     np.testing.assert_array_equal(store.read(rid, [name])[name], 0.0)
     assert derived.missing(store, name, store.ids()) == store.ids()[1:]
     assert EncodingStore.open(store.root).verify() == []  # derived files do not disturb the record check
+
+
+def test_cli_on_a_trained_difareli_batches_like_one_at_a_time(tiny_checkpoint, store, tmp_path, one_thread):
+    # The diffusion path: records inverted together and both c decoded together give the same differences as
+    # the relighting core one record at a time (Relighter, uint8 output: within a quantisation step).
+    from difareli.cli.shadow_maps import run
+    from difareli.relighting import Relighter
+
+    from .helpers import compose_train
+
+    ckpt = tiny_checkpoint("difareli")
+    ids = store.ids()[:3]
+    cfg = compose_train(tmp_path / "run", [f"checkpoint={ckpt}", f"store={store.root}", f"records=[{','.join(ids)}]",
+                                           "sampler.steps=3", "batch_size=2", "progress=false", "runtime.device=cpu"],
+                        config_name="shadow_maps")
+    rep = run(cfg)
+    assert rep.relit == 3 and rep.written == 3 and (tmp_path / "run" / "shadow_maps.json").is_file()
+    c_min, c_max = sm.c_range(store)
+    r = Relighter(ckpt, cfg.sampler, device="cpu")
+    own = np.asarray(store.read(ids[2], ["light"])["light"])
+    relit = r.relight_record(store, ids[2], [own, own], [c_max, c_min]).astype(np.float64) / 255.0
+    y = relit @ np.array([0.2126, 0.7152, 0.0722])
+    raw = np.asarray(EncodingStore.open(store.root).read(ids[2], [rep.raw])[rep.raw])
+    np.testing.assert_allclose(raw, y[1] - y[0], atol=2.5 / 255)
