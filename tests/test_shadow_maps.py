@@ -166,3 +166,18 @@ def test_cli_on_a_trained_difareli_batches_like_one_at_a_time(tiny_checkpoint, s
     y = relit @ np.array([0.2126, 0.7152, 0.0722])
     raw = np.asarray(EncodingStore.open(store.root).read(ids[2], [rep.raw])[rep.raw])
     np.testing.assert_allclose(raw, y[1] - y[0], atol=2.5 / 255)
+
+
+def test_binary_scores_known_shapes():
+    from difareli.metrics import binary_scores
+
+    pred = np.zeros((3, 6, 6), bool)
+    gt = np.zeros((3, 6, 6), bool)
+    pred[0, :2, :3] = True  # 6 px
+    gt[0, :2, :] = True     # 12 px, 6 shared
+    gt[1, 0, 0] = True      # nothing predicted
+    s = binary_scores(pred, gt)
+    np.testing.assert_allclose(s["iou"][:2], [0.5, 0.0])
+    np.testing.assert_allclose(s["precision"][0], 1.0)
+    np.testing.assert_allclose(s["recall"][:2], [0.5, 0.0])
+    assert np.isnan(s["precision"][1]) and np.isnan(s["iou"][2]) and np.isnan(s["recall"][2])

@@ -67,11 +67,10 @@ def detect_cast_shadow(frames: np.ndarray, arrays: Mapping[str, np.ndarray], lig
 
 
 def iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Per-item IoU of boolean masks (N, ...) -> (N,); NaN where both are empty (nothing to compare)."""
-    a, b = np.asarray(a, bool).reshape(len(a), -1), np.asarray(b, bool).reshape(len(b), -1)
-    inter, union = (a & b).sum(1), (a | b).sum(1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(union > 0, inter / np.maximum(union, 1), np.nan)
+    """Per-item IoU of boolean masks (N, ...) -> (N,); NaN where both are empty (``metrics.binary_scores``)."""
+    from difareli.metrics import binary_scores
+
+    return binary_scores(a, b)["iou"]
 
 
 def frame_changes(frames: np.ndarray, mask: np.ndarray) -> np.ndarray:

@@ -18,7 +18,7 @@ from difareli.store import EncodingStore
 
 #: The config keys that define a benchmark job; shards of one job differ only by ``shard``.
 SHARD_JOB_KEYS = ("store", "method", "sampler", "protocols", "limit", "oracle_light", "oracle_shadow",
-                  "light_fit")
+                  "light_fit", "versions")
 
 
 def run(cfg: DictConfig) -> BenchmarkResult:
@@ -30,7 +30,7 @@ def run(cfg: DictConfig) -> BenchmarkResult:
         raise errors.UserError(f"shard={cfg.get('shard')!r}: {e}") from None
     if cfg.num_threads:
         torch.set_num_threads(int(cfg.num_threads))
-    store = EncodingStore.open(cfg.store)
+    store = EncodingStore.open(cfg.store).use_versions(cfg.get("versions"))
     estimator = light_fit_from_config(OmegaConf.to_container(cfg.light_fit, resolve=True))
     method = build_method(OmegaConf.to_container(cfg.method, resolve=True),
                           sampler=OmegaConf.to_container(cfg.sampler, resolve=True),
