@@ -14,6 +14,8 @@ shadows, ``albedo * E_target(n)``; a pixel is in cast shadow when its luminance 
 that prediction. Pixels are judged only on the face mask where the normal is known, the input is lit enough for
 the albedo proxy (``Y(E_input) > MIN_INPUT_IRRADIANCE``) and not in its own stored cast shadow, and the pixel
 faces the target light's dominant direction (``n.d > FACING``: attached shadow is not cast shadow).
+difareli-video applies it with the exact lights (``light_gt`` of the input, the GT frames' lights) where the store
+has them: the rule is a measurement, not a model input.
 """
 
 from __future__ import annotations

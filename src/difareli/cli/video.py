@@ -84,7 +84,10 @@ def run(cfg: DictConfig) -> dict[str, Path]:
         written["gt"] = write_video(gt.frames, out / f"ground_truth.{ext}", cfg.fps)
         side = np.stack([viz.grid([[g, r]]) for g, r in zip(gt.frames, relit)])
         written["side_by_side"] = write_video(side, out / f"side_by_side.{ext}", cfg.fps)
-        report = vid.measure(relit, gt.frames, arrays, lights, gt.cast())
+        # The rule measures (it is no model input): it uses the exact input and frame lights when the store has them.
+        rule_arrays = {**arrays, "light": np.asarray(store.read(rid, ["light_gt"])["light_gt"])} \
+            if store.available("light_gt") else arrays
+        report = vid.measure(relit, gt.frames, rule_arrays, gt.targets["light"], gt.cast())
         written["csv"] = vid.write_csv(report, out / "frames.csv", angles)
         written["figure"] = vid.plot_temporal(report, out / "temporal.png", f"{rid}: {what}")
         summary.update(report.summary(), shadow_rule=(f"cast shadow where luminance < {vid.SHADOW_RATIO} x "
