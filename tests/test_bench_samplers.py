@@ -90,8 +90,9 @@ def test_store_cases_target_is_same_subject_other_light(synth_store):
     store = EncodingStore.open(synth_store)
     model = SleepyModel()
     model.spatial_inputs, model.nonspatial_inputs = ["shading", "shadow_map", "masks"], ["shape", "cam", "identity"]
-    cases = speed.store_cases(store, model, records=["s00006_l1", "s00007_l0"], limit=None)
+    cases = speed.store_cases(store, model, records=["s00006_l1", "s00007_l0"], limit=None, oracle_target=True)
     assert [(c.record, c.target) for c in cases] == [("s00006_l1", "s00006_l0"), ("s00007_l0", "s00007_l1")]
+    assert cases[0].inputs.startswith("oracle target")
     c = cases[0]
     tgt = store.read("s00006_l0", ["image", "shading", "shadow_map", "masks"])
     src = store.read("s00006_l1", ["masks", "face_mask"])
@@ -102,6 +103,27 @@ def test_store_cases_target_is_same_subject_other_light(synth_store):
     assert torch.equal(c.mask[0], torch.from_numpy(np.array(src["face_mask"])))
     assert torch.equal(((c.gt[0] + 1) * 127.5).round().byte().permute(1, 2, 0), torch.from_numpy(np.array(tgt["image"])))
     assert len(speed.store_cases(store, model, limit=1)) == 1  # default: the test split
+
+
+def test_store_cases_default_target_is_what_a_user_has(synth_store):
+    # Not the target record's stored maps: the light fitted to its image, the policy c, maps re-rendered on
+    # the source's geometry (the shadow map ray-marched on the source's depth).
+    from difareli import targets
+    from difareli.baselines import LightFit
+
+    store = EncodingStore.open(synth_store)
+    model = SleepyModel()
+    model.spatial_inputs, model.nonspatial_inputs = ["shading", "shadow_map", "masks"], ["shape", "cam", "identity"]
+    c = speed.store_cases(store, model, records=["s00006_l1"], limit=None)[0]
+    light = LightFit().from_store(store, "s00006_l0")
+    cval, how = targets.target_shadow_of(store, "s00006_l0")
+    src = {k: np.asarray(v) for k, v in store.read("s00006_l1").items()}
+    np.testing.assert_allclose(c.target_cond[0][0, :3].permute(1, 2, 0).numpy(),
+                               targets.render_shading(src, light), atol=1e-6)
+    np.testing.assert_allclose(c.target_cond[0][0, 3].numpy(), targets.target_shadow_map(src, light, cval), atol=1e-6)
+    # This conftest store is inputs=exact: the stored c is exact, so the policy takes the train split's median.
+    assert "median shadowed c" in how and how in c.inputs and "fitted" in c.inputs
+    assert not np.allclose(light, store.read("s00006_l0", ["light"])["light"], atol=1e-3)  # a fit, not the record's
 
 
 def test_bench_checkpoint_writes_table_and_plots(tiny_checkpoint, synth_store, tmp_path, capsys):

@@ -227,6 +227,17 @@ class DiffusionMethod:
         one_pass = isinstance(self.relighter.model, OnePassRelightable)  # a student: the sampler plays no part
         self.name = name or (model if one_pass else f"{model}/{spec.name}-{spec.steps}")
 
+    @property
+    def target_maps(self) -> str:
+        """How the target's light-dependent encodings are made (stated in the benchmark's tables)."""
+        from difareli import encodings
+
+        names = encodings.light_dependent(self.relighter.model_inputs)
+        maps = "re-rendered on the input's geometry under the target light: " + ", ".join(names)
+        if "shadow_map" in names:
+            maps += " (shadow map ray-marched on the input's depth; inversion uses the input's own map)"
+        return maps
+
     def relight(self, store, source_id, target_light, target_shadow=None, target_id=None) -> np.ndarray:
         return self.relighter.relight_record(store, source_id, [target_light], [target_shadow])[0]
 

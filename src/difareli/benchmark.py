@@ -4,8 +4,10 @@ For each pair of ``protocols.json`` (written with the store by ``synth.splits``)
 light estimated from ``light_source`` (protocol (i) ``same_subject``: the same person under the target light;
 (ii) ``different_subject``: another person under that very light) and score the result against ``target``
 on the target's ``face_mask``. The light is fitted from the light-source image (:class:`baselines.LightFit`)
-as a user would get it, with the stored (v2: estimated) shadow strength c; ``oracle_light`` takes the exact
-light and c instead (``light_gt``/``shadow_gt`` in SynthFaces v2 stores, whose ``light``/``shadow`` are estimated).
+as a user would get it, with the shadow strength c a user has (``targets.target_shadow_of``: the estimated c of
+a v2 ``inputs=estimated`` store, else the training split's median shadowed c); ``oracle_light`` takes the exact
+light and c instead (``light_gt``/``shadow_gt`` in SynthFaces v2 stores, whose ``light``/``shadow`` are estimated),
+``oracle_shadow`` the exact c alone. ``summary.md`` and ``provenance.json`` state which inputs were used.
 
 Outputs in the run dir: ``relit/<protocol>/<pair id>.png``, ``metrics_per_image.csv`` (tables.py schema),
 ``summary.{md,csv,tex}``, ``light_estimation.csv`` and ``comparison_<protocol>.png`` (input | light source |
@@ -28,6 +30,7 @@ import torch
 from tqdm.auto import tqdm
 
 from difareli import errors, metrics, tables, viz
+from difareli.targets import target_shadow_of
 from difareli import shard as sharding
 from difareli.baselines import LightFit, Method, exact_light_name, irradiance_error
 from difareli.store import EncodingStore
@@ -122,6 +125,7 @@ class Lights:
 
     def __init__(self, store: EncodingStore, estimator: LightFit | None):
         self.store, self.estimator = store, estimator
+        self.shadow_note = ""
         self._cache: dict[str, np.ndarray] = {}
 
     def get(self, record_id: str) -> np.ndarray:
@@ -132,13 +136,11 @@ class Lights:
             self._cache[record_id] = self.estimator.from_store(self.store, record_id)
         return self._cache[record_id]
 
-    def shadow(self, record_id: str) -> float | None:
-        """The record's cast-shadow strength c: the stored (estimated in v2) one, or the exact one
-        (``shadow_gt``) for oracle lights; None if the store has none."""
-        name = "shadow_gt" if self.estimator is None and self.store.available("shadow_gt") else "shadow"
-        if not self.store.available(name):
-            return None
-        return float(np.asarray(self.store.read(record_id, [name])[name]).reshape(-1)[0])
+    def shadow(self, record_id: str, oracle: bool = False) -> float | None:
+        """The cast-shadow strength c' a user has for the target given by ``record_id``'s image, or the exact
+        one (``oracle``, or oracle lights); :func:`targets.target_shadow_of` states the policy."""
+        c, self.shadow_note = target_shadow_of(self.store, record_id, oracle=oracle or self.estimator is None)
+        return c
 
     def error(self, estimate: np.ndarray, truth_id: str, on_id: str) -> tuple[float, float]:
         """:func:`irradiance_error` of ``estimate`` vs ``truth_id``'s light on ``on_id``'s face normals."""
@@ -153,6 +155,8 @@ class Lights:
 @dataclass
 class BenchmarkResult:
     records: list[tables.Record]
+    #: which inputs were estimated and which were oracle (stated in summary.md and provenance.json)
+    provenance: dict[str, str] = field(default_factory=dict)
     light_errors: list[dict] = field(default_factory=list)
     paths: dict[str, Path] = field(default_factory=dict)
 
@@ -179,7 +183,7 @@ def _pm(s: tables.Stat) -> str:
 
 
 def run_benchmark(store: EncodingStore, method: Method, protocols: Sequence[str], out_dir: str | Path, *,
-                  limit: int | None = None, oracle_light: bool = False, estimator: LightFit | None = None,
+                  limit: int | None = None, oracle_light: bool = False, oracle_shadow: bool = False, estimator: LightFit | None = None,
                   grid_pairs: int = 4, save_images: bool = True, progress: bool = True,
                   shard: str | None = None) -> BenchmarkResult:
     """Relight and score every pair of ``protocols``; write the run's outputs into ``out_dir``.
@@ -191,7 +195,9 @@ def run_benchmark(store: EncodingStore, method: Method, protocols: Sequence[str]
     lights = Lights(store, None if oracle_light else estimator)
     # Methods that fit their source light (the Lambertian baseline) are scored on it too (unless lights are oracle).
     source_fit = method.needs_light_fit and getattr(method, "estimator", None) is not None
-    result = BenchmarkResult(records=[])
+    result = BenchmarkResult(records=[], provenance={
+        "target light": "exact (oracle_light)" if oracle_light else "fitted to the light-source image (LightFit)",
+        "target maps": getattr(method, "target_maps", "none (the method reads no light-dependent map)")})
     done = _scored_so_far(out_dir, method.name)
     for proto, pairs in load_pairs(store, protocols, limit).items():
         pairs = sharding.select(pairs, shard, key=lambda p: p.id)
@@ -199,7 +205,9 @@ def run_benchmark(store: EncodingStore, method: Method, protocols: Sequence[str]
         grid_rows = []
         for pair in tqdm(pairs, desc=f"{method.name} {proto}", disable=not progress):
             light = lights.get(pair.target if oracle_light else pair.light_source)
-            shadow = lights.shadow(pair.target if oracle_light else pair.light_source)
+            shadow = lights.shadow(pair.target if oracle_light or oracle_shadow else pair.light_source,
+                                   oracle=oracle_shadow)
+            result.provenance.setdefault("target c", lights.shadow_note)
             if not oracle_light:
                 rel, free = lights.error(light, pair.target, pair.target)
                 result.light_errors.append({"protocol": short, "record_id": pair.id, "light": "target",
@@ -258,6 +266,10 @@ def write_outputs(result: BenchmarkResult, out_dir: Path, caption: str | None = 
     table = result.table
     paths = {"per_image": tables.write_records(out_dir / tables.PER_IMAGE_CSV, result.records)}
     md = table.to_markdown()
+    if result.provenance:  # every table says which inputs were estimated and which were oracle
+        md = "Inputs: " + "; ".join(f"{k}: {v}" for k, v in result.provenance.items()) + "\n\n" + md
+        paths["provenance"] = out_dir / "provenance.json"
+        paths["provenance"].write_text(json.dumps(result.provenance, indent=2) + "\n")
     if result.light_errors:
         md += "\nLight estimation (relative irradiance error on the ground truth's face normals):\n\n"
         md += result.light_summary()

@@ -89,6 +89,7 @@ class EncodingsDataModule(L.LightningDataModule):
         allow_split_fallback: bool = False,
         pairs: str | None = None,
         teacher_pairs: str | None = None,
+        versions: Mapping[str, str | None] | None = None,
     ):
         super().__init__()
         self.root = Path(root)
@@ -104,6 +105,8 @@ class EncodingsDataModule(L.LightningDataModule):
         self.allow_split_fallback = bool(allow_split_fallback)
         # The student's pair sampler (difareli.pairs.PAIR_SAMPLERS: teacher | gt | mix | identity); None: records.
         self.pairs, self.teacher_pairs = pairs, teacher_pairs
+        #: derived encoding versions read in place of their base (``{"shadow_map": "diff-1a2b"}``; difareli.derived)
+        self.versions = {k: v for k, v in dict(versions or {}).items() if v is not None}
         self.store: EncodingStore | None = None
         self.train_set = self.val_set = None
 
@@ -127,7 +130,7 @@ class EncodingsDataModule(L.LightningDataModule):
     def _open(self) -> EncodingStore:
         if self.store is None:
             self.prepare_data()
-            self.store = EncodingStore.open(self.root)
+            self.store = EncodingStore.open(self.root).use_versions(self.versions)
             missing = [n for n in self.required if not self.store.available(n)]
             if missing:
                 raise MissingEncodingError(

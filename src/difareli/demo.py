@@ -23,7 +23,7 @@ import numpy as np
 from difareli import tables, viz
 from difareli.relighting import Relighter, write_video
 from difareli.store import EncodingStore
-from difareli.targets import rotation_lights
+from difareli.targets import rotation_lights, video_shadow
 
 
 @dataclass
@@ -58,22 +58,6 @@ def _bar(desc: str, enabled: bool) -> Callable[[int, int], None]:
             state["bar"].close()
 
     return update
-
-
-def video_shadow(store: EncodingStore, arrays: Mapping[str, np.ndarray]) -> tuple[float | None, str]:
-    """The shadow strength c' of the rotation video and how it was chosen (stated in the output): the input's
-    own c when it casts shadows, else the median c of the store's shadowed training records."""
-    if "shadow" not in arrays:
-        return None, "the model takes no shadow strength"
-    own = float(np.asarray(arrays["shadow"]).reshape(-1)[0])
-    ids = store.ids(split="train") or store.ids()
-    cs = np.array([float(np.asarray(store.read(r, ["shadow"])["shadow"]).reshape(-1)[0]) for r in ids])
-    shadowed = cs[cs > np.median(cs)]
-    typical = float(np.median(shadowed)) if len(shadowed) else own
-    if own >= typical:
-        return own, f"c' = {own:.2f}, the input's own shadow strength"
-    return typical, (f"c' = {typical:.2f}, the median of the shadowed half of {len(ids)} training records "
-                     f"(the input's own c = {own:.2f} casts little shadow)")
 
 
 def run_demo(checkpoint: Any, out_dir: str | Path, *, sampler: Mapping[str, Any], runtime: Mapping[str, Any] | None,
@@ -116,8 +100,9 @@ def run_demo(checkpoint: Any, out_dir: str | Path, *, sampler: Mapping[str, Any]
     t0 = time.perf_counter()
     first = max(test, key=lambda r: directionality(lights[r]))
     arrays = relighter.read(store, first)
-    c, why = video_shadow(store, arrays)
-    res.notes.append(f"rotation video of {first}; shadow strength {why}")
+    own = float(np.asarray(arrays["shadow"]).reshape(-1)[0]) if "shadow" in arrays else None
+    c, why = video_shadow(store, own, None) if "shadow" in arrays else (None, "the model takes no shadow input")
+    res.notes.append(f"rotation video of {first}, shadow strength: {why}")
     video = relighter.relight_record(store, first, rotation_lights(lights[first], "yaw", frames), [c] * frames)
     res.paths["video"] = write_video(np.stack(_zoom([list(video)], 2)[0]), out / "rotation_yaw.gif", fps=20)
     res.paths["sheet"] = viz.save_png(viz.grid([list(video[i:i + 10]) for i in range(0, frames, 10)]),

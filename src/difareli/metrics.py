@@ -141,3 +141,18 @@ def evaluate(pred: Tensor, target: Tensor, mask: Tensor, data_range: float = 1.0
     }
     return {k: v.detach().to("cpu", torch.float64) for k, v in out.items()}
 
+
+
+def binary_scores(pred, target) -> dict[str, "np.ndarray"]:
+    """IoU, precision and recall of boolean masks ``(N, ...)`` -> each ``(N,)`` (numpy). NaN where undefined:
+    IoU when both are empty, precision when ``pred`` is empty, recall when ``target`` is empty."""
+    import numpy as np
+
+    a = np.asarray(pred, bool).reshape(len(pred), -1)
+    b = np.asarray(target, bool).reshape(len(target), -1)
+    inter = (a & b).sum(1).astype(np.float64)
+
+    def ratio(den):
+        return np.where(den > 0, inter / np.maximum(den, 1), np.nan)
+
+    return {"iou": ratio((a | b).sum(1)), "precision": ratio(a.sum(1)), "recall": ratio(b.sum(1))}

@@ -9,8 +9,9 @@ synchronised around the timed region, and each sampler runs once untimed first.
 Quality is measured on the face mask with :mod:`difareli.metrics` (MSE, DSSIM, images in [0, 1]) against two
 references: the reference sampler's relight of the same input and target (DDIM-1000 by default: the
 discretisation error alone) and, on SynthFaces, the ground truth: the same subject's record under the target
-light. The target condition is that record's own light-dependent encodings (shading, shadow map, light, c),
-which SynthFaces renders exactly for the same geometry, so the benchmark needs no retargeting (no depth).
+light. The target condition is what a user would have (the light fitted to the target image, an estimated or
+policy c, encodings re-rendered on the source's geometry); ``oracle_target`` takes that record's own
+light-dependent encodings (shading, shadow map, light, c), which SynthFaces renders exactly for the same geometry.
 """
 
 from __future__ import annotations
@@ -48,6 +49,7 @@ class Case:
     target_cond: Condition
     gt: Tensor | None = None                 # [1, 3, H, W] in [-1, 1]: the target record's image
     mask: Tensor | None = None               # [1, H, W] bool face mask
+    inputs: str = ""                         # how the target condition was made (estimated or oracle inputs)
 
 
 def untrained_model(model_cfg: Mapping[str, Any], preset: str = "ffhq256", resolution: int | None = None,
@@ -94,16 +96,24 @@ def same_subject_target(store: EncodingStore, record_id: str) -> str | None:
 
 
 def store_cases(store: EncodingStore, model, records: Iterable[str] | None = None, limit: int | None = 2,
-                device: str | torch.device = "cpu") -> list[Case]:
+                device: str | torch.device = "cpu", *, oracle_target: bool = False) -> list[Case]:
     """Cases for ``records`` (default: the test split, else every record) under another light of the same subject.
 
-    The target condition is the source's encodings with the light-dependent ones (the encoding registry's)
-    taken from the target record, which SynthFaces renders exactly for the same geometry; the ground truth is
-    the target record's image and the mask the source's ``face_mask``.
+    By default the target is what a user would have: the light fitted to the target record's image
+    (:class:`baselines.LightFit`), the c of :func:`targets.target_shadow_of`, and the light-dependent encodings
+    re-rendered on the source's geometry (shadow map ray-marched on its depth). ``oracle_target`` takes the
+    target record's stored light-dependent encodings instead. The ground truth is the target record's image and
+    the mask the source's ``face_mask``; each case's ``inputs`` says which target was used.
     """
+    from difareli.baselines import LightFit
+    from difareli.targets import retarget, target_shadow_of
+
     ids = list(records) if records is not None else (store.ids(split="test") or store.ids())
     inputs = [*model.spatial_inputs, *model.nonspatial_inputs]
-    names = list(dict.fromkeys(["image", *inputs] + (["face_mask"] if store.available("face_mask") else [])))
+    rerender = encodings.light_dependent(inputs)
+    names = list(dict.fromkeys(["image", *inputs, *([] if oracle_target else encodings.rerender_needs(rerender))]
+                               + (["face_mask"] if store.available("face_mask") else [])))
+    fit = LightFit()
     cases = []
     for rid in ids:
         if limit is not None and len(cases) >= limit:
@@ -111,12 +121,21 @@ def store_cases(store: EncodingStore, model, records: Iterable[str] | None = Non
         tid = same_subject_target(store, rid)
         if tid is None:
             continue
-        src, tgt = store.read(rid, names), store.read(tid, names)
-        tgt = {**src, **{k: tgt[k] for k in encodings.light_dependent(inputs)}}
+        src = store.read(rid, names)
+        if oracle_target:
+            tgt = store.read(tid, names)
+            tgt = {**src, **{k: tgt[k] for k in rerender}}
+            note = "oracle target: the target record's stored light-dependent encodings"
+        else:
+            c, how = target_shadow_of(store, tid)
+            tgt = {**src, **retarget(src, rerender, fit.from_store(store, tid), c)}
+            note = (f"target light fitted to the target image (LightFit); {how}; "
+                                f"re-rendered on the source: {', '.join(rerender) or 'nothing'}")
         mask = torch.from_numpy(np.array(src["face_mask"]))[None].bool().to(device) if "face_mask" in src else None
         cases.append(Case(rid, tid, image_to_tensor(src["image"])[None].to(device),
                           condition_tensors(model, [src], device), condition_tensors(model, [tgt], device),
-                          gt=image_to_tensor(store.read(tid, ["image"])["image"])[None].to(device), mask=mask))
+                          gt=image_to_tensor(store.read(tid, ["image"])["image"])[None].to(device), mask=mask,
+                          inputs=note))
     if not cases:
         raise ValueError(f"no record of {ids[:5]}{'...' if len(ids) > 5 else ''} in {store.root} has another record "
                          "of the same subject to relight toward (the benchmark's target and ground truth)")

@@ -104,6 +104,9 @@ class EncodingStore:
         self.dims: dict[str, int] = {k: int(v) for k, v in header["dims"].items()}
         self.encodings: tuple[str, ...] = tuple(header["encodings"])
         self.store_meta: dict[str, Any] = dict(header.get("meta", {}))
+        #: derived encoding versions ``base@version`` -> provenance (difareli.derived), and the ones a reader uses
+        self.derived: dict[str, Any] = dict(header.get("derived", {}))
+        self.versions: dict[str, str] = {}
         #: fsync each file and folder on write; False trades crash durability for speed (tests, scratch).
         self.durable = durable
         self._ids: list[str] | None = None
@@ -216,6 +219,22 @@ class EncodingStore:
     def available(self, name: str) -> bool:
         """Whether encoding ``name`` is declared in the header (i.e. every record has it)."""
         return name in self.encodings
+
+    def use_versions(self, versions: Mapping[str, str | None] | None) -> "EncodingStore":
+        """Read these derived versions in place of their base encodings (``{"shadow_map": "diff-1a2b"}``;
+        a None version keeps the base); returns the store. Unknown versions are refused, listing the declared."""
+        chosen = {}
+        for base, version in dict(versions or {}).items():
+            if version is None:
+                continue
+            name = f"{base}@{version}"
+            if name not in self.derived:
+                have = sorted(self.derived) or "none"
+                raise UserError(f"versions.{base}={version!r}: store {self.root} has no {name} (derived versions: "
+                                f"{have}); compute it (difareli-shadow-maps) or drop the key")
+            chosen[base] = str(version)
+        self.versions = chosen
+        return self
 
     def __repr__(self) -> str:
         return f"EncodingStore({str(self.root)!r}, dims={self.dims}, encodings={list(self.encodings)})"
@@ -372,11 +391,16 @@ class EncodingStore:
         names = self.encodings if names is None else list(names)
         out = {}
         for name in names:
-            enc.get(name)
-            file = path / f"{name}.npy"
+            base = name.partition("@")[0]  # an explicit derived version reads as its base encoding
+            enc.get(base)
+            stem = f"{name}@{self.versions[name]}" if name in self.versions else name  # a chosen derived version
+            file = path / f"{stem}.npy"
             try:
                 out[name] = np.load(file, mmap_mode="r", allow_pickle=False)
             except FileNotFoundError:
+                if stem != name or "@" in name:
+                    raise KeyError(f"record {record_id!r} of store {self.root} has no derived {stem!r} yet (a run "
+                                   "computing it did not reach it); resume that run or choose another version") from None
                 declared = "declared in the header" if self.available(name) else "not in the header either"
                 raise KeyError(
                     f"encoding {name!r} missing for record {record_id!r} in store {self.root} ({declared}; "
@@ -385,9 +409,9 @@ class EncodingStore:
             except (ValueError, OSError, EOFError) as e:  # truncated / corrupt .npy: name the file, not mmap
                 raise UserError(f"record {record_id!r}, encoding {name!r} in store {self.root}: {file} is "
                                 f"corrupt or truncated ({str(e)[:100]}); regenerate or remove the record") from None
-            if self.available(name) and out[name].shape != enc.get(name).resolve(self.dims):
+            if self.available(base) and out[name].shape != enc.get(base).resolve(self.dims):
                 raise UserError(f"record {record_id!r}, encoding {name!r} in store {self.root} has shape "
-                                f"{out[name].shape}, the store's schema wants {enc.get(name).resolve(self.dims)}; "
+                                f"{out[name].shape}, the store's schema wants {enc.get(base).resolve(self.dims)}; "
                                 "regenerate or remove the record")
         return out
 

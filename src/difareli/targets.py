@@ -9,6 +9,7 @@ dominant direction (the input's own map is used for inversion only).
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Mapping
 
@@ -149,3 +150,73 @@ def retarget(arrays: Mapping[str, np.ndarray], names: list[str], light: np.ndarr
         e = encodings.get(n)
         out[n] = e.render(arrays, light, shadow) if e.light_dependent else arrays[n]
     return out
+
+
+# ------------------------------------------------------------------------------------------ target c policy
+#: A record counts as shadowed when its cast shadows remove at least this share of the light (c >= logit of it).
+SHADOWED_SHARE = 0.01
+_TYPICAL_C: dict[tuple[str, str], float | None] = {}
+
+
+def is_shadowed(c: float) -> bool:
+    """Whether a shadow logit ``c`` means a visible cast shadow (share >= ``SHADOWED_SHARE``)."""
+    return c >= math.log(SHADOWED_SHARE / (1 - SHADOWED_SHARE))
+
+
+def typical_shadowed_c(shadows) -> float | None:
+    """The median c of the records whose cast shadows remove at least ``SHADOWED_SHARE`` of the light."""
+    c = np.asarray(shadows, dtype=np.float64).reshape(-1)
+    shadowed = c[np.isfinite(c) & (c >= math.log(SHADOWED_SHARE / (1 - SHADOWED_SHARE)))]
+    return float(np.median(shadowed)) if shadowed.size else None
+
+
+def split_typical_c(store, split: str = "train") -> float | None:
+    """:func:`typical_shadowed_c` of the stored ``shadow`` of ``split``'s records (cached per store)."""
+    key = (str(store.root), split)
+    if key not in _TYPICAL_C:
+        ids = store.ids(split=split) if store.available("shadow") else []
+        _TYPICAL_C[key] = typical_shadowed_c([store.read(r, ["shadow"])["shadow"][0] for r in ids]) if ids else None
+    return _TYPICAL_C[key]
+
+
+def stored_shadow_is_estimate(store) -> bool:
+    """Whether a store's ``shadow`` is what a user has (an estimator's c): photo stores and SynthFaces
+    ``inputs=estimated``; a SynthFaces ``inputs=exact`` store holds the exact c there (an oracle)."""
+    meta = store.store_meta
+    return meta.get("generator") != "synthfaces" or meta.get("inputs") == "estimated"
+
+
+def target_shadow_of(store, record_id: str, *, oracle: bool = False, split: str = "train") -> tuple[float | None, str]:
+    """``(c', how)``: the shadow strength a user has for a target given by ``record_id``'s image.
+
+    ``oracle``: the exact c (``shadow_gt``, else ``shadow``). Otherwise the stored ``shadow`` when it is an
+    estimate (:func:`stored_shadow_is_estimate`), else the stated policy: ``split``'s median shadowed c."""
+    if not store.available("shadow"):
+        return None, "no target c (the store has no 'shadow' encoding)"
+    if oracle:
+        name = "shadow_gt" if store.available("shadow_gt") else "shadow"
+        return float(np.asarray(store.read(record_id, [name])[name]).reshape(-1)[0]), "exact c (oracle)"
+    if stored_shadow_is_estimate(store):
+        return (float(np.asarray(store.read(record_id, ["shadow"])["shadow"]).reshape(-1)[0]),
+                "c estimated from the target image (stored 'shadow': the shadow classifier)")
+    c = split_typical_c(store, split)
+    if c is None:
+        raise UserError(f"store {store.root} holds only exact shadow c and its {split} split has no shadowed record to "
+                        "take a typical c from; use an inputs=estimated store or set oracle_shadow=true")
+    return c, f"c = {c:.3f}, the {split} split's median shadowed c (the store holds only exact c)"
+
+
+def video_shadow(store, record_c: float | None, given: float | None, split: str = "train") -> tuple[float, str]:
+    """The shadow strength c' for every frame of a video and a sentence saying where it came from: ``given``;
+    else the input's own c when it is shadowed; else the median shadowed c of ``split`` (the training split)."""
+    if given is not None:
+        return float(given), f"target c' = {float(given):.3f} (given: target.shadow)"
+    if record_c is not None and is_shadowed(record_c):
+        return record_c, f"target c' = {record_c:.3f} (the input's own c: it has a cast shadow)"
+    c = split_typical_c(store, split)
+    own = "no 'shadow' encoding" if record_c is None else f"c = {record_c:.2f}"
+    if c is None:
+        raise UserError(f"the input has no cast shadow ({own}) and the {split} split of {store.root} has no shadowed "
+                        "record to take a typical c from; give target.shadow=<logit c'>")
+    return c, (f"target c' = {c:.3f} (the input has no cast shadow, {own}: median c of the {split} split's "
+               f"shadowed records, share >= {SHADOWED_SHARE})")

@@ -47,11 +47,11 @@ def run(cfg: DictConfig) -> dict:
         model = load_checkpoint(cfg.checkpoint, device).model.to(device)
         cases = speed.store_cases(EncodingStore.open(cfg.store), model,
                                   records=list(cfg.records) if cfg.records is not None else None, limit=cfg.limit,
-                                  device=device)
+                                  device=device, oracle_target=bool(cfg.get("oracle_target", False)))
         reference = (cfg.reference.sampler, int(cfg.reference.steps)) if cfg.reference is not None else None
         if reference is not None and reference[0] not in configured:
             raise KeyError(f"reference.sampler={reference[0]!r} is not configured under samplers ({sorted(configured)})")
-        what = f"{cfg.checkpoint} on {len(cases)} record(s) of {cfg.store}"
+        what = f"{cfg.checkpoint} on {len(cases)} record(s) of {cfg.store} ({cases[0].inputs})"
     else:
         model_cfg = OmegaConf.to_container(cfg.model, resolve=True)
         model, res = speed.untrained_model(model_cfg, model_cfg.pop("preset"), cfg.resolution, device, seed=cfg.seed)
@@ -69,6 +69,8 @@ def run(cfg: DictConfig) -> dict:
         speed.add_one_pass(rows, outputs, student, student_cases, name=student.hparams.get("name", "student"),
                            runtime=runtime, repeats=cfg.repeats, warmup=cfg.warmup)
     out = Path(cfg.out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "inputs.txt").write_text(what + "\n")  # which inputs (estimated or oracle) the table used
     paths = {"csv": speed.write_csv(rows, out / "bench_samplers.csv"),
              "plot": speed.pareto_plot(rows, out / "bench_samplers.png")}
     if cfg.checkpoint is not None:

@@ -17,7 +17,8 @@ from difareli.lit import logging as lit_logging
 from difareli.store import EncodingStore
 
 #: The config keys that define a benchmark job; shards of one job differ only by ``shard``.
-SHARD_JOB_KEYS = ("store", "method", "sampler", "protocols", "limit", "oracle_light", "light_fit")
+SHARD_JOB_KEYS = ("store", "method", "sampler", "protocols", "limit", "oracle_light", "oracle_shadow",
+                  "light_fit", "versions")
 
 
 def run(cfg: DictConfig) -> BenchmarkResult:
@@ -29,7 +30,7 @@ def run(cfg: DictConfig) -> BenchmarkResult:
         raise errors.UserError(f"shard={cfg.get('shard')!r}: {e}") from None
     if cfg.num_threads:
         torch.set_num_threads(int(cfg.num_threads))
-    store = EncodingStore.open(cfg.store)
+    store = EncodingStore.open(cfg.store).use_versions(cfg.get("versions"))
     estimator = light_fit_from_config(OmegaConf.to_container(cfg.light_fit, resolve=True))
     method = build_method(OmegaConf.to_container(cfg.method, resolve=True),
                           sampler=OmegaConf.to_container(cfg.sampler, resolve=True),
@@ -38,9 +39,12 @@ def run(cfg: DictConfig) -> BenchmarkResult:
     # Methods that use the light get a marked name under ground-truth lights, so merged tables keep both.
     if cfg.oracle_light and method.needs_light:
         method.name += "+gt-light"
+    elif cfg.get("oracle_shadow") and method.needs_light:
+        method.name += "+gt-c"
     limit = int(cfg.limit) if cfg.limit is not None else None
     result = run_benchmark(store, method, list(cfg.protocols), Path(cfg.out_dir), limit=limit,
-                           oracle_light=bool(cfg.oracle_light), estimator=estimator, grid_pairs=int(cfg.grid_pairs),
+                           oracle_light=bool(cfg.oracle_light), oracle_shadow=bool(cfg.get("oracle_shadow", False)),
+                           estimator=estimator, grid_pairs=int(cfg.grid_pairs),
                            save_images=bool(cfg.save_images), progress=bool(cfg.progress), shard=spec)
     if spec is not None:  # what difareli-table checks before merging shards: same job, every shard once
         job = {k: OmegaConf.to_container(cfg[k], resolve=True) if OmegaConf.is_config(cfg[k]) else cfg[k]

@@ -18,13 +18,13 @@ from difareli import errors, photo, viz, zoo
 from difareli.cli import common
 from difareli.relighting import OnePassRelightable, Relighter, write_video
 from difareli.store import EncodingStore
-from difareli.targets import rotation_lights, target_lights
+from difareli.targets import rotation_lights, target_lights, video_shadow
 
 
 def run(cfg: DictConfig) -> dict[str, Path]:
     """Relight as configured; returns the paths written."""
     validate(cfg)
-    store = EncodingStore.open(cfg.store) if cfg.store is not None else None
+    store = EncodingStore.open(cfg.store).use_versions(cfg.get("versions")) if cfg.store is not None else None
     relighter = Relighter(cfg.checkpoint, cfg.sampler, runtime=cfg.runtime, mean_matching=cfg.mean_matching,
                           batch_size=cfg.batch_size, progress=cfg.progress)
     if cfg.image is not None:  # a photo: the estimators of difareli-preprocess, in memory, for what the model reads
@@ -67,7 +67,14 @@ def run(cfg: DictConfig) -> dict[str, Path]:
     if cfg.video.axis is not None:
         lights = rotation_lights(src["light"], cfg.video.axis, cfg.video.frames)
         start = time.perf_counter()
-        frames = relight_to(lights, [t.shadow] * len(lights))
+        own = float(np.asarray(src["shadow"]).reshape(-1)[0]) if "shadow" in src else None
+        if store is not None and "shadow" in src:  # the stated policy (targets.video_shadow), printed
+            c, why = video_shadow(store, own, t.shadow)
+        else:
+            c = t.shadow if t.shadow is not None else own
+            why = f"target c' = {c} ({'given' if t.shadow is not None else 'the input own c'})"
+        print(f"video shadow strength: {why}")
+        frames = relight_to(lights, [c] * len(lights))
         print(f"{len(frames)} frames in {time.perf_counter() - start:.1f} s")
         written["video"] = write_video(frames, out_dir / f"rotation_{cfg.video.axis}.{cfg.video.format}", cfg.video.fps)
         sheet = [list(frames[i:i + 10]) for i in range(0, len(frames), 10)]

@@ -1,0 +1,118 @@
+"""Derived encodings: versioned alternatives of a declared encoding, computed after a store was written
+(e.g. DiFaReli++'s difference-method shadow maps, ``shadow_map@diff-<hash>``; issue 12).
+
+Layout: ``records/<record_id>/<base>@<version>.npy`` beside the record's own encodings (nothing is copied),
+and the version's provenance (checkpoint, sampler, threshold, ...) under ``"derived"`` in ``store.json``.
+Every per-record file is written to a dot-named scratch file in the record folder and renamed into place
+(atomic; a rerun skips records that have the version, so a killed run resumes). A derived array is validated
+against its base encoding's schema.
+
+A reader chooses which version a model consumes with ``EncodingStore.use_versions({"shadow_map": "diff-..."})``
+(the ``versions`` config key of the DataModule, relight and video CLIs): ``read(rid, ["shadow_map"])`` then
+returns that version under the base name, so DataModule, Relighter and the metrics code stay unchanged.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from pathlib import Path
+from typing import Any, Iterable, Mapping
+
+import numpy as np
+
+from difareli import encodings as enc
+
+SEP = "@"
+KEY = "derived"
+
+
+def version_name(base: str, version: str) -> str:
+    """``base@version``, checking both parts (a version is 1-64 characters of [A-Za-z0-9_.+=-])."""
+    enc.get(base)
+    if not version or len(version) > 64 or not all(ch.isalnum() or ch in "_.+=-" for ch in version) \
+            or version[0] in ".-":
+        raise ValueError(f"derived version {version!r} is invalid: use 1-64 characters from [A-Za-z0-9_.+=-], not "
+                         "starting with '.' or '-'")
+    return f"{base}{SEP}{version}"
+
+
+def split_name(name: str) -> tuple[str, str | None]:
+    """``("shadow_map", "diff-1a2b")`` for ``shadow_map@diff-1a2b``; ``(name, None)`` for a plain encoding."""
+    base, _, version = name.partition(SEP)
+    return base, (version or None)
+
+
+def content_version(prefix: str, provenance: Mapping[str, Any], length: int = 8) -> str:
+    """``<prefix>-<hash>``: a version named by the hash of its provenance (same inputs, same version)."""
+    text = json.dumps(dict(provenance), sort_keys=True, default=str)
+    return f"{prefix}-{hashlib.sha1(text.encode()).hexdigest()[:length]}"
+
+
+def declare(store, base: str, version: str, provenance: Mapping[str, Any]) -> str:
+    """Record a derived version and its provenance in the store header (atomic rename); returns its name.
+
+    Declaring an existing version again with the same provenance is a no-op (a resumed run); with another
+    provenance it is refused (a different computation must get a different version)."""
+    from difareli.store import HEADER
+
+    name = version_name(base, version)
+    if base not in store.encodings:
+        raise ValueError(f"store {store.root} has no encoding {base!r} to derive a version of")
+    path = Path(store.root) / HEADER
+    header = json.loads(path.read_text())
+    derived = dict(header.get(KEY, {}))
+    prov = json.loads(json.dumps(dict(provenance), default=str))
+    if name in derived:
+        if derived[name] != prov:
+            raise ValueError(f"store {store.root} already has {name} with other provenance {derived[name]}; choose "
+                             "another version name")
+    else:
+        derived[name] = prov
+        header[KEY] = derived
+        tmp = path.with_name(f"{HEADER}.tmp-{os.getpid()}")
+        tmp.write_text(json.dumps(header, indent=2, sort_keys=True) + "\n")
+        os.replace(tmp, path)
+    store.derived = derived
+    return name
+
+
+def path_of(store, record_id: str, name: str) -> Path:
+    return Path(store.records_dir) / record_id / f"{name}.npy"
+
+
+def has(store, record_id: str, name: str) -> bool:
+    """Whether ``record_id`` has the derived encoding ``name`` (``base@version``)."""
+    return path_of(store, record_id, name).is_file()
+
+
+def missing(store, name: str, ids: Iterable[str]) -> list[str]:
+    """The records of ``ids`` without ``name`` (what a resumed run still has to compute)."""
+    return [rid for rid in ids if not has(store, rid, name)]
+
+
+def write(store, record_id: str, name: str, array: np.ndarray, *, overwrite: bool = False) -> bool:
+    """Write one record's derived encoding atomically; False (nothing written) if present and not ``overwrite``."""
+    base, version = split_name(name)
+    if version is None or name not in store.derived:
+        raise ValueError(f"{name!r} is not a declared derived version of store {store.root} (declare it first; "
+                         f"declared: {sorted(store.derived)})")
+    final = path_of(store, record_id, name)
+    if not final.parent.is_dir():
+        raise KeyError(f"no record {record_id!r} in store {store.root}")
+    if final.exists() and not overwrite:
+        return False
+    arr = np.ascontiguousarray(enc.get(base).validate(np.asarray(array), store.dims))
+    tmp = final.with_name(f".{final.name}.tmp-{os.getpid()}")
+    try:
+        with open(tmp, "wb") as f:
+            np.save(f, arr, allow_pickle=False)
+            if store.durable:
+                f.flush()
+                os.fsync(f.fileno())
+        os.replace(tmp, final)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return True

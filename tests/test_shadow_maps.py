@@ -1,0 +1,183 @@
+"""Difference-method shadow maps (difareli.shadow_maps) on a crafted model whose relights are known exactly, and
+derived encoding versions (difareli.derived): atomic, resumable, provenance, reader selection."""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from difareli import derived, encodings
+from difareli import shadow_maps as sm
+from difareli.errors import UserError
+from difareli.store import EncodingStore
+
+ROWS, COLS = slice(12, 20), slice(12, 20)  # an 8x8 square in the middle of a 32 px face
+
+
+class Crafted(torch.nn.Module):
+    """A one-pass 'relighter' whose output is known: 0.5 everywhere, minus 0.4 sigmoid(c) on the square."""
+
+    spatial_inputs: list = []
+    nonspatial_inputs = ["shadow"]
+
+    def __init__(self, size: int = 32):
+        super().__init__()
+        p = torch.zeros(1, 1, size, size)
+        p[..., ROWS, COLS] = 1.0
+        self.register_buffer("pattern", p)
+
+    def condition(self, spatial, nonspatial):
+        return nonspatial  # the raw c, [B, 1]
+
+    def relight_once(self, x0, source, target):
+        a = 0.4 * torch.sigmoid(target)[:, :, None, None]
+        return (0.5 - a * self.pattern).expand(-1, 3, -1, -1)
+
+
+@pytest.fixture
+def store(synth_store, tmp_path):
+    shutil.copytree(synth_store, tmp_path / "store")
+    return EncodingStore.open(tmp_path / "store", durable=False)
+
+
+def test_otsu_threshold_two_modes():
+    v = np.r_[np.zeros(900), np.full(100, 0.3)]
+    t = sm.otsu_threshold(v)
+    assert 0 < t < 0.3
+    rng = np.random.default_rng(0)
+    v = np.r_[rng.normal(0.0, 0.02, 5000), rng.normal(0.5, 0.02, 1000)]
+    assert 0.1 < sm.otsu_threshold(v) < 0.4
+    with pytest.raises(ValueError, match="two distinct"):
+        sm.otsu_threshold(np.ones(10))
+
+
+def test_finish_map_threshold_median_and_scale():
+    diff = np.zeros((16, 16))
+    diff[4:10, 4:12] = 0.2
+    diff[14, 1] = 0.9  # an isolated speck: the median filter removes it
+    c = -2.0
+    out = sm.finish_map(diff, 0.1, 3, c)
+    want = np.zeros((16, 16), bool)
+    want[4:10, 4:12] = True
+    for r, k in ((4, 4), (4, 11), (9, 4), (9, 11)):  # a 3x3 median drops a rectangle's corners (4 of 9 in)
+        want[r, k] = False
+    np.testing.assert_array_equal(out, (want * encodings.normalise_c(c)).astype(np.float32))
+    hit = np.zeros((16, 16), bool)
+    hit[:, :8] = True
+    np.testing.assert_array_equal(sm.finish_map(diff, 0.1, 3, c, hit) > 0, want & hit)
+    np.testing.assert_array_equal(sm.finish_map(diff, 0.1, 1, c) > 0, diff > 0.1)  # no filter
+
+
+def test_difference_pipeline_on_a_crafted_model(store):
+    ids = store.ids()
+    for r in ids:
+        assert (store.read(r, ["depth"])["depth"][ROWS, COLS] != 0).all(), "the square lies on the face"
+    c_min, c_max = sm.c_range(store)
+    cs = {r: float(store.read(r, ["shadow"])["shadow"][0]) for r in ids}
+    train = [cs[r] for r in store.ids(split="train")]
+    assert (c_min, c_max) == (min(train), max(train))
+    rep = sm.compute(Crafted(), store, None, provenance={"checkpoint": "crafted"}, batch_size=3, progress=False)
+    assert rep.relit == len(ids) and rep.written == len(ids) and rep.name.startswith("shadow_map@diff-")
+    sig = lambda c: 1 / (1 + np.exp(-c))  # noqa: E731
+    delta = 0.4 * (sig(c_max) - sig(c_min)) / 2  # luminance difference on the square, [0, 1] units
+    square = np.zeros((32, 32), bool)
+    square[ROWS, COLS] = True
+    filtered = square.copy()
+    for r, k in ((12, 12), (12, 19), (19, 12), (19, 19)):
+        filtered[r, k] = False
+    for r in ids:
+        raw = store.read(r, [rep.raw])[rep.raw]
+        np.testing.assert_allclose(raw, square * delta, atol=2e-6)
+        np.testing.assert_array_equal(store.read(r, [rep.name])[rep.name],
+                                      (filtered * encodings.normalise_c(cs[r])).astype(np.float32))
+    assert 0 < rep.threshold < delta
+    prov = EncodingStore.open(store.root).derived[rep.name]
+    assert prov["checkpoint"] == "crafted" and prov["threshold"] == rep.threshold and prov["median"] == 3
+    assert prov["threshold_rule"].startswith("otsu") and prov["c_max"] == c_max
+
+    # Reader selection: the chosen version reads under the base name; the plain store keeps the original.
+    rid = ids[0]
+    chosen = EncodingStore.open(store.root).use_versions({"shadow_map": rep.name.split("@")[1]})
+    np.testing.assert_array_equal(chosen.read(rid, ["shadow_map"])["shadow_map"], store.read(rid, [rep.name])[rep.name])
+    assert not np.array_equal(EncodingStore.open(store.root).read(rid, ["shadow_map"])["shadow_map"],
+                              chosen.read(rid, ["shadow_map"])["shadow_map"]) or not cs[rid] > -6
+    with pytest.raises(UserError, match="no shadow_map@nope"):
+        EncodingStore.open(store.root).use_versions({"shadow_map": "nope"})
+
+    # Resumable: a rerun relights nothing; a record that lost its raw difference is the only one redone.
+    again = sm.compute(Crafted(), store, None, provenance={"checkpoint": "crafted"}, progress=False)
+    assert again.relit == 0 and again.name == rep.name and again.threshold == rep.threshold
+    derived.path_of(store, ids[1], rep.raw).unlink()
+    assert sm.compute(Crafted(), store, None, provenance={"checkpoint": "crafted"}, progress=False).relit == 1
+    assert not list(store.records_dir.glob("*/.*tmp*"))  # no scratch files left behind
+
+
+def test_datamodule_reads_the_chosen_version(store):
+    from difareli.data import EncodingsDataModule
+
+    name = derived.declare(store, "shadow_map", "test-1", {"how": "ones"})
+    for r in store.ids():
+        derived.write(store, r, name, np.ones((32, 32), np.float32))
+    dm = EncodingsDataModule(str(store.root), spatial=["shadow_map"], versions={"shadow_map": "test-1"})
+    np.testing.assert_array_equal(dm._open().read(store.ids()[0], ["shadow_map"])["shadow_map"], 1.0)
+
+
+def test_derived_versions_are_checked(store):
+    name = derived.declare(store, "shadow_map", "v1", {"a": 1})
+    assert derived.declare(store, "shadow_map", "v1", {"a": 1}) == name  # same provenance: a resume
+    with pytest.raises(ValueError, match="other provenance"):
+        derived.declare(store, "shadow_map", "v1", {"a": 2})
+    with pytest.raises(ValueError, match="invalid"):
+        derived.version_name("shadow_map", "../x")
+    rid = store.ids()[0]
+    with pytest.raises(ValueError, match="shape"):
+        derived.write(store, rid, name, np.zeros((8, 8), np.float32))
+    with pytest.raises(ValueError, match="not a declared"):
+        derived.write(store, rid, "shadow_map@v2", np.zeros((32, 32), np.float32))
+    assert derived.write(store, rid, name, np.zeros((32, 32), np.float32))
+    assert not derived.write(store, rid, name, np.ones((32, 32), np.float32))  # exists: kept
+    np.testing.assert_array_equal(store.read(rid, [name])[name], 0.0)
+    assert derived.missing(store, name, store.ids()) == store.ids()[1:]
+    assert EncodingStore.open(store.root).verify() == []  # derived files do not disturb the record check
+
+
+def test_cli_on_a_trained_difareli_batches_like_one_at_a_time(tiny_checkpoint, store, tmp_path, one_thread):
+    # The diffusion path: records inverted together and both c decoded together give the same differences as
+    # the relighting core one record at a time (Relighter, uint8 output: within a quantisation step).
+    from difareli.cli.shadow_maps import run
+    from difareli.relighting import Relighter
+
+    from .helpers import compose_train
+
+    ckpt = tiny_checkpoint("difareli")
+    ids = store.ids()[:3]
+    cfg = compose_train(tmp_path / "run", [f"checkpoint={ckpt}", f"store={store.root}", f"records=[{','.join(ids)}]",
+                                           "sampler.steps=3", "batch_size=2", "progress=false", "runtime.device=cpu"],
+                        config_name="shadow_maps")
+    rep = run(cfg)
+    assert rep.relit == 3 and rep.written == 3 and (tmp_path / "run" / "shadow_maps.json").is_file()
+    c_min, c_max = sm.c_range(store)
+    r = Relighter(ckpt, cfg.sampler, device="cpu")
+    own = np.asarray(store.read(ids[2], ["light"])["light"])
+    relit = r.relight_record(store, ids[2], [own, own], [c_max, c_min]).astype(np.float64) / 255.0
+    y = relit @ np.array([0.2126, 0.7152, 0.0722])
+    raw = np.asarray(EncodingStore.open(store.root).read(ids[2], [rep.raw])[rep.raw])
+    np.testing.assert_allclose(raw, y[1] - y[0], atol=2.5 / 255)
+
+
+def test_binary_scores_known_shapes():
+    from difareli.metrics import binary_scores
+
+    pred = np.zeros((3, 6, 6), bool)
+    gt = np.zeros((3, 6, 6), bool)
+    pred[0, :2, :3] = True  # 6 px
+    gt[0, :2, :] = True     # 12 px, 6 shared
+    gt[1, 0, 0] = True      # nothing predicted
+    s = binary_scores(pred, gt)
+    np.testing.assert_allclose(s["iou"][:2], [0.5, 0.0])
+    np.testing.assert_allclose(s["precision"][0], 1.0)
+    np.testing.assert_allclose(s["recall"][:2], [0.5, 0.0])
+    assert np.isnan(s["precision"][1]) and np.isnan(s["iou"][2]) and np.isnan(s["recall"][2])
