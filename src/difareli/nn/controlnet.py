@@ -22,8 +22,6 @@ condition), ``step`` runs the copy at every denoising step, so a relight costs a
 
 from __future__ import annotations
 
-from typing import Any
-
 import torch
 from torch import Tensor, nn
 
@@ -115,7 +113,3 @@ class ControlNet(SpatialConditioning):
         if level == len(state) - 1:  # the middle block: its output carries the residual forward
             return h + r, h
         return h, h + r  # encoder levels: the skip connection to the decoder carries it
-
-    @classmethod
-    def extra_input_channels(cls, channels: int, **options: Any) -> int:
-        return 0
