@@ -124,14 +124,16 @@ def write_table(table: tables.Table, out: Path, caption: str, digits: int = 4) -
     return paths
 
 
-def figure(run_dirs: dict[str, Path], store_root: str, protocols: list[str], path: Path) -> Path | None:
-    """One line per protocol: the input, each row's relit image of the protocol's first pair, the ground truth."""
+def figure(run_dirs: dict[str, Path], store_root: str, protocols: list[str], limit: int | None,
+           path: Path) -> Path | None:
+    """One line per protocol: the input, each row's relit image of the protocol's first benchmarked pair (the
+    benchmark's selection for ``limit``), the ground truth."""
     from difareli.benchmark import load_pairs
     from difareli.store import EncodingStore
 
     store = EncodingStore.open(store_root)
     lines = []
-    for proto, pairs in load_pairs(store, protocols, limit=1).items():
+    for proto, pairs in load_pairs(store, protocols, limit=limit).items():
         if not pairs:
             continue
         pair = pairs[0]
@@ -166,7 +168,7 @@ def run(cfg: DictConfig) -> tables.Table:
     out = Path(cfg.out_dir)
     table = merged_table(run_dirs, labels)
     paths = write_table(table, out, caption)
-    fig = figure(run_dirs, store, list(cfg.protocols), out / "figure.png")
+    fig = figure(run_dirs, store, list(cfg.protocols), cfg.limit, out / "figure.png")
     legend = "figure.png, per line (one per protocol): input | " + " | ".join(labels.get(m, m) for m in models)
     (out / "figure.txt").write_text(legend + " | ground truth\n")
     print(paths["md"].read_text())
