@@ -244,8 +244,8 @@ def test_ablate_end_to_end_resumes(synth_store, tmp_path):
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     cmd = [sys.executable, "-m", "difareli.cli.ablate", "table=4", "steps=2", "limit=1", "sampler_steps=2",
            f"store={synth_store}", f"out_dir={tmp_path / 'abl'}", "rows=[mechanism/cnmod_ca,difareli_pp]",
-           "train_overrides=[data.num_workers=0,data.batch_size=2,trainer.val_check_interval=2,"
-           "trainer.limit_val_batches=1]", f"paths.log_dir={tmp_path}"]
+           "train_overrides=['data.num_workers=0','data.batch_size=2','trainer.val_check_interval=2',"
+           "'trainer.limit_val_batches=1']", f"paths.log_dir={tmp_path}"]
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=1200)
     assert proc.returncode == 0, proc.stderr[-3000:]
     csv = (tmp_path / "abl" / "table.csv").read_text().splitlines()
