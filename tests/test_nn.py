@@ -308,8 +308,8 @@ def test_condition_validation():
         make("unconditional").condition(None, ns)
     with pytest.raises(ValueError, match="timesteps"):
         net(torch.zeros(1, 3, 16, 16), torch.tensor([1, 2]), net.condition(s[:1], ns[:1]))
-    with pytest.raises(KeyError, match="unknown spatial type 'controlnet'"):
-        build_network("tiny", "controlnet", 6, 0)
+    with pytest.raises(KeyError, match="unknown spatial type 'hypernet'"):
+        build_network("tiny", "hypernet", 6, 0)
     with pytest.raises(ValueError, match=r"no option\(s\) \['modulate_skip'\]"):
         build_network("tiny", {"type": "modulator", "modulate_skip": True}, 6, 0)
     with pytest.raises(ValueError, match="needs spatial inputs"):

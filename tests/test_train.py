@@ -21,7 +21,7 @@ from .helpers import CONF, compose_train
 MODELS = ["difareli", "difareli_pp"]
 #: Every model config (variants and ablations): each must run through the whole loop.
 ALL_MODELS = sorted(str(p.relative_to(CONF / "model").with_suffix("")) for p in (CONF / "model").rglob("*.yaml")
-                    if p.parent.name not in ("spatial", "scheduler"))  # component groups, not models
+                    if p.parent.name not in ("spatial", "nonspatial", "scheduler"))  # component groups
 
 
 def _cpu_overrides(store: Path) -> list[str]:

@@ -77,6 +77,7 @@ class DiffusionModule(L.LightningModule):
         spatial: str | Mapping[str, Any] | None = "modulator",
         spatial_inputs: Sequence[str] = ("shading", "shadow_map", "masks"),
         nonspatial_inputs: Sequence[str] = ("shape", "cam", "identity"),
+        nonspatial: str | Mapping[str, Any] | None = "adagn",
         input_dims: Mapping[str, int] | None = None,
         adagn_scale_plus_one: bool = True,
         adagn_out_silu: bool = True,
@@ -98,10 +99,12 @@ class DiffusionModule(L.LightningModule):
         if not self.spatial_inputs or (spatial is not None and spatial.get("type") in (None, "none")):
             spatial = None
         d = dims["nonspatial_dim"]
+        # The non-spatial component, recorded as {type: ..., <options>}; checkpoints without it: AdaGN.
+        nonspatial = {"type": nonspatial or "adagn"} if not isinstance(nonspatial, Mapping) else dict(nonspatial)
         mean, std = self._check_stats(nonspatial_stats, d)
         self.save_hyperparameters({
             "name": name, "preset": preset, "spatial": spatial, "spatial_inputs": self.spatial_inputs,
-            "nonspatial_inputs": self.nonspatial_inputs, "input_dims": dims,
+            "nonspatial_inputs": self.nonspatial_inputs, "nonspatial": nonspatial, "input_dims": dims,
             "adagn_scale_plus_one": bool(adagn_scale_plus_one), "adagn_out_silu": bool(adagn_out_silu),
             "net_overrides": dict(net_overrides or {}),
             "optimizer": factory_config(optimizer if optimizer is not None else DEFAULT_OPTIMIZER, "optimizer"),
@@ -113,9 +116,19 @@ class DiffusionModule(L.LightningModule):
         overrides = {"image_size": dims["resolution"], "adagn_scale_plus_one": bool(adagn_scale_plus_one),
                      "adagn_out_silu": bool(adagn_out_silu), **dict(net_overrides or {})}
         self.net = build_network(preset, spatial, dims["spatial_channels"] if spatial is not None else 0, d,
-                                 overrides=overrides)
+                                 overrides=overrides, nonspatial=nonspatial,
+                                 nonspatial_widths=self._nonspatial_widths(d))
         self.schedule = DiffusionSchedule(**dict(schedule or {}))
         self.ns_mean, self.ns_std = mean, std
+
+    def _nonspatial_widths(self, dim: int) -> list[int]:
+        """Each non-spatial encoding's width (cross-attention makes tokens per encoding), at the producers'
+        dimensions; one block of ``dim`` when a store's dimensions differ (e.g. another identity length)."""
+        from difareli import encodings
+
+        dims = {"H": 1, "W": 1, **encodings.PRODUCER_DIMS}
+        widths = [encodings.channels(n, dims) for n in self.nonspatial_inputs]
+        return widths if sum(widths) == dim else ([dim] if dim else [])
 
     @staticmethod
     def _check_stats(stats: Mapping[str, Sequence[float]] | None, dim: int) -> tuple[torch.Tensor, torch.Tensor]:

@@ -1,5 +1,5 @@
-"""The denoising network: ADM UNet with AdaGN (unet.py), spatial components (conditioning.py), presets, and
-the composed :class:`DiffusionNet` (network.py).
+"""The denoising network: ADM UNet with AdaGN (unet.py), spatial components (conditioning.py, controlnet.py),
+non-spatial components (nonspatial.py), presets, and the composed :class:`DiffusionNet` (network.py).
 
 Names are imported lazily (PEP 562) so that ``python -m difareli.nn.presets`` does not import its own module twice.
 """
@@ -14,6 +14,12 @@ _HOMES = {
     "Modulator": "conditioning",
     "register_spatial": "conditioning",
     "resolve_spatial": "conditioning",
+    "ControlNet": "controlnet",
+    "ContextTokens": "nonspatial",
+    "CrossAttentionBlock": "nonspatial",
+    "NONSPATIAL_COMPONENTS": "nonspatial",
+    "build_nonspatial": "nonspatial",
+    "register_nonspatial": "nonspatial",
     "Condition": "network",
     "DiffusionNet": "network",
     "build_network": "network",

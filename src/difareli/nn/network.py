@@ -14,41 +14,52 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from . import controlnet  # noqa: F401  (registers spatial type "controlnet")
 from .conditioning import count_parameters, resolve_spatial
+from .nonspatial import CrossAttentionBlock, build_nonspatial
 from .presets import get_config
 from .unet import MLP3, UNet, UNetConfig
 
 
 @dataclass
 class Condition:
-    """A prepared condition: the spatial component's state (e.g. the Modulator's tanh(m_i)) and the non-spatial
-    vector [B, D] (its MLP3s run inside the UNet's blocks). Independent of ``t`` and ``x_t``."""
+    """A prepared condition: the spatial component's state (e.g. the Modulator's tanh(m_i), a ControlNet's hint
+    features) and what the non-spatial component hands the blocks (AdaGN: the vector [B, D], its MLP3s run inside
+    the blocks; cross-attention: context tokens [B, N, C]). Independent of ``t`` and ``x_t``."""
 
     spatial: Any = None
     nonspatial: Tensor | None = None
 
 
 class DiffusionNet(nn.Module):
-    """eps-prediction network: :class:`UNet` + optional spatial component + AdaGN non-spatial conditioning.
+    """eps-prediction network: :class:`UNet` + optional spatial component + non-spatial component.
 
     ``spatial`` is a spec (``None``, a registered type name, or ``{type: ..., <options>}``); the component is built
-    from the UNet (``SpatialConditioning.build``) and validates itself against it.
+    from the UNet (``SpatialConditioning.build``) and validates itself against it. ``nonspatial`` likewise names
+    the non-spatial component (``nn/nonspatial.py``; default AdaGN); ``nonspatial_widths`` are the widths of the
+    encodings making up the vector (cross-attention makes tokens per encoding; default: one block).
     """
 
     def __init__(self, config: UNetConfig, spatial: str | Mapping[str, Any] | None = None, spatial_channels: int = 0,
-                 nonspatial_dim: int = 0, image_channels: int = 3):
+                 nonspatial_dim: int = 0, image_channels: int = 3, nonspatial: str | Mapping[str, Any] | None = None,
+                 nonspatial_widths: list[int] | None = None):
         super().__init__()
         self.config, self.nonspatial_dim, self.image_channels = config, nonspatial_dim, image_channels
+        widths = list(nonspatial_widths) if nonspatial_widths else ([nonspatial_dim] if nonspatial_dim else [])
+        if sum(widths) != nonspatial_dim:
+            raise ValueError(f"non-spatial widths {widths} do not add up to nonspatial_dim={nonspatial_dim}")
+        self.nonspatial = build_nonspatial(nonspatial, widths, config)
         component, options = resolve_spatial(spatial, spatial_channels)
         extra = component.extra_input_channels(spatial_channels, **options) if component is not None else 0
         self.unet = UNet(config, in_channels=image_channels + extra, out_channels=image_channels,
-                         nonspatial_dim=nonspatial_dim)
+                         nonspatial_dim=self.nonspatial.adagn_dim, cross_attention=self.nonspatial.block_layer(config))
         self.spatial = component.build(self.unet, spatial_channels, **options) if component is not None else None
         if self.spatial is not None:
             self.spatial.validate(self.unet, image_channels)
 
     def condition(self, spatial: Tensor | None = None, nonspatial: Tensor | None = None) -> Condition:
-        """Prepare a condition once (runs the Modulator); reuse it for every timestep."""
+        """Prepare a condition once (the Modulator, a ControlNet's hint encoder, the context tokens); reuse it for
+        every timestep."""
         if self.nonspatial_dim > 0:
             if nonspatial is None or nonspatial.ndim != 2 or nonspatial.shape[1] != self.nonspatial_dim:
                 got = None if nonspatial is None else tuple(nonspatial.shape)
@@ -61,7 +72,7 @@ class DiffusionNet(nn.Module):
             state = None
         else:
             state = self.spatial.prepare(spatial)
-        return Condition(spatial=state, nonspatial=nonspatial)
+        return Condition(spatial=state, nonspatial=self.nonspatial.prepare(nonspatial))
 
     def forward(self, x_t: Tensor, t: Tensor | float | int, cond: Condition | None = None) -> Tensor:
         """eps for ``x_t`` [B, C, H, W] at ``t`` ([B] long in 0..T-1 or float; a scalar is broadcast)."""
@@ -77,21 +88,28 @@ class DiffusionNet(nn.Module):
         return lambda x, t: self(x, t, cond)
 
     def parameter_counts(self) -> dict[str, int]:
-        """Parameters of the UNet proper, the spatial component, the AdaGN MLP3s, and in total."""
+        """Parameters of the UNet proper, the spatial component (a ControlNet's own MLP3s / cross-attention
+        included), the UNet's AdaGN MLP3s, its cross-attention (with the context tokens), and in total."""
         mlps = sum(count_parameters(m) for m in self.unet.modules() if isinstance(m, MLP3))
+        crossattn = count_parameters(self.nonspatial) + sum(
+            count_parameters(m) for m in self.unet.modules() if isinstance(m, CrossAttentionBlock))
         spatial = count_parameters(self.spatial)
         total = count_parameters(self)
-        return {"unet": total - spatial - mlps, "spatial": spatial, "mlps": mlps, "total": total}
+        return {"unet": total - spatial - mlps - crossattn, "spatial": spatial, "mlps": mlps, "crossattn": crossattn,
+                "total": total}
 
 
 def build_network(preset: str = "tiny", spatial: str | Mapping[str, Any] | None = "modulator",
                   spatial_channels: int = 0, nonspatial_dim: int = 0, image_channels: int = 3,
-                  overrides: dict[str, Any] | None = None) -> DiffusionNet:
+                  overrides: dict[str, Any] | None = None, nonspatial: str | Mapping[str, Any] | None = None,
+                  nonspatial_widths: list[int] | None = None) -> DiffusionNet:
     """Build a :class:`DiffusionNet` from plain values.
 
     ``spatial``: ``None``, a registered component type (``"modulator"``: DiFaReli/++, ``"concat"``: ablation (a))
     or ``{"type": ..., <options>}`` (e.g. ``{"type": "modulator", "modulate_skips": True}``);
-    ``overrides``: :class:`UNetConfig` fields replacing the preset's.
+    ``overrides``: :class:`UNetConfig` fields replacing the preset's; ``nonspatial``: ``None``/``"adagn"`` or
+    ``{"type": "crossattn", ...}`` with the encodings' ``nonspatial_widths``.
     """
     cfg = get_config(preset, overrides)
-    return DiffusionNet(cfg, spatial, spatial_channels, nonspatial_dim=nonspatial_dim, image_channels=image_channels)
+    return DiffusionNet(cfg, spatial, spatial_channels, nonspatial_dim=nonspatial_dim, image_channels=image_channels,
+                        nonspatial=nonspatial, nonspatial_widths=nonspatial_widths)

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, field
-from typing import Any
+from typing import Any, Callable
 
 import torch
 import torch.nn.functional as F
@@ -246,12 +246,26 @@ class Block(nn.ModuleList):
         return h
 
 
-def build_encoder(cfg: UNetConfig, in_channels: int, emb_dim: int, nonspatial_dim: int
-                  ) -> tuple[nn.ModuleList, Block, list[int]]:
+#: Builds the layer a non-spatial component adds after every residual block (e.g. cross-attention), by width.
+LayerFactory = Callable[[int], nn.Module]
+
+
+def attention_layers(ch: int, cfg: UNetConfig, ds: int, cross_attention: LayerFactory | None = None
+                     ) -> list[nn.Module]:
+    """Self-attention at the configured resolutions, then (if given) a non-spatial layer at every resolution."""
+    layers: list[nn.Module] = [AttentionBlock(ch, cfg)] if ds in cfg.attention_ds else []
+    if cross_attention is not None:
+        layers.append(cross_attention(ch))
+    return layers
+
+
+def build_encoder(cfg: UNetConfig, in_channels: int, emb_dim: int, nonspatial_dim: int,
+                  cross_attention: LayerFactory | None = None) -> tuple[nn.ModuleList, Block, list[int]]:
     """The UNet's first half: ``(input_blocks, middle_block, skip_channels)``.
 
     ``emb_dim = 0`` builds the time-free variant (plain GroupNorm) used by the Modulator; the layout is otherwise
-    identical, so its per-level outputs match the UNet's shape for shape.
+    identical, so its per-level outputs match the UNet's shape for shape. ``cross_attention`` adds a
+    non-spatial layer (a :class:`TimestepBlock`) after every residual block (``nn/nonspatial.py``).
     """
     ch = cfg.base_channels * cfg.channel_mult[0]
     blocks = nn.ModuleList([Block([nn.Conv2d(in_channels, ch, 3, padding=1)])])
@@ -262,8 +276,7 @@ def build_encoder(cfg: UNetConfig, in_channels: int, emb_dim: int, nonspatial_di
             out = cfg.base_channels * mult
             layers: list[nn.Module] = [ResBlock(ch, out, emb_dim, nonspatial_dim, cfg)]
             ch = out
-            if ds in cfg.attention_ds:
-                layers.append(AttentionBlock(ch, cfg))
+            layers += attention_layers(ch, cfg, ds, cross_attention)
             blocks.append(Block(layers))
             skip_channels.append(ch)
         if level != len(cfg.channel_mult) - 1:
@@ -271,7 +284,8 @@ def build_encoder(cfg: UNetConfig, in_channels: int, emb_dim: int, nonspatial_di
             blocks.append(Block([down]))
             skip_channels.append(ch)
             ds *= 2
-    middle = Block([ResBlock(ch, ch, emb_dim, nonspatial_dim, cfg), AttentionBlock(ch, cfg),
+    middle_attention = [AttentionBlock(ch, cfg)] + ([cross_attention(ch)] if cross_attention is not None else [])
+    middle = Block([ResBlock(ch, ch, emb_dim, nonspatial_dim, cfg), *middle_attention,
                     ResBlock(ch, ch, emb_dim, nonspatial_dim, cfg)])
     return blocks, middle, skip_channels
 
@@ -326,13 +340,17 @@ _NO_SPATIAL = SpatialConditioning()
 class UNet(nn.Module):
     """ADM UNet predicting eps, with AdaGN (time + optional non-spatial k) in every residual block."""
 
-    def __init__(self, cfg: UNetConfig, in_channels: int = 3, out_channels: int = 3, nonspatial_dim: int = 0):
+    def __init__(self, cfg: UNetConfig, in_channels: int = 3, out_channels: int = 3, nonspatial_dim: int = 0,
+                 cross_attention: LayerFactory | None = None):
         super().__init__()
         self.cfg, self.nonspatial_dim, self.in_channels = cfg, nonspatial_dim, in_channels
+        # kept so that a ControlNet copying the encoder builds the same non-spatial layers
+        self.cross_attention = cross_attention
         base = cfg.base_channels
         emb_dim = 4 * base
         self.time_embed = nn.Sequential(nn.Linear(base, emb_dim), nn.SiLU(), nn.Linear(emb_dim, emb_dim))
-        self.input_blocks, self.middle_block, skip_channels = build_encoder(cfg, in_channels, emb_dim, nonspatial_dim)
+        self.input_blocks, self.middle_block, skip_channels = build_encoder(cfg, in_channels, emb_dim, nonspatial_dim,
+                                                                           cross_attention)
         self.encoder_channels = list(skip_channels) + [skip_channels[-1]]  # per modulation level (+ middle)
         ch = skip_channels[-1]
         ds = 2 ** (len(cfg.channel_mult) - 1)
@@ -342,8 +360,7 @@ class UNet(nn.Module):
                 out = base * mult
                 layers: list[nn.Module] = [ResBlock(ch + skip_channels.pop(), out, emb_dim, nonspatial_dim, cfg)]
                 ch = out
-                if ds in cfg.attention_ds:
-                    layers.append(AttentionBlock(ch, cfg))
+                layers += attention_layers(ch, cfg, ds, cross_attention)
                 if level and i == cfg.num_res_blocks:
                     layers.append(ResBlock(ch, ch, emb_dim, nonspatial_dim, cfg, up=True) if cfg.resblock_updown
                                   else Upsample(ch))
