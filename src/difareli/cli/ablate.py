@@ -87,6 +87,16 @@ def train_row(cfg: DictConfig, model: str, resolution: int | None) -> Path:
     return last
 
 
+def sampler_choice(cfg: DictConfig) -> str:
+    """The ``sampler`` group choice (conf/sampler/<choice>.yaml) this run composed, for the benchmark child."""
+    try:
+        from hydra.core.hydra_config import HydraConfig
+
+        return str(HydraConfig.get().runtime.choices["sampler"])
+    except (ValueError, KeyError):  # composed without a Hydra run (tests): the preset named by the config
+        return str(cfg.sampler.name)
+
+
 def benchmark_row(cfg: DictConfig, model: str, checkpoint: Path, store: str) -> Path:
     """Benchmark one row's checkpoint unless done; returns its run dir."""
     out = row_dir(cfg.out_dir, model) / "bench"
@@ -95,10 +105,9 @@ def benchmark_row(cfg: DictConfig, model: str, checkpoint: Path, store: str) -> 
         return out
     protocols = "[" + ",".join(cfg.protocols) + "]"
     cmd = [sys.executable, "-m", "difareli.cli.benchmark", f"store={store}", "method=diffusion",
-           f"method.checkpoint={checkpoint}", f"method.name={model}", f"sampler={cfg.sampler}",
+           f"method.checkpoint={checkpoint}", f"method.name={model}", f"sampler={sampler_choice(cfg)}",
+           f"sampler.steps={int(cfg.sampler_steps if cfg.sampler_steps is not None else cfg.sampler.steps)}",
            f"protocols={protocols}", f"hydra.run.dir={out}", f"out_dir={out}"]
-    if cfg.sampler_steps is not None:
-        cmd.append(f"sampler.steps={int(cfg.sampler_steps)}")
     if cfg.limit is not None:
         cmd.append(f"limit={int(cfg.limit)}")
     cmd += list(cfg.benchmark_overrides or [])
