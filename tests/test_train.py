@@ -29,9 +29,14 @@ def _cpu_overrides(store: Path) -> list[str]:
             "model.preset=tiny", "trainer=cpu", "sample_grid=false"]
 
 
+#: Models trained on pairs (input -> relit), not single records: they need a pair sampler (conf/data).
+PAIRED = {"student": ["data.pairs=gt"]}
+
+
 @pytest.mark.parametrize("model", ALL_MODELS)
 def test_fast_dev_run_each_model(model, synth_store, tmp_path):
-    cfg = compose_train(tmp_path, [*_cpu_overrides(synth_store), f"model={model}", "debug=fdr"])
+    cfg = compose_train(tmp_path, [*_cpu_overrides(synth_store), f"model={model}", "debug=fdr",
+                                   *PAIRED.get(model, [])])
     out = train(cfg)
     assert out["trainer"].state.finished
     assert torch.isfinite(out["trainer"].callback_metrics["train/loss"])
