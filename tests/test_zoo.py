@@ -67,11 +67,12 @@ def test_shipped_checkpoint_changes_the_light_of_an_unseen_face(name, tmp_path):
     store = EncodingStore.open(tmp_path / "s")
     rid = store.ids(split="test")[0]
     arrays = store.read(rid, ["image", "light", "shadow"])
-    r = Relighter(loaded, {"name": "unipc", "steps": 10}, device="cpu")
+    r = Relighter(loaded, {"name": "unipc", "steps": 50}, device="cpu")  # the sampler its card is benchmarked with
     own = np.asarray(arrays["light"])
     c = float(np.asarray(arrays["shadow"]).reshape(-1)[0])
     same, left, right = r.relight_record(store, rid, [own, sh.yaw(own, -60.0), sh.yaw(own, 60.0)], [c] * 3)
     image = np.asarray(arrays["image"]).astype(float)
-    # Its own light gives the input back closely; lights from either side change the image visibly and differently.
-    assert np.abs(same - image).mean() < 12
-    assert np.abs(left.astype(float) - right).mean() > 2 * np.abs(same - image).mean()
+    # Its own light gives the input back closely (3-4 grey levels on average for the shipped DiFaReli++ on these
+    # seed-77 subjects); lights from either side change the image visibly and differently (17-41 levels apart).
+    assert np.abs(same - image).mean() < 8
+    assert np.abs(left.astype(float) - right).mean() > 3 * np.abs(same - image).mean()
