@@ -12,7 +12,7 @@ import sys
 from pathlib import Path
 
 import hydra
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from difareli.cli.common import CONFIG_PATH
 from difareli.errors import UserError, check_out_dir, cli_entry

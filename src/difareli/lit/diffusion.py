@@ -63,7 +63,70 @@ def _factory(cfg: Mapping[str, Any] | None) -> Callable | None:
     return instantiate(dict(cfg))
 
 
-class DiffusionModule(L.LightningModule):
+class RelightingModule(L.LightningModule):
+    """What every trained relighting model shares (the DDIM, the one-pass student): the non-spatial
+    normalisation statistics (constants that follow ``.to()`` but stay out of ``state_dict`` and the EMA), the
+    encodings a condition is made of, the recorded module class, the optimizer / LR-schedule partials and the
+    ``setup`` of a fit (per-rank seeds, ``torch.compile``). Subclasses set ``net``, ``spatial_inputs``,
+    ``nonspatial_inputs``, ``ns_mean`` / ``ns_std``, ``_optimizer`` / ``_scheduler`` and the hyperparameters."""
+
+    @staticmethod
+    def _check_stats(stats: Mapping[str, Sequence[float]] | None, dim: int) -> tuple[torch.Tensor, torch.Tensor]:
+        if stats is None:  # identity normalisation (difareli-train always passes the training split's)
+            return torch.zeros(dim), torch.ones(dim)
+        mean = torch.as_tensor(list(stats["mean"]), dtype=torch.float32).reshape(-1)
+        std = torch.as_tensor(list(stats["std"]), dtype=torch.float32).reshape(-1)
+        if mean.numel() != dim or std.numel() != dim or not bool((std > 0).all()):
+            raise ValueError(f"nonspatial_stats needs {dim} means and {dim} positive stds (the non-spatial vector's "
+                             f"width); got {mean.numel()} and {std.numel()}")
+        return mean, std
+
+    def _apply(self, fn, recurse: bool = True):
+        # The statistics move with the module (.to / .cuda) like buffers, but are no buffers: the EMA callback
+        # averages buffers, and decay * x + (1 - decay) * x is not x in float32.
+        super()._apply(fn, recurse)
+        self.ns_mean, self.ns_std = fn(self.ns_mean), fn(self.ns_std)
+        return self
+
+    # ------------------------------------------------------------------ relighting interface
+    @property
+    def consumes(self) -> list[str]:
+        """The encodings a condition is made of (spatial, then non-spatial)."""
+        return list(dict.fromkeys(self.spatial_inputs + self.nonspatial_inputs))
+
+    def normalize_nonspatial(self, v: torch.Tensor) -> torch.Tensor | None:
+        if v is None or v.shape[-1] == 0:
+            return None
+        return (v.float() - self.ns_mean) / self.ns_std
+
+    # ------------------------------------------------------------------ checkpoints
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        checkpoint[MODULE_KEY] = f"{type(self).__module__}.{type(self).__qualname__}"
+        checkpoint[FORMAT_KEY] = FORMAT_VERSION
+
+    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        from difareli.lit.checkpoint import upgrade_checkpoint
+
+        upgrade_checkpoint(checkpoint)  # resuming from a checkpoint written before the current format
+
+    # ------------------------------------------------------------------ training
+    def setup(self, stage: str) -> None:
+        if stage == "fit" and self._trainer is not None and self.trainer.world_size > 1:  # decorrelate ranks
+            torch.manual_seed(torch.initial_seed() + self.trainer.global_rank)
+        if self.hparams.compile:
+            self.net.compile()
+
+    def configure_optimizers(self):
+        """The configured optimizer over the network; with a scheduler, stepped every training step."""
+        make_opt = self._optimizer if callable(self._optimizer) else _factory(self.hparams.optimizer)
+        opt = make_opt(self.net.parameters())
+        make_sched = self._scheduler if callable(self._scheduler) else _factory(self.hparams.scheduler)
+        if make_sched is None:
+            return opt
+        return {"optimizer": opt, "lr_scheduler": {"scheduler": make_sched(opt), "interval": "step"}}
+
+
+class DiffusionModule(RelightingModule):
     """Conditional DDIM (UNet + spatial + non-spatial conditioning) trained with ``L_simple``.
 
     Implements the relighting-model interface: ``condition(spatial, nonspatial)``, ``denoiser(cond)``,
@@ -130,35 +193,7 @@ class DiffusionModule(L.LightningModule):
         widths = [encodings.channels(n, dims) for n in self.nonspatial_inputs]
         return widths if sum(widths) == dim else ([dim] if dim else [])
 
-    @staticmethod
-    def _check_stats(stats: Mapping[str, Sequence[float]] | None, dim: int) -> tuple[torch.Tensor, torch.Tensor]:
-        if stats is None:  # identity normalisation (difareli-train always passes the training split's)
-            return torch.zeros(dim), torch.ones(dim)
-        mean = torch.as_tensor(list(stats["mean"]), dtype=torch.float32).reshape(-1)
-        std = torch.as_tensor(list(stats["std"]), dtype=torch.float32).reshape(-1)
-        if mean.numel() != dim or std.numel() != dim or not bool((std > 0).all()):
-            raise ValueError(f"nonspatial_stats needs {dim} means and {dim} positive stds (the non-spatial vector's "
-                             f"width); got {mean.numel()} and {std.numel()}")
-        return mean, std
-
-    def _apply(self, fn, recurse: bool = True):
-        # The statistics move with the module (.to / .cuda) like buffers, but are no buffers: the EMA callback
-        # averages buffers, and decay * x + (1 - decay) * x is not x in float32.
-        super()._apply(fn, recurse)
-        self.ns_mean, self.ns_std = fn(self.ns_mean), fn(self.ns_std)
-        return self
-
     # ------------------------------------------------------------------ relighting interface
-    @property
-    def consumes(self) -> list[str]:
-        """The encodings a condition is made of (spatial, then non-spatial)."""
-        return list(dict.fromkeys(self.spatial_inputs + self.nonspatial_inputs))
-
-    def normalize_nonspatial(self, v: torch.Tensor) -> torch.Tensor | None:
-        if v is None or v.shape[-1] == 0:
-            return None
-        return (v.float() - self.ns_mean) / self.ns_std
-
     def condition(self, spatial: torch.Tensor | None, nonspatial: torch.Tensor | None):
         """Prepare a condition once (runs the Modulator); pass it to every denoiser call."""
         if spatial is not None and spatial.shape[1] == 0:
@@ -169,23 +204,7 @@ class DiffusionModule(L.LightningModule):
         """The sampler interface: ``eps = denoiser(x_t, t)`` with this condition bound."""
         return self.net.bind(cond)
 
-    # ------------------------------------------------------------------ checkpoints
-    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        checkpoint[MODULE_KEY] = f"{type(self).__module__}.{type(self).__qualname__}"
-        checkpoint[FORMAT_KEY] = FORMAT_VERSION
-
-    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        from difareli.lit.checkpoint import upgrade_checkpoint
-
-        upgrade_checkpoint(checkpoint)  # resuming from a checkpoint written before the current format
-
     # ------------------------------------------------------------------ training
-    def setup(self, stage: str) -> None:
-        if stage == "fit" and self._trainer is not None and self.trainer.world_size > 1:  # decorrelate ranks
-            torch.manual_seed(torch.initial_seed() + self.trainer.global_rank)
-        if self.hparams.compile:
-            self.net.compile()
-
     def diffusion_loss(self, batch: Mapping[str, Any], generator: torch.Generator | None = None) -> torch.Tensor:
         """``L_simple``: MSE between the true and the predicted noise at uniform random t."""
         x0 = batch["image"]
@@ -208,15 +227,6 @@ class DiffusionModule(L.LightningModule):
         loss = self.diffusion_loss(batch, generator=g)
         self.log("val/loss", loss, prog_bar=True, batch_size=batch["image"].shape[0], sync_dist=True)
         return loss
-
-    def configure_optimizers(self):
-        """The configured optimizer over the network; with a scheduler, stepped every training step."""
-        make_opt = self._optimizer if callable(self._optimizer) else _factory(self.hparams.optimizer)
-        opt = make_opt(self.net.parameters())
-        make_sched = self._scheduler if callable(self._scheduler) else _factory(self.hparams.scheduler)
-        if make_sched is None:
-            return opt
-        return {"optimizer": opt, "lr_scheduler": {"scheduler": make_sched(opt), "interval": "step"}}
 
     @torch.no_grad()
     def predict_x0(self, x_t: torch.Tensor, t: torch.Tensor, cond) -> torch.Tensor:

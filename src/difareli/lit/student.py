@@ -14,14 +14,12 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
-import lightning as L
 import torch
 import torch.nn.functional as F
 
 from difareli import encodings as enc
 from difareli.errors import UserError
-from difareli.lit.diffusion import (DEFAULT_OPTIMIZER, FORMAT_KEY, FORMAT_VERSION, MODULE_KEY, DiffusionModule,
-                                    _factory, factory_config)
+from difareli.lit.diffusion import DEFAULT_OPTIMIZER, RelightingModule, factory_config
 from difareli.nn import build_network
 
 
@@ -36,7 +34,7 @@ def _slices(names: Sequence[str], dims: Mapping[str, int]) -> list[int]:
     return out
 
 
-class StudentModule(L.LightningModule):
+class StudentModule(RelightingModule):
     """One-pass relighting network trained on (source, target light, relit image) pairs.
 
     Offers ``spatial_inputs``, ``nonspatial_inputs``, ``condition(spatial, nonspatial)`` (no network work: the
@@ -74,7 +72,7 @@ class StudentModule(L.LightningModule):
         spatial = {"type": spatial} if isinstance(spatial, str) else dict(spatial) if spatial is not None else None
         if not self.spatial_inputs:
             spatial = None
-        mean, std = DiffusionModule._check_stats(nonspatial_stats, dims["nonspatial_dim"])
+        mean, std = self._check_stats(nonspatial_stats, dims["nonspatial_dim"])
         self.save_hyperparameters({
             "name": name, "preset": preset, "spatial": spatial, "spatial_inputs": self.spatial_inputs,
             "nonspatial_inputs": self.nonspatial_inputs, "input_dims": dims,
@@ -102,23 +100,10 @@ class StudentModule(L.LightningModule):
         self.ns_mean, self.ns_std = mean, std
         self._lpips = None
 
-    def _apply(self, fn, recurse: bool = True):
-        # As DiffusionModule: the statistics follow .to() but are no buffers (kept out of the EMA average).
-        super()._apply(fn, recurse)
-        self.ns_mean, self.ns_std = fn(self.ns_mean), fn(self.ns_std)
-        return self
-
     # ------------------------------------------------------------------ relighting interface
-    @property
-    def consumes(self) -> list[str]:
-        return list(dict.fromkeys(self.spatial_inputs + self.nonspatial_inputs))
-
     def condition(self, spatial: torch.Tensor | None, nonspatial: torch.Tensor | None):
         """One side's condition: the raw spatial maps and the normalised non-spatial vector."""
-        if nonspatial is not None and nonspatial.shape[-1] > 0:
-            nonspatial = (nonspatial.float() - self.ns_mean) / self.ns_std
-        else:
-            nonspatial = None
+        nonspatial = self.normalize_nonspatial(nonspatial)
         return (spatial if spatial is not None and spatial.shape[1] > 0 else None), nonspatial
 
     def relight_once(self, x0: torch.Tensor, source, target) -> torch.Tensor:
@@ -133,19 +118,13 @@ class StudentModule(L.LightningModule):
         out = self.net(x0, t, cond)
         return x0 + out if self.hparams.residual else out
 
-    # ------------------------------------------------------------------ checkpoints
-    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        checkpoint[MODULE_KEY] = f"{type(self).__module__}.{type(self).__qualname__}"
-        checkpoint[FORMAT_KEY] = FORMAT_VERSION
-
     # ------------------------------------------------------------------ training
     def setup(self, stage: str) -> None:
         dm = getattr(self._trainer, "datamodule", None) if self._trainer is not None else None
         if stage == "fit" and dm is not None and not getattr(dm, "pairs", None):
             raise UserError("model=student trains on pairs: set data.pairs=gt (SynthFaces ground truth), teacher "
                             "(with data.teacher_pairs=<difareli-teacher-pairs store>) or mix")
-        if self.hparams.compile:
-            self.net.compile()
+        super().setup(stage)
 
     def loss(self, batch: Mapping[str, Any]) -> dict[str, torch.Tensor]:
         """``l2`` (MSE in [-1, 1] units) between the one-pass relight and the pair's target image, plus
@@ -177,11 +156,3 @@ class StudentModule(L.LightningModule):
         self.log("val/loss", losses["loss"], prog_bar=True, batch_size=b, sync_dist=True)
         self.log("val/l2", losses["l2"], batch_size=b, sync_dist=True)
         return losses["loss"]
-
-    def configure_optimizers(self):
-        make_opt = self._optimizer if callable(self._optimizer) else _factory(self.hparams.optimizer)
-        opt = make_opt(self.net.parameters())
-        make_sched = self._scheduler if callable(self._scheduler) else _factory(self.hparams.scheduler)
-        if make_sched is None:
-            return opt
-        return {"optimizer": opt, "lr_scheduler": {"scheduler": make_sched(opt), "interval": "step"}}
