@@ -8,7 +8,7 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from difareli import errors
+from difareli import errors, zoo
 from difareli.cli import common
 from difareli.store import EncodingStore
 
@@ -54,7 +54,7 @@ def run(cfg: DictConfig):
 def validate(cfg: DictConfig) -> None:
     """Config values and input files, checked before any work."""
     errors.check_sampler(cfg.sampler)
-    errors.check_file(cfg.checkpoint, "checkpoint")
+    zoo.resolve(cfg.checkpoint, "checkpoint")  # a file or a shipped name, as in every other CLI
     errors.check_int(cfg.median, "median", 1)
     errors.check_int(cfg.batch_size, "batch_size", 1)
     errors.check_out_dir(cfg.out_dir)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import hydra
 from omegaconf import DictConfig
 
-from difareli import errors
+from difareli import errors, zoo
 from difareli.cli import common
 
 
@@ -16,7 +16,7 @@ def run(cfg: DictConfig) -> dict:
     from difareli.store import EncodingStore
 
     errors.check_sampler(cfg.sampler)
-    errors.check_file(cfg.checkpoint, "checkpoint")
+    zoo.resolve(cfg.checkpoint, "checkpoint")  # a file or a shipped name, as in every other CLI
     errors.check_int(cfg.batch_size, "batch_size", 1)
     errors.check_int(cfg.per_record, "per_record", 1)
     errors.check_int(cfg.limit, "limit", 1, allow_none=True)

@@ -11,7 +11,7 @@ import hydra
 import numpy as np
 from omegaconf import DictConfig
 
-from difareli import errors, sh, viz
+from difareli import errors, sh, viz, zoo
 from difareli import video as vid
 from difareli.cli import common
 from difareli.relighting import Relighter, write_video
@@ -106,7 +106,7 @@ def run(cfg: DictConfig) -> dict[str, Path]:
 def validate(cfg: DictConfig) -> None:
     """Config values and input files, checked before any work."""
     errors.check_sampler(cfg.sampler)
-    errors.check_file(cfg.checkpoint, "checkpoint")
+    zoo.resolve(cfg.checkpoint, "checkpoint")  # a file or a shipped name, as in every other CLI
     errors.check_int(cfg.rotation.frames, "rotation.frames", 2)
     errors.check_int(cfg.fps, "fps", 1)
     errors.check_int(cfg.batch_size, "batch_size", 1)

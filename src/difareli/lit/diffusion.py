@@ -70,6 +70,21 @@ class RelightingModule(L.LightningModule):
     ``setup`` of a fit (per-rank seeds, ``torch.compile``). Subclasses set ``net``, ``spatial_inputs``,
     ``nonspatial_inputs``, ``ns_mean`` / ``ns_std``, ``_optimizer`` / ``_scheduler`` and the hyperparameters."""
 
+    def _inputs(self, input_dims: Mapping[str, int] | None, spatial_inputs: Sequence[str],
+                nonspatial_inputs: Sequence[str], spatial: str | Mapping[str, Any] | None
+                ) -> tuple[dict[str, int], dict[str, Any] | None]:
+        """Set ``spatial_inputs`` / ``nonspatial_inputs``; return the input widths as ints and the spatial
+        component in its one recorded form, ``{type: <name>, <options>}`` (None without spatial encodings)."""
+        if input_dims is None:
+            raise ValueError(f"{type(self).__name__} needs input_dims (spatial_channels, nonspatial_dim, "
+                             "resolution): difareli-train takes them from the DataModule")
+        dims = {k: int(v) for k, v in dict(input_dims).items()}
+        self.spatial_inputs, self.nonspatial_inputs = list(spatial_inputs), list(nonspatial_inputs)
+        spatial = {"type": spatial} if isinstance(spatial, str) else dict(spatial) if spatial is not None else None
+        if not self.spatial_inputs or (spatial is not None and spatial.get("type") in (None, "none")):
+            spatial = None  # an ablation that drops the spatial encodings
+        return dims, spatial
+
     @staticmethod
     def _check_stats(stats: Mapping[str, Sequence[float]] | None, dim: int) -> tuple[torch.Tensor, torch.Tensor]:
         if stats is None:  # identity normalisation (difareli-train always passes the training split's)
@@ -152,15 +167,7 @@ class DiffusionModule(RelightingModule):
         compile: bool = False,
     ):
         super().__init__()
-        if input_dims is None:
-            raise ValueError("DiffusionModule needs input_dims (spatial_channels, nonspatial_dim, resolution): "
-                             "difareli-train takes them from the DataModule")
-        dims = {k: int(v) for k, v in dict(input_dims).items()}
-        self.spatial_inputs, self.nonspatial_inputs = list(spatial_inputs), list(nonspatial_inputs)
-        # Recorded in one form, {type: <name>, <options>}; no spatial encodings (an ablation drops them): none.
-        spatial = {"type": spatial} if isinstance(spatial, str) else dict(spatial) if spatial is not None else None
-        if not self.spatial_inputs or (spatial is not None and spatial.get("type") in (None, "none")):
-            spatial = None
+        dims, spatial = self._inputs(input_dims, spatial_inputs, nonspatial_inputs, spatial)
         d = dims["nonspatial_dim"]
         # The non-spatial component, recorded as {type: ..., <options>}; checkpoints without it: AdaGN.
         nonspatial = {"type": nonspatial or "adagn"} if not isinstance(nonspatial, Mapping) else dict(nonspatial)

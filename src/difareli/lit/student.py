@@ -61,17 +61,10 @@ class StudentModule(RelightingModule):
         compile: bool = False,
     ):
         super().__init__()
-        if input_dims is None:
-            raise ValueError("StudentModule needs input_dims (spatial_channels, nonspatial_dim, resolution): "
-                             "difareli-train takes them from the DataModule")
-        dims = {k: int(v) for k, v in dict(input_dims).items()}
-        self.spatial_inputs, self.nonspatial_inputs = list(spatial_inputs), list(nonspatial_inputs)
+        dims, spatial = self._inputs(input_dims, spatial_inputs, nonspatial_inputs, spatial)
         if not enc.light_dependent(self.spatial_inputs + self.nonspatial_inputs):
             raise ValueError(f"a student needs light-dependent inputs (e.g. shading, shadow_map) to know the target; "
                              f"got {self.spatial_inputs + self.nonspatial_inputs}")
-        spatial = {"type": spatial} if isinstance(spatial, str) else dict(spatial) if spatial is not None else None
-        if not self.spatial_inputs:
-            spatial = None
         mean, std = self._check_stats(nonspatial_stats, dims["nonspatial_dim"])
         self.save_hyperparameters({
             "name": name, "preset": preset, "spatial": spatial, "spatial_inputs": self.spatial_inputs,
