@@ -74,6 +74,31 @@ def test_gt_pairs_are_same_subject_other_light_with_retargeted_maps(synth_store)
         assert torch.equal(item["target_nonspatial"], item["nonspatial"])  # shape, cam, identity: the source's
 
 
+def test_gt_pairs_with_group_lights_take_the_light_of_a_face_of_the_group_under_the_same_light(synth_store):
+    store = EncodingStore.open(synth_store)
+    ids = store.ids(split="train")
+    ds = pair_dataset("gt", store, ids, SP, NS, gt_light="group")
+    rid = ids[0]
+    src = {k: np.asarray(v) for k, v in store.read(rid).items()}
+    torch.manual_seed(0)
+    seen = set()
+    for _ in range(24):
+        item = ds[0]
+        tid = next(o for o in ds.others[rid]
+                   if torch.equal(image_to_tensor(store.read(o, ["image"])["image"]), item["target_image"]))
+        key = (store.meta(tid)["light_group"], store.meta(tid)["light_index"])
+        # Which record's fitted light re-rendered the target shading: one of the same group and light index.
+        match = [o for o in ds.light_records[tid]
+                 if torch.allclose(item["target_spatial"][:3], torch.from_numpy(
+                     render_shading(src, np.asarray(store.read(o, ["light"])["light"]))).permute(2, 0, 1))]
+        assert match and all((store.meta(o)["light_group"], store.meta(o)["light_index"]) == key for o in match)
+        seen.update(store.meta(o)["subject"] for o in match)
+    # Over 24 draws both faces of the group lent their fit (the chance of missing one is 2 * 0.5^24).
+    assert len(seen) == 2
+    with pytest.raises(Exception, match="gt_light"):
+        pair_dataset("gt", store, ids, SP, NS, gt_light="everyone")
+
+
 def test_student_overfits_a_few_pairs(synth_store):
     """L2 on 2 fixed ground-truth pairs falls >= 3x in 30 Adam steps (measured on 4 pairs: 6.5x, 0.157 -> 0.024)."""
     torch.manual_seed(0)

@@ -5,6 +5,9 @@ DataModule (``data.pairs``) serves pairs from one of the samplers of :data:`PAIR
 
 - ``teacher``: a teacher-pair store written by ``difareli-teacher-pairs`` (:func:`generate_teacher_pairs`);
 - ``gt``: SynthFaces ground truth: the same subject under another light index (that record's image is exact);
+  its target light is fitted on that record (``gt_light=subject``) or on any record of its light group under the
+  same light index (``gt_light=group``: another face's fit of the same true light half the time with groups of
+  two, as protocol (ii) gives the model at test time);
 - ``mix``: both, concatenated (each epoch sees every teacher pair and every ground-truth source once);
 - ``identity``: the record itself (target = source), a sanity check.
 
@@ -86,17 +89,33 @@ class IdentityPairs(PairDataset):
         return self.item(rid, src, src, src["image"])
 
 
+#: data.gt_light: whose fitted light conditions a ground-truth pair's target (see the module docstring).
+GT_LIGHTS = ("subject", "group")
+
+
 class GroundTruthPairs(PairDataset):
     """SynthFaces: the target is another light index of the same subject, drawn anew at every visit; its
-    light (the stored one, estimated in v2 stores) and c re-render the source's light-dependent encodings."""
+    light (the stored one, estimated in v2 stores) and c re-render the source's light-dependent encodings.
+    ``light_from="group"``: light and c come from a record drawn among those of the target's light group and
+    light index (the same true light, each fitted on its own face), so the student meets the fitting errors of
+    other faces' lights, as in protocol (ii), while the image it learns is still the exact target."""
 
-    def __init__(self, store, ids, spatial, nonspatial):
+    def __init__(self, store, ids, spatial, nonspatial, light_from: str = "subject"):
         super().__init__(store, ids, spatial, nonspatial)
+        if light_from not in GT_LIGHTS:
+            raise UserError(f"data.gt_light={light_from!r} is not one of {list(GT_LIGHTS)}")
         by_subject: dict[Any, list[str]] = {}
+        by_light: dict[Any, list[str]] = {}
         for rid in store.ids():
-            by_subject.setdefault(store.meta(rid).get("subject"), []).append(rid)
+            m = store.meta(rid)
+            by_subject.setdefault(m.get("subject"), []).append(rid)
+            by_light.setdefault((m.get("light_group"), m.get("light_index")), []).append(rid)
         self.others = {r: [o for o in by_subject.get(store.meta(r).get("subject"), []) if o != r]
                        for r in self.ids}
+        # Target record -> the records whose fitted light may stand for its light (itself included).
+        self.light_records = {o: (by_light[(store.meta(o).get("light_group"), store.meta(o).get("light_index"))]
+                                  if light_from == "group" and store.meta(o).get("light_group") is not None
+                                  else [o]) for r in self.ids for o in self.others[r]}
         alone = [r for r, o in self.others.items() if not o or store.meta(r).get("subject") is None]
         if alone:
             raise UserError(f"data.pairs=gt: {len(alone)} record(s) of {store.root} (e.g. {alone[:3]}) have no other "
@@ -107,11 +126,14 @@ class GroundTruthPairs(PairDataset):
         rid = self.ids[i]
         others = self.others[rid]
         tid = others[int(torch.randint(len(others), (1,)))]  # seeded per worker by Lightning
+        lights = self.light_records[tid]
+        lid = lights[int(torch.randint(len(lights), (1,)))] if len(lights) > 1 else tid
         src = self.source(rid)
-        tgt_rec = check_record(self.store.read(tid, ["image", "light"] + (["shadow"] if "shadow" in src else [])),
-                               tid, self.store.root)
-        tgt = target_arrays(src, self.inputs, tgt_rec["light"], _shadow(tgt_rec))
-        return self.item(rid, src, tgt, tgt_rec["image"])
+        image = check_record(self.store.read(tid, ["image"]), tid, self.store.root)["image"]
+        light = check_record(self.store.read(lid, ["light"] + (["shadow"] if "shadow" in src else [])), lid,
+                             self.store.root)
+        tgt = target_arrays(src, self.inputs, light["light"], _shadow(light))
+        return self.item(rid, src, tgt, image)
 
 
 class TeacherPairs(PairDataset):
@@ -139,37 +161,39 @@ class TeacherPairs(PairDataset):
 class MixedPairs(ConcatDataset):
     """Teacher pairs and ground-truth pairs together."""
 
-    def __init__(self, store, ids, spatial, nonspatial, pair_store: EncodingStore):
+    def __init__(self, store, ids, spatial, nonspatial, pair_store: EncodingStore, gt_light: str = "subject"):
         teacher = TeacherPairs(store, ids, spatial, nonspatial, pair_store)
-        gt = GroundTruthPairs(store, ids, spatial, nonspatial)
+        gt = GroundTruthPairs(store, ids, spatial, nonspatial, gt_light)
         super().__init__([teacher, gt])
         self.ids = teacher.ids + gt.ids
 
 
-def _needs_pair_store(cls) -> Callable:
-    def make(store, ids, spatial, nonspatial, pair_store):
+def _needs_pair_store(make_with: Callable) -> Callable:
+    def make(store, ids, spatial, nonspatial, pair_store, gt_light="subject"):
         if pair_store is None:
             raise UserError("data.pairs=teacher|mix needs data.teacher_pairs=<store written by difareli-teacher-pairs>")
-        return cls(store, ids, spatial, nonspatial, pair_store)
+        return make_with(store, ids, spatial, nonspatial, pair_store, gt_light)
 
     return make
 
 
-#: data.pairs -> dataset factory ``(store, ids, spatial, nonspatial, pair_store) -> Dataset``.
+#: data.pairs -> dataset factory ``(store, ids, spatial, nonspatial, pair_store, gt_light) -> Dataset``.
 PAIR_SAMPLERS: dict[str, Callable[..., Dataset]] = {
-    "teacher": _needs_pair_store(TeacherPairs),
-    "gt": lambda store, ids, sp, ns, pair_store=None: GroundTruthPairs(store, ids, sp, ns),
+    "teacher": _needs_pair_store(lambda store, ids, sp, ns, ps, gt_light: TeacherPairs(store, ids, sp, ns, ps)),
+    "gt": lambda store, ids, sp, ns, pair_store=None, gt_light="subject": GroundTruthPairs(store, ids, sp, ns,
+                                                                                          gt_light),
     "mix": _needs_pair_store(MixedPairs),
-    "identity": lambda store, ids, sp, ns, pair_store=None: IdentityPairs(store, ids, sp, ns),
+    "identity": lambda store, ids, sp, ns, pair_store=None, gt_light="subject": IdentityPairs(store, ids, sp, ns),
 }
 
 
 def pair_dataset(kind: str, store: EncodingStore, ids: Sequence[str], spatial: Sequence[str],
-                 nonspatial: Sequence[str], pair_store: EncodingStore | None = None) -> Dataset:
-    """The ``kind`` pair sampler (``data.pairs``) over the records ``ids``."""
+                 nonspatial: Sequence[str], pair_store: EncodingStore | None = None,
+                 gt_light: str = "subject") -> Dataset:
+    """The ``kind`` pair sampler (``data.pairs``) over the records ``ids``; ``gt_light``: see :data:`GT_LIGHTS`."""
     if kind not in PAIR_SAMPLERS:
         raise UserError(f"data.pairs={kind!r} is not a pair sampler; choose one of {sorted(PAIR_SAMPLERS)}")
-    return PAIR_SAMPLERS[kind](store, ids, spatial, nonspatial, pair_store)
+    return PAIR_SAMPLERS[kind](store, ids, spatial, nonspatial, pair_store, gt_light)
 
 
 # ------------------------------------------------------------------------------------------ teacher pairs
