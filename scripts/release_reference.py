@@ -14,6 +14,7 @@ import time
 from pathlib import Path
 
 import torch
+from omegaconf import OmegaConf
 
 from difareli import tables, zoo
 from difareli.baselines import DiffusionMethod, Identity, LambertianRatio, LightFit
@@ -40,32 +41,42 @@ def main() -> None:
     ap.add_argument("--precision", default="bf16-mixed")
     ap.add_argument("--data", default="SynthFaces v2 (realism=full, inputs=estimated), 1000 subjects x 4 lights, "
                                       "64 px, seed 0; trained on its train split (800 subjects)")
-    ap.add_argument("--batch-size", type=int, default=16)
+    ap.add_argument("--batch-size", type=int, default=16, help="when the run's .hydra/config.yaml is missing")
     ap.add_argument("--notes", default="")
+    ap.add_argument("--summary", default=None, help="the card's first line (default: the reference <model>)")
     ap.add_argument("--out", default=None, help="folder for the benchmark run dirs (default: a temporary one)")
     a = ap.parse_args()
 
     raw = torch.load(a.run_checkpoint, map_location="cpu", weights_only=True)
     timer = raw.get("callbacks", {}).get("Timer", {}).get("time_elapsed", {})
     hp = raw["hyper_parameters"]
+    # The run's resolved config (saved by Hydra beside its checkpoints) states seed, batch and EMA decay.
+    run_cfg = Path(a.run_checkpoint).resolve().parents[1] / ".hydra" / "config.yaml"
+    cfg = OmegaConf.load(run_cfg) if run_cfg.exists() else OmegaConf.create({})
+    seed = OmegaConf.select(cfg, "seed", default=42)
+    batch = OmegaConf.select(cfg, "data.batch_size", default=a.batch_size)
+    ema = OmegaConf.select(cfg, "callbacks.ema.decay", default=0.999)
     store = EncodingStore.open(a.store)
     out = Path(a.out or f"/tmp/release_{a.name}")
     fit, records = LightFit(), []
     sampler = {"name": a.sampler, "steps": a.steps}
     start = time.perf_counter()
-    for m in (Identity(), LambertianRatio(estimator=fit), DiffusionMethod(a.run_checkpoint, sampler)):
+    model = DiffusionMethod(a.run_checkpoint, sampler)
+    one_pass = "/" not in model.name  # a student is named by its model alone: the sampler plays no part
+    for m in (Identity(), LambertianRatio(estimator=fit), model):
         records += run_benchmark(store, m, ["same_subject", "different_subject"], out / m.name.replace("/", "_"),
                                  limit=a.pairs, estimator=fit, grid_pairs=4, save_images=False).records
     table = tables.summarize(records)
     bench = (f"{a.pairs} test pairs per protocol of the training store's test split (unseen subjects), target "
-             f"lights fitted to the target images (not the oracle), {a.sampler}-{a.steps}, fp32 on this CPU "
+             f"lights fitted to the target images (not the oracle), "
+             f"{'one network pass' if one_pass else f'{a.sampler}-{a.steps}'}, fp32 on this CPU "
              f"({time.perf_counter() - start:.0f} s):\n\n{table.to_markdown()}")
     train_s = float(timer.get("train", 0.0))
-    facts = {"summary": f"The reference {hp.get('name')} trained on this project's CPU.", "data": a.data,
-             "seed": 42, "batch_size": a.batch_size, "optimizer": hp.get("optimizer"), "precision": a.precision,
+    facts = {"summary": a.summary or f"The reference {hp.get('name')} trained on this project's CPU.", "data": a.data,
+             "seed": seed, "batch_size": batch, "optimizer": hp.get("optimizer"), "precision": a.precision,
              "hardware": a.hardware, "wall_time": f"{train_s / 3600:.2f} h of training "
              f"({float(timer.get('validate', 0.0)) / 60:.1f} min of validation besides)",
-             "weights": "EMA (decay 0.999), fp32", "benchmark": bench, "intended_use": USE, "licence": LICENCE,
+             "weights": f"EMA (decay {ema}), fp32", "benchmark": bench, "intended_use": USE, "licence": LICENCE,
              "notes": a.notes}
     facts = {k: (str(v) if v is not None and not isinstance(v, (str, int, float)) else v) for k, v in facts.items()
              if v is not None}

@@ -134,9 +134,9 @@ def write_table(table: tables.Table, out: Path, caption: str, digits: int = 4) -
 
 
 def figure(run_dirs: dict[str, Path], store_root: str, protocols: list[str], limit: int | None,
-           path: Path) -> Path | None:
-    """One line per protocol: the input, each row's relit image of the protocol's first benchmarked pair (the
-    benchmark's selection for ``limit``), the ground truth."""
+           path: Path, per_protocol: int = 1) -> Path | None:
+    """``per_protocol`` lines per protocol: the input, each row's relit image of one of the protocol's first
+    benchmarked pairs (the benchmark's selection for ``limit``), the ground truth."""
     from difareli.benchmark import load_pairs
     from difareli.store import EncodingStore
 
@@ -145,14 +145,14 @@ def figure(run_dirs: dict[str, Path], store_root: str, protocols: list[str], lim
     for proto, pairs in load_pairs(store, protocols, limit=limit).items():
         if not pairs:
             continue
-        pair = pairs[0]
-        relit = [d / "relit" / proto / f"{pair.id}.png" for d in run_dirs.values()]
-        if not all(p.is_file() for p in relit):
-            continue
-        import imageio.v3 as iio
+        for pair in pairs[:per_protocol]:
+            relit = [d / "relit" / proto / f"{pair.id}.png" for d in run_dirs.values()]
+            if not all(p.is_file() for p in relit):
+                continue
+            import imageio.v3 as iio
 
-        src, gt = (np.asarray(store.read(r, ["image"])["image"]) for r in (pair.source, pair.target))
-        lines.append([src, *(np.asarray(iio.imread(p))[..., :3] for p in relit), gt])
+            src, gt = (np.asarray(store.read(r, ["image"])["image"]) for r in (pair.source, pair.target))
+            lines.append([src, *(np.asarray(iio.imread(p))[..., :3] for p in relit), gt])
     return viz.save_png(viz.grid(lines), path) if lines else None
 
 
