@@ -99,6 +99,22 @@ def test_gt_pairs_with_group_lights_take_the_light_of_a_face_of_the_group_under_
         pair_dataset("gt", store, ids, SP, NS, gt_light="everyone")
 
 
+def test_gt_pairs_with_identity_include_the_source_under_its_own_light(synth_store):
+    store = EncodingStore.open(synth_store)
+    ids = store.ids(split="train")
+    plain = pair_dataset("gt", store, ids, SP, NS)
+    with_id = pair_dataset("gt", store, ids, SP, NS, gt_identity=True)
+    for rid in ids[:4]:
+        assert rid not in plain.others[rid]
+        assert sorted(with_id.others[rid]) == sorted([rid, *plain.others[rid]])
+    torch.manual_seed(0)
+    i = ids.index(ids[0])
+    own = image_to_tensor(store.read(ids[0], ["image"])["image"])
+    # Two light indices per subject here: the identity pair comes up in half the draws.
+    hits = sum(torch.equal(with_id[i]["target_image"], own) for _ in range(24))
+    assert 4 <= hits <= 20
+
+
 def test_student_overfits_a_few_pairs(synth_store):
     """L2 on 2 fixed ground-truth pairs falls >= 3x in 30 Adam steps (measured on 4 pairs: 6.5x, 0.157 -> 0.024)."""
     torch.manual_seed(0)

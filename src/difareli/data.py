@@ -90,6 +90,7 @@ class EncodingsDataModule(L.LightningDataModule):
         pairs: str | None = None,
         teacher_pairs: str | None = None,
         gt_light: str = "subject",
+        gt_identity: bool = False,
         versions: Mapping[str, str | None] | None = None,
     ):
         super().__init__()
@@ -105,7 +106,7 @@ class EncodingsDataModule(L.LightningDataModule):
         self.train_split, self.val_split = train_split, val_split
         self.allow_split_fallback = bool(allow_split_fallback)
         # The student's pair sampler (difareli.pairs.PAIR_SAMPLERS: teacher | gt | mix | identity); None: records.
-        self.pairs, self.teacher_pairs, self.gt_light = pairs, teacher_pairs, gt_light
+        self.pairs, self.teacher_pairs, self.gt_light, self.gt_identity = pairs, teacher_pairs, gt_light, gt_identity
         #: derived encoding versions read in place of their base (``{"shadow_map": "diff-1a2b"}``; difareli.derived)
         self.versions = {k: v for k, v in dict(versions or {}).items() if v is not None}
         self.store: EncodingStore | None = None
@@ -181,7 +182,7 @@ class EncodingsDataModule(L.LightningDataModule):
 
             teacher = EncodingStore.open(self.teacher_pairs) if self.teacher_pairs else None
             self.train_set = pair_dataset(self.pairs, store, train, self.spatial, self.nonspatial, teacher,
-                                          self.gt_light)
+                                          self.gt_light, self.gt_identity)
             # Validation: ground truth where the store has it (SynthFaces), else the training pairs' kind.
             kind = "gt" if self.pairs in ("teacher", "mix") and store.meta(val[0]).get("subject") else self.pairs
             self.val_set = pair_dataset(kind, store, val, self.spatial, self.nonspatial, teacher, self.gt_light)

@@ -100,7 +100,7 @@ class GroundTruthPairs(PairDataset):
     light index (the same true light, each fitted on its own face), so the student meets the fitting errors of
     other faces' lights, as in protocol (ii), while the image it learns is still the exact target."""
 
-    def __init__(self, store, ids, spatial, nonspatial, light_from: str = "subject"):
+    def __init__(self, store, ids, spatial, nonspatial, light_from: str = "subject", with_source: bool = False):
         super().__init__(store, ids, spatial, nonspatial)
         if light_from not in GT_LIGHTS:
             raise UserError(f"data.gt_light={light_from!r} is not one of {list(GT_LIGHTS)}")
@@ -110,13 +110,16 @@ class GroundTruthPairs(PairDataset):
             m = store.meta(rid)
             by_subject.setdefault(m.get("subject"), []).append(rid)
             by_light.setdefault((m.get("light_group"), m.get("light_index")), []).append(rid)
-        self.others = {r: [o for o in by_subject.get(store.meta(r).get("subject"), []) if o != r]
+        # with_source: the source's own light index is a target too (the identity pair, relit under its own
+        # light), so that a student learns to give its input back when the light does not change.
+        self.others = {r: [o for o in by_subject.get(store.meta(r).get("subject"), []) if o != r or with_source]
                        for r in self.ids}
         # Target record -> the records whose fitted light may stand for its light (itself included).
         self.light_records = {o: (by_light[(store.meta(o).get("light_group"), store.meta(o).get("light_index"))]
                                   if light_from == "group" and store.meta(o).get("light_group") is not None
                                   else [o]) for r in self.ids for o in self.others[r]}
-        alone = [r for r, o in self.others.items() if not o or store.meta(r).get("subject") is None]
+        alone = [r for r, o in self.others.items() if not [x for x in o if x != r]
+                 or store.meta(r).get("subject") is None]
         if alone:
             raise UserError(f"data.pairs=gt: {len(alone)} record(s) of {store.root} (e.g. {alone[:3]}) have no other "
                             "record of the same subject (the ground truth); use a SynthFaces store with lights >= 2, "
@@ -161,39 +164,42 @@ class TeacherPairs(PairDataset):
 class MixedPairs(ConcatDataset):
     """Teacher pairs and ground-truth pairs together."""
 
-    def __init__(self, store, ids, spatial, nonspatial, pair_store: EncodingStore, gt_light: str = "subject"):
+    def __init__(self, store, ids, spatial, nonspatial, pair_store: EncodingStore,
+                 gt: Mapping[str, Any] | None = None):
         teacher = TeacherPairs(store, ids, spatial, nonspatial, pair_store)
-        gt = GroundTruthPairs(store, ids, spatial, nonspatial, gt_light)
+        gt = GroundTruthPairs(store, ids, spatial, nonspatial, **dict(gt or {}))
         super().__init__([teacher, gt])
         self.ids = teacher.ids + gt.ids
 
 
 def _needs_pair_store(make_with: Callable) -> Callable:
-    def make(store, ids, spatial, nonspatial, pair_store, gt_light="subject"):
+    def make(store, ids, spatial, nonspatial, pair_store, gt=None):
         if pair_store is None:
             raise UserError("data.pairs=teacher|mix needs data.teacher_pairs=<store written by difareli-teacher-pairs>")
-        return make_with(store, ids, spatial, nonspatial, pair_store, gt_light)
+        return make_with(store, ids, spatial, nonspatial, pair_store, gt)
 
     return make
 
 
-#: data.pairs -> dataset factory ``(store, ids, spatial, nonspatial, pair_store, gt_light) -> Dataset``.
+#: data.pairs -> dataset factory ``(store, ids, spatial, nonspatial, pair_store, gt) -> Dataset`` (``gt``: the
+#: options of :class:`GroundTruthPairs`).
 PAIR_SAMPLERS: dict[str, Callable[..., Dataset]] = {
-    "teacher": _needs_pair_store(lambda store, ids, sp, ns, ps, gt_light: TeacherPairs(store, ids, sp, ns, ps)),
-    "gt": lambda store, ids, sp, ns, pair_store=None, gt_light="subject": GroundTruthPairs(store, ids, sp, ns,
-                                                                                          gt_light),
+    "teacher": _needs_pair_store(lambda store, ids, sp, ns, ps, gt: TeacherPairs(store, ids, sp, ns, ps)),
+    "gt": lambda store, ids, sp, ns, pair_store=None, gt=None: GroundTruthPairs(store, ids, sp, ns, **dict(gt or {})),
     "mix": _needs_pair_store(MixedPairs),
-    "identity": lambda store, ids, sp, ns, pair_store=None, gt_light="subject": IdentityPairs(store, ids, sp, ns),
+    "identity": lambda store, ids, sp, ns, pair_store=None, gt=None: IdentityPairs(store, ids, sp, ns),
 }
 
 
 def pair_dataset(kind: str, store: EncodingStore, ids: Sequence[str], spatial: Sequence[str],
                  nonspatial: Sequence[str], pair_store: EncodingStore | None = None,
-                 gt_light: str = "subject") -> Dataset:
-    """The ``kind`` pair sampler (``data.pairs``) over the records ``ids``; ``gt_light``: see :data:`GT_LIGHTS`."""
+                 gt_light: str = "subject", gt_identity: bool = False) -> Dataset:
+    """The ``kind`` pair sampler (``data.pairs``) over the records ``ids``; ``gt_light``: see :data:`GT_LIGHTS`;
+    ``gt_identity``: ground-truth targets include the source's own light index (the identity pair)."""
     if kind not in PAIR_SAMPLERS:
         raise UserError(f"data.pairs={kind!r} is not a pair sampler; choose one of {sorted(PAIR_SAMPLERS)}")
-    return PAIR_SAMPLERS[kind](store, ids, spatial, nonspatial, pair_store, gt_light)
+    return PAIR_SAMPLERS[kind](store, ids, spatial, nonspatial, pair_store,
+                               {"light_from": gt_light, "with_source": bool(gt_identity)})
 
 
 # ------------------------------------------------------------------------------------------ teacher pairs
