@@ -104,22 +104,21 @@ class GroundTruthPairs(PairDataset):
         super().__init__(store, ids, spatial, nonspatial)
         if light_from not in GT_LIGHTS:
             raise UserError(f"data.gt_light={light_from!r} is not one of {list(GT_LIGHTS)}")
+        meta = {rid: store.meta(rid) for rid in store.ids()}  # read once: the maps below consult it per pair
         by_subject: dict[Any, list[str]] = {}
         by_light: dict[Any, list[str]] = {}
-        for rid in store.ids():
-            m = store.meta(rid)
+        for rid, m in meta.items():
             by_subject.setdefault(m.get("subject"), []).append(rid)
             by_light.setdefault((m.get("light_group"), m.get("light_index")), []).append(rid)
         # with_source: the source's own light index is a target too (the identity pair, relit under its own
         # light), so that a student learns to give its input back when the light does not change.
-        self.others = {r: [o for o in by_subject.get(store.meta(r).get("subject"), []) if o != r or with_source]
+        self.others = {r: [o for o in by_subject.get(meta[r].get("subject"), []) if o != r or with_source]
                        for r in self.ids}
         # Target record -> the records whose fitted light may stand for its light (itself included).
-        self.light_records = {o: (by_light[(store.meta(o).get("light_group"), store.meta(o).get("light_index"))]
-                                  if light_from == "group" and store.meta(o).get("light_group") is not None
+        self.light_records = {o: (by_light[(meta[o].get("light_group"), meta[o].get("light_index"))]
+                                  if light_from == "group" and meta[o].get("light_group") is not None
                                   else [o]) for r in self.ids for o in self.others[r]}
-        alone = [r for r, o in self.others.items() if not [x for x in o if x != r]
-                 or store.meta(r).get("subject") is None]
+        alone = [r for r, o in self.others.items() if not [x for x in o if x != r] or meta[r].get("subject") is None]
         if alone:
             raise UserError(f"data.pairs=gt: {len(alone)} record(s) of {store.root} (e.g. {alone[:3]}) have no other "
                             "record of the same subject (the ground truth); use a SynthFaces store with lights >= 2, "
@@ -132,11 +131,13 @@ class GroundTruthPairs(PairDataset):
         lights = self.light_records[tid]
         lid = lights[int(torch.randint(len(lights), (1,)))] if len(lights) > 1 else tid
         src = self.source(rid)
-        image = check_record(self.store.read(tid, ["image"]), tid, self.store.root)["image"]
-        light = check_record(self.store.read(lid, ["light"] + (["shadow"] if "shadow" in src else [])), lid,
-                             self.store.root)
+        light_names = ["light"] + (["shadow"] if "shadow" in src else [])
+        # One read when the target's own fit conditions it (always with gt_light=subject).
+        tgt_rec = check_record(self.store.read(tid, ["image"] + (light_names if lid == tid else [])), tid,
+                               self.store.root)
+        light = tgt_rec if lid == tid else check_record(self.store.read(lid, light_names), lid, self.store.root)
         tgt = target_arrays(src, self.inputs, light["light"], _shadow(light))
-        return self.item(rid, src, tgt, image)
+        return self.item(rid, src, tgt, tgt_rec["image"])
 
 
 class TeacherPairs(PairDataset):
