@@ -62,14 +62,13 @@ def main() -> None:
     sampler = {"name": a.sampler, "steps": a.steps}
     start = time.perf_counter()
     model = DiffusionMethod(a.run_checkpoint, sampler)
-    one_pass = "/" not in model.name  # a student is named by its model alone: the sampler plays no part
     for m in (Identity(), LambertianRatio(estimator=fit), model):
         records += run_benchmark(store, m, ["same_subject", "different_subject"], out / m.name.replace("/", "_"),
                                  limit=a.pairs, estimator=fit, grid_pairs=4, save_images=False).records
     table = tables.summarize(records)
     bench = (f"{a.pairs} test pairs per protocol of the training store's test split (unseen subjects), target "
              f"lights fitted to the target images (not the oracle), "
-             f"{'one network pass' if one_pass else f'{a.sampler}-{a.steps}'}, fp32 on this CPU "
+             f"{'one network pass' if model.one_pass else f'{a.sampler}-{a.steps}'}, fp32 on this CPU "
              f"({time.perf_counter() - start:.0f} s):\n\n{table.to_markdown()}")
     train_s = float(timer.get("train", 0.0))
     facts = {"summary": a.summary or f"The reference {hp.get('name')} trained on this project's CPU.", "data": a.data,

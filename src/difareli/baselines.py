@@ -224,8 +224,9 @@ class DiffusionMethod:
                                    batch_size=batch_size)
         spec = self.relighter.spec
         model = self.relighter.config.get("name") or "diffusion"
-        one_pass = isinstance(self.relighter.model, OnePassRelightable)  # a student: the sampler plays no part
-        self.name = name or (model if one_pass else f"{model}/{spec.name}-{spec.steps}")
+        #: a student: one network pass, the sampler plays no part
+        self.one_pass = isinstance(self.relighter.model, OnePassRelightable)
+        self.name = name or (model if self.one_pass else f"{model}/{spec.name}-{spec.steps}")
 
     @property
     def target_maps(self) -> str:

@@ -137,6 +137,8 @@ def figure(run_dirs: dict[str, Path], store_root: str, protocols: list[str], lim
            path: Path, per_protocol: int = 1) -> Path | None:
     """``per_protocol`` lines per protocol: the input, each row's relit image of one of the protocol's first
     benchmarked pairs (the benchmark's selection for ``limit``), the ground truth."""
+    import imageio.v3 as iio
+
     from difareli.benchmark import load_pairs
     from difareli.store import EncodingStore
 
@@ -149,8 +151,6 @@ def figure(run_dirs: dict[str, Path], store_root: str, protocols: list[str], lim
             relit = [d / "relit" / proto / f"{pair.id}.png" for d in run_dirs.values()]
             if not all(p.is_file() for p in relit):
                 continue
-            import imageio.v3 as iio
-
             src, gt = (np.asarray(store.read(r, ["image"])["image"]) for r in (pair.source, pair.target))
             lines.append([src, *(np.asarray(iio.imread(p))[..., :3] for p in relit), gt])
     return viz.save_png(viz.grid(lines), path) if lines else None
