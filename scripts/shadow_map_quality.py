@@ -1,16 +1,19 @@
 """Quality of cast-shadow maps against SynthFaces' exact ones (issue 12): IoU / precision / recall per record and
 on average for
 
-- ``difference``: a derived difference-method version (``--version``, from difareli-shadow-maps),
+- ``difference``: derived difference-method versions (``--version [LABEL=]VERSION``, repeatable: one row each,
+  e.g. the maps of DiFaReli checkpoints at several training steps),
 - ``ray-marched``: screen-space ray marching on the stored depth toward the record's light (``targets.target_shadow_map``),
 - ``mesh``: the store's own ``shadow_map`` (SynthFaces v2 ``inputs=estimated``: mesh rays toward the fitted light;
   in an ``inputs=exact`` store it is the ground truth itself, so its row is 1 by construction and is flagged),
 
 each binarised as ``map > 0`` against ``shadow_map_gt > 0`` (or ``shadow_map`` in a v1 store). Records whose GT
-and prediction are both empty have no IoU (counted apart). Writes ``shadow_map_quality.md`` / ``.csv`` and a
-figure (image | GT | difference | ray-marched | mesh) for the first records.
+and prediction are both empty have no IoU (counted apart); the pooled IoU counts every pixel of every record once.
+Only records that hold every given version are scored. Writes ``shadow_map_quality.md`` / ``.csv`` and a figure
+(image | GT | each method) for the first records.
 
     python scripts/shadow_map_quality.py --store data/synthfaces_64 --version diff-1a2b3c4d --out runs/maps
+    python scripts/shadow_map_quality.py --store ... --version step1000=diff-aaaa --version step3500=diff-bbbb
 """
 
 from __future__ import annotations
@@ -21,48 +24,80 @@ from pathlib import Path
 
 import numpy as np
 
-from difareli import viz
+from difareli import derived, viz
 from difareli.metrics import binary_scores
 from difareli.store import EncodingStore
 from difareli.targets import target_shadow_map
 
 
-def maps_of(store: EncodingStore, rid: str, version: str | None, light_name: str) -> dict[str, np.ndarray]:
+def parse_versions(specs: list[str]) -> dict[str, str]:
+    """``["a=diff-1", "diff-2"]`` -> ``{"difference (a)": "diff-1", "difference": "diff-2"}``."""
+    out = {}
+    for s in specs:
+        label, _, version = s.rpartition("=")
+        out[f"difference ({label})" if label else "difference"] = version
+    return out
+
+
+def maps_of(store: EncodingStore, rid: str, versions: dict[str, str], light_name: str) -> dict[str, np.ndarray]:
     """The binary maps of one record: GT, then each method."""
     gt_name = "shadow_map_gt" if store.available("shadow_map_gt") else "shadow_map"
     a = {k: np.asarray(v) for k, v in store.read(rid, ["depth", "normal", "cam", gt_name, "shadow_map",
                                                        light_name]).items()}
     out = {"gt": a[gt_name] > 0}
-    if version:
+    for label, version in versions.items():
         name = f"shadow_map@{version}"
-        out["difference"] = np.asarray(store.read(rid, [name])[name]) > 0
+        out[label] = np.asarray(store.read(rid, [name])[name]) > 0
     out["ray-marched"] = target_shadow_map(a, a[light_name], 0.0) > 0  # c = 0 > C_LO: only the support matters
     out["mesh"] = a["shadow_map"] > 0
     return out
 
 
+def summary_lines(per: dict[str, list[dict]], pooled: dict[str, np.ndarray], exact_store: bool) -> list[str]:
+    """Markdown rows: mean IoU / precision / recall over records, pooled IoU, records with an IoU."""
+    lines = ["| method | IoU | precision | recall | pooled IoU | records with IoU |", "|---|---:|---:|---:|---:|---:|"]
+    for method, rs in per.items():
+        col = {k: np.array([r[k] for r in rs]) for k in ("iou", "precision", "recall")}
+        mean = {k: np.nanmean(v) if np.isfinite(v).any() else float("nan") for k, v in col.items()}
+        inter, union = pooled[method]
+        note = " (= the GT: exact-inputs store)" if method == "mesh" and exact_store else ""
+        lines.append(f"| {method}{note} | {mean['iou']:.3f} | {mean['precision']:.3f} | {mean['recall']:.3f} | "
+                     f"{inter / max(union, 1):.3f} | {int(np.isfinite(col['iou']).sum())} |")
+    return lines
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--store", required=True)
-    ap.add_argument("--version", default=None, help="the difference maps' derived version (difareli-shadow-maps)")
+    ap.add_argument("--version", action="append", default=[],
+                    help="[LABEL=]VERSION of difference maps (difareli-shadow-maps); repeatable")
     ap.add_argument("--split", default=None, help="only this split's records (default: all)")
     ap.add_argument("--light", default="light", help="light the ray-marched map aims at: light (a user's) | light_gt")
     ap.add_argument("--figure-rows", type=int, default=8)
     ap.add_argument("--out", default=".")
     args = ap.parse_args(argv)
     store = EncodingStore.open(args.store)
+    versions = parse_versions(args.version)
+    for version in versions.values():
+        if f"shadow_map@{version}" not in store.derived:
+            ap.error(f"--version {version}: store {store.root} has no shadow_map@{version}; declared: "
+                     f"{sorted(store.derived)}")
     ids = store.ids(split=args.split) if args.split else store.ids()
+    ids = [r for r in ids if all(derived.has(store, r, f"shadow_map@{v}") for v in versions.values())]
+    if not ids:
+        ap.error(f"no record of {store.root} holds every given version; run difareli-shadow-maps first")
     exact_store = store.store_meta.get("inputs", "exact") == "exact" or not store.available("shadow_map_gt")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    rows, fig = [], []
-    per = {}
+    rows, fig, per, pooled = [], [], {}, {}
     for rid in ids:
-        m = maps_of(store, rid, args.version, args.light)
+        m = maps_of(store, rid, versions, args.light)
         for method in [k for k in m if k != "gt"]:
             s = binary_scores(m[method][None], m["gt"][None])
             rows.append({"record": rid, "method": method, **{k: float(v[0]) for k, v in s.items()}})
             per.setdefault(method, []).append(rows[-1])
+            inter, union = pooled.get(method, (0, 0))
+            pooled[method] = (inter + int((m[method] & m["gt"]).sum()), union + int((m[method] | m["gt"]).sum()))
         if len(fig) < args.figure_rows:
             image = np.asarray(store.read(rid, ["image"])["image"])
             cells = [image] + [np.repeat((m[k] * 255).astype(np.uint8)[..., None], 3, -1) for k in m]
@@ -71,14 +106,16 @@ def main(argv=None) -> None:
         w = csv.DictWriter(f, fieldnames=["record", "method", "iou", "precision", "recall"])
         w.writeheader()
         w.writerows(rows)
-    lines = [f"Shadow-map quality on {store.root} ({len(ids)} records; binary maps > 0 vs the exact cast map)", "",
-             "| method | IoU | precision | recall | records with IoU |", "|---|---:|---:|---:|---:|"]
-    for method, rs in per.items():
-        col = {k: np.array([r[k] for r in rs]) for k in ("iou", "precision", "recall")}
-        mean = {k: np.nanmean(v) if np.isfinite(v).any() else float("nan") for k, v in col.items()}
-        note = " (= the GT: exact-inputs store)" if method == "mesh" and exact_store else ""
-        lines.append(f"| {method}{note} | {mean['iou']:.3f} | {mean['precision']:.3f} | {mean['recall']:.3f} | "
-                     f"{int(np.isfinite(col['iou']).sum())} |")
+    where = f"split {args.split}" if args.split else "all splits"
+    lines = [f"Shadow-map quality on {store.root} ({len(ids)} records of {where}; binary maps > 0 vs the exact "
+             "cast map)", ""] + summary_lines(per, pooled, exact_store)
+    for label, version in versions.items():
+        prov = store.derived[f"shadow_map@{version}"]
+        keys = ("global_step", "sampler", "threshold", "threshold_rule", "median", "c_min", "c_max")
+        show = {k: prov[k] for k in keys if k in prov}
+        if isinstance(show.get("sampler"), dict):
+            show["sampler"] = f"{show['sampler'].get('name')}-{show['sampler'].get('steps')}"
+        lines.append(f"\n{label} = shadow_map@{version}: " + ", ".join(f"{k} {v}" for k, v in show.items()))
     text = "\n".join(lines) + "\n\nFigure columns: image | GT | " + " | ".join(k for k in per) + "\n"
     (out / "shadow_map_quality.md").write_text(text)
     if fig:

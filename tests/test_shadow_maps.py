@@ -181,3 +181,35 @@ def test_binary_scores_known_shapes():
     np.testing.assert_allclose(s["precision"][0], 1.0)
     np.testing.assert_allclose(s["recall"][:2], [0.5, 0.0])
     assert np.isnan(s["precision"][1]) and np.isnan(s["iou"][2]) and np.isnan(s["recall"][2])
+
+
+def test_quality_script_scores_known_maps(store, tmp_path):
+    """scripts/shadow_map_quality.py: labelled versions, only records holding them, IoU against the GT map."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "shadow_map_quality.py"
+    spec = importlib.util.spec_from_file_location("shadow_map_quality", path)
+    q = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(q)
+    gt_name = "shadow_map_gt" if store.available("shadow_map_gt") else "shadow_map"
+    ids = store.ids()[:3]
+    # A "perfect" version (the GT support itself) and an empty one, written as derived versions.
+    for version, fn in (("perfect", lambda g: (g > 0).astype(np.float32)), ("empty", np.zeros_like)):
+        name = derived.declare(store, "shadow_map", version, {"made": version})
+        for r in ids:
+            derived.write(store, r, name, fn(np.asarray(store.read(r, [gt_name])[gt_name], np.float32)))
+    gt_any = [bool((np.asarray(store.read(r, [gt_name])[gt_name]) > 0).any()) for r in ids]
+    assert any(gt_any), "the fixture needs a record with a cast shadow"
+    q.main(["--store", str(store.root), "--version", "a=perfect", "--version", "empty", "--out", str(tmp_path)])
+    text = (tmp_path / "shadow_map_quality.md").read_text()
+    assert "(3 records of all splits" in text
+    rows = {line.split("|")[1].strip(): line.split("|")[2:-1] for line in text.splitlines() if line.startswith("| ")}
+    assert [float(v) for v in rows["difference (a)"][:4]] == [1.0, 1.0, 1.0, 1.0]
+    assert float(rows["difference"][0]) == 0.0 and float(rows["difference"][3]) == 0.0
+    assert int(rows["difference (a)"][4]) == sum(gt_any)
+    csv_rows = (tmp_path / "shadow_map_quality.csv").read_text().splitlines()
+    assert len(csv_rows) == 1 + 3 * 4  # 3 records x (2 versions, ray-marched, mesh)
+    assert (tmp_path / "shadow_map_quality.png").is_file()
+    with pytest.raises(SystemExit):
+        q.main(["--store", str(store.root), "--version", "nope", "--out", str(tmp_path)])
