@@ -155,7 +155,8 @@ def test_cli_on_a_trained_difareli_batches_like_one_at_a_time(tiny_checkpoint, s
     ckpt = tiny_checkpoint("difareli")
     ids = store.ids()[:3]
     cfg = compose_train(tmp_path / "run", [f"checkpoint={ckpt}", f"store={store.root}", f"records=[{','.join(ids)}]",
-                                           "sampler.steps=3", "batch_size=2", "progress=false", "runtime.device=cpu"],
+                                           "sampler.steps=3", "batch_size=2", "progress=false", "runtime.device=cpu",
+                                           "threshold=0.01"],  # a 20-step toy does not darken with c yet
                         config_name="shadow_maps")
     rep = run(cfg)
     assert rep.relit == 3 and rep.written == 3 and (tmp_path / "run" / "shadow_maps.json").is_file()
@@ -213,3 +214,25 @@ def test_quality_script_scores_known_maps(store, tmp_path):
     assert (tmp_path / "shadow_map_quality.png").is_file()
     with pytest.raises(SystemExit):
         q.main(["--store", str(store.root), "--version", "nope", "--out", str(tmp_path)])
+
+
+def test_record_subsets_get_their_own_version_and_a_flat_model_is_refused(store):
+    """The global threshold is taken over the chosen records, so another record set is another version; a model
+    whose relights do not darken with c gives no positive Otsu threshold and is refused, not written."""
+    ids = store.ids()
+    a = sm.compute(Crafted(), store, None, provenance={"checkpoint": "crafted"}, ids=ids[:4], progress=False)
+    b = sm.compute(Crafted(), store, None, provenance={"checkpoint": "crafted"}, ids=ids[2:6], progress=False)
+    full = sm.compute(Crafted(), store, None, provenance={"checkpoint": "crafted"}, progress=False)
+    assert len({a.name, b.name, full.name}) == 3 and a.raw == b.raw == full.raw  # raw differences are shared
+    assert b.relit == 2 and full.relit == len(ids) - 6  # only records without a raw difference are relit
+    prov = EncodingStore.open(store.root).derived
+    assert prov[full.name]["records"] == "all" and prov[a.name]["n_records"] == 4
+
+    class Brightens(Crafted):
+        def relight_once(self, x0, source, target):
+            return 1.0 - super().relight_once(x0, source, target)  # lighter as c grows: differences <= 0
+
+    with pytest.raises(UserError, match="does not darken"):
+        sm.compute(Brightens(), store, None, provenance={"checkpoint": "bright"}, progress=False)
+    assert not any(k.startswith("shadow_map@diff-") and v.get("checkpoint") == "bright"
+                   for k, v in EncodingStore.open(store.root).derived.items())

@@ -142,7 +142,10 @@ def compute(model, store, spec, *, provenance: Mapping[str, Any], ids: Sequence[
             "difference": "Y(relit at c_min) - Y(relit at c_max), own light"}
     raw = derived.declare(store, "shadow_map", derived.content_version("diffraw", prov),
                           {**prov, "stage": "raw difference"})
-    version = version or derived.content_version("diff", {**prov, "threshold": threshold, "median": int(median)})
+    # The global threshold depends on which records it is taken over: another record set is another version.
+    chosen = "all" if set(ids) == set(store.ids()) else derived.content_version("ids", {"ids": sorted(ids)}, 12)
+    version = version or derived.content_version("diff", {**prov, "threshold": threshold, "median": int(median),
+                                                          "records": chosen})
     todo = derived.missing(store, raw, ids)
     needed = list(dict.fromkeys(["image", "light", *model_inputs(model),
                                  *encodings.rerender_needs(encodings.light_dependent(model_inputs(model)))]))
@@ -164,9 +167,14 @@ def compute(model, store, spec, *, provenance: Mapping[str, Any], ids: Sequence[
     if threshold == "otsu":
         values = np.concatenate([(d[hits[r]] if hits[r] is not None else d).reshape(-1) for r, d in diffs.items()])
         thr, rule = otsu_threshold(values), "otsu over every difference value on the mesh of every record"
+        if thr <= 0:  # a shadow darkens: a non-positive cut would call pixels that brightened with c shadow
+            raise errors.UserError(
+                f"Otsu's threshold of the differences is {thr:.4f} <= 0: this model does not darken the face as c "
+                f"grows (step {provenance.get('global_step')}); train the DiFaReli longer or give threshold=<number>")
     else:
         thr, rule = float(threshold), "given"
-    final = {**prov, "threshold": thr, "threshold_rule": rule, "median": int(median), "raw": raw}
+    final = {**prov, "threshold": thr, "threshold_rule": rule, "median": int(median), "raw": raw, "records": chosen,
+             "n_records": len(ids)}
     name = derived.declare(store, "shadow_map", version, final)
     written = 0
     for r in ids:
