@@ -78,7 +78,11 @@ def test_difference_pipeline_on_a_crafted_model(store):
     c_min, c_max = sm.c_range(store)
     cs = {r: float(store.read(r, ["shadow"])["shadow"][0]) for r in ids}
     train = [cs[r] for r in store.ids(split="train")]
-    assert (c_min, c_max) == (min(train), max(train))
+    assert sm.c_range(store, quantile=0) == (min(train), max(train))  # the paper's strict extremes
+    assert (c_min, c_max) == tuple(np.quantile(train, [0.01, 0.99]))  # the default: robust to outliers
+    assert min(train) <= c_min < c_max <= max(train)
+    with pytest.raises(UserError, match="c_quantile"):
+        sm.c_range(store, quantile=0.5)
     rep = sm.compute(Crafted(), store, None, provenance={"checkpoint": "crafted"}, batch_size=3, progress=False)
     assert rep.relit == len(ids) and rep.written == len(ids) and rep.name.startswith("shadow_map@diff-")
     sig = lambda c: 1 / (1 + np.exp(-c))  # noqa: E731

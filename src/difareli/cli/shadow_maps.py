@@ -30,6 +30,7 @@ def run(cfg: DictConfig):
     threshold = cfg.threshold if cfg.threshold == "otsu" else float(cfg.threshold)
     rep = shadow_maps.compute(ckpt.model.to(runtime.torch_device), store, spec, provenance=provenance,
                               ids=list(cfg.records) if cfg.records is not None else None, split=cfg.split,
+                              c_quantile=float(cfg.c_quantile),
                               threshold=threshold, median=int(cfg.median), batch_size=int(cfg.batch_size),
                               version=cfg.version, runtime=runtime, mean_matching=bool(cfg.mean_matching),
                               device=runtime.torch_device, progress=bool(cfg.progress))
@@ -58,6 +59,7 @@ def validate(cfg: DictConfig) -> None:
     errors.check_int(cfg.median, "median", 1)
     errors.check_int(cfg.batch_size, "batch_size", 1)
     errors.check_out_dir(cfg.out_dir)
+    errors.check_number(cfg.c_quantile, "c_quantile", allow_none=False)
     if cfg.threshold != "otsu":
         errors.check_number(cfg.threshold, "threshold", allow_none=False)
 
