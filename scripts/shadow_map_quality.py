@@ -7,6 +7,8 @@ on average for
 - ``mesh``: the store's own ``shadow_map`` (SynthFaces v2 ``inputs=estimated``: mesh rays toward the fitted light;
   in an ``inputs=exact`` store it is the ground truth itself, so its row is 1 by construction and is flagged),
 
+- ``whole face (baseline)``: every mesh pixel, the score of a map that covers the whole face,
+
 each binarised as ``map > 0`` against ``shadow_map_gt > 0`` (or ``shadow_map`` in a v1 store). Records whose GT
 and prediction are both empty have no IoU (counted apart); the pooled IoU counts every pixel of every record once.
 Only records that hold every given version are scored. Writes ``shadow_map_quality.md`` / ``.csv`` and a figure
@@ -50,6 +52,7 @@ def maps_of(store: EncodingStore, rid: str, versions: dict[str, str], light_name
         out[label] = np.asarray(store.read(rid, [name])[name]) > 0
     out["ray-marched"] = target_shadow_map(a, a[light_name], 0.0) > 0  # c = 0 > C_LO: only the support matters
     out["mesh"] = a["shadow_map"] > 0
+    out["whole face (baseline)"] = a["depth"] != 0  # every mesh pixel: the IoU a map earns by covering all
     return out
 
 
@@ -73,6 +76,7 @@ def main(argv=None) -> None:
                     help="[LABEL=]VERSION of difference maps (difareli-shadow-maps); repeatable")
     ap.add_argument("--split", default=None, help="only this split's records (default: all)")
     ap.add_argument("--light", default="light", help="light the ray-marched map aims at: light (a user's) | light_gt")
+    ap.add_argument("--every", type=int, default=1, help="score every N-th record only (a quick look)")
     ap.add_argument("--figure-rows", type=int, default=8)
     ap.add_argument("--out", default=".")
     args = ap.parse_args(argv)
@@ -83,7 +87,7 @@ def main(argv=None) -> None:
             ap.error(f"--version {version}: store {store.root} has no shadow_map@{version}; declared: "
                      f"{sorted(store.derived)}")
     ids = store.ids(split=args.split) if args.split else store.ids()
-    ids = [r for r in ids if all(derived.has(store, r, f"shadow_map@{v}") for v in versions.values())]
+    ids = [r for r in ids if all(derived.has(store, r, f"shadow_map@{v}") for v in versions.values())][::args.every]
     if not ids:
         ap.error(f"no record of {store.root} holds every given version; run difareli-shadow-maps first")
     exact_store = store.store_meta.get("inputs", "exact") == "exact" or not store.available("shadow_map_gt")
@@ -100,7 +104,8 @@ def main(argv=None) -> None:
             pooled[method] = (inter + int((m[method] & m["gt"]).sum()), union + int((m[method] | m["gt"]).sum()))
         if len(fig) < args.figure_rows:
             image = np.asarray(store.read(rid, ["image"])["image"])
-            cells = [image] + [np.repeat((m[k] * 255).astype(np.uint8)[..., None], 3, -1) for k in m]
+            cells = [image] + [np.repeat((m[k] * 255).astype(np.uint8)[..., None], 3, -1) for k in m
+                               if k != "whole face (baseline)"]
             fig.append(cells)
     with open(out / "shadow_map_quality.csv", "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=["record", "method", "iou", "precision", "recall"])
@@ -116,7 +121,8 @@ def main(argv=None) -> None:
         if isinstance(show.get("sampler"), dict):
             show["sampler"] = f"{show['sampler'].get('name')}-{show['sampler'].get('steps')}"
         lines.append(f"\n{label} = shadow_map@{version}: " + ", ".join(f"{k} {v}" for k, v in show.items()))
-    text = "\n".join(lines) + "\n\nFigure columns: image | GT | " + " | ".join(k for k in per) + "\n"
+    shown = [k for k in per if k != "whole face (baseline)"]
+    text = "\n".join(lines) + "\n\nFigure columns: image | GT | " + " | ".join(shown) + "\n"
     (out / "shadow_map_quality.md").write_text(text)
     if fig:
         viz.save_png(viz.grid(fig), out / "shadow_map_quality.png")

@@ -214,7 +214,9 @@ def test_quality_script_scores_known_maps(store, tmp_path):
     assert float(rows["difference"][0]) == 0.0 and float(rows["difference"][3]) == 0.0
     assert int(rows["difference (a)"][4]) == sum(gt_any)
     csv_rows = (tmp_path / "shadow_map_quality.csv").read_text().splitlines()
-    assert len(csv_rows) == 1 + 3 * 4  # 3 records x (2 versions, ray-marched, mesh)
+    assert len(csv_rows) == 1 + 3 * 5  # 3 records x (2 versions, ray-marched, mesh, whole face)
+    whole = [float(v) for v in rows["whole face (baseline)"][:3]]
+    assert whole[2] == 1.0 and 0 < whole[0] < 1  # covering the face: recall 1, IoU = the GT's share of the face
     assert (tmp_path / "shadow_map_quality.png").is_file()
     with pytest.raises(SystemExit):
         q.main(["--store", str(store.root), "--version", "nope", "--out", str(tmp_path)])
