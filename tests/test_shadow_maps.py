@@ -242,3 +242,18 @@ def test_record_subsets_get_their_own_version_and_a_flat_model_is_refused(store)
         sm.compute(Brightens(), store, None, provenance={"checkpoint": "bright"}, progress=False)
     assert not any(k.startswith("shadow_map@diff-") and v.get("checkpoint") == "bright"
                    for k, v in EncodingStore.open(store.root).derived.items())
+
+
+@pytest.mark.parametrize("config_name,key", [("benchmark", "versions"), ("video", "versions"),
+                                             ("relight", "versions"), ("train", "data.versions")])
+def test_versions_override_composes_as_documented(config_name, key, tmp_path):
+    """``versions.shadow_map=<version>`` (the README's spelling) composes in every reader's config; the default
+    null reads the store's own map."""
+    from omegaconf import OmegaConf
+
+    from .helpers import compose_train
+
+    base = compose_train(tmp_path / "a", [], config_name=config_name)
+    assert OmegaConf.select(base, f"{key}.shadow_map", default="missing") is None
+    cfg = compose_train(tmp_path / "b", [f"{key}.shadow_map=diff-1a2b"], config_name=config_name)
+    assert OmegaConf.select(cfg, f"{key}.shadow_map") == "diff-1a2b"
