@@ -6,7 +6,6 @@ on average for
 - ``ray-marched``: screen-space ray marching on the stored depth toward the record's light (``targets.target_shadow_map``),
 - ``mesh``: the store's own ``shadow_map`` (SynthFaces v2 ``inputs=estimated``: mesh rays toward the fitted light;
   in an ``inputs=exact`` store it is the ground truth itself, so its row is 1 by construction and is flagged),
-
 - ``whole face (baseline)``: every mesh pixel, the score of a map that covers the whole face,
 
 each binarised as ``map > 0`` against ``shadow_map_gt > 0`` (or ``shadow_map`` in a v1 store). Records whose GT
@@ -31,6 +30,9 @@ from difareli.metrics import binary_scores
 from difareli.store import EncodingStore
 from difareli.targets import target_shadow_map
 
+#: The row of a map covering every mesh pixel: scored, not drawn in the figure.
+BASELINE = "whole face (baseline)"
+
 
 def parse_versions(specs: list[str]) -> dict[str, str]:
     """``["a=diff-1", "diff-2"]`` -> ``{"difference (a)": "diff-1", "difference": "diff-2"}``."""
@@ -52,7 +54,7 @@ def maps_of(store: EncodingStore, rid: str, versions: dict[str, str], light_name
         out[label] = np.asarray(store.read(rid, [name])[name]) > 0
     out["ray-marched"] = target_shadow_map(a, a[light_name], 0.0) > 0  # c = 0 > C_LO: only the support matters
     out["mesh"] = a["shadow_map"] > 0
-    out["whole face (baseline)"] = a["depth"] != 0  # every mesh pixel: the IoU a map earns by covering all
+    out[BASELINE] = a["depth"] != 0  # every mesh pixel: the IoU a map earns by covering all
     return out
 
 
@@ -105,7 +107,7 @@ def main(argv=None) -> None:
         if len(fig) < args.figure_rows:
             image = np.asarray(store.read(rid, ["image"])["image"])
             cells = [image] + [np.repeat((m[k] * 255).astype(np.uint8)[..., None], 3, -1) for k in m
-                               if k != "whole face (baseline)"]
+                               if k != BASELINE]
             fig.append(cells)
     with open(out / "shadow_map_quality.csv", "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=["record", "method", "iou", "precision", "recall"])
@@ -121,7 +123,7 @@ def main(argv=None) -> None:
         if isinstance(show.get("sampler"), dict):
             show["sampler"] = f"{show['sampler'].get('name')}-{show['sampler'].get('steps')}"
         lines.append(f"\n{label} = shadow_map@{version}: " + ", ".join(f"{k} {v}" for k, v in show.items()))
-    shown = [k for k in per if k != "whole face (baseline)"]
+    shown = [k for k in per if k != BASELINE]
     text = "\n".join(lines) + "\n\nFigure columns: image | GT | " + " | ".join(shown) + "\n"
     (out / "shadow_map_quality.md").write_text(text)
     if fig:

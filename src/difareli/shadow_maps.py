@@ -47,9 +47,10 @@ def c_range(store, split: str = "train", quantile: float = 0.01) -> tuple[float,
     c = np.array([float(np.asarray(store.read(r, ["shadow"])["shadow"]).reshape(-1)[0]) for r in ids])
     errors.check_finite(c, f"shadow c of the {split} split of {store.root}")
     lo, hi = (float(v) for v in np.quantile(c, [quantile, 1.0 - quantile])) if c.size else (0.0, 0.0)
-    if c.size == 0 or hi <= lo:
-        raise errors.UserError(f"the {split} split of {store.root} has no spread of shadow c (min = max); the "
-                               "difference method needs records with and without cast shadows")
+    if hi <= lo:
+        raise errors.UserError(f"the {split} split of {store.root} has no spread of shadow c between its {quantile} "
+                               f"and {1 - quantile} quantiles ({lo} to {hi}); the difference method needs records "
+                               "with and without cast shadows")
     return lo, hi
 
 
@@ -136,9 +137,8 @@ class ShadowMapReport:
 
 def compute(model, store, spec, *, provenance: Mapping[str, Any], ids: Sequence[str] | None = None,
             split: str = "train", c_quantile: float = 0.01, threshold: str | float = "otsu", median: int = 3,
-            batch_size: int = 8,
-            version: str | None = None, runtime=None, mean_matching: bool = True, device="cpu",
-            progress: bool = True) -> ShadowMapReport:
+            batch_size: int = 8, version: str | None = None, runtime=None, mean_matching: bool = True,
+            device="cpu", progress: bool = True) -> ShadowMapReport:
     """The whole difference pipeline over ``ids`` (default: every record); writes two derived versions."""
     if "shadow" not in model_inputs(model):
         raise errors.UserError(f"the difference method relights at two shadow strengths c, but this model consumes "
