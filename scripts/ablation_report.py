@@ -18,6 +18,7 @@ import torch
 from hydra import compose, initialize_config_dir
 
 from difareli import encodings
+from difareli.configs import CONFIG_DIR
 from difareli.cli.ablate import table_rows
 from difareli.diffusion.spec import SamplerSpec
 from difareli.lit import DiffusionModule
@@ -35,7 +36,7 @@ def model_configs(models: list[str]) -> dict[str, dict]:
     from omegaconf import OmegaConf
 
     out = {}
-    with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):
+    with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
         for m in models:
             cfg = compose("train", overrides=[f"model={m}"])
             out[m] = OmegaConf.to_container(cfg.model, resolve=False)

@@ -37,7 +37,9 @@ def main(argv=None) -> None:
     ap.add_argument("--sizes", type=int, nargs="+", default=[256, 512])
     ap.add_argument("--repeats", type=int, default=2, help="passes over the four images")
     args = ap.parse_args(argv)
-    conf = str(Path(__file__).resolve().parents[1] / "conf")
+    from difareli.configs import CONFIG_DIR
+
+    conf = str(CONFIG_DIR)
     imgs = photos()
     for size in args.sizes:
         with initialize_config_dir(config_dir=conf, version_base="1.3"):

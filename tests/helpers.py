@@ -8,7 +8,9 @@ from hydra import compose, initialize_config_dir
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, open_dict
 
-CONF = Path(__file__).resolve().parents[1] / "conf"
+from difareli.configs import CONFIG_DIR
+
+CONF = CONFIG_DIR
 
 
 def compose_train(out_dir: Path, overrides: list[str], config_name: str = "train") -> DictConfig:

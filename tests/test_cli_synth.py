@@ -8,12 +8,12 @@ import pytest
 from hydra import compose, initialize_config_dir
 
 from difareli.cli import synth as cli
-from difareli.cli.common import CONFIG_PATH
+from difareli.configs import CONFIG_DIR
 from difareli.synth.generator import ConfigError
 
 
 def _cfg(overrides):
-    with initialize_config_dir(version_base="1.3", config_dir=CONFIG_PATH):
+    with initialize_config_dir(version_base="1.3", config_dir=str(CONFIG_DIR)):
         return compose(config_name="synth", overrides=overrides)
 
 

@@ -85,7 +85,9 @@ def test_default_yaml_matches_the_dataclass():
 
     from omegaconf import OmegaConf
 
-    cfg = OmegaConf.load(Path(__file__).parents[1] / "conf" / "runtime" / "default.yaml")
+    from difareli.configs import CONFIG_DIR
+
+    cfg = OmegaConf.load(CONFIG_DIR / "runtime" / "default.yaml")
     assert Runtime.from_config(cfg) == Runtime()
 
 

@@ -22,12 +22,11 @@ EXTRAS_FIX = "install the photo estimators: DIFARELI_PREPROCESS=1 bash scripts/i
 
 def default_estimators(size: int) -> dict[str, Any]:
     """The ``estimators`` block of ``conf/preprocess.yaml`` at crop ``size``, read from the package's conf/."""
-    import yaml
+    from difareli.configs import read_yaml
 
-    root = Path(__file__).resolve().parents[2] / "conf" / "preprocess"
     out = {}
     for role, choice in DEFAULT_ESTIMATORS.items():
-        cfg = yaml.safe_load((root / role / f"{choice}.yaml").read_text())
+        cfg = read_yaml(f"preprocess/{role}", choice)
         out[role] = {k: (size if v == "${size}" else v) for k, v in cfg.items()}
     return out
 

@@ -32,8 +32,9 @@ from omegaconf import DictConfig
 
 from difareli import errors, tables, viz
 from difareli.cli import common
+from difareli.configs import CONFIG_DIR
 
-EXPERIMENTS = Path(common.CONFIG_PATH) / "experiment"
+EXPERIMENTS = CONFIG_DIR / "experiment"
 
 
 def table_rows(table: int | str) -> tuple[list[str], dict[str, str], str]:

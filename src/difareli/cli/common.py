@@ -2,15 +2,14 @@
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any
 
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-#: The repository's conf/ folder (editable install). Absolute: Hydra resolves a relative config_path against
-#: the calling *module* when started from a console script, which would look for a `conf` package.
-CONFIG_PATH = str(Path(__file__).resolve().parents[3] / "conf")
+from difareli.configs import CONFIG_PATH
+
+__all__ = ["CONFIG_PATH", "instantiate_group", "log_hyperparameters", "metric_value"]
 
 
 def instantiate_group(group: DictConfig | None) -> list[Any]:

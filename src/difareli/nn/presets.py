@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Sequence
-from pathlib import Path
 from typing import Any
 
 from .unet import UNetConfig
@@ -37,12 +36,9 @@ VARIANTS = ("difareli", "difareli_pp")
 def variant_inputs(model: str) -> tuple[list[str], list[str]]:
     """``(spatial inputs, non-spatial inputs)`` declared by ``conf/model/<model>.yaml`` (read as plain YAML, so
     this works without Hydra, e.g. on a bare GPU image)."""
-    import yaml
+    from difareli.configs import read_yaml
 
-    path = Path(__file__).resolve().parents[3] / "conf" / "model" / f"{model}.yaml"
-    if not path.is_file():
-        raise KeyError(f"no model config {path}; known: {sorted(p.stem for p in path.parent.glob('*.yaml'))}")
-    cfg = yaml.safe_load(path.read_text())
+    cfg = read_yaml("model", model)
     return list(cfg.get("spatial_inputs") or []), list(cfg.get("nonspatial_inputs") or [])
 
 

@@ -1,0 +1,34 @@
+"""Where the package's Hydra configs live, and plain-YAML reads of them for callers without Hydra.
+
+The configs are package data (``difareli/conf``), found through Hydra's package search path
+(``pkg://difareli.conf``), so every console script works wherever the package is installed. A ``conf/`` folder in
+the directory a command is run from is searched too (``hydra.searchpath`` in each primary config): a user's own
+groups and options (``conf/local/default.yaml`` for machine settings, ``conf/model/my_variant.yaml``) extend the
+shipped ones without touching the installation.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+#: The shipped config folder (a real folder: setuptools installs package data as files).
+CONFIG_DIR = Path(__file__).resolve().parent / "conf"
+#: What ``@hydra.main(config_path=...)`` is given.
+CONFIG_PATH = "pkg://difareli.conf"
+
+
+def config_file(group: str, name: str) -> Path:
+    """``conf/<group>/<name>.yaml``, or a KeyError listing the group's options."""
+    path = CONFIG_DIR / group / f"{name}.yaml"
+    if not path.is_file():
+        known = sorted(p.stem for p in path.parent.glob("*.yaml"))
+        raise KeyError(f"no config {group}/{name}.yaml; known {group} options: {known}")
+    return path
+
+
+def read_yaml(group: str, name: str) -> dict[str, Any]:
+    """One shipped config as a plain mapping (no Hydra composition, no interpolation)."""
+    import yaml
+
+    return yaml.safe_load(config_file(group, name).read_text()) or {}
