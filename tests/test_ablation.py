@@ -18,7 +18,9 @@ from difareli.diffusion.spec import PRESETS, SamplerSpec
 from difareli.nn import build_network
 from difareli.nn.controlnet import ControlNet
 from difareli.nn.nonspatial import ContextTokens, CrossAttentionBlock
-from difareli.relighting import condition_tensors, model_inputs, relight
+from difareli.inputs import condition_tensors
+from difareli.relightable import model_inputs
+from difareli.relighting import relight
 from difareli.store import EncodingStore
 from difareli.tables import Record, write_records
 from difareli.targets import retarget

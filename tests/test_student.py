@@ -14,9 +14,10 @@ import torch.nn.functional as F
 from torch.utils.data import default_collate
 
 from difareli import viz
-from difareli.data import image_to_tensor
+from difareli.inputs import condition_tensors, image_to_tensor
 from difareli.pairs import SOURCE_KEY, generate_teacher_pairs, pair_dataset
-from difareli.relighting import DiffusionRelightable, OnePassRelightable, Relighter, condition_tensors
+from difareli.relightable import DiffusionRelightable, OnePassRelightable
+from difareli.relighting import Relighter
 from difareli.store import EncodingStore
 from difareli.targets import render_shading, retarget
 

@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from difareli.cli.train import nonspatial_stats, train
-from difareli.data import MissingEncodingError
+from difareli.inputs import MissingEncodingError
 from difareli.lit import load_checkpoint
 from difareli.store import EncodingStore
 

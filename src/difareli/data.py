@@ -13,37 +13,12 @@ from typing import Any, Mapping, Sequence
 
 import lightning as L
 import numpy as np
-import torch
 from torch.utils.data import DataLoader, Dataset
 
 from difareli import encodings as enc
 from difareli.errors import UserError, check_record
+from difareli.inputs import MissingEncodingError, image_to_tensor, prepare_nonspatial, prepare_spatial
 from difareli.store import EncodingStore
-
-
-class MissingEncodingError(KeyError):
-    """A model variant needs an encoding the data set does not have."""
-
-    def __str__(self) -> str:  # KeyError quotes its message; keep it readable
-        return str(self.args[0])
-
-
-def prepare_spatial(names: Sequence[str], arrays: Mapping[str, np.ndarray]) -> torch.Tensor:
-    """Concatenate spatial encodings into a float tensor ``[C, H, W]`` in the declared order, each prepared as
-    the encoding registry says (:meth:`difareli.encodings.Encoding.to_tensor`)."""
-    return torch.cat([enc.get(n).to_tensor(arrays[n]) for n in names], 0)
-
-
-def prepare_nonspatial(names: Sequence[str], arrays: Mapping[str, np.ndarray]) -> torch.Tensor:
-    """Concatenate non-spatial encodings into one raw float vector ``[D]`` in the declared order."""
-    if not names:
-        return torch.zeros(0)
-    return torch.cat([enc.get(n).to_tensor(arrays[n]) for n in names])
-
-
-def image_to_tensor(image: np.ndarray) -> torch.Tensor:
-    """uint8 ``HxWx3`` -> float ``[3, H, W]`` in [-1, 1]."""
-    return torch.from_numpy(np.array(image)).permute(2, 0, 1).float() / 127.5 - 1.0
 
 
 class EncodingsDataset(Dataset):

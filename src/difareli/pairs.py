@@ -30,7 +30,7 @@ from torch.utils.data import ConcatDataset, Dataset
 from tqdm.auto import tqdm
 
 from difareli import encodings as enc
-from difareli.data import image_to_tensor, prepare_nonspatial, prepare_spatial
+from difareli.inputs import condition_tensors, image_to_tensor, prepare_nonspatial, prepare_spatial, relight_reads
 from difareli.errors import UserError, check_record
 from difareli.store import EncodingStore
 from difareli.targets import retarget
@@ -55,7 +55,7 @@ class PairDataset(Dataset):
         self.inputs = [*self.spatial, *self.nonspatial]
         self.dependent = enc.light_dependent(self.inputs)
         # What a target condition re-rendered from the source needs: its light, c and the registry's `needs`.
-        self.names = list(dict.fromkeys(["image", "light", *self.inputs, *enc.rerender_needs(self.dependent)]
+        self.names = list(dict.fromkeys([*relight_reads(self.inputs)]
                                         + (["shadow"] if store.available("shadow") else [])))
         missing = [n for n in self.names if not store.available(n)]
         if missing:
@@ -233,7 +233,7 @@ def generate_teacher_pairs(relighter, store: EncodingStore, out: str | Path, *, 
     ``stop_after`` ends after that many new pairs (tests simulate a kill with it). Returns counts and pairs/s.
     """
     from difareli import viz
-    from difareli.relighting import condition_tensors, relight
+    from difareli.relighting import relight
 
     model = relighter.model
     inputs = [*model.spatial_inputs, *model.nonspatial_inputs]

@@ -1,11 +1,7 @@
 """The relighting core: every model (diffusion, one-pass student, pipelines) relights through here (SPEC 5).
 
-A model offers the :class:`Relightable` interface: the encodings it consumes (``spatial_inputs``,
-``nonspatial_inputs``) and ``condition(spatial, nonspatial)``, run once per condition. A diffusion model adds
-``denoiser(cond)`` and ``schedule`` (:class:`DiffusionRelightable`); a one-pass model adds
-``relight_once(x0, source_cond, target_cond)`` (:class:`OnePassRelightable`). On top of it:
+A model offers the :mod:`difareli.relightable` interfaces (diffusion or one-pass). On top of them:
 
-- :func:`condition_tensors` is the one place where named encodings become condition tensors;
 - :func:`relight` is the one tensor-level relight: invert with the input's own condition (mean-matching offsets
   computed once, :mod:`difareli.diffusion.relight`), then one batched decode under many targets;
 - :class:`Relighter` wraps it over records, from a store or in memory (a dict of arrays), caching inversions.
@@ -17,67 +13,25 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 from pathlib import Path
-from typing import Any, Iterable, Mapping, Protocol, Sequence, runtime_checkable
+from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 import torch
 from torch import Tensor
 from tqdm.auto import tqdm
 
-from difareli import encodings, errors, viz
-from difareli.data import image_to_tensor, prepare_nonspatial, prepare_spatial
+from difareli import errors, viz
+from difareli.inputs import Condition, condition_tensors, image_to_tensor, relight_reads
 from difareli.diffusion.relight import Inversion, SamplerSpec, decode, invert
+from difareli.relightable import DiffusionRelightable, OnePassRelightable, Relightable, model_inputs
 from difareli.runtime import Runtime
 from difareli.store import EncodingStore
 from difareli.targets import retarget
 
-Condition = tuple[Tensor | None, Tensor | None]  # (spatial [B, C, H, W], non-spatial [B, D]), raw encodings
-
-
-@runtime_checkable
-class Relightable(Protocol):
-    """What every relighting model offers: the encodings it consumes and a condition prepared from them."""
-
-    spatial_inputs: list[str]
-    nonspatial_inputs: list[str]
-
-    def condition(self, spatial: Tensor | None, nonspatial: Tensor | None) -> Any: ...
-
-
-@runtime_checkable
-class DiffusionRelightable(Relightable, Protocol):
-    """A conditional diffusion model: ``eps = denoiser(cond)(x_t, t)`` on ``schedule``."""
-
-    schedule: Any
-
-    def denoiser(self, cond: Any): ...
-
-
-@runtime_checkable
-class OnePassRelightable(Relightable, Protocol):
-    """A model that relights in one network pass (the single-shot student)."""
-
-    def relight_once(self, x0: Tensor, source: Any, target: Any) -> Tensor: ...
-
-
-def model_inputs(model: Relightable) -> list[str]:
-    """Every encoding the model consumes, spatial then non-spatial."""
-    return [*model.spatial_inputs, *model.nonspatial_inputs]
-
 
 def needed_encodings(model: Relightable) -> list[str]:
     """Encodings read per record: the image, its light, the model's inputs and what re-rendering them needs."""
-    names = model_inputs(model)
-    return list(dict.fromkeys(["image", "light", *names, *encodings.rerender_needs(encodings.light_dependent(names))]))
-
-
-def condition_tensors(model: Relightable, arrays_list: Sequence[Mapping[str, np.ndarray]],
-                      device: torch.device | str = "cpu") -> Condition:
-    """Stack the model's inputs of several records (or retargeted records) into ``(spatial, nonspatial)``."""
-    sp, ns = model.spatial_inputs, model.nonspatial_inputs
-    spatial = torch.stack([prepare_spatial(sp, a) for a in arrays_list]).to(device) if sp else None
-    nonspatial = torch.stack([prepare_nonspatial(ns, a) for a in arrays_list]).to(device) if ns else None
-    return spatial, nonspatial
+    return relight_reads(model_inputs(model))
 
 
 def _denoiser(model: DiffusionRelightable, cond: Any, runtime: Runtime | None):

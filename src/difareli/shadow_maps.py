@@ -28,9 +28,10 @@ import torch
 from tqdm.auto import tqdm
 
 from difareli import derived, encodings, errors
-from difareli.data import image_to_tensor
+from difareli.inputs import condition_tensors, image_to_tensor, relight_reads
 from difareli.diffusion.relight import Inversion
-from difareli.relighting import OnePassRelightable, condition_tensors, invert_image, model_inputs, relight
+from difareli.relightable import OnePassRelightable, model_inputs
+from difareli.relighting import invert_image, relight
 from difareli.targets import retarget
 
 _LUMA = np.array([0.2126, 0.7152, 0.0722])
@@ -155,8 +156,7 @@ def compute(model, store, spec, *, provenance: Mapping[str, Any], ids: Sequence[
     version = version or derived.content_version("diff", {**prov, "threshold": threshold, "median": int(median),
                                                           "records": chosen})
     todo = derived.missing(store, raw, ids)
-    needed = list(dict.fromkeys(["image", "light", *model_inputs(model),
-                                 *encodings.rerender_needs(encodings.light_dependent(model_inputs(model)))]))
+    needed = relight_reads(model_inputs(model))
     start = time.perf_counter()
     bar = tqdm(total=len(todo), desc="difference maps", disable=not progress)
     for i in range(0, len(todo), batch_size):

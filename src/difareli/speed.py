@@ -28,9 +28,9 @@ from torch import Tensor
 from tqdm.auto import tqdm
 
 from difareli import encodings, metrics, viz
-from difareli.data import image_to_tensor
+from difareli.inputs import Condition, condition_tensors, image_to_tensor
 from difareli.diffusion.relight import SamplerSpec
-from difareli.relighting import Condition, condition_tensors, relight
+from difareli.relighting import relight
 from difareli.runtime import Runtime
 from difareli.store import EncodingStore
 

@@ -9,6 +9,7 @@ import lightning as L
 import torch
 
 from difareli import viz
+from difareli.relightable import DiffusionRelightable, OnePassRelightable
 from difareli.diffusion.spec import SamplerSpec, as_spec
 from difareli.lit.logging import log_image
 
@@ -41,7 +42,7 @@ class ReconstructionGrid(L.Callback):
         n = len(batch)
         x0 = torch.stack([b["image"] for b in batch]).to(dev)
         cond = pl_module.condition(spatial, nonspatial)
-        if hasattr(pl_module, "relight_once"):  # a one-pass student: input | relit | target per validation pair
+        if isinstance(pl_module, OnePassRelightable):  # a one-pass student: input | relit | target per validation pair
             tgt = pl_module.condition(*(torch.stack([b[k] for b in batch]).to(dev)
                                         for k in ("target_spatial", "target_nonspatial")))
             relit = pl_module.relight_once(x0, cond, tgt)
@@ -137,7 +138,7 @@ class SampleGrid(L.Callback):
         # A one-pass student has no denoiser to sample from: nothing to draw.
         return (self.enabled and not trainer.fast_dev_run and not trainer.sanity_checking
                 and trainer.is_global_zero and trainer.datamodule is not None
-                and hasattr(trainer.lightning_module, "denoiser"))
+                and isinstance(trainer.lightning_module, DiffusionRelightable))
 
     @torch.no_grad()
     def write(self, trainer: L.Trainer, pl_module, path: str | Path) -> Path:

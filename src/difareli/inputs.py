@@ -1,0 +1,60 @@
+"""Record arrays -> network tensors: the one place where named encodings become model inputs.
+
+Used by the DataModule, the relighting core, the student's pairs, shadow-map generation and the benchmarks, so
+an encoding is prepared the same way in training and at inference (each as the encoding registry says,
+:meth:`difareli.encodings.Encoding.to_tensor`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from difareli import encodings as enc
+from difareli.relightable import Relightable
+
+Condition = tuple[Tensor | None, Tensor | None]  # (spatial [B, C, H, W], non-spatial [B, D]), raw encodings
+
+
+class MissingEncodingError(KeyError):
+    """A model variant needs an encoding the data set does not have."""
+
+    def __str__(self) -> str:  # KeyError quotes its message; keep it readable
+        return str(self.args[0])
+
+
+def image_to_tensor(image: np.ndarray) -> Tensor:
+    """uint8 ``HxWx3`` -> float ``[3, H, W]`` in [-1, 1]."""
+    return torch.from_numpy(np.array(image)).permute(2, 0, 1).float() / 127.5 - 1.0
+
+
+def prepare_spatial(names: Sequence[str], arrays: Mapping[str, np.ndarray]) -> Tensor:
+    """Concatenate spatial encodings into a float tensor ``[C, H, W]`` in the declared order."""
+    return torch.cat([enc.get(n).to_tensor(arrays[n]) for n in names], 0)
+
+
+def prepare_nonspatial(names: Sequence[str], arrays: Mapping[str, np.ndarray]) -> Tensor:
+    """Concatenate non-spatial encodings into one raw float vector ``[D]`` in the declared order."""
+    if not names:
+        return torch.zeros(0)
+    return torch.cat([enc.get(n).to_tensor(arrays[n]) for n in names])
+
+
+def condition_tensors(model: Relightable, arrays_list: Sequence[Mapping[str, np.ndarray]],
+                      device: torch.device | str = "cpu") -> Condition:
+    """Stack the model's inputs of several records (or retargeted records) into ``(spatial, nonspatial)``;
+    ``None`` for a kind the model does not consume."""
+    spatial, nonspatial = model.spatial_inputs, model.nonspatial_inputs
+    sp = torch.stack([prepare_spatial(spatial, a) for a in arrays_list]).to(device) if spatial else None
+    ns = torch.stack([prepare_nonspatial(nonspatial, a) for a in arrays_list]).to(device) if nonspatial else None
+    return sp, ns
+
+
+def relight_reads(inputs: Sequence[str], *, rerender: bool = True) -> list[str]:
+    """The encodings a relight of a record reads: the image, its light, the model's ``inputs`` and (``rerender``)
+    what re-rendering the light-dependent ones toward a target light needs (the registry's ``needs``)."""
+    extra = enc.rerender_needs(enc.light_dependent(inputs)) if rerender else []
+    return list(dict.fromkeys(["image", "light", *inputs, *extra]))

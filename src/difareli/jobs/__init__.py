@@ -1,0 +1,1 @@
+"""Jobs: long runs over a store that write results back (teacher pairs, shadow maps, baseline comparisons)."""
