@@ -4,8 +4,10 @@ import numpy as np
 import pytest
 
 from difareli import sh
-from difareli.baselines import (DiffusionMethod, Identity, LambertianRatio, LightFit, Method, Oracle,
-                                build_method, irradiance_error, ratio_relight, synthfaces_mean_skin_albedo)
+from difareli.baselines import (DiffusionMethod, Identity, LambertianRatio, Method, Oracle, build_method,
+                                irradiance_error, ratio_relight)
+from difareli.albedo import synthfaces_mean_skin_albedo
+from difareli.light_fit import LightFit
 from difareli.encodings import PART_INDEX
 from difareli.store import EncodingStore
 

@@ -109,7 +109,7 @@ def test_store_cases_default_target_is_what_a_user_has(synth_store):
     # Not the target record's stored maps: the light fitted to its image, the policy c, maps re-rendered on
     # the source's geometry (the shadow map ray-marched on the source's depth).
     from difareli import targets
-    from difareli.baselines import LightFit
+    from difareli.light_fit import LightFit
 
     store = EncodingStore.open(synth_store)
     model = SleepyModel()

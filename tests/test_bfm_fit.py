@@ -9,7 +9,7 @@ import pytest
 from difareli.estimators.bfm_fit import FACEMESH_TO_IBUG68, fit_bfm, pose_from_rotation
 from difareli.render import OrthoCamera
 from difareli.synth.accessories import default_camera
-from difareli.synth.face_model import SHAPE_DIM, FaceModel, FaceParams, rotation_matrix
+from difareli.face_model import SHAPE_DIM, FaceModel, FaceParams, rotation_matrix
 
 S = 256
 

@@ -9,7 +9,8 @@ import pytest
 import torch
 
 from difareli.lit import DiffusionModule, load_checkpoint
-from difareli.lit.checkpoint import module_class, read_checkpoint, upgrade_checkpoint
+from difareli.checkpoint_format import upgrade_checkpoint
+from difareli.lit.checkpoint import module_class, read_checkpoint
 
 from .helpers import compose_train
 

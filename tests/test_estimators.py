@@ -13,7 +13,8 @@ from difareli import sh  # noqa: E402
 from difareli.encodings import PART_INDEX  # noqa: E402
 from difareli.estimators import align, geometry, masks  # noqa: E402
 from difareli.estimators.identity import DlibIdentity  # noqa: E402
-from difareli.estimators.light import SkinSHLight, synthfaces_mean_skin_albedo  # noqa: E402
+from difareli.estimators.light import SkinSHLight  # noqa: E402
+from difareli.albedo import synthfaces_mean_skin_albedo  # noqa: E402
 from difareli.estimators.pipeline import Pipeline  # noqa: E402
 from difareli.estimators.shadow import DEFAULT_WEIGHTS, ShadowEstimator  # noqa: E402
 

@@ -11,9 +11,9 @@ pytest.importorskip("trimesh")
 from trimesh.ray.ray_pyembree import RayMeshIntersector  # noqa: E402
 
 from difareli.encodings import MASK_PARTS, PART_INDEX  # noqa: E402
-from difareli.synth import face_model as fm  # noqa: E402
+from difareli import face_model as fm  # noqa: E402
 from difareli.synth.accessories import AccessoryParams, build_head, default_camera  # noqa: E402
-from difareli.synth.face_model import FaceModel, FaceParams  # noqa: E402
+from difareli.face_model import FaceModel, FaceParams  # noqa: E402
 
 try:
     fm.data_dir()

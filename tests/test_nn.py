@@ -16,7 +16,7 @@ from difareli.nn import (
     get_config,
     timestep_embedding,
 )
-from difareli.nn.presets import variant_widths
+from difareli.inputs import variant_widths
 from difareli.nn.unet import MLP3, GroupNorm32, ResBlock
 
 # (spatial_type, spatial_channels, nonspatial_dim)

@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from difareli import viz
-from difareli.cli.common import instantiate_group
+from difareli.configs import instantiate_group
 from difareli.diffusion import PRESETS, SAMPLERS, DiffusionSchedule, SamplerConfigError, SamplerSpec
 from difareli.diffusion import samplers as samplers_mod
 from difareli.diffusion import spec as spec_mod

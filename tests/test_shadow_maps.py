@@ -1,4 +1,4 @@
-"""Difference-method shadow maps (difareli.shadow_maps) on a crafted model whose relights are known exactly, and
+"""Difference-method shadow maps (difareli.jobs.shadow_maps) on a crafted model whose relights are known exactly, and
 derived encoding versions (difareli.derived): atomic, resumable, provenance, reader selection."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from difareli import derived, encodings
-from difareli import shadow_maps as sm
+from difareli.jobs import shadow_maps as sm
 from difareli.errors import UserError
 from difareli.store import EncodingStore
 

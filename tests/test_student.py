@@ -15,7 +15,8 @@ from torch.utils.data import default_collate
 
 from difareli import viz
 from difareli.inputs import condition_tensors, image_to_tensor
-from difareli.pairs import SOURCE_KEY, generate_teacher_pairs, pair_dataset
+from difareli.jobs.teacher_pairs import generate_teacher_pairs
+from difareli.pairs import SOURCE_KEY, pair_dataset
 from difareli.relightable import DiffusionRelightable, OnePassRelightable
 from difareli.relighting import Relighter
 from difareli.store import EncodingStore

@@ -165,7 +165,7 @@ def test_full_preset_is_deterministic_and_records_its_effects(full_records):
 
 
 def test_estimated_inputs_equal_the_estimators_on_the_same_image(full_records):
-    from difareli.baselines import LightFit
+    from difareli.light_fit import LightFit
     from difareli.encodings import PART_INDEX
     from difareli.estimators.shadow import ShadowEstimator
 

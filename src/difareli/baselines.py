@@ -6,95 +6,19 @@ under ground-truth lights is marked) and ``needs_light_fit`` (it fits a source l
 error the benchmark reports). ``target_id`` (the ground-truth record) is only for the oracle. Methods are built
 from ``conf/method/*.yaml`` ``_target_`` configs by :func:`build_method`.
 
-Target (and source) lights "as a user gets them" come from :class:`LightFit`: a least-squares SH fit
-(:func:`difareli.sh.fit`) to one image's face pixels, with that record's normals and a constant albedo prior.
-SynthFaces images are linear (``image = albedo * irradiance``, no gamma), so the fit is the image formation
-model itself. A single image cannot separate albedo from light intensity: the fitted light is the true one
-times ``true albedo / prior``. The default prior is SynthFaces' population-mean skin albedo (the mean of its
-skin-tone model over the uniform tone distribution), the analogue of DECA's mean albedo: it is unbiased over
-the data set, though a very light or dark subject still gets a proportionally too dark or bright light.
+Target (and source) lights "as a user gets them" come from :class:`difareli.light_fit.LightFit`.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-from typing import Any, Mapping, Protocol, Sequence, runtime_checkable
+from typing import Any, Mapping, Protocol, runtime_checkable
 
 import numpy as np
 
 from difareli import sh
-from difareli.encodings import PART_INDEX
+from difareli.light_fit import LightFit, face_normals
 from difareli.store import EncodingStore
-
-
-def synthfaces_mean_skin_albedo() -> np.ndarray:
-    """Mean skin albedo (RGB) of SynthFaces' appearance model: tone ~ U[0, 1] linearly interpolates the Monk
-    scale, so the mean is the trapezoid average of the swatches, times the model's warming/darkening."""
-    from difareli.synth.appearance import MONK_SCALE, SKIN_ALBEDO_SCALE
-
-    w = np.ones(len(MONK_SCALE))
-    w[[0, -1]] = 0.5
-    return (w / w.sum()) @ MONK_SCALE * SKIN_ALBEDO_SCALE
-
-
-def _face_normals(arrays: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """(normals float64 HxWx3, bool mask of pixels with a stored unit normal)."""
-    n = np.asarray(arrays["normal"], dtype=np.float64)
-    return n, np.linalg.norm(n, axis=-1) > 0.5
-
-
-@dataclass(frozen=True)
-class LightFit:
-    """Estimate a record's SH light from its image alone (plus its normals and face parsing).
-
-    Pixels used: the face mask, where a normal is stored, restricted to ``parts`` of the ``masks`` parsing
-    (skin and nose: brows, eyes and lips have other albedos than the prior), and neither clipped nor black
-    (the clip breaks the linear model). ``robust_iters`` refits after dropping pixels far darker than the fit
-    (residual below ``-2.5`` robust sigmas): cast shadows, which a 9-term SH cannot explain.
-    """
-
-    albedo: tuple[float, float, float] | float | None = None  # None: SynthFaces' mean skin albedo
-    parts: tuple[str, ...] = ("skin", "nose")
-    robust_iters: int = 2
-    min_pixels: int = 30
-
-    ENCODINGS = ("image", "normal", "face_mask", "masks")
-
-    def prior(self) -> np.ndarray:
-        a = synthfaces_mean_skin_albedo() if self.albedo is None else np.broadcast_to(
-            np.asarray(self.albedo, dtype=np.float64), (3,))
-        return np.asarray(a, dtype=np.float64)
-
-    def pixels(self, arrays: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-        """(intensities in [0, 1], normals), both (N, 3), of the pixels the fit uses."""
-        img = np.asarray(arrays["image"], dtype=np.float64) / 255.0
-        normal, known = _face_normals(arrays)
-        m = known & np.asarray(arrays["face_mask"], dtype=bool)
-        if self.parts and "masks" in arrays:
-            m &= np.isin(np.asarray(arrays["masks"]), [PART_INDEX[p] for p in self.parts])
-        m &= (img.max(-1) < 254.5 / 255) & (img.min(-1) > 0.5 / 255)
-        if m.sum() < self.min_pixels:
-            raise ValueError(f"light fit: only {int(m.sum())} usable face pixels (need {self.min_pixels})")
-        return img[m], normal[m]
-
-    def __call__(self, arrays: Mapping[str, np.ndarray]) -> np.ndarray:
-        y, n = self.pixels(arrays)
-        albedo = self.prior()
-        w = np.ones(len(y))
-        light = sh.fit(y, n, albedo, weights=w)
-        for _ in range(self.robust_iters):
-            r = (y - albedo * sh.irradiance(light, n)).mean(-1)
-            sigma = 1.4826 * np.median(np.abs(r - np.median(r)))
-            keep = r >= -2.5 * max(sigma, 1e-4)
-            if keep.sum() < 9 or keep.all():
-                break
-            light = sh.fit(y, n, albedo, weights=keep.astype(np.float64))
-        return light
-
-    def from_store(self, store: EncodingStore, record_id: str) -> np.ndarray:
-        names = [e for e in self.ENCODINGS if e != "masks" or store.available("masks")]
-        return self(store.read(record_id, names))
 
 
 def exact_light_name(store: EncodingStore) -> str:
@@ -189,7 +113,7 @@ class LambertianRatio:
 def ratio_relight(image: np.ndarray, normal: np.ndarray, source_light: np.ndarray, target_light: np.ndarray,
                   min_shading: float = 0.05) -> np.ndarray:
     """``image * E_t / max(E_s, floor)`` on pixels with a stored normal (uint8 in and out)."""
-    normals, known = _face_normals({"normal": normal})
+    normals, known = face_normals({"normal": normal})
     img = np.asarray(image, dtype=np.float64) / 255.0
     if not known.any():
         return np.array(image, dtype=np.uint8)
@@ -280,17 +204,3 @@ def build_method(cfg: Mapping[str, Any], *, sampler: Mapping[str, Any] | None = 
         raise TypeError(f"{cfg['_target_']} is not a relighting Method (name, needs_light, needs_light_fit, relight)")
     m.name += name_suffix
     return m
-
-
-def light_fit_from_config(cfg: Mapping[str, Any] | None) -> LightFit:
-    """A :class:`LightFit` from the ``light_fit`` config block (``albedo: null | number | [r, g, b]``)."""
-    cfg = dict(cfg or {})
-    albedo = cfg.get("albedo")
-    if albedo is not None and not isinstance(albedo, (int, float)):
-        albedo = tuple(float(x) for x in albedo)
-    parts: Sequence[str] = tuple(cfg.get("parts") or ())
-    unknown = [p for p in parts if p not in PART_INDEX]
-    if unknown:
-        raise ValueError(f"light_fit.parts: unknown parts {unknown}; choose from {list(PART_INDEX)}")
-    return LightFit(albedo=albedo, parts=tuple(parts), robust_iters=int(cfg.get("robust_iters", 2)),
-                    min_pixels=int(cfg.get("min_pixels", 30)))

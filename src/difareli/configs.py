@@ -32,3 +32,13 @@ def read_yaml(group: str, name: str) -> dict[str, Any]:
     import yaml
 
     return yaml.safe_load(config_file(group, name).read_text()) or {}
+
+
+def instantiate_group(group) -> list[Any]:
+    """Instantiate every ``_target_`` entry of a config group (callbacks, loggers); ``None`` -> ``[]``."""
+    import hydra
+    from omegaconf import DictConfig
+
+    if not group:
+        return []
+    return [hydra.utils.instantiate(c) for c in group.values() if isinstance(c, DictConfig) and "_target_" in c]

@@ -17,7 +17,7 @@ from torch.utils.data import DataLoader, Dataset
 
 from difareli import encodings as enc
 from difareli.errors import UserError, check_record
-from difareli.inputs import MissingEncodingError, image_to_tensor, prepare_nonspatial, prepare_spatial
+from difareli.inputs import MissingEncodingError, image_to_tensor, input_dims, prepare_nonspatial, prepare_spatial
 from difareli.store import EncodingStore
 
 
@@ -126,11 +126,7 @@ class EncodingsDataModule(L.LightningDataModule):
     def input_dims(self) -> dict[str, int]:
         """Sizes the network needs: spatial channels, non-spatial vector length, image resolution."""
         store = self._open()
-        return {
-            "spatial_channels": enc.total_channels(self.spatial, store.dims),
-            "nonspatial_dim": enc.total_channels(self.nonspatial, store.dims),
-            "resolution": int(store.dims["H"]),
-        }
+        return input_dims(self.spatial, self.nonspatial, store.dims, int(store.dims["H"]))
 
     def _split_ids(self) -> tuple[list[str], list[str]]:
         store = self._open()

@@ -58,3 +58,29 @@ def relight_reads(inputs: Sequence[str], *, rerender: bool = True) -> list[str]:
     what re-rendering the light-dependent ones toward a target light needs (the registry's ``needs``)."""
     extra = enc.rerender_needs(enc.light_dependent(inputs)) if rerender else []
     return list(dict.fromkeys(["image", "light", *inputs, *extra]))
+
+
+def input_dims(spatial: Sequence[str], nonspatial: Sequence[str], dims: Mapping[str, int] | None = None,
+               resolution: int | None = None) -> dict[str, int]:
+    """The sizes a network is built with: spatial channels and non-spatial features of the named inputs, from
+    the encoding registry at ``dims`` (default: the producers' dimensions, :data:`encodings.PRODUCER_DIMS`),
+    plus ``resolution`` when given."""
+    dims = {"H": resolution or 1, "W": resolution or 1, **enc.PRODUCER_DIMS, **dict(dims or {})}
+    out = {"spatial_channels": enc.total_channels(list(spatial), dims),
+           "nonspatial_dim": enc.total_channels(list(nonspatial), dims)}
+    return {**out, "resolution": int(resolution)} if resolution is not None else out
+
+
+def variant_inputs(model: str) -> tuple[list[str], list[str]]:
+    """``(spatial inputs, non-spatial inputs)`` declared by the model variant ``conf/model/<model>.yaml`` (read
+    as plain YAML, so this works without Hydra, e.g. on a bare GPU image)."""
+    from difareli.configs import read_yaml
+
+    cfg = read_yaml("model", model)
+    return list(cfg.get("spatial_inputs") or []), list(cfg.get("nonspatial_inputs") or [])
+
+
+def variant_widths(model: str, dims: Mapping[str, int] | None = None) -> tuple[int, int]:
+    """``(spatial channels, non-spatial features)`` of a ``conf/model`` variant at the producers' dimensions."""
+    d = input_dims(*variant_inputs(model), dims)
+    return d["spatial_channels"], d["nonspatial_dim"]

@@ -1,9 +1,11 @@
-"""Relit pairs for the single-shot student (DiFaReli++_ss, issue 13): pair samplers and teacher-pair stores.
+"""Relit pairs for the single-shot student (DiFaReli++_ss, issue 13): the pair samplers and how a teacher-pair
+store is read.
 
 A pair is a source record, a target light (and shadow logit c') and the image under it. The student's
 DataModule (``data.pairs``) serves pairs from one of the samplers of :data:`PAIR_SAMPLERS`:
 
-- ``teacher``: a teacher-pair store written by ``difareli-teacher-pairs`` (:func:`generate_teacher_pairs`);
+- ``teacher``: a teacher-pair store written by ``difareli-teacher-pairs``
+  (:func:`difareli.jobs.teacher_pairs.generate_teacher_pairs`);
 - ``gt``: SynthFaces ground truth: the same subject under another light index (that record's image is exact);
   its target light is fitted on that record (``gt_light=subject``) or on any record of its light group under the
   same light index (``gt_light=group``: another face's fit of the same true light half the time with groups of
@@ -20,17 +22,14 @@ Every item's target condition is the source's encodings with the light-dependent
 
 from __future__ import annotations
 
-import time
-from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 import torch
 from torch.utils.data import ConcatDataset, Dataset
-from tqdm.auto import tqdm
 
 from difareli import encodings as enc
-from difareli.inputs import condition_tensors, image_to_tensor, prepare_nonspatial, prepare_spatial, relight_reads
+from difareli.inputs import image_to_tensor, prepare_nonspatial, prepare_spatial, relight_reads
 from difareli.errors import UserError, check_record
 from difareli.store import EncodingStore
 from difareli.targets import retarget
@@ -76,7 +75,7 @@ class PairDataset(Dataset):
                 "target_nonspatial": prepare_nonspatial(self.nonspatial, tgt)}
 
 
-def _shadow(arrays: Mapping[str, np.ndarray]) -> float | None:
+def shadow_of(arrays: Mapping[str, np.ndarray]) -> float | None:
     return float(np.asarray(arrays["shadow"]).reshape(-1)[0]) if "shadow" in arrays else None
 
 
@@ -136,7 +135,7 @@ class GroundTruthPairs(PairDataset):
         tgt_rec = check_record(self.store.read(tid, ["image"] + (light_names if lid == tid else [])), tid,
                                self.store.root)
         light = tgt_rec if lid == tid else check_record(self.store.read(lid, light_names), lid, self.store.root)
-        tgt = target_arrays(src, self.inputs, light["light"], _shadow(light))
+        tgt = target_arrays(src, self.inputs, light["light"], shadow_of(light))
         return self.item(rid, src, tgt, tgt_rec["image"])
 
 
@@ -201,86 +200,3 @@ def pair_dataset(kind: str, store: EncodingStore, ids: Sequence[str], spatial: S
         raise UserError(f"data.pairs={kind!r} is not a pair sampler; choose one of {sorted(PAIR_SAMPLERS)}")
     return PAIR_SAMPLERS[kind](store, ids, spatial, nonspatial, pair_store,
                                {"light_from": gt_light, "with_source": bool(gt_identity)})
-
-
-# ------------------------------------------------------------------------------------------ teacher pairs
-def pair_id(source: str, k: int) -> str:
-    return f"{source}__p{k}"
-
-
-def draw_light_records(ids: Sequence[str], per_record: int, seed: int) -> dict[str, list[str]]:
-    """For each record, ``per_record`` other records (uniform, seeded) whose light becomes its target.
-
-    Drawn all at once from ``seed``, so a resumed run draws exactly the same pairs."""
-    rng = np.random.default_rng(seed)
-    ids = list(ids)
-    if len(ids) < 2:
-        raise UserError(f"teacher pairs need >= 2 training records to take target lights from; got {len(ids)}")
-    out = {}
-    for i, rid in enumerate(ids):
-        draws = rng.integers(0, len(ids) - 1, size=per_record)
-        out[rid] = [ids[j + (j >= i)] for j in draws]  # skip the record itself
-    return out
-
-
-def generate_teacher_pairs(relighter, store: EncodingStore, out: str | Path, *, split: str = "train",
-                           per_record: int = 1, limit: int | None = None, batch_size: int = 8, seed: int = 0,
-                           progress: bool = True, stop_after: int | None = None) -> dict[str, Any]:
-    """Relight every ``split`` record of ``store`` toward another random record's light with the teacher in
-    ``relighter`` (a :class:`~difareli.relighting.Relighter`), ``batch_size`` images per batched relight;
-    write each pair atomically into the pair store at ``out`` and skip pairs already there (resume).
-
-    ``stop_after`` ends after that many new pairs (tests simulate a kill with it). Returns counts and pairs/s.
-    """
-    from difareli import viz
-    from difareli.relighting import relight
-
-    model = relighter.model
-    inputs = [*model.spatial_inputs, *model.nonspatial_inputs]
-    dependent = enc.light_dependent(inputs)
-    ids = store.ids(split=split) or []
-    if not ids:
-        raise UserError(f"store {store.root} has no records in split {split!r}; set split=<one of its splits>")
-    draws = draw_light_records(ids, per_record, seed)
-    todo = [(rid, k, lid) for rid in ids for k, lid in enumerate(draws[rid])]
-    if limit is not None:
-        todo = todo[:int(limit)]
-    has_c = store.available("shadow")
-    names = list(dict.fromkeys(["image", "light", *(["shadow"] if has_c else []), *dependent]))
-    pairs = EncodingStore.create(out, store.dims, names, meta={"kind": "teacher_pairs", "source_store": str(store.root),
-                                                              "split": split, "seed": seed, "per_record": per_record},
-                                 durable=True)
-    left = [t for t in todo if not pairs.has(pair_id(t[0], t[1]))]
-    done_before, written, start = len(todo) - len(left), 0, time.perf_counter()
-    bar = tqdm(total=len(todo), initial=done_before, desc="teacher pairs", disable=not progress, unit="pair")
-    for b in range(0, len(left), batch_size):
-        batch = left[b:b + batch_size]
-        if stop_after is not None:
-            batch = batch[:max(0, stop_after - written)]
-        if not batch:
-            break
-        srcs = [relighter.read(store, rid) for rid, _, _ in batch]
-        lights = [check_record(store.read(lid, ["light"] + (["shadow"] if has_c else [])), lid, store.root)
-                  for _, _, lid in batch]
-        tgts = [target_arrays(s, inputs, l["light"], _shadow(l)) for s, l in zip(srcs, lights)]
-        x0 = torch.stack([image_to_tensor(s["image"]) for s in srcs]).to(relighter.device)
-        relit = relight(model, x0, condition_tensors(model, srcs, relighter.device),
-                        condition_tensors(model, tgts, relighter.device), relighter.spec, runtime=relighter.runtime,
-                        mean_matching=relighter.mean_matching)
-        if not bool(torch.isfinite(relit).all()):
-            raise UserError(f"the teacher produced NaN/Inf relighting {[t[0] for t in batch]}; try runtime.precision="
-                            "fp32 or another checkpoint")
-        for (rid, k, lid), img, light, tgt in zip(batch, relit, lights, tgts):
-            arrays = {**{n: tgt[n] for n in dependent}, "image": viz.to_uint8(img.clamp(-1, 1)),
-                      "light": light["light"], **({"shadow": light["shadow"]} if has_c else {})}
-            meta = {SOURCE_KEY: rid, LIGHT_FROM_KEY: lid, "split": split, "subject": store.meta(rid).get("subject"),
-                    "shadow": _shadow(light)}
-            pairs.write(pair_id(rid, k), {n: arrays[n] for n in names}, meta)
-            written += 1
-        bar.update(len(batch))
-    bar.close()
-    seconds = time.perf_counter() - start
-    rate = written / seconds if seconds > 0 else float("nan")
-    print(f"teacher pairs: {written} new, {done_before} already in {out}, {len(todo)} planned; {rate:.3f} pairs/s")
-    return {"written": written, "skipped": done_before, "planned": len(todo), "pairs_per_s": rate,
-            "seconds": seconds, "store": pairs}

@@ -15,13 +15,11 @@ from typing import Any
 
 import torch
 
+from difareli.checkpoint_format import SLIM_KEYS
 from difareli.errors import UserError, check_file, load_torch_file
 
 #: Where the shipped checkpoints and their model cards live (package data).
 SHIPPED_DIR = Path(__file__).resolve().parent / "checkpoints"
-#: Keys a slim checkpoint keeps from a Lightning checkpoint.
-KEEP = ("state_dict", "hyper_parameters", "global_step", "epoch", "difareli_module", "difareli_format",
-        "pytorch-lightning_version")
 
 
 def available() -> list[str]:
@@ -54,7 +52,7 @@ def card(name: str) -> str:
 
 def slim(ckpt: Mapping[str, Any], dtype: torch.dtype | None = None) -> dict[str, Any]:
     """A Lightning checkpoint reduced to what inference needs; ``dtype`` (e.g. bf16) casts floating weights."""
-    out = {k: ckpt[k] for k in KEEP if k in ckpt}
+    out = {k: ckpt[k] for k in SLIM_KEYS if k in ckpt}
     state = {}
     for key, value in ckpt["state_dict"].items():
         if key.startswith("_orig_mod.") or ".n_averaged" in key:

@@ -10,7 +10,8 @@ from omegaconf import DictConfig, OmegaConf
 
 from difareli import errors, zoo
 from difareli import shard as sharding
-from difareli.baselines import build_method, light_fit_from_config
+from difareli.baselines import build_method
+from difareli.light_fit import light_fit_from_config
 from difareli.benchmark import BenchmarkResult, run_benchmark
 from difareli.cli import common
 from difareli.lit import logging as lit_logging

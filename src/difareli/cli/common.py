@@ -2,21 +2,12 @@
 
 from __future__ import annotations
 
-from typing import Any
 
-import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from difareli.configs import CONFIG_PATH
+from difareli.configs import CONFIG_PATH, instantiate_group
 
 __all__ = ["CONFIG_PATH", "instantiate_group", "log_hyperparameters", "metric_value"]
-
-
-def instantiate_group(group: DictConfig | None) -> list[Any]:
-    """Instantiate every ``_target_`` entry of a config group (callbacks, loggers); ``None`` -> ``[]``."""
-    if not group:
-        return []
-    return [hydra.utils.instantiate(c) for c in group.values() if isinstance(c, DictConfig) and "_target_" in c]
 
 
 def log_hyperparameters(trainer, cfg: DictConfig) -> None:

@@ -15,7 +15,7 @@ from difareli.store import EncodingStore
 
 def run(cfg: DictConfig):
     """Compute the maps as configured; prints the summary and returns the report."""
-    from difareli import shadow_maps
+    from difareli.jobs import shadow_maps
     from difareli.diffusion.relight import SamplerSpec
     from difareli.lit import load_checkpoint
     from difareli.runtime import Runtime

@@ -19,7 +19,7 @@ import inspect
 import numbers
 import typing
 from dataclasses import dataclass
-from typing import Any, Callable, Iterable, Literal, Mapping
+from typing import Any, Callable, Literal, Mapping
 
 import torch
 

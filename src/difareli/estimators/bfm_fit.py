@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from difareli.render import OrthoCamera, Scene, render_gbuffer
-from difareli.synth.face_model import N_EXP, N_ID, PIVOT, SHAPE_DIM, FaceModel, FaceParams
+from difareli.face_model import N_EXP, N_ID, PIVOT, SHAPE_DIM, FaceModel, FaceParams
 
 from .geometry import NUM_VERTICES, FaceMeshGeometry, orient_toward_viewer, tessellation_triangles
 from .loading import BadInput

@@ -20,23 +20,16 @@ from __future__ import annotations
 import numpy as np
 
 from difareli import sh
+from difareli.albedo import synthfaces_mean_skin_albedo
 
 from .loading import BadInput
 
 _LUMA = np.array([0.2126, 0.7152, 0.0722])
 
 
-def synthfaces_mean_skin_albedo() -> np.ndarray:
-    """Mean skin albedo (RGB) of SynthFaces: tones uniform over the piecewise-linear Monk scale."""
-    from difareli.synth.appearance import MONK_SCALE, SKIN_ALBEDO_SCALE
-
-    w = np.ones(len(MONK_SCALE))
-    w[[0, -1]] = 0.5  # trapezoid: the mean of a piecewise-linear function of a uniform variable
-    return (w @ MONK_SCALE) / w.sum() * SKIN_ALBEDO_SCALE
-
-
 class SkinSHLight:
-    """Estimator: ``light`` (9x3) fitted on skin, and the shading reference ``shading``."""
+    """Estimator: ``light`` (9x3) fitted on a photo's skin, and the shading reference ``shading`` (how it differs
+    from a record's :class:`difareli.light_fit.LightFit`: see that module)."""
 
     provides = ("light", "shading", "fit_pixels", "albedo_prior")
     requires = ("image", "gbuffer", "skin")

@@ -1,9 +1,8 @@
 """Loading trained models from checkpoints, for notebooks and CLIs: only the package and the file.
 
-A checkpoint records the module class that wrote it (``difareli_module``) and its format (``difareli_format``);
-:func:`load_checkpoint` imports that class (only from the ``difareli.`` namespace) and builds it from the plain
-hyperparameters. Checkpoints written before format 2 (flat ``spatial_type`` / ``modulate_skips`` / ``lr`` /
-``weight_decay``, statistics in ``state_dict`` buffers) are translated by :func:`upgrade_checkpoint`.
+A checkpoint records the module class that wrote it and its format (:mod:`difareli.checkpoint_format`, which
+also translates older formats); :func:`load_checkpoint` imports that class (only from the ``difareli.``
+namespace) and builds it from the plain hyperparameters.
 """
 
 from __future__ import annotations
@@ -18,10 +17,8 @@ import torch
 
 from difareli import zoo
 from difareli.errors import load_torch_file
-from difareli.lit.diffusion import FORMAT_KEY, FORMAT_VERSION, MODULE_KEY
+from difareli.checkpoint_format import MODULE_KEY, upgrade_checkpoint
 
-#: The class of checkpoints that predate ``difareli_module`` (all of them were DiffusionModules).
-LEGACY_MODULE = "difareli.lit.diffusion.DiffusionModule"
 #: Modules a checkpoint may name: the package's own namespace only (a checkpoint is data, not code).
 ALLOWED_PREFIX = "difareli."
 
@@ -34,40 +31,6 @@ class LoadedCheckpoint:
     config: dict[str, Any]
     stats: dict[str, torch.Tensor]
     global_step: int
-
-
-def upgrade_checkpoint(ckpt: dict[str, Any]) -> dict[str, Any]:
-    """Translate a pre-format-2 checkpoint dict in place (and return it); newer ones pass unchanged.
-
-    ``spatial_type`` + ``modulate_skips`` -> ``spatial: {type, modulate_skips}``; ``lr`` + ``weight_decay`` ->
-    ``optimizer`` (AdamW, as trained); ``ns_mean`` / ``ns_std`` buffers -> ``nonspatial_stats`` lists;
-    ``adagn_out_silu`` -> ``False`` (those networks had no output SiLU).
-    """
-    if ckpt.get(FORMAT_KEY, 1) >= FORMAT_VERSION:
-        return ckpt
-    hp = dict(ckpt["hyper_parameters"])
-    kind, skips = hp.pop("spatial_type", "modulator"), hp.pop("modulate_skips", False)
-    if kind in (None, "none") or not hp.get("spatial_inputs"):
-        hp["spatial"] = None
-    else:  # modulate_skips was the Modulator's option; no other component took one
-        hp["spatial"] = {"type": kind, **({"modulate_skips": bool(skips)} if kind == "modulator" else {})}
-    hp["optimizer"] = {"_target_": "torch.optim.AdamW", "_partial_": True, "lr": float(hp.pop("lr", 1e-4)),
-                       "weight_decay": float(hp.pop("weight_decay", 0.0))}
-    hp.setdefault("scheduler", None)
-    hp.setdefault("adagn_out_silu", bool(dict(hp.get("net_overrides") or {}).get("adagn_out_silu", False)))
-    stats = None
-    for key in ("state_dict", "current_model_state"):  # the EMA callback keeps the raw weights in the latter
-        if key in ckpt:
-            sd = dict(ckpt[key])
-            mean, std = sd.pop("ns_mean", None), sd.pop("ns_std", None)
-            ckpt[key] = sd
-            if key == "state_dict" and mean is not None:
-                stats = {"mean": mean.float().tolist(), "std": std.float().tolist()}
-    hp["nonspatial_stats"] = stats
-    ckpt["hyper_parameters"] = hp
-    ckpt.setdefault(MODULE_KEY, LEGACY_MODULE)
-    ckpt[FORMAT_KEY] = FORMAT_VERSION
-    return ckpt
 
 
 def module_class(path: str) -> type[L.LightningModule]:

@@ -18,13 +18,12 @@ import lightning as L
 import torch
 import torch.nn.functional as F
 
+from difareli.checkpoint_format import stamp, upgrade_checkpoint
 from difareli.diffusion.schedule import DiffusionSchedule
 from difareli.nn import build_network
 
 #: The public code's optimizer (guided-diffusion TrainLoop: AdamW, constant LR, no weight decay).
 DEFAULT_OPTIMIZER = {"_target_": "torch.optim.AdamW", "_partial_": True, "lr": 1e-4, "weight_decay": 0.0}
-#: Written into every checkpoint by ``on_save_checkpoint``; :func:`difareli.lit.load_checkpoint` reads them.
-MODULE_KEY, FORMAT_KEY, FORMAT_VERSION = "difareli_module", "difareli_format", 2
 
 
 def _is_plain(value: Any) -> bool:
@@ -116,12 +115,9 @@ class RelightingModule(L.LightningModule):
 
     # ------------------------------------------------------------------ checkpoints
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        checkpoint[MODULE_KEY] = f"{type(self).__module__}.{type(self).__qualname__}"
-        checkpoint[FORMAT_KEY] = FORMAT_VERSION
+        stamp(checkpoint, self)
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        from difareli.lit.checkpoint import upgrade_checkpoint
-
         upgrade_checkpoint(checkpoint)  # resuming from a checkpoint written before the current format
 
     # ------------------------------------------------------------------ training

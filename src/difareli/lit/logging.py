@@ -126,7 +126,7 @@ def log_run_info(target: Target, cfg) -> dict[str, Any]:
 def log_benchmark(cfg, result) -> list[Any]:
     """``difareli-benchmark`` with a ``logger`` group: its resolved config, git commit, summary table and
     comparison grids go to those loggers (no Trainer there); returns the loggers, finalised."""
-    from difareli.cli.common import instantiate_group
+    from difareli.configs import instantiate_group
 
     loggers = instantiate_group(cfg.logger)
     log_run_info(loggers, cfg)

@@ -1,7 +1,7 @@
 """The denoising network: ADM UNet with AdaGN (unet.py), spatial components (conditioning.py, controlnet.py),
 non-spatial components (nonspatial.py), presets, and the composed :class:`DiffusionNet` (network.py).
 
-Names are imported lazily (PEP 562) so that ``python -m difareli.nn.presets`` does not import its own module twice.
+Names are imported lazily (PEP 562) so that importing one component does not build the others.
 """
 
 from __future__ import annotations
@@ -24,9 +24,6 @@ _HOMES = {
     "DiffusionNet": "network",
     "build_network": "network",
     "PRESETS": "presets",
-    "VARIANTS": "presets",
-    "variant_inputs": "presets",
-    "variant_widths": "presets",
     "get_config": "presets",
     "AdaGN": "unet",
     "SpatialConditioning": "unet",

@@ -4,7 +4,7 @@ The ``light``, ``shading``, ``shadow`` and ``shadow_map`` encodings of a record 
 rendered image with the estimators the benchmark and ``difareli-preprocess`` use; the exact values are kept as
 ``light_gt``, ``shading_gt``, ``shadow_gt``, ``shadow_map_gt``:
 
-- ``light``: :class:`difareli.baselines.LightFit` (SH least squares on the skin and nose pixels with the
+- ``light``: :class:`difareli.light_fit.LightFit` (SH least squares on the skin and nose pixels with the
   SynthFaces mean-skin albedo prior, robust refits), called on exactly the arrays the record stores, so it
   equals what ``difareli-benchmark`` fits on that record (``LightFit().from_store``);
 - ``shading``: ``sh.shading_reference`` of that light on the stored normals and shading region;
@@ -41,7 +41,7 @@ def estimate_inputs(arrays: dict, region: np.ndarray, gbuffer, scene) -> tuple[d
 
     Raises ValueError when the light fit has too few usable skin pixels.
     """
-    from difareli.baselines import LightFit
+    from difareli.light_fit import LightFit
 
     fit = LightFit()
     rec = {k: arrays[k] for k in LightFit.ENCODINGS}

@@ -168,7 +168,7 @@ class Subject:
 def build_subject(k: int, cfg: SynthConfig) -> Subject:
     """Sample and render subject ``k`` (geometry, appearance, camera); deterministic in ``(cfg.seed, k)``."""
     from difareli.synth.accessories import build_head, default_camera, sample_accessories
-    from difareli.synth.face_model import FaceModel
+    from difareli.face_model import FaceModel
 
     rng = np.random.default_rng([cfg.seed, k])
     params = FaceModel.load().sample_params(rng)
@@ -335,7 +335,7 @@ def _open_store(out_dir: str, cfg: SynthConfig, durable: bool) -> EncodingStore:
 
 
 def _shape_dim() -> int:
-    from difareli.synth.face_model import SHAPE_DIM
+    from difareli.face_model import SHAPE_DIM
 
     return int(SHAPE_DIM)
 

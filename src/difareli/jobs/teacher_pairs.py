@@ -1,0 +1,102 @@
+"""Teacher pairs for the single-shot student (``difareli-teacher-pairs``): the teacher relights every training
+record toward another record's light, in batches through the relighting core, and each pair is written atomically
+into a pair store (an :class:`~difareli.store.EncodingStore`) that :class:`difareli.pairs.TeacherPairs` reads;
+a rerun skips the pairs already there.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+from difareli import encodings as enc
+from difareli import viz
+from difareli.errors import UserError, check_record
+from difareli.inputs import condition_tensors, image_to_tensor
+from difareli.pairs import LIGHT_FROM_KEY, SOURCE_KEY, shadow_of, target_arrays
+from difareli.relighting import relight
+from difareli.store import EncodingStore
+
+
+def pair_id(source: str, k: int) -> str:
+    return f"{source}__p{k}"
+
+
+def draw_light_records(ids: Sequence[str], per_record: int, seed: int) -> dict[str, list[str]]:
+    """For each record, ``per_record`` other records (uniform, seeded) whose light becomes its target.
+
+    Drawn all at once from ``seed``, so a resumed run draws exactly the same pairs."""
+    rng = np.random.default_rng(seed)
+    ids = list(ids)
+    if len(ids) < 2:
+        raise UserError(f"teacher pairs need >= 2 training records to take target lights from; got {len(ids)}")
+    out = {}
+    for i, rid in enumerate(ids):
+        draws = rng.integers(0, len(ids) - 1, size=per_record)
+        out[rid] = [ids[j + (j >= i)] for j in draws]  # skip the record itself
+    return out
+
+
+def generate_teacher_pairs(relighter, store: EncodingStore, out: str | Path, *, split: str = "train",
+                           per_record: int = 1, limit: int | None = None, batch_size: int = 8, seed: int = 0,
+                           progress: bool = True, stop_after: int | None = None) -> dict[str, Any]:
+    """Relight every ``split`` record of ``store`` toward another random record's light with the teacher in
+    ``relighter`` (a :class:`~difareli.relighting.Relighter`), ``batch_size`` images per batched relight;
+    write each pair atomically into the pair store at ``out`` and skip pairs already there (resume).
+
+    ``stop_after`` ends after that many new pairs (tests simulate a kill with it). Returns counts and pairs/s.
+    """
+    model = relighter.model
+    inputs = [*model.spatial_inputs, *model.nonspatial_inputs]
+    dependent = enc.light_dependent(inputs)
+    ids = store.ids(split=split) or []
+    if not ids:
+        raise UserError(f"store {store.root} has no records in split {split!r}; set split=<one of its splits>")
+    draws = draw_light_records(ids, per_record, seed)
+    todo = [(rid, k, lid) for rid in ids for k, lid in enumerate(draws[rid])]
+    if limit is not None:
+        todo = todo[:int(limit)]
+    has_c = store.available("shadow")
+    names = list(dict.fromkeys(["image", "light", *(["shadow"] if has_c else []), *dependent]))
+    pairs = EncodingStore.create(out, store.dims, names, meta={"kind": "teacher_pairs", "source_store": str(store.root),
+                                                              "split": split, "seed": seed, "per_record": per_record},
+                                 durable=True)
+    left = [t for t in todo if not pairs.has(pair_id(t[0], t[1]))]
+    done_before, written, start = len(todo) - len(left), 0, time.perf_counter()
+    bar = tqdm(total=len(todo), initial=done_before, desc="teacher pairs", disable=not progress, unit="pair")
+    for b in range(0, len(left), batch_size):
+        batch = left[b:b + batch_size]
+        if stop_after is not None:
+            batch = batch[:max(0, stop_after - written)]
+        if not batch:
+            break
+        srcs = [relighter.read(store, rid) for rid, _, _ in batch]
+        lights = [check_record(store.read(lid, ["light"] + (["shadow"] if has_c else [])), lid, store.root)
+                  for _, _, lid in batch]
+        tgts = [target_arrays(s, inputs, l["light"], shadow_of(l)) for s, l in zip(srcs, lights)]
+        x0 = torch.stack([image_to_tensor(s["image"]) for s in srcs]).to(relighter.device)
+        relit = relight(model, x0, condition_tensors(model, srcs, relighter.device),
+                        condition_tensors(model, tgts, relighter.device), relighter.spec, runtime=relighter.runtime,
+                        mean_matching=relighter.mean_matching)
+        if not bool(torch.isfinite(relit).all()):
+            raise UserError(f"the teacher produced NaN/Inf relighting {[t[0] for t in batch]}; try runtime.precision="
+                            "fp32 or another checkpoint")
+        for (rid, k, lid), img, light, tgt in zip(batch, relit, lights, tgts):
+            arrays = {**{n: tgt[n] for n in dependent}, "image": viz.to_uint8(img.clamp(-1, 1)),
+                      "light": light["light"], **({"shadow": light["shadow"]} if has_c else {})}
+            meta = {SOURCE_KEY: rid, LIGHT_FROM_KEY: lid, "split": split, "subject": store.meta(rid).get("subject"),
+                    "shadow": shadow_of(light)}
+            pairs.write(pair_id(rid, k), {n: arrays[n] for n in names}, meta)
+            written += 1
+        bar.update(len(batch))
+    bar.close()
+    seconds = time.perf_counter() - start
+    rate = written / seconds if seconds > 0 else float("nan")
+    print(f"teacher pairs: {written} new, {done_before} already in {out}, {len(todo)} planned; {rate:.3f} pairs/s")
+    return {"written": written, "skipped": done_before, "planned": len(todo), "pairs_per_s": rate,
+            "seconds": seconds, "store": pairs}
