@@ -79,6 +79,7 @@ def test_relight_notebook(tiny_checkpoint, synth_store, jupyter_path, tmp_path, 
 
     from difareli import sh
     from difareli.relighting import Relighter
+    from difareli.targets import Targets
     from difareli.store import EncodingStore
 
     ckpt = tiny_checkpoint("difareli_pp")
@@ -88,9 +89,11 @@ def test_relight_notebook(tiny_checkpoint, synth_store, jupyter_path, tmp_path, 
            "DIFARELI_THREADS": "1"}
     _, text = execute("relight_from_checkpoint.ipynb", tmp_path, env, jupyter_path, monkeypatch)
 
-    for png in ("relight_targets.png", "shadow_strength.png", "rotation_yaw.png"):
+    for png in ("relight_targets.png", "shadow_strength.png", "rotation_yaw_angles.png"):
         img = iio.imread(out / png)
         assert img.ndim == 3 and min(img.shape[:2]) > 100, png
+    sheet = iio.imread(out / "rotation_yaw.png")  # rotation_video's contact sheet: 10 frames a row, 2 px gaps
+    assert sheet.shape[:2] == (2 * (32 + 2) + 2, 10 * (32 + 2) + 2)
     frames = iio.imread(out / "rotation_yaw.gif", index=None)
     assert frames.shape[:3] == (12, 32, 32)
     assert "difareli_pp" in text and "parameters" in text
@@ -114,7 +117,7 @@ def test_relight_notebook(tiny_checkpoint, synth_store, jupyter_path, tmp_path, 
     torch.set_num_threads(1)
     try:
         relighter = Relighter(ckpt, {"name": "ddim", "steps": STEPS}, device="cpu")
-        expected = [float(relighter.relight_record(store, rid, lights, shadows)[0].mean() / 255.0)
+        expected = [float(relighter.relight(relighter.source(store, rid), Targets.of(lights, shadows))[0].mean() / 255.0)
                     for lights, shadows in targets]
     finally:
         torch.set_num_threads(threads)

@@ -15,6 +15,7 @@ from difareli.relighting import (DiffusionRelightable, OnePassRelightable, Relig
                                  relight)
 from difareli.store import EncodingStore
 from difareli.targets import retarget
+from difareli.targets import Targets
 
 DIMS = {"H": 8, "W": 8, **encodings.PRODUCER_DIMS}
 
@@ -93,11 +94,11 @@ def test_one_pass_model_goes_through_the_same_door(synth_store):
     out = relight(model, x0, src, tgt)  # no sampler needed
     np.testing.assert_allclose(out[:, 0, 0, 0].numpy(), [0.5, 0.75])
     r = Relighter(LoadedCheckpoint(model, {}, {}, 0), None, device="cpu")
-    assert r.inversion(EncodingStore.open(synth_store), "s00006_l0") is None
+    assert r.inversion(r.source(EncodingStore.open(synth_store), "s00006_l0")) is None
     assert needed_encodings(model) == ["image", "light", "shading", "normal"]
     store = EncodingStore.open(synth_store)
     arrays = r.read(store, "s00006_l0")
-    own = r.relight_arrays(arrays, [arrays["light"]])[0]
+    own = r.relight(r.source_from_arrays(arrays), Targets.of([arrays["light"]]))[0]
     np.testing.assert_array_equal(own, arrays["image"])  # own light: unchanged image (within uint8 rounding)
 
 
@@ -106,10 +107,10 @@ def test_in_memory_record_relights_like_the_store_record(tiny_checkpoint, synth_
     r = Relighter(tiny_checkpoint("difareli_pp"), {"name": "ddim", "steps": 3}, device="cpu")
     arrays = r.read(store, "s00006_l0")
     light = sh.yaw(arrays["light"].astype(np.float64), 45.0)
-    from_store = r.relight_record(store, "s00006_l0", [light])
-    in_memory = r.relight_arrays({k: v.copy() for k, v in arrays.items()}, [light])
+    from_store = r.relight(r.source(store, "s00006_l0"), Targets.of([light]))
+    in_memory = r.relight(r.source_from_arrays({k: v.copy() for k, v in arrays.items()}), Targets.of([light]))
     np.testing.assert_array_equal(from_store, in_memory)
     bad = {**arrays, "image": arrays["image"].copy()}
     bad["shape"] = np.full_like(arrays["shape"], np.nan)
     with pytest.raises(NonFiniteError, match="in-memory record, encoding 'shape'"):
-        r.relight_arrays(bad, [light])
+        r.relight(r.source_from_arrays(bad), Targets.of([light]))

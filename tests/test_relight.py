@@ -21,6 +21,8 @@ from difareli.encodings import normalise_c
 from difareli.lit import LoadedCheckpoint, load_checkpoint
 from difareli.relighting import Relighter
 from difareli.store import EncodingStore
+from difareli.targets import Targets
+from difareli.inputs import condition_tensors
 
 PP = {"spatial_inputs": ["shading", "shadow_map", "masks"], "nonspatial_inputs": ["shape", "cam", "identity"]}
 DR = {"spatial_inputs": ["shading", "background"], "nonspatial_inputs": ["shape", "cam", "identity", "shadow"]}
@@ -157,12 +159,12 @@ def test_modulator_once_per_condition_checkpoint(pp_model, depth_store):
     src = r.read(store, "s00006_l0")
     lights = sh.yaw(np.asarray(src["light"]), np.linspace(0, 300, 5))
     with Counter(net.spatial) as mod, Counter(net.unet) as unet:
-        out = r.relight_record(store, "s00006_l0", lights)
+        out = r.relight(r.source(store, "s00006_l0"), Targets.of(lights))
         assert out.shape == (5, 32, 32, 3) and out.dtype == np.uint8
         assert mod.batches == [1, 2, 2, 1]  # source, then ceil(5 / 2) target batches
         assert unet.batches == [1] * 6 + [2] * 3 + [2] * 3 + [1] * 3
         # Second relight of the same record: the cached inversion, only the decode runs.
-        r.relight_record(store, "s00006_l0", lights[:2])
+        r.relight(r.source(store, "s00006_l0"), Targets.of(lights[:2]))
         assert mod.batches[4:] == [2] and unet.batches[15:] == [2] * 3
 
 
@@ -171,13 +173,13 @@ def test_relighter_caches_inversion_toy(synth_store):
     store = EncodingStore.open(synth_store)
     r = Relighter(ckpt, {"name": "dpm_solver_pp", "steps": 4, "order": 2}, device="cpu")
     light = np.asarray(store.read("s00006_l1", ["light"])["light"])
-    first = r.relight_record(store, "s00006_l0", [light])
+    first = r.relight(r.source(store, "s00006_l0"), Targets.of([light]))
     assert ckpt.model.denoiser_batches == [1] * 12  # invert 4 + self-decode 4 + decode 4
-    again = r.relight_record(store, "s00006_l0", [light, light])
+    again = r.relight(r.source(store, "s00006_l0"), Targets.of([light, light]))
     assert ckpt.model.denoiser_batches[12:] == [2] * 4  # no inversion the second time
     np.testing.assert_array_equal(again[0], first[0])
     np.testing.assert_array_equal(again[1], first[0])
-    r.relight_record(store, "s00006_l1", [light])  # another record is inverted
+    r.relight(r.source(store, "s00006_l1"), Targets.of([light]))  # another record is inverted
     assert len(ckpt.model.denoiser_batches) == 12 + 4 + 12
 
 
@@ -222,7 +224,7 @@ def test_self_decode_reproduces_inversion_means_checkpoint(name, pp_model, synth
     r = Relighter(pp_model, {**SAMPLERS[name], "steps": 5}, device="cpu")
     store = EncodingStore.open(synth_store)
     arrays = {k: np.asarray(v) for k, v in store.read("s00006_l0", ["image", *r.model_inputs]).items()}
-    den = model.denoiser(model.condition(*r._condition_tensors([arrays])))
+    den = model.denoiser(model.condition(*condition_tensors(r.model, [arrays])))
     x0 = torch.from_numpy(arrays["image"]).permute(2, 0, 1)[None].float() / 127.5 - 1
     inv = invert(den, x0, model.schedule, r.spec)
     want = _inversion_means(den, x0, r.spec, model.schedule)[::-1][1:]
@@ -253,9 +255,9 @@ def test_batched_targets_equal_separate_checkpoint(pp_model, depth_store):
     from difareli.targets import retarget
 
     lights = sh.yaw(np.asarray(arrays["light"]), [45.0, 120.0, 250.0])
-    targets = r._condition_tensors([retarget(arrays, r.model_inputs, l) for l in lights])
+    targets = condition_tensors(r.model, [retarget(arrays, r.model_inputs, l) for l in lights])
     x0 = torch.from_numpy(np.array(arrays["image"])).permute(2, 0, 1)[None].float() / 127.5 - 1
-    assert _batched_vs_separate(pp_model.model, r._condition_tensors([arrays]), targets, x0, r.spec) < 1e-5
+    assert _batched_vs_separate(pp_model.model, condition_tensors(r.model, [arrays]), targets, x0, r.spec) < 1e-5
 
 
 # ------------------------------------------------------------------------------------------ shadow control
@@ -264,7 +266,7 @@ def test_difareli_shadow_scalar_changes_only_nonspatial(synth_store):
     store = EncodingStore.open(synth_store)
     r = Relighter(ckpt, {"name": "ddim", "steps": 2}, device="cpu")
     own = np.asarray(store.read("s00006_l0", ["light"])["light"])
-    r.relight_record(store, "s00006_l0", [own, own, own], shadows=[None, -6.0, -1.5])
+    r.relight(r.source(store, "s00006_l0"), Targets.of([own, own, own], [None, -6.0, -1.5]))
     (src_sp, src_ns), (sp, ns) = ckpt.model.conditions
     # The spatial input does not depend on c' (the shading is re-rendered from the normals: float rounding only).
     torch.testing.assert_close(sp, src_sp.expand(3, -1, -1, -1), atol=1e-5, rtol=0)
@@ -278,7 +280,7 @@ def test_difareli_pp_shadow_map_from_target_and_own_map_for_inversion(depth_stor
     r = Relighter(ckpt, {"name": "ddim", "steps": 2}, device="cpu")
     side = sh.directional_light(np.array([0.7, 0.7, 0.2]) / np.linalg.norm([0.7, 0.7, 0.2]))
     c1, c2 = -4.0, -2.0
-    r.relight_record(store, "s00006_l0", [side, side], shadows=[c1, c2])
+    r.relight(r.source(store, "s00006_l0"), Targets.of([side, side], [c1, c2]))
     (src_sp, src_ns), (sp, ns) = ckpt.model.conditions
     stored = torch.from_numpy(np.array(store.read("s00006_l0", ["shadow_map"])["shadow_map"]))
     assert torch.equal(src_sp[0, 3], stored)  # inversion uses the input's own (estimated) map
@@ -325,7 +327,7 @@ def test_few_steps_relight_checkpoint(name, pp_model, depth_store):
     for n in (1, 2, 3, 7) if name in ("ddim", "unipc_bh2") else (1, 3):
         r = Relighter(pp_model, {**SAMPLERS[name], "steps": n}, device="cpu")
         with np.errstate(invalid="raise"):  # a NaN reaching the uint8 conversion raises here
-            out = r.relight_record(store, "s00006_l0", [light])
+            out = r.relight(r.source(store, "s00006_l0"), Targets.of([light]))
         assert out.shape == (1, 32, 32, 3) and out.dtype == np.uint8 and 20 < out.mean() < 235
 
 
@@ -345,7 +347,7 @@ def test_bf16_autocast_matches_float32_checkpoint(name, pp_model, depth_store):
     light = np.asarray(store.read("s00006_l1", ["light"])["light"])
     from difareli.targets import retarget
 
-    args = (model, x0, r._condition_tensors([arrays]), r._condition_tensors([retarget(arrays, r.model_inputs, light)]),
+    args = (model, x0, condition_tensors(r.model, [arrays]), condition_tensors(r.model, [retarget(arrays, r.model_inputs, light)]),
             r.spec)
     ref = relight(*args)
     with torch.autocast("cpu", dtype=torch.bfloat16):
@@ -365,16 +367,16 @@ def test_extreme_images_finite(mean_matching, pp_model, depth_store):
     model = pp_model.model
     light = np.asarray(store.read("s00006_l1", ["light"])["light"])
     for rid in EXTREMES:
-        inv = r.inversion(store, rid)
+        inv = r.inversion(r.source(store, rid))
         assert torch.isfinite(inv.x_T).all()
         assert inv.offsets is None if not mean_matching else bool(torch.isfinite(inv.offsets).all())
         from difareli.targets import retarget
 
-        cond = model.condition(*r._condition_tensors([retarget(r.read(store, rid), r.model_inputs, light)]))
+        cond = model.condition(*condition_tensors(r.model, [retarget(r.read(store, rid), r.model_inputs, light)]))
         x = decode(model.denoiser(cond), inv, model.schedule)
         assert torch.isfinite(x).all() and float(x.abs().max()) < 10, rid
         with np.errstate(invalid="raise"):
-            out = r.relight_record(store, rid, [light])
+            out = r.relight(r.source(store, rid), Targets.of([light]))
         assert out.dtype == np.uint8 and out.shape == (1, 32, 32, 3)
 
 
@@ -394,7 +396,7 @@ def test_extreme_target_lights_finite(pp_model, depth_store):
     np.testing.assert_allclose(shading["bright10x"], 10 * own_shading, rtol=1e-5, atol=1e-5)  # linear in the light
     assert all(np.isfinite(v).all() for v in shading.values())
     with np.errstate(invalid="raise"):
-        out = r.relight_record(store, "s00006_l0", list(lights.values()))
+        out = r.relight(r.source(store, "s00006_l0"), Targets.of(list(lights.values())))
     assert out.shape == (3, 32, 32, 3) and out.dtype == np.uint8
     # A zero light has no direction: its target shadow map is empty (dominant_direction's frontal fallback).
     assert retarget(arrays, r.model_inputs, lights["zero"])["shadow_map"].max() == 0

@@ -16,6 +16,7 @@ from difareli import sh
 from difareli.cli.relight import run
 from difareli.relighting import Relighter
 from difareli.store import EncodingStore
+from difareli.targets import Targets
 
 from .helpers import compose_train
 from .test_relight import depth_store  # noqa: F401 (fixture)
@@ -48,7 +49,7 @@ def test_yaw_target_writes_relit_and_comparison(ckpt, depth_store, tmp_path):
     # The same relight through the API: UniPC-20 under the input's light rotated 60 degrees about +y.
     r = Relighter(cfg.checkpoint, cfg.sampler, device="cpu")
     own = np.asarray(store.read(rid, ["light"])["light"])
-    np.testing.assert_array_equal(r.relight_record(store, rid, [sh.yaw(own, 60.0)])[0], relit)
+    np.testing.assert_array_equal(r.relight(r.source(store, rid), Targets.of([sh.yaw(own, 60.0)]))[0], relit)
 
 
 @pytest.mark.parametrize("target,gt", [("s00006_l1", True), ("s00000_l1", False)])

@@ -13,6 +13,7 @@ from difareli import derived, encodings
 from difareli.jobs import shadow_maps as sm
 from difareli.errors import UserError
 from difareli.store import EncodingStore
+from difareli.targets import Targets
 
 ROWS, COLS = slice(12, 20), slice(12, 20)  # an 8x8 square in the middle of a 32 px face
 
@@ -167,7 +168,7 @@ def test_cli_on_a_trained_difareli_batches_like_one_at_a_time(tiny_checkpoint, s
     c_min, c_max = sm.c_range(store)
     r = Relighter(ckpt, cfg.sampler, device="cpu")
     own = np.asarray(store.read(ids[2], ["light"])["light"])
-    relit = r.relight_record(store, ids[2], [own, own], [c_max, c_min]).astype(np.float64) / 255.0
+    relit = r.relight(r.source(store, ids[2]), Targets.of([own, own], [c_max, c_min])).astype(np.float64) / 255.0
     y = relit @ np.array([0.2126, 0.7152, 0.0722])
     raw = np.asarray(EncodingStore.open(store.root).read(ids[2], [rep.raw])[rep.raw])
     np.testing.assert_allclose(raw, y[1] - y[0], atol=2.5 / 255)

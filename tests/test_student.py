@@ -21,6 +21,7 @@ from difareli.relightable import DiffusionRelightable, OnePassRelightable
 from difareli.relighting import Relighter
 from difareli.store import EncodingStore
 from difareli.targets import render_shading, retarget
+from difareli.targets import Targets
 
 from .helpers import compose_train
 
@@ -191,8 +192,7 @@ def test_teacher_pairs_resume_after_kill(synth_store, tiny_checkpoint, tmp_path)
     # The batched relight equals the Relighter's one-image relight of the same source toward the same light.
     pid = sorted(a)[0]
     meta, arrays = a[pid]
-    one = relighter.relight_arrays(relighter.read(store, meta[SOURCE_KEY]), [arrays["light"]],
-                                   [float(arrays["shadow"][0])])[0]
+    one = relighter.relight(relighter.source_from_arrays(relighter.read(store, meta[SOURCE_KEY])), Targets.of([arrays["light"]], [float(arrays["shadow"][0])]))[0]
     assert np.abs(one.astype(int) - arrays["image"]).max() <= 1
     assert np.array_equal(arrays["shadow_map"], retarget(relighter.read(store, meta[SOURCE_KEY]), ["shadow_map"],
                                                          arrays["light"], float(arrays["shadow"][0]))["shadow_map"])

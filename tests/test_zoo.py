@@ -11,6 +11,7 @@ from difareli import sh, zoo
 from difareli.lit import load_checkpoint
 from difareli.relighting import Relighter
 from difareli.store import EncodingStore
+from difareli.targets import Targets
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 FACTS = {"summary": "a test export", "data": "SynthFaces 32 px", "seed": 42, "licence": "BFM: non-commercial",
@@ -31,13 +32,13 @@ def test_export_is_slim_and_relights_bit_for_bit(tiny_checkpoint, synth_store, t
     rid = store.ids(split="test")[0]
     light = sh.yaw(np.asarray(store.read(rid, ["light"])["light"]), 45.0)
     spec = {"name": "ddim", "steps": 4}
-    a = Relighter(run, spec, device="cpu").relight_record(store, rid, [light], [0.0])
-    b = Relighter(str(path), spec, device="cpu").relight_record(store, rid, [light], [0.0])
+    a = _relight_once(Relighter(run, spec, device="cpu"), store, rid, light)
+    b = _relight_once(Relighter(str(path), spec, device="cpu"), store, rid, light)
     np.testing.assert_array_equal(a, b)
     # bf16 weights (what a lent GPU sends back): half the size, relit images within a few levels
     half, _ = zoo.export(run, "test_pp_bf16", FACTS, out_dir=tmp_path, dtype=torch.bfloat16)
     assert half.stat().st_size < 0.6 * path.stat().st_size
-    c = Relighter(str(half), spec, device="cpu").relight_record(store, rid, [light], [0.0])
+    c = _relight_once(Relighter(str(half), spec, device="cpu"), store, rid, light)
     assert np.abs(c.astype(int) - a.astype(int)).mean() < 4
 
 
@@ -70,9 +71,13 @@ def test_shipped_checkpoint_changes_the_light_of_an_unseen_face(name, tmp_path):
     r = Relighter(loaded, {"name": "unipc", "steps": 50}, device="cpu")  # the sampler its card is benchmarked with
     own = np.asarray(arrays["light"])
     c = float(np.asarray(arrays["shadow"]).reshape(-1)[0])
-    same, left, right = r.relight_record(store, rid, [own, sh.yaw(own, -60.0), sh.yaw(own, 60.0)], [c] * 3)
+    same, left, right = r.relight(r.source(store, rid), Targets.of([own, sh.yaw(own, -60.0), sh.yaw(own, 60.0)], [c] * 3))
     image = np.asarray(arrays["image"]).astype(float)
     # Its own light gives the input back closely (3-4 grey levels on average for the shipped DiFaReli++ on these
     # seed-77 subjects); lights from either side change the image visibly and differently (17-41 levels apart).
     assert np.abs(same - image).mean() < 8
     assert np.abs(left.astype(float) - right).mean() > 3 * np.abs(same - image).mean()
+
+
+def _relight_once(relighter, store, rid, light):
+    return relighter.relight(relighter.source(store, rid), Targets.of([light], [0.0]))

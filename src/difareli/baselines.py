@@ -164,7 +164,10 @@ class DiffusionMethod:
         return maps
 
     def relight(self, store, source_id, target_light, target_shadow=None, target_id=None) -> np.ndarray:
-        return self.relighter.relight_record(store, source_id, [target_light], [target_shadow])[0]
+        from difareli.targets import Targets
+
+        source = self.relighter.source(store, source_id)
+        return self.relighter.relight(source, Targets.of([target_light], [target_shadow], source.what))[0]
 
 
 #: What :func:`build_method` may hand a method's constructor, if its signature asks for it.

@@ -21,9 +21,11 @@ from typing import Any
 import numpy as np
 
 from difareli import tables, viz
-from difareli.relighting import Relighter, write_video
+from difareli.relighting import Relighter
 from difareli.store import EncodingStore
-from difareli.targets import rotation_lights, video_shadow
+from difareli.encodings import shadow_logit
+from difareli.targets import Targets, rotation_targets
+from difareli.video import rotation_video
 
 
 @dataclass
@@ -89,9 +91,9 @@ def run_demo(checkpoint: Any, out_dir: str | Path, *, sampler: Mapping[str, Any]
         src = max(recs, key=lambda r: directionality(lights[r]))
         tgt = max((r for r in recs if r != src), key=lambda r: np.abs(lights[r] - lights[src]).sum())
         target = store.read(tgt, ["image", "light", "shadow"])
-        relit = relighter.relight_record(store, src, [np.asarray(target["light"])],
-                                         [float(np.asarray(target["shadow"]).reshape(-1)[0])])[0]
-        grid.append([np.asarray(store.read(src, ["image"])["image"]), relit, np.asarray(target["image"])])
+        source = relighter.source(store, src)
+        relit = relighter.relight(source, Targets.of([target["light"]], [shadow_logit(target)], source.what))[0]
+        grid.append([source.arrays["image"], relit, np.asarray(target["image"])])
     res.paths["comparison"] = viz.save_png(viz.grid(_zoom(grid, 3)), out / "comparison.png")
     res.seconds["relight"] = time.perf_counter() - t0
 
@@ -99,14 +101,11 @@ def run_demo(checkpoint: Any, out_dir: str | Path, *, sampler: Mapping[str, Any]
     #    re-rendered toward every frame's light.
     t0 = time.perf_counter()
     first = max(test, key=lambda r: directionality(lights[r]))
-    arrays = relighter.read(store, first)
-    own = float(np.asarray(arrays["shadow"]).reshape(-1)[0]) if "shadow" in arrays else None
-    c, why = video_shadow(store, own, None) if "shadow" in arrays else (None, "the model takes no shadow input")
+    source = relighter.source(store, first)
+    targets, why = rotation_targets(source.arrays, "yaw", frames, store=store)
     res.notes.append(f"rotation video of {first}, shadow strength: {why}")
-    video = relighter.relight_record(store, first, rotation_lights(lights[first], "yaw", frames), [c] * frames)
-    res.paths["video"] = write_video(np.stack(_zoom([list(video)], 2)[0]), out / "rotation_yaw.gif", fps=20)
-    res.paths["sheet"] = viz.save_png(viz.grid([list(video[i:i + 10]) for i in range(0, frames, 10)]),
-                                      out / "rotation_yaw.png")
+    video = rotation_video(relighter, source, targets, out, "rotation_yaw", fps=20, zoom=2)
+    res.paths.update(video.paths)
     res.seconds["video"] = time.perf_counter() - t0
 
     # 3. A small benchmark: the checkpoint against identity and the Lambertian ratio image, fitted target lights.
@@ -143,8 +142,9 @@ def relight_photo(relighter: Relighter, path: Path, resolution: int) -> Path:
     from difareli.targets import target_lights
 
     arrays = preprocess_photo(data.astronaut(), relighter.needed_encodings(), size=resolution)
+    source = relighter.source_from_arrays(arrays, "the astronaut photo", key=("photo", "astronaut"))
     lights = [target_lights(arrays["light"], yaw=a) for a in (-60, -30, 30, 60)]
-    relit = relighter.relight_arrays(arrays, lights, key=("photo", "astronaut"), what="the astronaut photo")
+    relit = relighter.relight(source, Targets.of(lights, what=source.what))
     return viz.save_png(viz.grid([[arrays["image"], *relit]]), path)
 
 

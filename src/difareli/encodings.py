@@ -16,6 +16,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import math
+from typing import Any, Mapping
 
 import numpy as np
 
@@ -33,6 +34,11 @@ SHADOW_C_HI = math.log(0.25 / 0.75)
 def normalise_c(c):
     """Map a shadow logit c to [0, 1] with the fixed range [SHADOW_C_LO, SHADOW_C_HI]."""
     return np.clip((np.asarray(c, dtype=np.float64) - SHADOW_C_LO) / (SHADOW_C_HI - SHADOW_C_LO), 0.0, 1.0)
+
+
+def shadow_logit(arrays: Mapping[str, Any], name: str = "shadow") -> float | None:
+    """A record's scalar shadow logit c (its ``shadow`` encoding, stored as shape (1,)), or ``None`` without it."""
+    return float(np.asarray(arrays[name]).reshape(-1)[0]) if name in arrays else None
 
 #: The 14-part segmentation scheme (SPEC 7; CelebAMask-HQ / BiSeNet classes merged to what SynthFaces
 #: geometry and the real-photo estimators can both produce: ears and eyeglasses are folded into skin).

@@ -75,10 +75,6 @@ class PairDataset(Dataset):
                 "target_nonspatial": prepare_nonspatial(self.nonspatial, tgt)}
 
 
-def shadow_of(arrays: Mapping[str, np.ndarray]) -> float | None:
-    return float(np.asarray(arrays["shadow"]).reshape(-1)[0]) if "shadow" in arrays else None
-
-
 class IdentityPairs(PairDataset):
     """Target = source: the record under its own light (its own stored encodings, not re-rendered)."""
 
@@ -135,7 +131,7 @@ class GroundTruthPairs(PairDataset):
         tgt_rec = check_record(self.store.read(tid, ["image"] + (light_names if lid == tid else [])), tid,
                                self.store.root)
         light = tgt_rec if lid == tid else check_record(self.store.read(lid, light_names), lid, self.store.root)
-        tgt = target_arrays(src, self.inputs, light["light"], shadow_of(light))
+        tgt = target_arrays(src, self.inputs, light["light"], enc.shadow_logit(light))
         return self.item(rid, src, tgt, tgt_rec["image"])
 
 

@@ -4,7 +4,8 @@ A model offers the :mod:`difareli.relightable` interfaces (diffusion or one-pass
 
 - :func:`relight` is the one tensor-level relight: invert with the input's own condition (mean-matching offsets
   computed once, :mod:`difareli.diffusion.relight`), then one batched decode under many targets;
-- :class:`Relighter` wraps it over records, from a store or in memory (a dict of arrays), caching inversions.
+- :class:`Relighter` wraps it: ``relight(source, targets)`` for a :class:`Source` (a store record or in-memory
+  encodings, read and checked once) under :class:`~difareli.targets.Targets`, caching inversions.
 The :class:`~difareli.runtime.Runtime` decides device, precision, compile and CUDA graphs.
 """
 
@@ -12,8 +13,8 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-from pathlib import Path
-from typing import Any, Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any, Mapping
 
 import numpy as np
 import torch
@@ -26,7 +27,7 @@ from difareli.diffusion.relight import Inversion, SamplerSpec, decode, invert
 from difareli.relightable import DiffusionRelightable, OnePassRelightable, Relightable, model_inputs
 from difareli.runtime import Runtime
 from difareli.store import EncodingStore
-from difareli.targets import retarget
+from difareli.targets import Targets, retarget
 
 
 def needed_encodings(model: Relightable) -> list[str]:
@@ -82,8 +83,19 @@ def relight(model: Relightable, x0: Tensor, source: Condition, targets: Conditio
                   progress=progress)
 
 
+@dataclass(frozen=True)
+class Source:
+    """One face to relight: its encodings (read and checked once, at the boundary), the key its inversion is
+    cached under (``None``: not cached), and how messages name it."""
+
+    arrays: Mapping[str, np.ndarray]
+    key: Any
+    what: str
+
+
 class Relighter:
-    """A relightable model + a sampler + a runtime, relighting records of a store or in memory."""
+    """A relightable model + a sampler + a runtime: ``relight(source, targets)`` for a store record
+    (:meth:`source`) or in-memory encodings (:meth:`source_from_arrays`)."""
 
     def __init__(self, checkpoint, sampler: SamplerSpec | Mapping[str, Any] | None = None, *,
                  runtime: Runtime | Mapping[str, Any] | None = None, device: str | None = None,
@@ -103,6 +115,11 @@ class Relighter:
         self.mean_matching, self.batch_size, self.progress = mean_matching, batch_size, progress
         self._inversions: dict[Any, Inversion] = {}
 
+    def describe(self) -> str:
+        """How this relighter relights, for console lines: the sampler (or one pass) and the runtime."""
+        how = "one pass" if isinstance(self.model, OnePassRelightable) else f"{self.spec.name}, {self.spec.steps} steps"
+        return f"{how}, {self.runtime.precision}{', compiled' if self.runtime.compile else ''}"
+
     @property
     def model_inputs(self) -> list[str]:
         return model_inputs(self.model)
@@ -110,33 +127,43 @@ class Relighter:
     def needed_encodings(self) -> list[str]:
         return needed_encodings(self.model)
 
-    def read(self, store: EncodingStore, record_id: str) -> dict[str, np.ndarray]:
-        """The encodings relighting this record reads (and nothing else), checked finite."""
+    def source(self, store: EncodingStore, record_id: str) -> Source:
+        """A store record as a :class:`Source`: the encodings relighting it reads (and nothing else), checked."""
         missing = [n for n in self.needed_encodings() if not store.available(n)]
         if missing:
             raise KeyError(f"relighting with this model needs encoding(s) {missing}, which the store at "
                            f"{store.root} does not have")
         arrays = {k: np.asarray(v) for k, v in store.read(record_id, self.needed_encodings()).items()}
-        return dict(errors.check_record(arrays, record_id, store.root))
+        return Source(dict(errors.check_record(arrays, record_id, store.root)), (str(store.root), record_id),
+                      f"record {record_id!r} of {store.root}")
 
-    def _condition_tensors(self, arrays_list: Sequence[Mapping[str, np.ndarray]]) -> Condition:
-        return condition_tensors(self.model, arrays_list, self.device)
+    def source_from_arrays(self, arrays: Mapping[str, np.ndarray], what: str = "in-memory record",
+                           key: Any = None) -> Source:
+        """In-memory encodings (a photo preprocessed by :mod:`difareli.photo`, a notebook's edit) as a
+        :class:`Source`: the model's encodings present and finite; ``key`` caches its inversion."""
+        missing = [n for n in self.needed_encodings() if n not in arrays]
+        if missing:
+            raise KeyError(f"{what} lacks encoding(s) {missing}, which relighting with this model reads")
+        # Non-finite inputs would decode to a black image without a word: stop here, naming what is wrong.
+        for name in self.needed_encodings():
+            errors.check_finite(arrays[name], f"{what}, encoding {name!r}")
+        return Source({n: np.asarray(arrays[n]) for n in arrays}, key, what)
 
-    def inversion(self, store: EncodingStore | None, record_id: str | None = None,
-                  arrays: Mapping[str, np.ndarray] | None = None, *, key: Any = None) -> Inversion | None:
-        """Passes 1-2 for a record (from ``store`` or the in-memory ``arrays``), cached under its key;
-        ``None`` for a one-pass model."""
+    def read(self, store: EncodingStore, record_id: str) -> dict[str, np.ndarray]:
+        """The checked encodings of a store record (``source(...).arrays``)."""
+        return dict(self.source(store, record_id).arrays)
+
+    def inversion(self, source: Source) -> Inversion | None:
+        """Passes 1-2 for a source, cached under its key; ``None`` for a one-pass model."""
         if isinstance(self.model, OnePassRelightable):
             return None
-        key = key if key is not None else ((str(store.root), record_id) if store is not None else None)
-        if key is not None and key in self._inversions:
-            return self._inversions[key]
-        arrays = arrays if arrays is not None else self.read(store, record_id)
-        x0 = image_to_tensor(arrays["image"])[None].to(self.device)
-        inv = invert_image(self.model, x0, self._condition_tensors([arrays]), self._spec(), runtime=self.runtime,
-                           mean_matching=self.mean_matching, progress=self.progress)
-        if key is not None:
-            self._inversions[key] = inv
+        if source.key is not None and source.key in self._inversions:
+            return self._inversions[source.key]
+        x0 = image_to_tensor(source.arrays["image"])[None].to(self.device)
+        inv = invert_image(self.model, x0, condition_tensors(self.model, [source.arrays], self.device), self._spec(),
+                           runtime=self.runtime, mean_matching=self.mean_matching, progress=self.progress)
+        if source.key is not None:
+            self._inversions[source.key] = inv
         return inv
 
     def _spec(self) -> SamplerSpec:
@@ -144,58 +171,20 @@ class Relighter:
             raise ValueError("this model is a diffusion model: give the Relighter a sampler")
         return self.spec
 
-    def relight_arrays(self, arrays: Mapping[str, np.ndarray], lights: Iterable[np.ndarray],
-                       shadows: Iterable[float | None] | None = None, *, key: Any = None,
-                       what: str = "in-memory record") -> np.ndarray:
-        """Relit images (N, H, W, 3) uint8 of one record given as arrays under N target lights (and shadow
-        logits c'); ``key`` caches its inversion."""
-        # Non-finite inputs would decode to a black image without a word: stop here, naming what is wrong.
-        for name in self.needed_encodings():
-            errors.check_finite(arrays[name], f"{what}, encoding {name!r}")
-        return self._relight(arrays, lights, shadows, key, what)
-
-    def relight_record(self, store: EncodingStore, record_id: str, lights: Iterable[np.ndarray],
-                       shadows: Iterable[float | None] | None = None) -> np.ndarray:
-        """Relit images (N, H, W, 3) uint8 of one store record under N target lights (and shadow logits c')."""
-        # read() has checked the record's encodings; its inversion is cached under (store root, id).
-        return self._relight(self.read(store, record_id), lights, shadows, (str(store.root), record_id),
-                             f"record {record_id!r} of {store.root}")
-
-    def _relight(self, arrays: Mapping[str, np.ndarray], lights: Iterable[np.ndarray],
-                 shadows: Iterable[float | None] | None, key: Any, what: str) -> np.ndarray:
-        lights = [errors.check_light(l, f"target light {i} of {what}") for i, l in enumerate(lights)]
-        shadows = list(shadows) if shadows is not None else [None] * len(lights)
-        if len(shadows) != len(lights):
-            raise ValueError(f"{len(lights)} target lights but {len(shadows)} shadow values")
-        for s in shadows:
-            errors.check_number(s, f"target shadow strength for {what}")
-        inv = self.inversion(None, arrays=arrays, key=key)
+    def relight(self, source: Source, targets: Targets) -> np.ndarray:
+        """Relit images (N, H, W, 3) uint8 of ``source`` under the N ``targets`` (lights and shadow logits c'):
+        one inversion (cached), then batched decodes of ``batch_size`` targets."""
+        arrays = source.arrays
+        inv = self.inversion(source)
         x0 = image_to_tensor(arrays["image"])[None].to(self.device)
-        source = self._condition_tensors([arrays])
+        cond = condition_tensors(self.model, [arrays], self.device)
         out = []
-        chunks = range(0, len(lights), self.batch_size)
+        chunks = range(0, len(targets), self.batch_size)
         for start in tqdm(chunks, desc="relight", disable=not self.progress or len(chunks) == 1):
-            batch = [retarget(arrays, self.model_inputs, l, s)
-                     for l, s in zip(lights[start:start + self.batch_size], shadows[start:start + self.batch_size])]
-            x = relight(self.model, x0, source, self._condition_tensors(batch), self.spec, runtime=self.runtime,
-                        mean_matching=self.mean_matching, inversion=inv)
-            errors.check_finite(x.float().cpu().numpy(), f"relight of {what}",
+            batch = [retarget(arrays, self.model_inputs, light, c) for light, c in targets[start:start + self.batch_size]]
+            x = relight(self.model, x0, cond, condition_tensors(self.model, batch, self.device), self.spec,
+                        runtime=self.runtime, mean_matching=self.mean_matching, inversion=inv)
+            errors.check_finite(x.float().cpu().numpy(), f"relight of {source.what}",
                                 fix="the model produced NaN/Inf; try precision=fp32 or another checkpoint")
             out.extend(viz.to_uint8(xi.clamp(-1, 1)) for xi in x)
         return np.stack(out)
-
-
-def write_video(frames: np.ndarray, path: str | Path, fps: int = 20) -> Path:
-    """Write frames (N, H, W, 3) uint8 as a GIF (or MP4 when imageio's ffmpeg plugin is installed)."""
-    import imageio.v3 as iio
-
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if path.suffix == ".gif":
-        iio.imwrite(path, frames, duration=1000 / fps, loop=0)
-    else:
-        try:
-            iio.imwrite(path, frames, fps=fps, codec="libx264")
-        except Exception as e:  # no ffmpeg backend
-            raise RuntimeError(f"cannot write {path} ({e}); install imageio[ffmpeg] or use a .gif path") from e
-    return path

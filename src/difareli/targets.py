@@ -10,6 +10,7 @@ dominant direction (the input's own map is used for inversion only).
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Mapping
 
@@ -21,6 +22,37 @@ from difareli.render.screen_shadow import march_shadow
 from difareli import encodings
 from difareli.encodings import normalise_c
 from difareli.errors import UserError, check_finite, check_light, check_number
+
+
+@dataclass(frozen=True)
+class Targets:
+    """N target lights (N, 9, 3) and their shadow logits c' (``None``: the model's own rule), checked once."""
+
+    lights: np.ndarray
+    shadows: tuple[float | None, ...]
+
+    @classmethod
+    def of(cls, lights, shadows=None, what: str = "target") -> "Targets":
+        """Lights (one 9x3 or a sequence/array of them) and optional shadows, checked finite and in range."""
+        arr = np.asarray(lights, dtype=np.float64)
+        arr = arr[None] if arr.ndim == 2 else arr
+        if arr.ndim != 3 or arr.shape[1:] != (9, 3) or len(arr) == 0:
+            raise ValueError(f"{what}: expected one or more 9x3 SH lights, got shape {arr.shape}")
+        checked = np.stack([check_light(l, f"{what} light {i}") for i, l in enumerate(arr)])
+        cs = [None] * len(checked) if shadows is None else list(shadows)
+        if len(cs) != len(checked):
+            raise ValueError(f"{what}: {len(checked)} target lights but {len(cs)} shadow values")
+        cs = [check_number(c, f"{what} shadow strength {i}") for i, c in enumerate(cs)]
+        return cls(checked, tuple(None if c is None else float(c) for c in cs))
+
+    def __len__(self) -> int:
+        return len(self.lights)
+
+    def __getitem__(self, i):
+        """``(light, c)`` for an index; a :class:`Targets` for a slice."""
+        if isinstance(i, slice):
+            return list(zip(self.lights[i], self.shadows[i]))
+        return self.lights[i], self.shadows[i]
 
 
 def load_sh_file(path: str | Path) -> np.ndarray:
@@ -97,6 +129,21 @@ def rotation_lights(source_light: np.ndarray, axis: str, frames: int = 60) -> np
     raise ValueError(f"rotation axis must be 'yaw' or 'roll', got {axis!r}")
 
 
+def rotation_targets(source: Mapping[str, np.ndarray], axis: str, frames: int, *, store=None,
+                     given: float | None = None) -> tuple[Targets, str]:
+    """The targets of a 360-degree rotation video of a source's own light, and a sentence saying where their
+    shadow strength c' came from: ``given``; else, for a store record, :func:`video_shadow` (the input's own c
+    when shadowed, else the training split's typical shadowed c); else the input's own c (a photo)."""
+    own = encodings.shadow_logit(source)
+    if store is not None and own is not None:
+        c, why = video_shadow(store, own, given)
+    else:
+        c = given if given is not None else own
+        why = f"target c' = {c} ({'given' if given is not None else 'the input own c'})"
+    lights = rotation_lights(source["light"], axis, frames)
+    return Targets.of(lights, [c] * len(lights), f"rotation about {axis}"), why
+
+
 def target_shadow_map(arrays: Mapping[str, np.ndarray], light: np.ndarray, c: float) -> np.ndarray:
     """Binary cast-shadow map toward ``light``'s dominant direction, ray-marched on the stored depth, times
     the normalised shadow strength ``c`` (the ``shadow_map`` encoding's definition)."""
@@ -144,7 +191,7 @@ def retarget(arrays: Mapping[str, np.ndarray], names: list[str], light: np.ndarr
     re-rendering only those the encoding registry marks light-dependent; the rest are the input's own.
     Without ``shadow`` the input's own c (its ``shadow`` encoding, when stored) is kept."""
     if shadow is None and "shadow" in arrays:
-        shadow = float(np.asarray(arrays["shadow"]).reshape(-1)[0])
+        shadow = encodings.shadow_logit(arrays)
     out = {}
     for n in names:
         e = encodings.get(n)
@@ -195,9 +242,9 @@ def target_shadow_of(store, record_id: str, *, oracle: bool = False, split: str 
         return None, "no target c (the store has no 'shadow' encoding)"
     if oracle:
         name = "shadow_gt" if store.available("shadow_gt") else "shadow"
-        return float(np.asarray(store.read(record_id, [name])[name]).reshape(-1)[0]), "exact c (oracle)"
+        return encodings.shadow_logit(store.read(record_id, [name]), name), "exact c (oracle)"
     if stored_shadow_is_estimate(store):
-        return (float(np.asarray(store.read(record_id, ["shadow"])["shadow"]).reshape(-1)[0]),
+        return (encodings.shadow_logit(store.read(record_id, ["shadow"])),
                 "c estimated from the target image (stored 'shadow': the shadow classifier)")
     c = split_typical_c(store, split)
     if c is None:

@@ -145,6 +145,50 @@ def write_csv(report: VideoReport, path: str | Path, angles: np.ndarray | None =
     return path
 
 
+def write_video(frames: np.ndarray, path: str | Path, fps: int = 20) -> Path:
+    """Write frames (N, H, W, 3) uint8 as a GIF (or MP4 when imageio's ffmpeg plugin is installed)."""
+    import imageio.v3 as iio
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if path.suffix == ".gif":
+        iio.imwrite(path, frames, duration=1000 / fps, loop=0)
+    else:
+        try:
+            iio.imwrite(path, frames, fps=fps, codec="libx264")
+        except Exception as e:  # no ffmpeg backend
+            raise RuntimeError(f"cannot write {path} ({e}); install imageio[ffmpeg] or use a .gif path") from e
+    return path
+
+
+@dataclass
+class RotationVideo:
+    """A relit light rotation: its frames, the files written and the seconds the relight took."""
+
+    frames: np.ndarray
+    paths: dict[str, Path]
+    seconds: float
+
+
+def rotation_video(relighter, source, targets, out_dir: str | Path, name: str, *, fps: int = 20,
+                   fmt: str = "gif", zoom: int = 1, columns: int = 10) -> RotationVideo:
+    """Relight ``source`` under every frame's target (``relighter.relight``), write ``<name>.<fmt>`` (frames
+    upscaled ``zoom`` times, nearest) and its contact sheet ``<name>.png`` (``columns`` frames a row)."""
+    import time
+
+    from difareli import viz
+
+    start = time.perf_counter()
+    frames = relighter.relight(source, targets)
+    seconds = time.perf_counter() - start
+    out = Path(out_dir)
+    big = np.repeat(np.repeat(frames, zoom, axis=1), zoom, axis=2) if zoom > 1 else frames
+    paths = {"video": write_video(big, out / f"{name}.{fmt}", fps),
+             "sheet": viz.save_png(viz.grid([list(frames[i:i + columns]) for i in range(0, len(frames), columns)]),
+                                   out / f"{name}.png")}
+    return RotationVideo(frames, paths, seconds)
+
+
 def plot_temporal(report: VideoReport, path: str | Path, title: str = "") -> Path:
     """Frame-to-frame change of the relit sequence and of the GT, and the shadow IoU, per frame (PNG)."""
     import matplotlib

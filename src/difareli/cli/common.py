@@ -5,9 +5,10 @@ from __future__ import annotations
 
 from omegaconf import DictConfig, OmegaConf
 
+from difareli import errors, zoo
 from difareli.configs import CONFIG_PATH, instantiate_group
 
-__all__ = ["CONFIG_PATH", "instantiate_group", "log_hyperparameters", "metric_value"]
+__all__ = ["CONFIG_PATH", "instantiate_group", "log_hyperparameters", "metric_value", "validate_relight"]
 
 
 def log_hyperparameters(trainer, cfg: DictConfig) -> None:
@@ -22,3 +23,20 @@ def metric_value(metrics: dict, name: str | None) -> float | None:
     if not name or name not in metrics:
         return None
     return float(metrics[name])
+
+
+def validate_relight(cfg: DictConfig, *, frames: tuple[str, object, int], fps: tuple[str, object],
+                     envmap: tuple[str, object]) -> None:
+    """The checks every relighting command (relight, video) makes before any work: sampler, checkpoint (a file
+    or a shipped name), batch size, output folder, target shadow strength, and its frame count / rate / env map
+    under the command's own keys (``(key, value[, minimum])``)."""
+    errors.check_sampler(cfg.sampler)
+    zoo.resolve(cfg.checkpoint, "checkpoint")
+    errors.check_int(cfg.batch_size, "batch_size", 1)
+    errors.check_out_dir(cfg.out_dir)
+    errors.check_number(cfg.target.shadow, "target.shadow")
+    key, value, minimum = frames
+    errors.check_int(value, key, minimum)
+    errors.check_int(fps[1], fps[0], 1)
+    if envmap[1] is not None:
+        errors.check_file(envmap[1], envmap[0])

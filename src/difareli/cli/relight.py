@@ -14,11 +14,30 @@ import hydra
 import numpy as np
 from omegaconf import DictConfig
 
-from difareli import errors, photo, viz, zoo
+from difareli import errors, photo, viz
 from difareli.cli import common
-from difareli.relighting import OnePassRelightable, Relighter, write_video
+from difareli.relighting import Relighter, Source
 from difareli.store import EncodingStore
-from difareli.targets import rotation_lights, target_lights, video_shadow
+from difareli.targets import Targets, rotation_targets, target_lights
+from difareli.video import rotation_video
+
+
+def read_source(cfg: DictConfig, relighter: Relighter, store: EncodingStore | None) -> Source:
+    """The source, read and checked once: a store record, or a photo preprocessed in memory by the estimators of
+    difareli-preprocess (only the encodings the model reads)."""
+    if cfg.image is not None:
+        start = time.perf_counter()
+        arrays = photo.preprocess_photo(photo.read_photo(cfg.image), relighter.needed_encodings(),
+                                        size=int(cfg.photo_size), what=f"image={cfg.image}")
+        print(f"preprocessed {cfg.image} in {time.perf_counter() - start:.1f} s ({cfg.photo_size} px)")
+        return relighter.source_from_arrays(arrays, f"image={cfg.image}", key=("image", str(cfg.image)))
+    rid = cfg.record
+    if rid is None:
+        test = store.ids(split="test")
+        rid = (test or store.ids())[0]
+        print(f"record=null: relighting {rid}, the first record of the {'test split' if test else 'store'} "
+              f"(record=<id> picks another)")
+    return relighter.source(store, rid)
 
 
 def run(cfg: DictConfig) -> dict[str, Path]:
@@ -27,82 +46,52 @@ def run(cfg: DictConfig) -> dict[str, Path]:
     store = EncodingStore.open(cfg.store).use_versions(cfg.get("versions")) if cfg.store is not None else None
     relighter = Relighter(cfg.checkpoint, cfg.sampler, runtime=cfg.runtime, mean_matching=cfg.mean_matching,
                           batch_size=cfg.batch_size, progress=cfg.progress)
-    if cfg.image is not None:  # a photo: the estimators of difareli-preprocess, in memory, for what the model reads
-        start = time.perf_counter()
-        src = photo.preprocess_photo(photo.read_photo(cfg.image), relighter.needed_encodings(),
-                                     size=int(cfg.photo_size), what=f"image={cfg.image}")
-        print(f"preprocessed {cfg.image} in {time.perf_counter() - start:.1f} s ({cfg.photo_size} px)")
-        rid = Path(str(cfg.image)).stem
-
-        def relight_to(lights, shadows):
-            return relighter.relight_arrays(src, lights, shadows, key=("image", str(cfg.image)),
-                                            what=f"image={cfg.image}")
-    else:
-        rid = cfg.record or (store.ids(split="test") or store.ids())[0]
-        src = relighter.read(store, rid)  # checked finite by the relighting core
-
-        def relight_to(lights, shadows):
-            return relighter.relight_record(store, rid, lights, shadows)
-    out_dir, written = Path(cfg.out_dir), {}
-    t = cfg.target
-    want_image = any(t[k] is not None for k in ("light", "record", "yaw", "roll", "envmap"))
-    if not want_image and cfg.video.axis is None:
-        raise ValueError("nothing to do: give a target (target.light|record|yaw|roll|envmap) or video.axis=yaw|roll")
-    if want_image:
+    source = read_source(cfg, relighter, store)
+    out_dir, written, t = Path(cfg.out_dir), {}, cfg.target
+    if any(t[k] is not None for k in ("light", "record", "yaw", "roll", "envmap")):
         other = store.read(t.record, ["light", "shadow"]) if t.record is not None else {}
-        light = target_lights(src["light"], light=t.light, other_light=other.get("light"), yaw=t.yaw,
+        light = target_lights(source.arrays["light"], light=t.light, other_light=other.get("light"), yaw=t.yaw,
                               roll=t.roll, envmap=t.envmap)
         shadow = t.shadow if t.shadow is not None else (float(other["shadow"][0]) if "shadow" in other else None)
         start = time.perf_counter()
-        relit = relight_to([light], [shadow])[0]
-        how = "one pass" if isinstance(relighter.model, OnePassRelightable) else \
-            f"{cfg.sampler.name}, {cfg.sampler.steps} steps"
-        print(f"relit {rid} in {time.perf_counter() - start:.2f} s ({how}, "
-              f"{relighter.runtime.precision}{', compiled' if relighter.runtime.compile else ''})")
-        row = [src["image"], relit]
-        if t.record is not None and store is not None and store.meta(t.record).get("subject") == store.meta(rid).get("subject"):
+        relit = relighter.relight(source, Targets.of([light], [shadow], "the target"))[0]
+        print(f"relit {source.what} in {time.perf_counter() - start:.2f} s ({relighter.describe()})")
+        row = [source.arrays["image"], relit]
+        rid = source.key[1] if store is not None else None
+        if t.record is not None and store.meta(t.record).get("subject") == store.meta(rid).get("subject"):
             row.append(np.asarray(store.read(t.record, ["image"])["image"]))  # ground truth: same subject
         written["image"] = viz.save_png(relit, out_dir / "relit.png")
         written["comparison"] = viz.save_png(viz.grid([row]), out_dir / "comparison.png")
     if cfg.video.axis is not None:
-        lights = rotation_lights(src["light"], cfg.video.axis, cfg.video.frames)
-        start = time.perf_counter()
-        own = float(np.asarray(src["shadow"]).reshape(-1)[0]) if "shadow" in src else None
-        if store is not None and "shadow" in src:  # the stated policy (targets.video_shadow), printed
-            c, why = video_shadow(store, own, t.shadow)
-        else:
-            c = t.shadow if t.shadow is not None else own
-            why = f"target c' = {c} ({'given' if t.shadow is not None else 'the input own c'})"
+        targets, why = rotation_targets(source.arrays, cfg.video.axis, cfg.video.frames, store=store,
+                                        given=t.shadow)
         print(f"video shadow strength: {why}")
-        frames = relight_to(lights, [c] * len(lights))
-        print(f"{len(frames)} frames in {time.perf_counter() - start:.1f} s")
-        written["video"] = write_video(frames, out_dir / f"rotation_{cfg.video.axis}.{cfg.video.format}", cfg.video.fps)
-        sheet = [list(frames[i:i + 10]) for i in range(0, len(frames), 10)]
-        written["sheet"] = viz.save_png(viz.grid(sheet), out_dir / f"rotation_{cfg.video.axis}.png")
+        video = rotation_video(relighter, source, targets, out_dir, f"rotation_{cfg.video.axis}", fps=cfg.video.fps,
+                               fmt=cfg.video.format)
+        print(f"{len(video.frames)} frames in {video.seconds:.1f} s")
+        written.update(video.paths)
     for k, p in written.items():
         print(f"{k}: {p}")
     return written
 
 
 def validate(cfg: DictConfig) -> None:
-    """Config values and input files, checked before any work (issue 15)."""
-    errors.check_sampler(cfg.sampler)
-    zoo.resolve(cfg.checkpoint, "checkpoint")
-    errors.check_int(cfg.video.frames, "video.frames", 1)
-    errors.check_int(cfg.video.fps, "video.fps", 1)
-    errors.check_int(cfg.batch_size, "batch_size", 1)
-    errors.check_out_dir(cfg.out_dir)
+    """Config values and input files, checked before any work."""
+    common.validate_relight(cfg, frames=("video.frames", cfg.video.frames, 1), fps=("video.fps", cfg.video.fps),
+                            envmap=("target.envmap", cfg.target.envmap))
     if (cfg.image is None) == (cfg.store is None):
         raise errors.UserError("give the source as either store=<encodings store> (and record=) or image=<photo>; "
                                f"got store={cfg.store} image={cfg.image}")
     if cfg.target.record is not None and cfg.store is None:
         raise errors.UserError(f"target.record={cfg.target.record} names a store record: give store= too")
+    if all(cfg.target[k] is None for k in ("light", "record", "yaw", "roll", "envmap")) and cfg.video.axis is None:
+        raise errors.UserError("nothing to do: give a target (target.light|record|yaw|roll|envmap) or "
+                               "video.axis=yaw|roll")
     errors.check_int(cfg.photo_size, "photo_size", 16)
-    for key in ("yaw", "roll", "shadow"):
+    for key in ("yaw", "roll"):
         errors.check_number(cfg.target[key], f"target.{key}")
-    for key in ("light", "envmap"):
-        if cfg.target[key] is not None:
-            errors.check_file(cfg.target[key], f"target.{key}")
+    if cfg.target.light is not None:
+        errors.check_file(cfg.target.light, "target.light")
 
 
 @hydra.main(version_base="1.3", config_path=common.CONFIG_PATH, config_name="relight")

@@ -4,19 +4,19 @@ its SynthFaces ground truth, and measure the sequence (difareli.video)."""
 from __future__ import annotations
 
 import json
-import time
 from pathlib import Path
 
 import hydra
 import numpy as np
 from omegaconf import DictConfig
 
-from difareli import errors, sh, viz, zoo
+from difareli import errors, sh, viz
 from difareli import video as vid
 from difareli.cli import common
-from difareli.relighting import Relighter, write_video
+from difareli.relighting import Relighter
+from difareli.encodings import shadow_logit
 from difareli.store import EncodingStore
-from difareli.targets import load_envmap, video_shadow
+from difareli.targets import Targets, load_envmap, video_shadow
 
 _MEASURE = ("image", "light", "normal", "face_mask", "shadow_map", "shadow")
 
@@ -44,20 +44,20 @@ def run(cfg: DictConfig) -> dict[str, Path]:
                                "ground_truth=true); set oracle_shadow=false")
     relighter = Relighter(cfg.checkpoint, cfg.sampler, runtime=cfg.runtime, mean_matching=cfg.mean_matching,
                           batch_size=cfg.batch_size, progress=cfg.progress)
-    src = relighter.read(store, rid)
+    source = relighter.source(store, rid)
     arrays = {**{k: np.asarray(v) for k, v in store.read(rid, [n for n in _MEASURE if store.available(n)]).items()},
-              **src}
+              **source.arrays}
     angles, rots = rotation_matrices(cfg.rotation.axis, cfg.rotation.frames)
     env_light = None
     if cfg.rotation.envmap is not None:
         env_light = errors.check_light(sh.project_envmap(load_envmap(cfg.rotation.envmap)),
                                        f"the SH projection of {cfg.rotation.envmap}")
-    lights = sh.rotate(env_light if env_light is not None else src["light"], rots)
+    lights = sh.rotate(env_light if env_light is not None else source.arrays["light"], rots)
     what = (f"environment map {cfg.rotation.envmap}" if env_light is not None else "the input's light") + \
         f" rotated about {cfg.rotation.axis}, {len(angles)} frames"
 
     gt = _ground_truth(cfg, store, rid, rots, angles, env_light) if with_gt else None
-    record_c = float(np.asarray(arrays["shadow"]).reshape(-1)[0]) if "shadow" in arrays else None
+    record_c = shadow_logit(arrays)
     if cfg.oracle_shadow:
         shadows = [float(c) for c in gt.targets["shadow"][:, 0]]
         c_note = "target c' per frame = the ground truth's exact c (oracle_shadow=true)"
@@ -66,14 +66,12 @@ def run(cfg: DictConfig) -> dict[str, Path]:
         shadows = [c] * len(angles)
     print(f"{rid}: {what}; {c_note}")
 
-    start = time.perf_counter()
-    relit = relighter.relight_arrays(arrays, lights, shadows, key=(str(store.root), rid), what=f"record {rid!r}")
-    seconds = time.perf_counter() - start
+    out, ext = Path(cfg.out_dir), cfg.format
+    video = vid.rotation_video(relighter, source, Targets.of(lights, shadows, what), out, "relit", fps=cfg.fps,
+                               fmt=ext)
+    relit, seconds = video.frames, video.seconds
     print(f"{len(relit)} relit frames in {seconds:.1f} s ({len(relit) / seconds:.2f} frames/s)")
-
-    out, ext, written = Path(cfg.out_dir), cfg.format, {}
-    out.mkdir(parents=True, exist_ok=True)
-    written["relit"] = write_video(relit, out / f"relit.{ext}", cfg.fps)
+    written = {"relit": video.paths["video"], "frames_sheet": video.paths["sheet"]}
     step = max(1, len(relit) // cfg.sheet_columns)
     picks = list(range(0, len(relit), step))[:cfg.sheet_columns]
     rows = ([[gt.frames[i] for i in picks]] if gt is not None else []) + [[relit[i] for i in picks]]
@@ -81,9 +79,9 @@ def run(cfg: DictConfig) -> dict[str, Path]:
     summary = {"record": rid, "rotation": what, "shadow": c_note, "frames": len(relit),
                "sampler": dict(cfg.sampler), "seconds": round(seconds, 3), "oracle_shadow": bool(cfg.oracle_shadow)}
     if gt is not None:
-        written["gt"] = write_video(gt.frames, out / f"ground_truth.{ext}", cfg.fps)
+        written["gt"] = vid.write_video(gt.frames, out / f"ground_truth.{ext}", cfg.fps)
         side = np.stack([viz.grid([[g, r]]) for g, r in zip(gt.frames, relit)])
-        written["side_by_side"] = write_video(side, out / f"side_by_side.{ext}", cfg.fps)
+        written["side_by_side"] = vid.write_video(side, out / f"side_by_side.{ext}", cfg.fps)
         # The rule measures (it is no model input): it uses the exact input and frame lights when the store has them.
         rule_arrays = {**arrays, "light": np.asarray(store.read(rid, ["light_gt"])["light_gt"])} \
             if store.available("light_gt") else arrays
@@ -105,20 +103,13 @@ def run(cfg: DictConfig) -> dict[str, Path]:
 
 def validate(cfg: DictConfig) -> None:
     """Config values and input files, checked before any work."""
-    errors.check_sampler(cfg.sampler)
-    zoo.resolve(cfg.checkpoint, "checkpoint")  # a file or a shipped name, as in every other CLI
-    errors.check_int(cfg.rotation.frames, "rotation.frames", 2)
-    errors.check_int(cfg.fps, "fps", 1)
-    errors.check_int(cfg.batch_size, "batch_size", 1)
+    common.validate_relight(cfg, frames=("rotation.frames", cfg.rotation.frames, 2), fps=("fps", cfg.fps),
+                            envmap=("rotation.envmap", cfg.rotation.envmap))
     errors.check_int(cfg.sheet_columns, "sheet_columns", 1)
-    errors.check_out_dir(cfg.out_dir)
-    errors.check_number(cfg.target.shadow, "target.shadow")
     if cfg.rotation.axis not in ("yaw", "roll"):
         raise errors.UserError(f"rotation.axis={cfg.rotation.axis!r} is not a rotation axis; use yaw or roll")
     if cfg.format not in ("gif", "mp4"):
         raise errors.UserError(f"format={cfg.format!r} is not a video format; use gif or mp4")
-    if cfg.rotation.envmap is not None:
-        errors.check_file(cfg.rotation.envmap, "rotation.envmap")
 
 
 @hydra.main(version_base="1.3", config_path=common.CONFIG_PATH, config_name="video")

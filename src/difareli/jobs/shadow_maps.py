@@ -45,7 +45,7 @@ def c_range(store, split: str = "train", quantile: float = 0.01) -> tuple[float,
     if not 0.0 <= float(quantile) < 0.5:
         raise errors.UserError(f"c_quantile={quantile} is out of range; use a number in [0, 0.5), e.g. 0.01")
     ids = store.ids(split=split) or store.ids()
-    c = np.array([float(np.asarray(store.read(r, ["shadow"])["shadow"]).reshape(-1)[0]) for r in ids])
+    c = np.array([encodings.shadow_logit(store.read(r, ["shadow"])) for r in ids])
     errors.check_finite(c, f"shadow c of the {split} split of {store.root}")
     lo, hi = (float(v) for v in np.quantile(c, [quantile, 1.0 - quantile])) if c.size else (0.0, 0.0)
     if hi <= lo:
@@ -186,6 +186,6 @@ def compute(model, store, spec, *, provenance: Mapping[str, Any], ids: Sequence[
     name = derived.declare(store, "shadow_map", version, final)
     written = 0
     for r in ids:
-        c = float(np.asarray(store.read(r, ["shadow"])["shadow"]).reshape(-1)[0])
+        c = encodings.shadow_logit(store.read(r, ["shadow"]))
         written += derived.write(store, r, name, finish_map(diffs[r], thr, median, c, hits[r]), overwrite=True)
     return ShadowMapReport(name, raw, c_min, c_max, thr, len(todo), written, seconds)

@@ -18,7 +18,7 @@ from difareli import encodings as enc
 from difareli import viz
 from difareli.errors import UserError, check_record
 from difareli.inputs import condition_tensors, image_to_tensor
-from difareli.pairs import LIGHT_FROM_KEY, SOURCE_KEY, shadow_of, target_arrays
+from difareli.pairs import LIGHT_FROM_KEY, SOURCE_KEY, target_arrays
 from difareli.relighting import relight
 from difareli.store import EncodingStore
 
@@ -78,7 +78,7 @@ def generate_teacher_pairs(relighter, store: EncodingStore, out: str | Path, *, 
         srcs = [relighter.read(store, rid) for rid, _, _ in batch]
         lights = [check_record(store.read(lid, ["light"] + (["shadow"] if has_c else [])), lid, store.root)
                   for _, _, lid in batch]
-        tgts = [target_arrays(s, inputs, l["light"], shadow_of(l)) for s, l in zip(srcs, lights)]
+        tgts = [target_arrays(s, inputs, l["light"], enc.shadow_logit(l)) for s, l in zip(srcs, lights)]
         x0 = torch.stack([image_to_tensor(s["image"]) for s in srcs]).to(relighter.device)
         relit = relight(model, x0, condition_tensors(model, srcs, relighter.device),
                         condition_tensors(model, tgts, relighter.device), relighter.spec, runtime=relighter.runtime,
@@ -90,7 +90,7 @@ def generate_teacher_pairs(relighter, store: EncodingStore, out: str | Path, *, 
             arrays = {**{n: tgt[n] for n in dependent}, "image": viz.to_uint8(img.clamp(-1, 1)),
                       "light": light["light"], **({"shadow": light["shadow"]} if has_c else {})}
             meta = {SOURCE_KEY: rid, LIGHT_FROM_KEY: lid, "split": split, "subject": store.meta(rid).get("subject"),
-                    "shadow": shadow_of(light)}
+                    "shadow": enc.shadow_logit(light)}
             pairs.write(pair_id(rid, k), {n: arrays[n] for n in names}, meta)
             written += 1
         bar.update(len(batch))
