@@ -28,11 +28,11 @@ import numpy as np
 import torch
 
 from difareli import sh
+from difareli.imageops import LUMA
 
 SHADOW_RATIO = 0.6
 FACING = 0.3
 MIN_INPUT_IRRADIANCE = 0.15
-_LUMA = np.array([0.2126, 0.7152, 0.0722])
 
 
 def _unit(x: np.ndarray) -> np.ndarray:
@@ -42,7 +42,7 @@ def _unit(x: np.ndarray) -> np.ndarray:
 def judged_region(arrays: Mapping[str, np.ndarray]) -> np.ndarray:
     """Pixels where the shadow rule can judge (before the per-frame facing test), (H, W) bool."""
     normal = np.asarray(arrays["normal"], dtype=np.float64)
-    e_in = sh.irradiance(np.asarray(arrays["light"], np.float64), normal) @ _LUMA
+    e_in = sh.irradiance(np.asarray(arrays["light"], np.float64), normal) @ LUMA
     own = np.asarray(arrays["shadow_map"]) > 0 if "shadow_map" in arrays else False
     return (np.asarray(arrays["face_mask"], bool) & (np.linalg.norm(normal, axis=-1) > 0.5)
             & (e_in > MIN_INPUT_IRRADIANCE) & ~own)
@@ -60,8 +60,8 @@ def detect_cast_shadow(frames: np.ndarray, arrays: Mapping[str, np.ndarray], lig
     lights = np.asarray(lights, dtype=np.float64)
     shadow, judged = [], []
     for frame, light in zip(np.asarray(frames), lights):
-        pred = (albedo * np.maximum(sh.irradiance(light, normal), 0.0)) @ _LUMA
-        lum = _unit(frame) @ _LUMA
+        pred = (albedo * np.maximum(sh.irradiance(light, normal), 0.0)) @ LUMA
+        lum = _unit(frame) @ LUMA
         here = region & (normal @ sh.dominant_direction(light) > FACING)
         shadow.append(here & (lum < SHADOW_RATIO * np.maximum(pred, 1e-6)))
         judged.append(here)

@@ -21,10 +21,9 @@ import numpy as np
 
 from difareli import sh
 from difareli.albedo import synthfaces_mean_skin_albedo
+from difareli.imageops import LUMA
 
 from .loading import BadInput
-
-_LUMA = np.array([0.2126, 0.7152, 0.0722])
 
 
 class SkinSHLight:
@@ -50,7 +49,7 @@ class SkinSHLight:
         m = cv2.erode(skin.astype(np.uint8), disk, borderType=cv2.BORDER_CONSTANT, borderValue=0).astype(bool)
         rgb = image.astype(np.float64) / 255.0
         return (m & gbuffer.hit & (gbuffer.normal[..., 2] > self.min_nz)
-                & (rgb.max(-1) < self.saturated) & (rgb @ _LUMA > self.dark))
+                & (rgb.max(-1) < self.saturated) & (rgb @ LUMA > self.dark))
 
     def fit(self, image: np.ndarray, normal: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict]:
         """Robust fit on ``mask``; returns (light, mask of pixels kept, stats)."""
@@ -61,7 +60,7 @@ class SkinSHLight:
         keep = np.ones(len(y), dtype=bool)
         for _ in range(2):
             light = sh.fit(y[keep], n[keep], self.albedo, ridge=self.ridge * keep.sum())
-            res = (y - self.albedo * sh.irradiance(light, n)) @ _LUMA
+            res = (y - self.albedo * sh.irradiance(light, n)) @ LUMA
             mad = 1.4826 * np.median(np.abs(res - np.median(res))) + 1e-6
             new = np.abs(res - np.median(res)) < self.clip_mads * mad
             if new.sum() < self.min_pixels or np.array_equal(new, keep):
@@ -69,7 +68,7 @@ class SkinSHLight:
             keep = new
         pred = self.albedo * sh.irradiance(light, n[keep])
         obs = y[keep]
-        lum_p, lum_o = pred @ _LUMA, obs @ _LUMA
+        lum_p, lum_o = pred @ LUMA, obs @ LUMA
         stats = {"pixels": int(keep.sum()), "rmse": float(np.sqrt(((pred - obs) ** 2).mean())),
                  "rel_rmse": float(np.sqrt(((lum_p - lum_o) ** 2).mean()) / max(lum_o.mean(), 1e-6)),
                  "corr": float(np.corrcoef(lum_p, lum_o)[0, 1]) if lum_o.std() > 0 else 0.0}

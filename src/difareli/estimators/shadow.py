@@ -22,21 +22,21 @@ import numpy as np
 
 from difareli import sh
 from difareli.encodings import normalise_c
+from difareli.imageops import LUMA
 from difareli.render import cast_shadow
 
 LABEL_S = 0.02
 LABEL_C = math.log(LABEL_S / (1 - LABEL_S))
 FEATURES = ("cast_fraction", "cast_darkening", "unexplained_dark", "directionality", "frontal", "ratio_spread")
 DEFAULT_WEIGHTS = Path(__file__).parent / "weights" / "shadow_logreg.json"
-_LUMA = np.array([0.2126, 0.7152, 0.0722])
 
 
 def features(image: np.ndarray, gbuffer, region: np.ndarray, light: np.ndarray, albedo, cast: np.ndarray) -> np.ndarray:
     """The six features (``FEATURES``) on ``region`` (skin on the face surface); see the inline notes."""
     region = region & gbuffer.hit
     n = gbuffer.normal[region].astype(np.float64)
-    obs = (image[region].astype(np.float64) / 255.0) @ _LUMA
-    pred = (np.asarray(albedo) * sh.irradiance(np.asarray(light, np.float64), n)) @ _LUMA
+    obs = (image[region].astype(np.float64) / 255.0) @ LUMA
+    pred = (np.asarray(albedo) * sh.irradiance(np.asarray(light, np.float64), n)) @ LUMA
     logr = np.log(np.maximum(obs, 1e-3)) - np.log(np.maximum(pred, 1e-3))
     d = sh.dominant_direction(light)
     in_cast = cast[region]

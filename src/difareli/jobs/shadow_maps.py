@@ -27,14 +27,13 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from difareli import derived, encodings, errors
-from difareli.inputs import condition_tensors, image_to_tensor, relight_reads
+from difareli import derived, encodings, errors, imageops
 from difareli.diffusion.relight import Inversion
+from difareli.imageops import median_mask
+from difareli.inputs import condition_tensors, image_to_tensor, relight_reads
 from difareli.relightable import OnePassRelightable, model_inputs
 from difareli.relighting import invert_image, relight
 from difareli.targets import retarget
-
-_LUMA = np.array([0.2126, 0.7152, 0.0722])
 
 
 def c_range(store, split: str = "train", quantile: float = 0.01) -> tuple[float, float]:
@@ -77,11 +76,9 @@ def otsu_threshold(values: np.ndarray, bins: int = 256) -> float:
 
 def finish_map(diff: np.ndarray, threshold: float, median: int, c: float, hit: np.ndarray | None = None) -> np.ndarray:
     """Threshold, median-filter, restrict to the mesh and scale by ``normalise_c(c)`` -> float32 HxW."""
-    from scipy.ndimage import median_filter
-
     binary = np.asarray(diff) > threshold
     if median > 1:
-        binary = median_filter(binary.astype(np.uint8), size=int(median), mode="constant", cval=0).astype(bool)
+        binary = median_mask(binary, int(median))
     if hit is not None:
         binary &= np.asarray(hit, bool)
     return (binary * encodings.normalise_c(c)).astype(np.float32)
@@ -90,7 +87,7 @@ def finish_map(diff: np.ndarray, threshold: float, median: int, c: float, hit: n
 def luminance(x: torch.Tensor) -> np.ndarray:
     """[B, 3, H, W] in [-1, 1] -> [B, H, W] Rec. 709 luminance in [0, 1] (float64)."""
     img = ((x.float().clamp(-1, 1) + 1) / 2).cpu().numpy().astype(np.float64)
-    return np.einsum("bchw,c->bhw", img, _LUMA)
+    return imageops.luminance(np.moveaxis(img, 1, -1))
 
 
 @torch.no_grad()

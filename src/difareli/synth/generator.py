@@ -47,6 +47,7 @@ from typing import Callable, Iterator
 import numpy as np
 
 from difareli import sh
+from difareli.imageops import LUMA
 from difareli.processes import die_with_parent
 from difareli.encodings import (FACE_PARTS, FOREGROUND_PARTS, PART_INDEX, SHADOW_C_HI, SHADOW_C_LO, SHADOW_S_MIN,
                                 normalise_c)
@@ -65,7 +66,6 @@ INPUTS = ("estimated", "exact")
 IDENTITY_DIM = 128  # matches the dlib face descriptor used for real photos
 # The c range lives in the schema (shared with targets for relighting); re-exported under short names.
 S_MIN, C_LO, C_HI = SHADOW_S_MIN, SHADOW_C_LO, SHADOW_C_HI
-_LUMA = np.array([0.2126, 0.7152, 0.0722])
 _FACE_IDX = np.array([PART_INDEX[p] for p in FACE_PARTS])
 _FG_IDX = np.array([PART_INDEX[p] for p in FOREGROUND_PARTS])
 
@@ -253,8 +253,8 @@ def shade(subject: Subject, light: Light, cast, cfg: SynthConfig) -> tuple[dict[
     image = np.round(img * 255.0).astype(np.uint8)
 
     # c: the fraction of the light that every sun's cast shadow removes (one sun: exactly v1's expression).
-    den = np.maximum(e_open @ _LUMA, 1e-6)
-    strength = float(sum((c * ((sun @ _LUMA) / den)).sum() for sun, c in zip(sun_terms, casts))
+    den = np.maximum(e_open @ LUMA, 1e-6)
+    strength = float(sum((c * ((sun @ LUMA) / den)).sum() for sun, c in zip(sun_terms, casts))
                      / max(hit.sum(), 1))
     s = float(np.clip(strength, S_MIN, 1 - S_MIN))
     c = math.log(s / (1 - s))
