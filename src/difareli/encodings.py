@@ -36,6 +36,11 @@ def normalise_c(c):
     return np.clip((np.asarray(c, dtype=np.float64) - SHADOW_C_LO) / (SHADOW_C_HI - SHADOW_C_LO), 0.0, 1.0)
 
 
+def known_normals(normal) -> np.ndarray:
+    """Where a stored ``normal`` map holds a normal (unit vectors on the mesh, 0 off it): ``|n| > 0.5``."""
+    return np.linalg.norm(np.asarray(normal, dtype=np.float64), axis=-1) > 0.5
+
+
 def shadow_logit(arrays: Mapping[str, Any], name: str = "shadow") -> float | None:
     """A record's scalar shadow logit c (its ``shadow`` encoding, stored as shape (1,)), or ``None`` without it."""
     return float(np.asarray(arrays[name]).reshape(-1)[0]) if name in arrays else None

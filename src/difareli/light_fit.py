@@ -26,13 +26,13 @@ import numpy as np
 
 from difareli import sh
 from difareli.albedo import synthfaces_mean_skin_albedo
-from difareli.encodings import PART_INDEX
+from difareli.encodings import PART_INDEX, known_normals
 
 
 def face_normals(arrays: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """(normals float64 HxWx3, bool mask of pixels with a stored unit normal)."""
     n = np.asarray(arrays["normal"], dtype=np.float64)
-    return n, np.linalg.norm(n, axis=-1) > 0.5
+    return n, known_normals(n)
 
 
 @dataclass(frozen=True)

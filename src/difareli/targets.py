@@ -154,7 +154,7 @@ def target_shadow_map(arrays: Mapping[str, np.ndarray], light: np.ndarray, c: fl
     d = sh.dominant_direction(light)
     cast = march_shadow(depth, hit, cam, d)
     # Where the face normal is known, a point turned away from the light is in attached, not cast, shadow.
-    known = np.linalg.norm(normal, axis=-1) > 0.5
+    known = encodings.known_normals(normal)
     cast &= ~(known & (normal @ d <= 0))
     return (cast * normalise_c(c)).astype(np.float32)
 
@@ -162,7 +162,7 @@ def target_shadow_map(arrays: Mapping[str, np.ndarray], light: np.ndarray, c: fl
 def render_shading(arrays: Mapping[str, np.ndarray], light: np.ndarray, shadow: float | None = None) -> np.ndarray:
     """The shading reference under ``light`` from the stored normals (the ``shading`` encoding's re-render)."""
     normal = np.asarray(arrays["normal"], dtype=np.float64)
-    mask = np.linalg.norm(normal, axis=-1) > 0.5
+    mask = encodings.known_normals(normal)
     return sh.shading_reference(light, normal, mask=mask).astype(np.float32)
 
 

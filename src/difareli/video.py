@@ -28,6 +28,7 @@ import numpy as np
 import torch
 
 from difareli import sh
+from difareli.encodings import known_normals
 from difareli.imageops import LUMA
 
 SHADOW_RATIO = 0.6
@@ -44,7 +45,7 @@ def judged_region(arrays: Mapping[str, np.ndarray]) -> np.ndarray:
     normal = np.asarray(arrays["normal"], dtype=np.float64)
     e_in = sh.irradiance(np.asarray(arrays["light"], np.float64), normal) @ LUMA
     own = np.asarray(arrays["shadow_map"]) > 0 if "shadow_map" in arrays else False
-    return (np.asarray(arrays["face_mask"], bool) & (np.linalg.norm(normal, axis=-1) > 0.5)
+    return (np.asarray(arrays["face_mask"], bool) & known_normals(normal)
             & (e_in > MIN_INPUT_IRRADIANCE) & ~own)
 
 
