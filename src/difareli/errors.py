@@ -90,6 +90,10 @@ def user_message(exc: BaseException) -> str | None:
         return f"{str(exc).splitlines()[0]}; check the spelling against the config (--cfg job prints it)"
     if isinstance(exc, (ValueError, KeyError, FileNotFoundError)) and _raised_here(exc):
         return _text(exc)
+    if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        where = f" writing {exc.filename}" if exc.filename else ""
+        return (f"no space left on the device{where} ({exc.strerror}); free space or give another output folder "
+                "(files and records already complete are kept)")
     if isinstance(exc, OSError) and exc.errno in _USER_ERRNOS and exc.filename is not None:
         return f"{exc.filename}: {exc.strerror}; check the path and its permissions"
     return None

@@ -1,0 +1,112 @@
+"""Writing files so that nothing already written is lost or left half-written, and one writer per output folder.
+
+- :func:`atomic_path` yields a temporary path *beside* the target (same folder, so same filesystem) and renames
+  it into place only when the body finished; a kill at any moment leaves the previous file or the new one,
+  never a torn one (``durable`` also fsyncs the file and its folder, against power loss).
+- :func:`torch_save_atomic`, :func:`write_text_atomic`, :func:`write_json_atomic` are that for torch objects,
+  text and JSON; a full disk is a :class:`~difareli.errors.UserError` naming the file, and the temporary file is
+  removed.
+- :func:`folder_lock` holds an exclusive ``fcntl`` lock on ``<folder>/.difareli.lock`` for a command's whole run:
+  a second concurrent writer into the same output folder stops at once with a message naming the first one's
+  command and pid (the lock dies with its process, so a killed run never leaves a stale lock).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import json
+import os
+from pathlib import Path
+from typing import Any, Iterator
+
+from difareli.errors import UserError
+
+LOCK_NAME = ".difareli.lock"
+
+
+def _fsync_dir(folder: Path) -> None:
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def no_space(path: str | Path, err: OSError) -> UserError:
+    """The one-line error for a full disk (or quota) while writing ``path``."""
+    return UserError(f"no space left on the device writing {path} ({err.strerror}); free space or write elsewhere "
+                     "(nothing already written was changed)")
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | Path, *, durable: bool = False) -> Iterator[Path]:
+    """Yield a temporary file path beside ``path``; rename it onto ``path`` when the ``with`` body succeeds."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    try:
+        yield tmp
+        if durable:
+            with open(tmp, "rb+") as f:
+                os.fsync(f.fileno())
+        os.replace(tmp, path)
+        if durable:
+            _fsync_dir(path.parent)
+    except OSError as e:
+        tmp.unlink(missing_ok=True)
+        if e.errno in (errno.ENOSPC, errno.EDQUOT):
+            raise no_space(path, e) from None
+        raise
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def torch_save_atomic(obj: Any, path: str | Path, *, durable: bool = True) -> Path:
+    """``torch.save`` into ``path`` atomically (checkpoints: durable by default)."""
+    import torch
+
+    with atomic_path(path, durable=durable) as tmp:
+        with open(tmp, "wb") as f:
+            torch.save(obj, f)
+    return Path(path)
+
+
+def write_text_atomic(path: str | Path, text: str, *, durable: bool = False) -> Path:
+    """Write ``text`` into ``path`` atomically."""
+    with atomic_path(path, durable=durable) as tmp:
+        tmp.write_text(text)
+    return Path(path)
+
+
+def write_json_atomic(path: str | Path, obj: Any, *, durable: bool = False, indent: int | None = 2) -> Path:
+    """Write ``obj`` as JSON into ``path`` atomically (numpy values as lists, other objects as strings)."""
+    text = json.dumps(obj, indent=indent, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))
+    return write_text_atomic(path, text + "\n", durable=durable)
+
+
+@contextlib.contextmanager
+def folder_lock(folder: str | Path, command: str) -> Iterator[Path]:
+    """Hold the exclusive lock of an output ``folder`` (created) for ``command``; a second holder is refused."""
+    import fcntl
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    lock = folder / LOCK_NAME
+    fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 200, 0).decode(errors="replace").strip() or "another difareli command"
+            raise UserError(f"{folder} is being written by {holder}; wait for it to finish or give another output "
+                            "folder") from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"difareli-{command} (pid {os.getpid()})".encode(), 0)
+        yield folder
+    finally:
+        os.close(fd)  # closing releases the lock

@@ -1,0 +1,90 @@
+"""Checkpoints survive kills and full disks: the atomic writer (difareli.fileio) behind AtomicCheckpointIO."""
+
+from __future__ import annotations
+
+import errno
+import os
+import random
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+from difareli.errors import UserError
+from difareli.fileio import torch_save_atomic
+
+SRC = str(Path(__file__).resolve().parents[1] / "src")
+
+# Rewrites last.ckpt forever, alternating two versions, and says when the first write is done.
+CHILD = textwrap.dedent("""
+    import sys, torch
+    from difareli.fileio import torch_save_atomic
+    target = sys.argv[1]
+    versions = [{"global_step": s, "state_dict": {"w": torch.full((1_500_000,), float(s))}} for s in (1, 2)]
+    i = 0
+    while True:
+        torch_save_atomic(versions[i % 2], target)
+        if i == 0:
+            print("ready", flush=True)
+        i += 1
+""")
+
+
+def _loads(path: Path) -> int:
+    ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    step = int(ckpt["global_step"])
+    assert torch.equal(ckpt["state_dict"]["w"], torch.full((1_500_000,), float(step)))  # whole, not torn
+    return step
+
+
+@pytest.mark.slow  # 20 child processes (~1-4 s each: torch import)
+def test_kill_at_random_moments_never_leaves_an_unloadable_last_ckpt(tmp_path):
+    target = tmp_path / "checkpoints" / "last.ckpt"
+    env = {**os.environ, "PYTHONPATH": SRC, "OMP_NUM_THREADS": "1"}
+    rng = random.Random(0)
+    seen = set()
+    for _ in range(20):
+        proc = subprocess.Popen([sys.executable, "-c", CHILD, str(target)], env=env, stdout=subprocess.PIPE,
+                                text=True)
+        assert proc.stdout.readline().strip() == "ready"
+        time.sleep(rng.uniform(0.0, 0.25))  # somewhere inside one of the following writes
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(30)
+        seen.add(_loads(target))
+    assert seen <= {1, 2}
+    # Leftover temporary files of killed writers sit beside the target, never in its place.
+    assert all(p.name.startswith(".last.ckpt.tmp-") for p in target.parent.iterdir() if p != target)
+
+
+def test_full_disk_names_the_checkpoint_and_keeps_the_previous_one(tmp_path, monkeypatch):
+    target = tmp_path / "last.ckpt"
+    torch_save_atomic({"global_step": 1, "state_dict": {"w": torch.full((1_500_000,), 1.0)}}, target)
+
+    def full(obj, f, *a, **k):
+        f.write(b"partial")
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(torch, "save", full)
+    with pytest.raises(UserError, match=r"no space left on the device writing .*last\.ckpt"):
+        torch_save_atomic({"global_step": 2}, target)
+    monkeypatch.undo()
+    assert _loads(target) == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["last.ckpt"]  # the partial temporary file is gone
+
+
+def test_trainer_config_writes_checkpoints_through_the_atomic_io(tmp_path):
+    import hydra
+
+    from difareli.lit.checkpoint_io import AtomicCheckpointIO
+
+    from .helpers import compose_train
+
+    for trainer in ("default", "cpu", "ddp_slurm"):
+        cfg = compose_train(tmp_path, [f"trainer={trainer}"])
+        plugins = [hydra.utils.instantiate(p) for p in cfg.trainer.plugins]
+        assert any(isinstance(p, AtomicCheckpointIO) for p in plugins), trainer
