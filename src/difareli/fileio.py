@@ -25,13 +25,16 @@ from difareli.errors import UserError
 LOCK_NAME = ".difareli.lock"
 
 
-def _fsync_dir(folder: Path) -> None:
+def fsync_dir(folder: str | Path) -> None:
+    """Make a rename in ``folder`` durable; best effort where the platform or file system cannot."""
     try:
         fd = os.open(folder, os.O_RDONLY)
     except OSError:
         return
     try:
         os.fsync(fd)
+    except OSError:
+        pass
     finally:
         os.close(fd)
 
@@ -55,7 +58,7 @@ def atomic_path(path: str | Path, *, durable: bool = False) -> Iterator[Path]:
                 os.fsync(f.fileno())
         os.replace(tmp, path)
         if durable:
-            _fsync_dir(path.parent)
+            fsync_dir(path.parent)
     except OSError as e:
         tmp.unlink(missing_ok=True)
         if e.errno in (errno.ENOSPC, errno.EDQUOT):

@@ -22,6 +22,8 @@ Every item's target condition is the source's encodings with the light-dependent
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
@@ -135,6 +137,25 @@ class GroundTruthPairs(PairDataset):
         return self.item(rid, src, tgt, tgt_rec["image"])
 
 
+def check_pair_source(pair_store: EncodingStore, store: EncodingStore) -> None:
+    """A teacher-pair store must come from this training store (its provenance, or for pair stores written
+    before provenance was recorded, the source path in its header)."""
+    from difareli.provenance import PROVENANCE, store_identity
+
+    prov = Path(pair_store.root) / PROVENANCE
+    if prov.is_file():
+        made_from = json.loads(prov.read_text()).get("source_store")
+        ok, have = made_from == store_identity(store), f"a store with identity {made_from}"
+    else:
+        made_from = pair_store.store_meta.get("source_store")
+        ok = made_from is not None and Path(made_from).resolve() == Path(store.root).resolve()
+        have = f"store {made_from}"
+    if not ok:
+        raise UserError(f"teacher-pair store {pair_store.root} was made from {have}, not from the training store "
+                        f"{store.root} ({store_identity(store)}); give the pair store made from it "
+                        f"(difareli-teacher-pairs store={store.root} out=<new folder>)")
+
+
 class TeacherPairs(PairDataset):
     """Pairs of a teacher-pair store whose sources are among ``ids`` (the split's records)."""
 
@@ -144,6 +165,7 @@ class TeacherPairs(PairDataset):
         if missing:
             raise UserError(f"teacher-pair store {pair_store.root} lacks {missing} (the student's target "
                             "encodings); regenerate it with difareli-teacher-pairs model=<this student's variant>")
+        check_pair_source(pair_store, store)
         wanted = set(self.ids)
         self.pair_store = pair_store
         self.pairs = [p for p in pair_store.ids() if pair_store.meta(p).get(SOURCE_KEY) in wanted]

@@ -25,6 +25,7 @@ from typing import Any, Iterable, Mapping
 
 import numpy as np
 
+from difareli.fileio import fsync_dir
 from difareli import encodings as enc
 from difareli.errors import UserError
 
@@ -56,20 +57,6 @@ def _json_default(obj: Any) -> Any:
     if isinstance(obj, Path):
         return str(obj)
     raise TypeError(f"{type(obj).__name__} is not JSON-serialisable")
-
-
-def _fsync_dir(path: Path) -> None:
-    # Makes a rename durable; not supported on every platform/file system, where it is best effort.
-    try:
-        fd = os.open(path, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
 
 
 def _pid_alive(pid: int) -> bool:
@@ -161,7 +148,7 @@ class EncodingStore:
         tmp = root / f"{HEADER}.tmp-{os.getpid()}"
         tmp.write_text(json.dumps(header, indent=2, sort_keys=True) + "\n")
         os.replace(tmp, root / HEADER)
-        _fsync_dir(root)
+        fsync_dir(root)
         return cls(root, header, durable=durable)
 
     @classmethod
@@ -275,7 +262,7 @@ class EncodingStore:
                 f.write(meta_text + "\n")
                 self._sync(f)
             if self.durable:
-                _fsync_dir(tmp)
+                fsync_dir(tmp)
             written = self._commit(tmp, final, overwrite)
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
@@ -329,7 +316,7 @@ class EncodingStore:
                 return False
             raise
         if self.durable:
-            _fsync_dir(self.records_dir)
+            fsync_dir(self.records_dir)
         if old is not None:
             shutil.rmtree(old, ignore_errors=True)
         return True

@@ -16,10 +16,13 @@ from tqdm.auto import tqdm
 
 from difareli import encodings as enc
 from difareli import viz
+from difareli import provenance
 from difareli.errors import UserError, check_record
+from difareli.fileio import folder_lock
 from difareli.inputs import condition_tensors, image_to_tensor
 from difareli.pairs import LIGHT_FROM_KEY, SOURCE_KEY, target_arrays
 from difareli.relighting import relight
+from difareli.provenance import model_identity, store_identity
 from difareli.store import EncodingStore
 
 
@@ -49,8 +52,26 @@ def generate_teacher_pairs(relighter, store: EncodingStore, out: str | Path, *, 
     ``relighter`` (a :class:`~difareli.relighting.Relighter`), ``batch_size`` images per batched relight;
     write each pair atomically into the pair store at ``out`` and skip pairs already there (resume).
 
-    ``stop_after`` ends after that many new pairs (tests simulate a kill with it). Returns counts and pairs/s.
+    ``out`` is locked for the run, and its ``provenance.json`` ties it to the source store and the teacher's
+    weights (sampler, precision, split, seed): a rerun with another teacher or store is refused, naming what
+    differs. ``stop_after`` ends after that many new pairs (tests simulate a kill with it). Returns counts and
+    pairs/s.
     """
+    with folder_lock(out, "teacher-pairs"):
+        return _generate(relighter, store, out, split=split, per_record=per_record, limit=limit,
+                         batch_size=batch_size, seed=seed, progress=progress, stop_after=stop_after)
+
+
+def pair_provenance(relighter, store: EncodingStore, *, split: str, seed: int, per_record: int) -> dict[str, Any]:
+    """What makes a teacher-pair store: the source store, the teacher's weights and how they relit."""
+    return {"kind": "teacher_pairs", "source_store": store_identity(store), "teacher": model_identity(relighter.model),
+            "sampler": relighter.spec.to_config() if relighter.spec is not None else None,
+            "mean_matching": bool(relighter.mean_matching), "precision": relighter.runtime.precision,
+            "split": split, "seed": int(seed), "per_record": int(per_record)}
+
+
+def _generate(relighter, store: EncodingStore, out: str | Path, *, split: str, per_record: int, limit: int | None,
+              batch_size: int, seed: int, progress: bool, stop_after: int | None) -> dict[str, Any]:
     model = relighter.model
     inputs = [*model.spatial_inputs, *model.nonspatial_inputs]
     dependent = enc.light_dependent(inputs)
@@ -63,6 +84,9 @@ def generate_teacher_pairs(relighter, store: EncodingStore, out: str | Path, *, 
         todo = todo[:int(limit)]
     has_c = store.available("shadow")
     names = list(dict.fromkeys(["image", "light", *(["shadow"] if has_c else []), *dependent]))
+    done = (Path(out) / "store.json").is_file() and bool(EncodingStore.open(out).ids())
+    provenance.ensure(out, pair_provenance(relighter, store, split=split, seed=seed, per_record=per_record),
+                      "teacher pairs", has_results=done)
     pairs = EncodingStore.create(out, store.dims, names, meta={"kind": "teacher_pairs", "source_store": str(store.root),
                                                               "split": split, "seed": seed, "per_record": per_record},
                                  durable=True)
