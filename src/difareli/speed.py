@@ -12,15 +12,18 @@ discretisation error alone) and, on SynthFaces, the ground truth: the same subje
 light. The target condition is what a user would have (the light fitted to the target image, an estimated or
 policy c, encodings re-rendered on the source's geometry); ``oracle_target`` takes that record's own
 light-dependent encodings (shading, shadow map, light, c), which SynthFaces renders exactly for the same geometry.
+
+Untrained models (timing only) and their random inputs come from :mod:`difareli.perf`.
 """
 
 from __future__ import annotations
 
 import csv
 import math
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 import torch
@@ -28,8 +31,9 @@ from torch import Tensor
 from tqdm.auto import tqdm
 
 from difareli import encodings, metrics, viz
-from difareli.inputs import Condition, condition_tensors, image_to_tensor
 from difareli.diffusion.relight import SamplerSpec
+from difareli.inputs import Condition, condition_tensors, image_to_tensor
+from difareli.perf import random_condition, untrained_model  # noqa: F401 (bench-samplers reads speed.untrained_model)
 from difareli.relighting import relight
 from difareli.runtime import Runtime
 from difareli.store import EncodingStore
@@ -52,40 +56,17 @@ class Case:
     inputs: str = ""                         # how the target condition was made (estimated or oracle inputs)
 
 
-def untrained_model(model_cfg: Mapping[str, Any], preset: str = "ffhq256", resolution: int | None = None,
-                    device: str | torch.device = "cpu", seed: int = 0, dims: Mapping[str, int] | None = None):
-    """``(model, resolution)``: a randomly initialised model of a ``conf/model`` config (its ``_target_`` module
-    built with ``preset``), input sizes from the encoding registry and the producers' dimensions
-    (:data:`difareli.encodings.PRODUCER_DIMS`), in eval mode on ``device``."""
-    import hydra
-
-    from difareli.nn import get_config
-
-    res = int(resolution or get_config(preset).image_size)
-    dims = {"H": res, "W": res, **encodings.PRODUCER_DIMS, **dict(dims or {})}
-    cfg = dict(model_cfg)
-    input_dims = {"spatial_channels": encodings.total_channels(cfg.get("spatial_inputs") or [], dims),
-                  "nonspatial_dim": encodings.total_channels(cfg.get("nonspatial_inputs") or [], dims),
-                  "resolution": res}
-    torch.manual_seed(seed)
-    model = hydra.utils.instantiate(cfg, preset=preset, input_dims=input_dims)
-    return model.to(device).eval().requires_grad_(False), res
-
-
 def random_cases(n: int, model, resolution: int, device: str | torch.device = "cpu", seed: int = 0) -> list[Case]:
-    """Random inputs of the model's input shapes for timing an untrained network (no references)."""
+    """Random inputs of the model's input shapes for timing an untrained network (no references): per case an
+    image, then the source and the target condition (:func:`difareli.perf.random_condition`), one generator."""
     g = torch.Generator().manual_seed(seed)
-    dims = {"H": resolution, "W": resolution, **encodings.PRODUCER_DIMS}
-    sc = encodings.total_channels(model.spatial_inputs, dims)
-    nd = encodings.total_channels(model.nonspatial_inputs, dims)
 
-    def cond():
-        sp = torch.rand(1, sc, resolution, resolution, generator=g) if model.spatial_inputs else None
-        ns = torch.randn(1, nd, generator=g) if model.nonspatial_inputs else None
-        return tuple(None if v is None else v.to(device) for v in (sp, ns))
+    def case(i: int) -> Case:
+        x0 = (torch.rand(1, 3, resolution, resolution, generator=g) * 2 - 1).to(device)
+        source = random_condition(model, 1, resolution, device, generator=g)
+        return Case(f"random{i}", None, x0, source, random_condition(model, 1, resolution, device, generator=g))
 
-    return [Case(f"random{i}", None, (torch.rand(1, 3, resolution, resolution, generator=g) * 2 - 1).to(device),
-                 cond(), cond()) for i in range(n)]
+    return [case(i) for i in range(n)]
 
 
 def same_subject_target(store: EncodingStore, record_id: str) -> str | None:
