@@ -279,3 +279,15 @@ def test_student_through_benchmark_and_bench_samplers(student_ckpt, synth_store,
     rows = {r["sampler"]: r for r in out["rows"]}
     assert rows["student"]["nfe"] == 1 and np.isfinite(rows["student"]["gt/mse"])
     assert rows["ddim"]["speedup"] == pytest.approx(rows["ddim"]["time/seconds"] / rows["student"]["time/seconds"])
+
+
+def test_bench_samplers_refuses_a_student_as_the_swept_checkpoint(student_ckpt, synth_store, tmp_path):
+    from difareli.errors import UserError
+    from difareli.cli.bench_samplers import run as bench_samplers
+
+    cfg = compose_train(tmp_path / "s", [f"checkpoint={student_ckpt}", f"store={synth_store}", "steps=[2,4]",
+                                         "limit=1", "progress=false", "runtime.device=cpu"],
+                        config_name="bench_samplers")
+    with pytest.raises(UserError, match=r"one-pass student: it has no sampler .* student="):
+        bench_samplers(cfg)
+    assert not (tmp_path / "s" / "bench_samplers.csv").exists()

@@ -33,7 +33,7 @@ from tqdm.auto import tqdm
 from difareli import encodings, metrics, viz
 from difareli.diffusion.relight import SamplerSpec
 from difareli.inputs import Condition, condition_tensors, image_to_tensor
-from difareli.perf import random_condition, untrained_model  # noqa: F401 (bench-samplers reads speed.untrained_model)
+from difareli.perf import random_condition
 from difareli.relighting import relight
 from difareli.runtime import Runtime
 from difareli.store import EncodingStore

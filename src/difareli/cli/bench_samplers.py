@@ -12,8 +12,9 @@ import hydra
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from difareli import errors, speed, zoo
+from difareli import errors, perf, speed, zoo
 from difareli.cli import common
+from difareli.relightable import OnePassRelightable
 from difareli.runtime import Runtime
 from difareli.store import EncodingStore
 
@@ -45,6 +46,10 @@ def run(cfg: DictConfig) -> dict:
         if cfg.store is None:
             raise ValueError("store=... is required with a checkpoint (the records to relight)")
         model = load_checkpoint(cfg.checkpoint, device).model.to(device)
+        if isinstance(model, OnePassRelightable):  # every sampler row would time the same single pass
+            raise errors.UserError(f"checkpoint={cfg.checkpoint} is a one-pass student: it has no sampler or step "
+                                   "count to sweep; time it beside its teacher: checkpoint=<teacher> "
+                                   f"student={cfg.checkpoint}")
         cases = speed.store_cases(EncodingStore.open(cfg.store), model,
                                   records=list(cfg.records) if cfg.records is not None else None, limit=cfg.limit,
                                   device=device, oracle_target=bool(cfg.get("oracle_target", False)))
@@ -54,7 +59,7 @@ def run(cfg: DictConfig) -> dict:
         what = f"{cfg.checkpoint} on {len(cases)} record(s) of {cfg.store} ({cases[0].inputs})"
     else:
         model_cfg = OmegaConf.to_container(cfg.model, resolve=True)
-        model, res = speed.untrained_model(model_cfg, model_cfg.pop("preset"), cfg.resolution, device, seed=cfg.seed)
+        model, res = perf.untrained_model(model_cfg, model_cfg.pop("preset"), cfg.resolution, device, seed=cfg.seed)
         cases = speed.random_cases(cfg.limit or 1, model, res, device, seed=cfg.seed)
         reference = None  # an untrained network's relights say nothing about quality
         what = f"untrained {cfg.model.preset} {cfg.model.name} ({res} px), timing only"
@@ -88,7 +93,7 @@ def _student(cfg: DictConfig, cases: list, device) -> tuple:
         model_cfg = OmegaConf.to_container(cfg.student_model, resolve=True)
         preset = cfg.model.preset if cfg.checkpoint is None else model_cfg.pop("preset")
         model_cfg.pop("preset", None)
-        student, res = speed.untrained_model(model_cfg, preset, cases[0].x0.shape[-1], device, seed=cfg.seed)
+        student, res = perf.untrained_model(model_cfg, preset, cases[0].x0.shape[-1], device, seed=cfg.seed)
         if cfg.checkpoint is None:
             return student, speed.random_cases(len(cases), student, res, device, seed=cfg.seed)
     else:
@@ -99,7 +104,7 @@ def _student(cfg: DictConfig, cases: list, device) -> tuple:
         if cfg.checkpoint is None:
             raise ValueError("student=<checkpoint> is timed against a teacher checkpoint: give checkpoint=... and "
                              "store=..., or student=untrained for timing only")
-    if not hasattr(student, "relight_once"):
+    if not isinstance(student, OnePassRelightable):
         raise errors.UserError(f"student={cfg.student} is not a one-pass model; give a model=student checkpoint")
     return student, speed.store_cases(EncodingStore.open(cfg.store), student, records=[c.record for c in cases],
                                       limit=None, device=device)
