@@ -254,3 +254,8 @@ def test_ablate_end_to_end_resumes(synth_store, tmp_path):
     assert len(csv) == 3 and (tmp_path / "abl" / "figure.png").is_file()
     again = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
     assert again.returncode == 0 and "difareli.cli.train" not in again.stdout  # nothing retrained
+    # Rerun with other steps into the same out_dir: refused (exit 2, naming steps), not the old table reprinted.
+    other = subprocess.run([c if c != "steps=2" else "steps=3" for c in cmd], capture_output=True, text=True, env=env,
+                           timeout=600)
+    assert other.returncode == 2 and "steps: 2 there, 3 now" in other.stderr, other.stderr[-2000:]
+    assert "difareli.cli.train" not in other.stdout

@@ -77,14 +77,15 @@ def differences(have: Mapping[str, Any], want: Mapping[str, Any]) -> dict[str, t
     return {k: (have.get(k), want.get(k)) for k in sorted(set(have) | set(want)) if have.get(k) != want.get(k)}
 
 
-def ensure(folder: str | Path, want: Mapping[str, Any], what: str, *, has_results: bool | None = None) -> None:
-    """Record ``want`` in ``folder``/provenance.json, or check it against the recorded one.
+def ensure(folder: str | Path, want: Mapping[str, Any], what: str, *, has_results: bool | None = None,
+           name: str = PROVENANCE) -> None:
+    """Record ``want`` in ``folder``/``name`` (default provenance.json), or check it against the recorded one.
 
     A folder that already holds results (``has_results``, default: any file but the provenance) without a record
     of what made them is refused too: nothing says they match.
     """
     folder = Path(folder)
-    path = folder / PROVENANCE
+    path = folder / name
     want = plain(dict(want))
     if path.is_file():
         try:
@@ -98,9 +99,9 @@ def ensure(folder: str | Path, want: Mapping[str, Any], what: str, *, has_result
                             f"or remove {folder}")
         return
     if has_results is None:
-        has_results = folder.is_dir() and any(p.name not in (PROVENANCE, ".difareli.lock") for p in folder.iterdir())
+        has_results = folder.is_dir() and any(p.name not in (name, ".difareli.lock") for p in folder.iterdir())
     if has_results:
-        raise UserError(f"{folder} holds {what} without a record of what made them ({PROVENANCE}); give another "
+        raise UserError(f"{folder} holds {what} without a record of what made them ({name}); give another "
                         f"output folder or remove {folder}")
     from difareli.fileio import write_json_atomic
 

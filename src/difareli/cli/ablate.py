@@ -30,11 +30,14 @@ import numpy as np
 import yaml
 from omegaconf import DictConfig
 
-from difareli import errors, tables, viz
+from difareli import errors, provenance, tables, viz
 from difareli.cli import common
 from difareli.configs import CONFIG_DIR
+from difareli.fileio import folder_lock
 
 EXPERIMENTS = CONFIG_DIR / "experiment"
+#: Each row's train/ and bench/ folder records the settings that made it (difareli.provenance).
+ROW_PROVENANCE = "ablate_row.json"
 
 
 def table_rows(table: int | str) -> tuple[list[str], dict[str, str], str]:
@@ -65,6 +68,10 @@ def train_row(cfg: DictConfig, model: str, resolution: int | None) -> Path:
     """Train one row unless done; returns its ``last.ckpt``."""
     out = row_dir(cfg.out_dir, model) / "train"
     last = out / "checkpoints" / "last.ckpt"
+    # A row trained with other settings (steps, preset, store, overrides) is not this row: refuse, naming them.
+    provenance.ensure(out, {"table": str(cfg.table), "model": model, "store": _store_id(cfg.store),
+                            "preset": cfg.preset, "steps": cfg.steps, "train_overrides": list(cfg.train_overrides or [])},
+                      f"the training of row {model}", name=ROW_PROVENANCE)
     if (out / "done.json").is_file() and last.is_file():
         print(f"[{model}] trained: {last}")
         return last
@@ -101,6 +108,11 @@ def sampler_choice(cfg: DictConfig) -> str:
 def benchmark_row(cfg: DictConfig, model: str, checkpoint: Path, store: str) -> Path:
     """Benchmark one row's checkpoint unless done; returns its run dir."""
     out = row_dir(cfg.out_dir, model) / "bench"
+    provenance.ensure(out, {"checkpoint": provenance.checkpoint_identity(checkpoint), "store": _store_id(store),
+                            "sampler": sampler_choice(cfg), "sampler_steps": cfg.sampler_steps or cfg.sampler.steps,
+                            "protocols": list(cfg.protocols), "limit": cfg.limit,
+                            "benchmark_overrides": list(cfg.benchmark_overrides or [])},
+                      f"the benchmark of row {model}", name=ROW_PROVENANCE)
     if (out / tables.PER_IMAGE_CSV).is_file():
         print(f"[{model}] benchmarked: {out / tables.PER_IMAGE_CSV}")
         return out
@@ -170,6 +182,12 @@ def run(cfg: DictConfig) -> tables.Table:
     errors.check_out_dir(cfg.out_dir)
     store = str(Path(cfg.store).resolve())
     resolution = _store_resolution(store)
+    with folder_lock(cfg.out_dir, "ablate"):
+        return _run_rows(cfg, models, labels, caption, store, resolution)
+
+
+def _run_rows(cfg: DictConfig, models: list[str], labels: dict[str, str], caption: str, store: str,
+              resolution: int | None) -> tables.Table:
     run_dirs = {}
     for i, model in enumerate(models):
         print(f"=== row {i + 1}/{len(models)}: {model} ({labels.get(model, model)})", flush=True)
@@ -184,6 +202,13 @@ def run(cfg: DictConfig) -> tables.Table:
     print(paths["md"].read_text())
     print(f"written: {paths['md']}, table.csv, table.tex" + (f", {fig}" if fig else ""))
     return table
+
+
+def _store_id(store: str) -> str | None:
+    """The store's identity, or None while it is still to be generated (by the first row's training)."""
+    from difareli.store import EncodingStore
+
+    return provenance.store_identity(EncodingStore.open(store)) if (Path(store) / "store.json").is_file() else None
 
 
 def _store_resolution(store: str) -> int | None:
