@@ -135,7 +135,7 @@ class EncodingsDataModule(L.LightningDataModule):
             if not self.allow_split_fallback:
                 found = sorted({str(m.get("split")) for m in store.index.values()})
                 raise UserError(f"store {self.root} has no records in split {self.train_split!r} (splits: {found}); "
-                                "set data.train_split=<split>, or data.allow_split_fallback=true to train on all "
+                                "set +data.train_split=<split>, or data.allow_split_fallback=true to train on all "
                                 "records, holding out every 20th")
             ids = store.ids()
             val = ids[::20]

@@ -38,6 +38,9 @@ _PACKAGE_DIR = str(Path(__file__).resolve().parent)
 EXIT_USER = 2
 #: SH light coefficients beyond this are not a light a face can be lit with (DECA lights stay within ~10).
 LIGHT_MAX_ABS = 1e4
+#: A *target* light's bound: SynthFaces and fitted photo lights stay below ~5 (irradiance ~1-2 on a face whose
+#: pixels are albedo x irradiance in [0, 1]); a light 20x brighter than that relights to saturated noise.
+TARGET_LIGHT_MAX_ABS = 100.0
 _USER_ERRNOS = {errno.ENOENT, errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOSPC, errno.EISDIR, errno.ENOTDIR,
                 errno.EEXIST}
 
@@ -232,10 +235,10 @@ def check_finite(array: Any, what: str, *, max_abs: float | None = None, fix: st
     return a
 
 
-def check_light(light: Any, what: str) -> np.ndarray:
-    """A finite 9x3 SH light of plausible magnitude, as float64."""
+def check_light(light: Any, what: str, max_abs: float = LIGHT_MAX_ABS) -> np.ndarray:
+    """A finite 9x3 SH light of plausible magnitude (``|l| <= max_abs``), as float64."""
     a = check_finite(np.asarray(light, dtype=np.float64) if np.asarray(light).dtype.kind in "biuf" else light,
-                     what, max_abs=LIGHT_MAX_ABS, fix="give a 9x3 SH light in DECA's basis (difareli.sh)")
+                     what, max_abs=max_abs, fix="give a 9x3 SH light in DECA's basis (difareli.sh)")
     return a.astype(np.float64)
 
 

@@ -27,7 +27,7 @@ import numpy as np
 
 from difareli.fileio import fsync_dir
 from difareli import encodings as enc
-from difareli.errors import UserError
+from difareli.errors import UserError, check_light
 
 HEADER = "store.json"
 #: Schema versions this code reads. v2 only appended encodings (SynthFaces v2's ``*_gt`` block) and changed none,
@@ -157,7 +157,8 @@ class EncodingStore:
         root = Path(root)
         path = root / HEADER
         if not path.is_file():
-            raise FileNotFoundError(f"no encoding store at {root} (missing {HEADER}); create one with EncodingStore.create")
+            raise FileNotFoundError(f"no encoding store at {root} (missing {HEADER}); make one with difareli-synth, "
+                                    "difareli-preprocess or difareli-teacher-pairs")
         try:
             header = json.loads(path.read_text())
         except json.JSONDecodeError as e:
@@ -345,7 +346,13 @@ class EncodingStore:
     def index(self) -> dict[str, dict[str, Any]]:
         """Per-record meta for every record, read once (O(N)) and cached; used to filter by split/subject."""
         if self._index is None:
-            self._index = {rid: self.meta(rid) for rid in self._all_ids()}
+            index = {rid: self.meta(rid) for rid in self._all_ids()}
+            lost = [rid for rid, m in index.items() if "split" not in m]
+            if lost and len(lost) < len(index):  # they would drop out of every split without a word
+                raise UserError(f"store {self.root}: {len(lost)} record(s) (e.g. {lost[:3]}) have no 'split' in their "
+                                f"{META} while {len(index) - len(lost)} do; regenerate or remove them "
+                                f"(difareli-store verify {self.root} lists all)")
+            self._index = index
         return self._index
 
     def ids(self, split: str | None = None, subject: str | None = None) -> list[str]:
@@ -406,9 +413,16 @@ class EncodingStore:
         """The record's metadata dict."""
         path = self._record_dir(record_id) / META
         try:
-            return json.loads(path.read_text())
+            meta = json.loads(path.read_text())
         except FileNotFoundError:
             raise KeyError(f"record {record_id!r} in store {self.root} has no {META}") from None
+        except ValueError as e:
+            raise UserError(f"record {record_id!r} in store {self.root}: {META} is not JSON ({e}); regenerate or "
+                            f"remove the record (difareli-store verify {self.root} lists all)") from None
+        if not isinstance(meta, dict):
+            raise UserError(f"record {record_id!r} in store {self.root}: {META} holds {type(meta).__name__}, not an "
+                            "object; regenerate or remove the record")
+        return meta
 
     def verify(self, ids: Iterable[str] | None = None, *, check_values: bool = False) -> list[str]:
         """Problems found (empty if healthy): missing/unreadable files, wrong shapes or dtypes, bad meta.
@@ -422,10 +436,7 @@ class EncodingStore:
             if not path.is_dir():
                 problems.append(f"{rid}: record folder missing")
                 continue
-            try:
-                json.loads((path / META).read_text())
-            except (OSError, ValueError) as e:
-                problems.append(f"{rid}: {META} unreadable ({type(e).__name__}: {e})")
+            problems += self._verify_meta(rid, path / META)
             for name in self.encodings:
                 file = path / f"{name}.npy"
                 if not file.is_file():
@@ -439,6 +450,37 @@ class EncodingStore:
                                         f"{enc.get(name).dtype}")
                     elif check_values:
                         enc.get(name).validate(np.asarray(arr), self.dims)
+                        if name.startswith("light"):  # what every relight checks (errors.check_light)
+                            check_light(np.asarray(arr), f"{name}")
                 except (OSError, ValueError, EOFError) as e:  # EOFError: an empty (truncated) file
                     problems.append(f"{rid}: {name} unreadable ({type(e).__name__}: {e})")
+            for derived in self.derived:  # a version a reader may pick (versions.<base>=...) must be whole
+                if not (path / f"{derived}.npy").is_file():
+                    problems.append(f"{rid}: missing derived {derived!r} (rerun the command that made it; its "
+                                    "provenance is under 'derived' in store.json)")
         return problems
+
+    def _splits_used(self) -> bool:
+        """Whether any record of the store names its split (then every record must)."""
+        for rid in self._all_ids():
+            try:
+                if "split" in json.loads((self.records_dir / rid / META).read_text()):
+                    return True
+            except (OSError, ValueError, TypeError):
+                continue
+            return False  # the first readable record decides (records of one store are written alike)
+        return False
+
+    def _verify_meta(self, rid: str, path: Path) -> list[str]:
+        """Problems of one record's meta: unreadable, not an object, or without the keys readers select by."""
+        try:
+            meta = json.loads(path.read_text())
+        except (OSError, ValueError) as e:
+            return [f"{rid}: {META} unreadable ({type(e).__name__}: {e})"]
+        if not isinstance(meta, dict):
+            return [f"{rid}: {META} holds {type(meta).__name__}, not an object"]
+        synth = self.store_meta.get("generator") == "synthfaces"
+        need = (["split", "subject", "light_index"] if synth else []) + (["split"] if self._splits_used() else [])
+        need = list(dict.fromkeys(need))
+        missing = [k for k in need if k not in meta]
+        return [f"{rid}: {META} lacks {missing} (the record drops out of every split and protocol)"] if missing else []

@@ -25,6 +25,10 @@ def metric_value(metrics: dict, name: str | None) -> float | None:
     return float(metrics[name])
 
 
+#: The longest rotation video the relight and video commands make.
+MAX_FRAMES = 3600
+
+
 def validate_relight(cfg: DictConfig, *, frames: tuple[str, object, int], fps: tuple[str, object],
                      envmap: tuple[str, object]) -> None:
     """The checks every relighting command (relight, video) makes before any work: sampler, checkpoint (a file
@@ -37,6 +41,9 @@ def validate_relight(cfg: DictConfig, *, frames: tuple[str, object, int], fps: t
     errors.check_number(cfg.target.shadow, "target.shadow")
     key, value, minimum = frames
     errors.check_int(value, key, minimum)
+    if value > MAX_FRAMES:  # 60 frames x 60 s: anything longer is a typo, and it would fill the disk first
+        raise errors.UserError(f"{key}={value} is invalid: at most {MAX_FRAMES} frames (a {MAX_FRAMES // 20}-s video "
+                               f"at 20 fps); e.g. {key}=60")
     errors.check_int(fps[1], fps[0], 1)
     if envmap[1] is not None:
         errors.check_file(envmap[1], envmap[0])

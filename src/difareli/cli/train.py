@@ -19,12 +19,15 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     """Fit the configured model; returns the trainer, model, datamodule and the optimized metric."""
     if cfg.get("sample_grid"):
         errors.check_sampler(cfg.sampler)
+    check_accelerator(cfg.trainer)
     L.seed_everything(cfg.seed, workers=True)
     datamodule = hydra.utils.instantiate(cfg.data)
     ckpt_path = cfg.get("ckpt_path")
     # A resumed checkpoint is read once here (its statistics, the config check); Lightning then restores it.
     # ("last"/"best" are Lightning's names: no file to read here.)
     ckpt = read_checkpoint(ckpt_path) if ckpt_path and Path(ckpt_path).is_file() else None
+    if ckpt is not None:  # another variant's statistics would not even fit the network: name both variants
+        check_resume_variant(ckpt_path, ckpt, cfg.model)
     # The network's input sizes and the non-spatial statistics come from the data set (the training split),
     # or, when resuming, from the checkpoint: a resumed run keeps the normalisation it was trained with.
     model = hydra.utils.instantiate(cfg.model, input_dims=datamodule.input_dims(),
@@ -41,6 +44,33 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt_path)
     metric = common.metric_value(trainer.callback_metrics, cfg.get("optimized_metric"))
     return {"trainer": trainer, "model": model, "datamodule": datamodule, "metric": metric}
+
+
+def check_accelerator(trainer_cfg: DictConfig) -> None:
+    """``trainer=gpu`` (accelerator gpu/cuda) on a machine without a CUDA device: one line, not Lightning's trace."""
+    import torch
+
+    acc = str(trainer_cfg.get("accelerator", "auto")).lower()
+    if acc in ("gpu", "cuda") and not torch.cuda.is_available():
+        build = "a CPU build" if torch.version.cuda is None else f"CUDA {torch.version.cuda}, but no device is visible"
+        raise errors.UserError(f"trainer.accelerator={acc} but this machine has no usable CUDA GPU (torch "
+                               f"{torch.__version__}: {build}); use trainer=cpu (or trainer=default, which picks "
+                               "what is there)")
+
+
+def check_resume_variant(ckpt_path: Any, ckpt: dict[str, Any], model_cfg: DictConfig) -> None:
+    """Resuming into another model variant (other name or inputs) is refused naming both variants."""
+    hp = ckpt.get("hyper_parameters") or {}
+    keys = ("name", "spatial_inputs", "nonspatial_inputs")
+    saved = {k: hp.get(k) for k in keys}
+    now = {k: (list(model_cfg.get(k)) if k != "name" and model_cfg.get(k) is not None else model_cfg.get(k))
+           for k in keys}
+    saved = {k: list(v) if isinstance(v, (list, tuple)) else v for k, v in saved.items()}
+    diff = [f"{k}: checkpoint {saved[k]!r}, config {now[k]!r}" for k in keys if saved[k] != now[k]]
+    if diff:
+        raise errors.UserError(f"ckpt_path={ckpt_path} was trained as model variant {saved['name']!r}, this run "
+                               f"composes {now['name']!r} ({'; '.join(diff)}); resume with model=<the variant it was "
+                               "trained with> (its <run>/.hydra/config.yaml says which)")
 
 
 def nonspatial_stats(datamodule, ckpt: dict[str, Any] | None) -> dict[str, list[float]] | None:

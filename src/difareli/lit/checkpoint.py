@@ -38,7 +38,11 @@ def module_class(path: str) -> type[L.LightningModule]:
     if not isinstance(path, str) or not path.startswith(ALLOWED_PREFIX) or "." not in path[len(ALLOWED_PREFIX):]:
         raise ValueError(f"checkpoint names module class {path!r}; only classes under {ALLOWED_PREFIX!r} load")
     module, _, name = path.rpartition(".")
-    cls = getattr(importlib.import_module(module), name, None)
+    try:
+        cls = getattr(importlib.import_module(module), name, None)
+    except ImportError as e:
+        raise ValueError(f"checkpoint names module class {path!r}, which this difareli version does not have "
+                         f"({e}); it was written by another version of difareli: load it with that version") from None
     if not (isinstance(cls, type) and issubclass(cls, L.LightningModule)):
         raise ValueError(f"checkpoint names {path!r}, which is not a LightningModule class of this package")
     return cls
@@ -49,6 +53,9 @@ def read_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     path = zoo.resolve(path)  # a file, or the name of a shipped checkpoint (difareli.zoo)
     ckpt = load_torch_file(path, "checkpoint", map_location)  # torch.load(weights_only=True), errors name the file
     if "hyper_parameters" not in ckpt or "state_dict" not in ckpt:
+        from difareli.official import refuse_official
+
+        refuse_official(ckpt, path)  # the authors' ImgCond/ImgEncoder .pt: a message naming the import command
         raise ValueError(f"{path} is not a difareli Lightning checkpoint (no hyper_parameters/state_dict)")
     return upgrade_checkpoint(ckpt)
 
