@@ -3,6 +3,7 @@ naming the input and the fix, and nothing is written half."""
 
 from __future__ import annotations
 
+import json
 import shutil
 
 import numpy as np
@@ -118,3 +119,20 @@ def test_saturated_relights_are_reported(synth_store):
     with pytest.warns(RuntimeWarning, match=r"over 50% of their values clipped .* try more steps"):
         out = r.relight(source, Targets.of([source.arrays["light"]]))
     assert (out == 255).all()
+
+
+@pytest.mark.slow
+def test_a_multirun_with_one_bad_job_runs_the_others_and_ends_with_a_summary(synth_store, tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    cmd = [sys.executable, "-m", "difareli.cli.train", "-m", "debug=fdr", f"data.root={synth_store}",
+           "data.resolution=32", "data.synth=null", "model.preset=tiny,nope", f"paths.log_dir={tmp_path}",
+           "sample_grid=false"]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert proc.returncode == 2, proc.stderr[-3000:]
+    assert "2 job(s): 1 completed, 1 failed" in proc.stderr
+    assert "job 1 (" in proc.stderr and "model.preset=nope" in proc.stderr and "unknown UNet preset" in proc.stderr
+    summary = next(tmp_path.rglob("sweep_summary.json"))
+    assert json.loads(summary.read_text())["completed"] == 1

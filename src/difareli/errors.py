@@ -136,11 +136,45 @@ def cli_entry(name: str) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
                 if msg is None or _debug():
                     raise
                 print(f"{prog}: {msg}", file=sys.stderr)
+                if in_multirun():  # the other jobs still run; the sweep's summary reports this one and exits 2
+                    record_failure(msg)
+                    return None
                 sys.exit(EXIT_USER)
 
         return task
 
     return wrap
+
+
+#: Where a multirun's failed jobs are recorded (``<sweep dir>/failed_jobs.jsonl``; difareli.cli.sweep reports them).
+FAILED_JOBS = "failed_jobs.jsonl"
+
+
+def in_multirun() -> bool:
+    """Whether the current task runs as one job of a Hydra multirun."""
+    try:
+        from hydra.core.hydra_config import HydraConfig
+        from hydra.types import RunMode
+
+        return HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
+    except Exception:  # noqa: BLE001 - outside Hydra
+        return False
+
+
+def record_failure(message: str) -> None:
+    """Append this job's failure (number, overrides, message) to the sweep's ``failed_jobs.jsonl``."""
+    import json
+
+    from hydra.core.hydra_config import HydraConfig
+
+    hc = HydraConfig.get()
+    line = json.dumps({"job": hc.job.get("num"), "overrides": list(hc.overrides.task), "message": message})
+    path = Path(hc.sweep.dir) / FAILED_JOBS
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "a") as f:  # one short line per write: appends from concurrent jobs do not interleave
+        f.write(line + "\n")
+        f.flush()
+        os.fsync(f.fileno())
 
 
 def threading_main() -> bool:
