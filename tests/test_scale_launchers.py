@@ -50,8 +50,9 @@ def test_slurm_launcher_follows_trainer_devices_and_requeue_plugin():
     launcher = cfg.hydra.launcher
     assert (launcher.tasks_per_node, launcher.gpus_per_node, launcher.nodes) == (4, 4, 2)
     assert launcher.partition == "gpu" and launcher.signal_delay_s > 0 and launcher.array_parallelism == 32
-    env = instantiate(cfg.trainer.plugins[0])
-    assert isinstance(env, SLURMEnvironment) and env.auto_requeue
+    plugins = [instantiate(p) for p in cfg.trainer.plugins]
+    env = next(p for p in plugins if isinstance(p, SLURMEnvironment))
+    assert env.auto_requeue and type(plugins[0]).__name__ == "AtomicCheckpointIO"  # checkpoints stay atomic
     assert cfg.trainer.strategy == "ddp" and cfg.trainer.accelerator == "gpu"
 
 
