@@ -98,3 +98,11 @@ def test_relight_a_photo_in_one_command(tmp_path):
     src = comparison[2:66, 2:66].astype(float)
     assert src.std() > 10  # the aligned face crop, not a blank
     assert np.abs(relit.astype(float) - src).mean() > 1.0  # the light changed the image
+
+
+def test_the_demo_labels_its_live_table_and_prints_the_cards():
+    """The demo's few pairs cannot rank methods: it says so and prints the card's measured table (issue 27)."""
+    from difareli.cli.demo import card_benchmark
+
+    card = card_benchmark("difareli_pp-synth64")
+    assert card is not None and "100 test pairs per protocol" in card and "| identity |" in card

@@ -23,7 +23,13 @@ def run(cfg: DictConfig) -> DemoResult:
                    runtime=OmegaConf.to_container(cfg.runtime), subjects=int(cfg.subjects),
                    resolution=int(cfg.resolution), seed=int(cfg.seed), frames=int(cfg.frames), pairs=int(cfg.pairs),
                    rows=int(cfg.rows), photo=bool(cfg.photo), progress=bool(cfg.progress))
-    print(res.table.to_markdown() if res.table is not None else "")
+    if res.table is not None:
+        print(f"Live check on {cfg.pairs} pairs per protocol of unseen subjects ({cfg.sampler.name}-{cfg.sampler.steps}): "
+              "too few pairs to rank the methods; read the ± standard errors")
+        print(res.table.to_markdown())
+    card = card_benchmark(cfg.checkpoint)
+    if card:
+        print(f"The model card's table for {cfg.checkpoint} (the figures the README quotes):\n{card}")
     for note in res.notes:
         print(note)
     for key, path in res.paths.items():
@@ -31,6 +37,13 @@ def run(cfg: DictConfig) -> DemoResult:
     print("seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in res.seconds.items())
           + f"; total {time.perf_counter() - start:.1f}")
     return res
+
+
+def card_benchmark(checkpoint: str) -> str | None:
+    """The benchmark paragraph of a checkpoint's model card (shipped checkpoints have one), else None."""
+    ckpt = errors.load_torch_file(zoo.resolve(checkpoint), "checkpoint")
+    text = (ckpt.get("model_card") or {}).get("benchmark") if isinstance(ckpt, dict) else None
+    return str(text) if text else None
 
 
 def validate(cfg: DictConfig) -> None:
