@@ -88,3 +88,24 @@ def test_trainer_config_writes_checkpoints_through_the_atomic_io(tmp_path):
         cfg = compose_train(tmp_path, [f"trainer={trainer}"])
         plugins = [hydra.utils.instantiate(p) for p in cfg.trainer.plugins]
         assert any(isinstance(p, AtomicCheckpointIO) for p in plugins), trainer
+
+
+def test_a_full_disk_leaves_no_truncated_png(tmp_path, monkeypatch):
+    import imageio.v3 as iio
+    import numpy as np
+
+    from difareli import viz
+
+    img = np.zeros((8, 8, 3), np.uint8)
+    viz.save_png(img, tmp_path / "relit.png")
+
+    def full(path, image, **kw):
+        Path(path).write_bytes(b"\x89PNG partial")
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(iio, "imwrite", full)
+    with pytest.raises(UserError, match=r"no space left on the device writing .*relit\.png"):
+        viz.save_png(img + 1, tmp_path / "relit.png")
+    monkeypatch.undo()
+    np.testing.assert_array_equal(iio.imread(tmp_path / "relit.png"), img)  # the previous image, whole
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["relit.png"]

@@ -39,8 +39,11 @@ def grid(rows: Sequence[Sequence[np.ndarray]], pad: int = 2, fill: int = 255) ->
 
 
 def save_png(image: np.ndarray, path: str | Path) -> Path:
-    """Write a uint8 image, creating parent folders."""
+    """Write a uint8 image atomically (beside the target, then renamed: a full disk or a kill never leaves a
+    truncated PNG), creating parent folders."""
+    from difareli.fileio import atomic_path
+
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    iio.imwrite(path, image)
+    with atomic_path(path) as tmp:
+        iio.imwrite(tmp, image, extension=path.suffix or ".png")
     return path
