@@ -78,12 +78,17 @@ def test_face_errors_known_values():
     ref = torch.rand(1, 3, 24, 24, generator=g) * 1.6 - 0.8
     mask = torch.zeros(1, 24, 24, dtype=torch.bool)
     mask[:, 4:20, 6:18] = True
-    pred = torch.where(mask[:, None], ref + 0.1, -ref)  # 0.1 in [-1, 1] is 0.05 in [0, 1]; outside: anything
+    pred = torch.where(mask[:, None], ref + 0.1, ref)  # 0.1 in [-1, 1] is 0.05 in [0, 1]
     errs = speed.face_errors(pred, ref, mask)
     assert errs["mse"] == pytest.approx(0.05**2, rel=1e-6)
     assert 0 < errs["dssim"] < 0.05
+    # The paper's rule (the default) scores SSIM windows on the full images: pixels outside the mask reach the
+    # face's border windows, MSE never sees them.
+    wild_pred = torch.where(mask[:, None], ref + 0.1, -ref)
+    wild = speed.face_errors(wild_pred, ref, mask)
+    assert wild["mse"] == pytest.approx(errs["mse"], rel=1e-6) and wild["dssim"] > errs["dssim"]
     assert speed.face_errors(ref, ref, mask) == {"mse": 0.0, "dssim": pytest.approx(0.0, abs=1e-12)}
-    assert speed.face_errors(pred, ref, None)["mse"] > errs["mse"]  # no mask: the whole image counts
+    assert speed.face_errors(wild_pred, ref, None)["mse"] > errs["mse"]  # no mask: the whole image counts
 
 
 def test_store_cases_target_is_same_subject_other_light(synth_store):

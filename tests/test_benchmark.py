@@ -135,3 +135,35 @@ def test_multirun_cli(synth_store, tmp_path):
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "| oracle | **0.0000" in proc.stdout
     assert sorted(p.parent.name for p in out.glob(f"*/{tables.PER_IMAGE_CSV}")) == ["0", "1"]
+
+
+def test_default_rule_is_paper_and_composite_differs(synth_store, tmp_path):
+    import json
+
+    from difareli.cli.benchmark import run
+
+    res = {r: run(_bench_cfg(tmp_path / r, synth_store, "method=identity", "grid_pairs=0",
+                             *([] if r == "paper" else [f"metrics.rule={r}"])))
+           for r in ("paper", "composite")}
+    d = tmp_path / "paper"
+    assert "Metrics rule: paper (the authors' evaluator" in (d / "summary.md").read_text()
+    assert json.loads((d / "provenance.json").read_text())["metrics rule"] == "paper"
+    assert {r.rule for r in tables.read_records(d / tables.PER_IMAGE_CSV)} == {"paper"}
+    assert "rule: composite" in (tmp_path / "composite" / "summary.md").read_text()
+    a, b = (res[r].table.cells[("identity", "same")] for r in ("paper", "composite"))
+    assert a["mse"].mean == pytest.approx(b["mse"].mean, rel=1e-12)  # MSE: one formula
+    assert abs(a["dssim"].mean - b["dssim"].mean) > 1e-4
+    # The torchmetrics Metrics saw the same scores the table averages.
+    for proto in ("same", "different"):
+        mean, se, n = res["paper"].metric_stats[proto]["dssim"]
+        cell = res["paper"].table.cells[("identity", proto)]["dssim"]
+        assert (n, mean) == (cell.n, pytest.approx(cell.mean, rel=1e-12)) and se == pytest.approx(cell.se, rel=1e-9)
+    # The saved relit images of the paper-rule run, scored again under composite: the composite run's numbers.
+    again = run(_bench_cfg(tmp_path / "re", synth_store, "method=identity", f"rescore={tmp_path / 'paper'}",
+                           "metrics.rule=composite"))
+    key = lambda r: (r.protocol, r.record_id)  # noqa: E731
+    assert sorted((key(r), r.dssim, r.lpips, r.rule) for r in again.records) == sorted(
+        (key(r), r.dssim, r.lpips, r.rule) for r in res["composite"].records)
+    assert json.loads((tmp_path / "re" / "provenance.json").read_text())["rescored from"] == str(tmp_path / "paper")
+    with pytest.raises(Exception, match="metrics.rule='crop'"):
+        run(_bench_cfg(tmp_path / "bad", synth_store, "method=identity", "metrics.rule=crop"))

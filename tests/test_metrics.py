@@ -1,4 +1,4 @@
-"""Face-mask metrics: exact zeros, exact MSE, mask isolation, skimage SSIM parity."""
+"""Face-mask metrics: exact zeros, exact MSE, mask isolation (composite rule), skimage SSIM parity."""
 
 import importlib.util
 import math
@@ -33,17 +33,28 @@ def ellipse_mask() -> torch.Tensor:
     return ((((yy - 50) / 38) ** 2 + ((xx - 46) / 30) ** 2) < 1)[None]  # [1,H,W] bool
 
 
+def _skimage_map(a, b, data_range=1.0):
+    """skimage's full SSIM map with torchmetrics' window and padding: pad by reflection (no edge repeat, numpy's
+    'reflect'), map, crop; skimage's own padding then never reaches the kept pixels (window radius 5)."""
+    pa, pb = (np.pad(x, ((5, 5), (5, 5), (0, 0)), mode="reflect") for x in (a, b))
+    _, full = structural_similarity(pa, pb, gaussian_weights=True, sigma=1.5, use_sample_covariance=False,
+                                    data_range=data_range, channel_axis=-1, full=True)
+    return full[5:-5, 5:-5]
+
+
 def test_ssim_map_matches_skimage_everywhere(pair):
     a, b = pair
-    mssim, full = structural_similarity(a, b, gaussian_weights=True, sigma=1.5, use_sample_covariance=False,
-                                        data_range=1.0, channel_axis=-1, full=True)
+    ref = _skimage_map(a, b)
     ours = M.ssim_map(_t(a), _t(b))[0].permute(1, 2, 0).numpy()
-    assert np.abs(ours - full).max() < 1e-10  # borders too: same symmetric ('reflect') padding
-    # skimage's scalar crops (win_size-1)//2 = 5 pixels per border before averaging.
-    assert abs(ours[5:-5, 5:-5].mean() - mssim) < 1e-10  # spec asks 1e-4; it agrees to rounding
-    # dssim over a full mask averages the whole (uncropped) map.
+    assert np.abs(ours - ref).max() < 1e-10  # borders too: same reflect padding
+    # Away from the border skimage's own (symmetric) padding gives the same map.
+    _, plain = structural_similarity(a, b, gaussian_weights=True, sigma=1.5, use_sample_covariance=False,
+                                     data_range=1.0, channel_axis=-1, full=True)
+    assert np.abs(ours[5:-5, 5:-5] - plain[5:-5, 5:-5]).max() < 1e-10
+    # dssim over a full mask averages the whole (uncropped) map, under either rule.
     full_mask = torch.ones(1, 96, 96, dtype=torch.bool)
-    assert M.dssim(_t(a), _t(b), full_mask).item() == pytest.approx((1 - full.mean()) / 2, abs=1e-12)
+    for rule in M.RULES:
+        assert M.dssim(_t(a), _t(b), full_mask, rule=rule).item() == pytest.approx((1 - ref.mean()) / 2, abs=1e-12)
 
 
 def test_ssim_data_range_scaling(pair):
@@ -52,9 +63,8 @@ def test_ssim_data_range_scaling(pair):
     unit = M.dssim(_t(a), _t(b), m)
     byte = M.dssim(_t(a * 255), _t(b * 255), m, data_range=255.0)
     assert byte.item() == pytest.approx(unit.item(), abs=1e-12)
-    _, full = structural_similarity(a * 255, b * 255, gaussian_weights=True, sigma=1.5,
-                                    use_sample_covariance=False, data_range=255.0, channel_axis=-1, full=True)
-    assert byte.item() == pytest.approx((1 - full.mean()) / 2, abs=1e-12)
+    ref = _skimage_map(a * 255, b * 255, data_range=255.0)
+    assert byte.item() == pytest.approx((1 - ref.mean()) / 2, abs=1e-12)
 
 
 @needs_weights
@@ -81,17 +91,21 @@ def test_constant_offset_gives_exact_mse(ellipse_mask):
 
 
 @needs_weights
-def test_pixels_outside_mask_never_change_scores(pair, ellipse_mask):
+def test_pixels_outside_mask_change_scores_only_under_the_paper_rule(pair, ellipse_mask):
     a, b = (_t(v).float() for v in pair)
     g = torch.Generator().manual_seed(3)
     junk_a = torch.rand(a.shape, generator=g) * 10 - 5
     junk_b = -torch.rand(a.shape, generator=g) * 7
     inside = ellipse_mask[:, None]
     a2, b2 = torch.where(inside, a, junk_a), torch.where(inside, b, junk_b)
-    ref, wild = M.evaluate(a, b, ellipse_mask), M.evaluate(a2, b2, ellipse_mask)
+    ref, wild = M.evaluate(a, b, ellipse_mask, rule="composite"), M.evaluate(a2, b2, ellipse_mask, rule="composite")
     for k in ref:
         assert torch.equal(ref[k], wild[k]), k
     assert ref["dssim"].item() > 0.01 and ref["lpips"].item() > 0.01 and ref["mse"].item() > 1e-3
+    paper, paper_wild = M.evaluate(a, b, ellipse_mask), M.evaluate(a2, b2, ellipse_mask)  # default: paper
+    assert torch.equal(paper["mse"], paper_wild["mse"]) and torch.equal(paper["mse"], ref["mse"])
+    for k in ("dssim", "lpips"):  # windows and receptive fields straddling the face border see the junk
+        assert abs(paper_wild[k].item() - paper[k].item()) > 1e-3, k
 
 
 @needs_weights

@@ -26,9 +26,9 @@ def test_csv_round_trip_is_exact(tmp_path):
             T.Record("DiFaReli++", "different", "s002_l03", 0.5, 0.25, 0.125)]
     path = T.write_records(tmp_path / "run" / T.PER_IMAGE_CSV, recs)
     with open(path) as f:
-        assert next(csv.reader(f)) == list(T.COLUMNS)
+        assert next(csv.reader(f)) == [*T.COLUMNS, "rule"]
     back = T.read_records(path)
-    assert back[0] == recs[0]
+    assert back[0] == recs[0] and back[0].rule == "paper"
     assert back[1].dssim == 0.5 and math.isnan(back[1].seconds)
 
 
@@ -76,10 +76,11 @@ def test_merge_rejects_duplicates_and_missing(two_runs, tmp_path):
 
 def test_markdown_has_numbers_and_bold_best(two_runs):
     md = T.merge_runs(two_runs).to_markdown()
-    lines = md.strip().splitlines()
+    lines = md.strip().split("\n\n")[0].splitlines()
     assert lines[0].startswith("| Method | (i) same subject DSSIM | (i) same subject MSE")
     assert lines[0].endswith("(ii) different subject LPIPS | (ii) different subject n | s/img |")
     assert len(lines) == 4
+    assert md.strip().splitlines()[-1].startswith("Metrics rule: paper (the authors' evaluator")
     difa, ss = lines[2], lines[3]
     assert "0.0750 ± 0.0050" in difa and "0.0130 ± 0.0010" in difa and "| 3 |" in difa
     assert "**0.0550 ± 0.0050**" in ss and "**0.0850 ± 0.0050**" in ss  # (i) and (ii) DSSIM best
@@ -115,4 +116,54 @@ def test_wide_csv_full_precision(two_runs, tmp_path):
 def test_single_image_se_renders_na():
     t = T.summarize([T.Record("A", "same", "r1", 0.1, 0.01, 0.2)])
     assert "0.1000 ± n/a" in t.to_markdown()
-    assert "–" in t.to_markdown().splitlines()[-1]  # unknown seconds
+    assert "–" in t.to_markdown().splitlines()[2]  # unknown seconds
+
+
+def test_rule_column_legacy_csv_and_no_mixing(tmp_path):
+    comp = _fake_run(tmp_path / "c", "B", [("same", "r1", 0.1, 0.01, 0.2)])
+    rows = T.read_records(comp / T.PER_IMAGE_CSV)
+    assert rows[0].rule == "paper"  # the default rule
+    legacy = tmp_path / "legacy"
+    legacy.mkdir()
+    (legacy / T.PER_IMAGE_CSV).write_text("method,protocol,record_id,dssim,mse,lpips,seconds\n"
+                                          "A,same,r1,0.1,0.01,0.2,\n")
+    assert T.read_records(legacy / T.PER_IMAGE_CSV)[0].rule == "composite"  # scored before the rules existed
+    with pytest.raises(T.TableError, match=r"different metric rules \(composite: e.g. .*legacy.*; paper: e.g."):
+        T.merge_runs([legacy, comp])
+    t = T.merge_runs([legacy])
+    assert t.rule == "composite" and "Metrics rule: composite (both images composited" in t.to_markdown()
+    assert "% metrics rule: composite" in t.to_latex() and "(metrics rule: composite)" in t.to_latex(caption="x")
+    row = next(csv.DictReader(t.to_csv().splitlines()))
+    assert (row["rule"], row["source"]) == ("composite", "measured")
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    (bad / T.PER_IMAGE_CSV).write_text("method,protocol,record_id,dssim,mse,lpips,seconds,rule\n"
+                                       "A,same,r1,0.1,0.01,0.2,,crop\n")
+    with pytest.raises(T.TableError, match=r":2: rule 'crop' is not one of paper, composite"):
+        T.read_records(bad / T.PER_IMAGE_CSV)
+
+
+def test_published_rows_are_labelled_never_bold_and_quoted_exactly(two_runs):
+    from difareli.multipie import published
+
+    t = published.add_to(T.merge_runs(two_runs), ["DiFaReli++", "SfSNet"])
+    assert t.methods == ["DiFaReli", "DiFaReli++_ss", "DiFaReli++", "SfSNet"]
+    c = t.cells[("DiFaReli++", "same")]
+    assert (c["dssim"].mean, c["dssim"].se, c["dssim"].n) == (0.0604, 0.0010, 862)
+    assert (c["lpips"].mean, c["lpips"].se) == (0.1043, 0.0013)
+    d = t.cells[("DiFaReli++", "different")]
+    assert (d["mse"].mean, d["mse"].n) == (0.0169, 200) and math.isnan(d["mse"].se)
+    assert ("SfSNet", "different") not in t.cells  # the appendix table has protocol (i) only
+    md = t.to_markdown()
+    line = next(x for x in md.splitlines() if x.startswith("| DiFaReli++ [published]"))
+    assert "0.0604 ± 0.0010" in line and "0.0824 ± n/a" in line and "**" not in line and "| 862 |" in line
+    sf = next(x for x in md.splitlines() if x.startswith("| SfSNet [published]"))
+    assert "0.2918 ± 0.0013" in sf and sf.count("–") == 5  # (ii) DSSIM, MSE, LPIPS, n; s/img
+    # the measured best stays bold although the published rows are lower
+    assert "**0.0550 ± 0.0050**" in md
+    assert "[published]: DiFaReli++, SfSNet: figures quoted from the DiFaReli++ paper (TPAMI 2026) Table I" in md
+    rows = {r["method"]: r for r in csv.DictReader(t.to_csv().splitlines())}
+    assert rows["DiFaReli++"]["source"].startswith("the DiFaReli++ paper") and rows["DiFaReli"]["source"] == "measured"
+    assert r"DiFaReli++ [published] & $0.0604 \pm 0.0010$" in t.to_latex()
+    with pytest.raises(ValueError, match="no published Multi-PIE figures for"):
+        published.rows(["Ours"])

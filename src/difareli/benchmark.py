@@ -1,4 +1,5 @@
-"""Benchmark a relighting method on the SynthFaces protocols of SPEC 11 (the paper's Tables I/II/IV).
+"""Benchmark a relighting method on the protocols of SPEC 11 (the paper's Tables I/II/IV): a SynthFaces store, or a
+Multi-PIE store made by ``difareli-multipie`` from a user's copy (the same ``protocols.json``).
 
 For each pair of ``protocols.json`` (written with the store by ``synth.splits``): relight ``source`` under the
 light estimated from ``light_source`` (protocol (i) ``same_subject``: the same person under the target light;
@@ -7,7 +8,10 @@ on the target's ``face_mask``. The light is fitted from the light-source image (
 as a user would get it, with the shadow strength c a user has (``targets.target_shadow_of``: the estimated c of
 a v2 ``inputs=estimated`` store, else the training split's median shadowed c); ``oracle_light`` takes the exact
 light and c instead (``light_gt``/``shadow_gt`` in SynthFaces v2 stores, whose ``light``/``shadow`` are estimated),
-``oracle_shadow`` the exact c alone. ``summary.md`` and ``provenance.json`` state which inputs were used.
+``oracle_shadow`` the exact c alone. ``summary.md`` and ``provenance.json`` state which inputs were used, the
+metric rule (``rule``: :data:`difareli.metrics.RULES`, default ``paper``, the authors' evaluator) and the data set.
+Scores go through the torchmetrics ``Metric`` s of :func:`difareli.metrics.relight_metrics`. A store without exact
+lights (``"exact_lights": false`` in ``protocols.json``: Multi-PIE) gets no light-estimation errors and no oracle.
 
 Outputs in the run dir: ``relit/<protocol>/<pair id>.png``, ``metrics_per_image.csv`` (tables.py schema),
 ``summary.{md,csv,tex}``, ``light_estimation.csv`` and ``comparison_<protocol>.png`` (input | light source |
@@ -17,6 +21,7 @@ relit | ground truth for the first pairs).
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import sys
 import math
@@ -32,7 +37,8 @@ from tqdm.auto import tqdm
 from difareli import errors, metrics, tables, viz
 from difareli.targets import target_shadow_of
 from difareli import shard as sharding
-from difareli.baselines import LightFit, Method, exact_light_name, irradiance_error
+from difareli.baselines import Method, exact_light_name, irradiance_error
+from difareli.light_fit import LightFit
 from difareli.store import EncodingStore
 from difareli.synth.splits import PROTOCOLS_FILE
 
@@ -43,8 +49,9 @@ LIGHT_CSV = "light_estimation.csv"
 PARTIAL_CSV = ".metrics_per_image.partial.csv"
 
 
-def _scored_so_far(out_dir: Path, method: str) -> dict[tuple[str, str], tables.Record]:
-    """Rows of an interrupted run of ``method`` in ``out_dir`` by (protocol, pair id); a cut last row is dropped."""
+def _scored_so_far(out_dir: Path, method: str, rule: str) -> dict[tuple[str, str], tables.Record]:
+    """Rows of an interrupted run of ``method`` under ``rule`` in ``out_dir`` by (protocol, pair id); a cut last
+    row is dropped."""
     path = out_dir / PARTIAL_CSV
     if not path.is_file():
         return {}
@@ -52,7 +59,7 @@ def _scored_so_far(out_dir: Path, method: str) -> dict[tuple[str, str], tables.R
         rows, _ = tables.read_records_checked(path, drop_bad_rows=True)
     except errors.UserError:
         return {}
-    return {(r.protocol, r.record_id): r for r in rows if r.method == method}
+    return {(r.protocol, r.record_id): r for r in rows if r.method == method and r.rule == rule}
 
 
 def _read_png(path: Path) -> np.ndarray:
@@ -68,9 +75,8 @@ def _append_row(out_dir: Path, r: tables.Record) -> None:
     with open(path, "a", newline="") as f:
         w = csv.writer(f)
         if new:
-            w.writerow((*tables.COLUMNS, "status"))
-        w.writerow([r.method, r.protocol, r.record_id] + ["" if math.isnan(x) else repr(float(x))
-                   for x in (r.dssim, r.mse, r.lpips, r.seconds)] + [r.status])
+            w.writerow((*tables.COLUMNS, "rule", "status"))
+        w.writerow(tables.record_row(r))
 
 
 @dataclass(frozen=True)
@@ -88,13 +94,20 @@ class Pair:
         return f"{self.source}__{self.light_source}"
 
 
+def protocols_doc(store: EncodingStore) -> dict:
+    """The store's ``protocols.json`` (written by difareli-synth or difareli-multipie)."""
+    path = Path(store.root) / PROTOCOLS_FILE
+    if not path.is_file():
+        raise FileNotFoundError(f"{path} missing: benchmarks need a store with evaluation pairs (difareli-synth "
+                                "or difareli-multipie writes it)")
+    return json.loads(path.read_text())
+
+
 def load_pairs(store: EncodingStore, protocols: Sequence[str], limit: int | None = None) -> dict[str, list[Pair]]:
     """The pairs of each protocol from the store's ``protocols.json``; ``limit`` keeps at most that many,
     evenly spaced over the list (so a small run still covers several subjects and lights)."""
     path = Path(store.root) / PROTOCOLS_FILE
-    if not path.is_file():
-        raise FileNotFoundError(f"{path} missing: benchmarks need a SynthFaces store (difareli-synth writes it)")
-    doc = json.loads(path.read_text())
+    doc = protocols_doc(store)
     out: dict[str, list[Pair]] = {}
     for p in protocols:
         if p not in PROTOCOLS:
@@ -114,10 +127,13 @@ def _to_tensor(img: np.ndarray) -> torch.Tensor:
     return torch.from_numpy(np.asarray(img, dtype=np.float64) / 255.0).permute(2, 0, 1)[None]
 
 
-def score(pred: np.ndarray, target: np.ndarray, face_mask: np.ndarray) -> dict[str, float]:
-    """DSSIM / MSE / LPIPS of one uint8 image against the ground truth on the face mask."""
-    m = torch.from_numpy(np.array(face_mask, dtype=bool))[None]
-    return {k: float(v[0]) for k, v in metrics.evaluate(_to_tensor(pred), _to_tensor(target), m).items()}
+def score(pred: np.ndarray, target: np.ndarray, face_mask: np.ndarray, rule: str | None = None,
+          scorer=None) -> dict[str, float]:
+    """DSSIM / MSE / LPIPS of one uint8 image against the ground truth on the face mask under ``rule``; through
+    ``scorer`` (a :func:`metrics.relight_metrics` collection, which also accumulates the score) when given."""
+    scorer = scorer if scorer is not None else metrics.relight_metrics(rule)
+    scorer.update(_to_tensor(pred), _to_tensor(target), torch.from_numpy(np.array(face_mask, dtype=bool))[None])
+    return {k: float(m.last[0]) for k, m in scorer.items()}
 
 
 class Lights:
@@ -159,6 +175,8 @@ class BenchmarkResult:
     provenance: dict[str, str] = field(default_factory=dict)
     light_errors: list[dict] = field(default_factory=list)
     paths: dict[str, Path] = field(default_factory=dict)
+    #: protocol -> metric -> (mean, SE, n) of the pairs scored in this run, from the torchmetrics Metrics
+    metric_stats: dict[str, dict[str, tuple[float, float, int]]] = field(default_factory=dict)
 
     @property
     def table(self) -> tables.Table:
@@ -185,34 +203,43 @@ def _pm(s: tables.Stat) -> str:
 def run_benchmark(store: EncodingStore, method: Method, protocols: Sequence[str], out_dir: str | Path, *,
                   limit: int | None = None, oracle_light: bool = False, oracle_shadow: bool = False, estimator: LightFit | None = None,
                   grid_pairs: int = 4, save_images: bool = True, progress: bool = True,
-                  shard: str | None = None) -> BenchmarkResult:
-    """Relight and score every pair of ``protocols``; write the run's outputs into ``out_dir``.
+                  shard: str | None = None, rule: str | None = None) -> BenchmarkResult:
+    """Relight and score every pair of ``protocols`` under the metric ``rule`` (None: ``paper``); write the run's
+    outputs into ``out_dir``.
 
     ``shard="i/n"`` scores only that shard's pairs (by pair id, after ``limit``): the n shards' per-image
     CSVs together hold exactly the unsharded run's rows (``difareli-table`` merges them)."""
     out_dir = Path(out_dir)
+    rule = metrics.check_rule(rule)
+    doc = protocols_doc(store)
+    exact = bool(doc.get("exact_lights", True))
+    if oracle_light and not exact:
+        raise errors.UserError(f"oracle_light=true but {store.root} holds no exact lights (a "
+                               f"{doc.get('dataset', 'photo')} store); drop oracle_light")
     estimator = estimator or LightFit()
     lights = Lights(store, None if oracle_light else estimator)
     # Methods that fit their source light (the Lambertian baseline) are scored on it too (unless lights are oracle).
     source_fit = method.needs_light_fit and getattr(method, "estimator", None) is not None
     result = BenchmarkResult(records=[], provenance={
         "target light": "exact (oracle_light)" if oracle_light else "fitted to the light-source image (LightFit)",
-        "target maps": getattr(method, "target_maps", "none (the method reads no light-dependent map)")})
-    done = _scored_so_far(out_dir, method.name)
+        "target maps": getattr(method, "target_maps", "none (the method reads no light-dependent map)"),
+        "data set": str(doc.get("dataset", "synthfaces")), "metrics rule": rule})
+    done = _scored_so_far(out_dir, method.name, rule)
     for proto, pairs in load_pairs(store, protocols, limit).items():
         pairs = sharding.select(pairs, shard, key=lambda p: p.id)
         short = PROTOCOLS[proto]
         grid_rows = []
+        scorer = metrics.relight_metrics(rule)  # this run's scores of the protocol (rows resumed are not in it)
         for pair in tqdm(pairs, desc=f"{method.name} {proto}", disable=not progress):
             light = lights.get(pair.target if oracle_light else pair.light_source)
             shadow = lights.shadow(pair.target if oracle_light or oracle_shadow else pair.light_source,
                                    oracle=oracle_shadow)
             result.provenance.setdefault("target c", lights.shadow_note)
-            if not oracle_light:
+            if not oracle_light and exact:
                 rel, free = lights.error(light, pair.target, pair.target)
                 result.light_errors.append({"protocol": short, "record_id": pair.id, "light": "target",
                                             "from": pair.light_source, "rel_error": rel, "rel_error_gain_free": free})
-            if source_fit:
+            if source_fit and exact:
                 rel, free = lights.error(method.estimator.from_store(store, pair.source), pair.source, pair.source)
                 result.light_errors.append({"protocol": short, "record_id": pair.id, "light": "source",
                                             "from": pair.source, "rel_error": rel, "rel_error_gain_free": free})
@@ -236,16 +263,16 @@ def run_benchmark(store: EncodingStore, method: Method, protocols: Sequence[str]
                 if relit.shape != gt["image"].shape or relit.dtype != np.uint8:
                     raise ValueError(f"{method.name} returned {relit.dtype} {relit.shape}; expected uint8 "
                                      f"{gt['image'].shape}")
-                s = score(relit, gt["image"], gt["face_mask"])
+                s = score(relit, gt["image"], gt["face_mask"], rule, scorer)
                 errors.check_finite(list(s.values()), f"scores of pair {pair.id} (is its face_mask empty?)")
             except errors.UserError as e:
                 print(f"FAILED {proto} {pair.id}: {e}", file=sys.stderr)
                 rec = tables.Record(method.name, short, pair.id, math.nan, math.nan, math.nan,
-                                    time.perf_counter() - start, status="failed")
+                                    time.perf_counter() - start, status="failed", rule=rule)
                 result.records.append(rec)
                 _append_row(out_dir, rec)
                 continue
-            rec = tables.Record(method.name, short, pair.id, s["dssim"], s["mse"], s["lpips"], seconds)
+            rec = tables.Record(method.name, short, pair.id, s["dssim"], s["mse"], s["lpips"], seconds, rule=rule)
             result.records.append(rec)
             if save_images:
                 viz.save_png(relit, png)
@@ -253,10 +280,38 @@ def run_benchmark(store: EncodingStore, method: Method, protocols: Sequence[str]
             if len(grid_rows) < grid_pairs:
                 src, lsrc = (store.read(r, ["image"])["image"] for r in (pair.source, pair.light_source))
                 grid_rows.append([np.asarray(src), np.asarray(lsrc), relit, np.asarray(gt["image"])])
+        result.metric_stats[short] = {k: m.stat() for k, m in scorer.items()}
         if grid_rows:
             result.paths[f"comparison_{proto}"] = viz.save_png(viz.grid(grid_rows), out_dir / f"comparison_{proto}.png")
     result.paths.update(write_outputs(result, out_dir, caption=f"{method.name} on {Path(store.root).name}"))
     (out_dir / PARTIAL_CSV).unlink(missing_ok=True)
+    return result
+
+
+def rescore(store: EncodingStore, run_dir: str | Path, out_dir: str | Path, rule: str | None = None) -> BenchmarkResult:
+    """Score the relit PNGs a finished run saved (``relit/<protocol>/<pair id>.png``) again under ``rule``, into
+    ``out_dir``: the same images, another metric rule (seconds and failed rows are kept from the run)."""
+    run_dir, rule = Path(run_dir), metrics.check_rule(rule)
+    rows = tables.read_records(run_dir / tables.PER_IMAGE_CSV)
+    pairs = {(PROTOCOLS[p.protocol], p.id): p for v in load_pairs(store, list(PROTOCOLS)).values() for p in v}
+    prov = run_dir / "provenance.json"
+    result = BenchmarkResult(records=[], provenance={**(json.loads(prov.read_text()) if prov.is_file() else {}),
+                                                     "metrics rule": rule, "rescored from": str(run_dir)})
+    scorers = {short: metrics.relight_metrics(rule) for short in PROTOCOLS.values()}
+    for r in rows:
+        if r.status != "ok":
+            result.records.append(dataclasses.replace(r, rule=rule))
+            continue
+        pair = pairs.get((r.protocol, r.record_id))
+        png = run_dir / "relit" / (pair.protocol if pair else "?") / f"{r.record_id}.png"
+        if pair is None or not png.is_file():
+            raise errors.UserError(f"rescore={run_dir}: no relit image {png} for {r.protocol} pair {r.record_id} "
+                                   "(was the run made with save_images=true on this store?); rerun the benchmark")
+        gt = store.read(pair.target, ["image", "face_mask"])
+        s = score(_read_png(png), gt["image"], gt["face_mask"], rule, scorers[r.protocol])
+        result.records.append(dataclasses.replace(r, dssim=s["dssim"], mse=s["mse"], lpips=s["lpips"], rule=rule))
+    result.metric_stats = {p: {k: m.stat() for k, m in sc.items()} for p, sc in scorers.items()}
+    result.paths.update(write_outputs(result, Path(out_dir), caption=f"{run_dir.name} rescored ({rule})"))
     return result
 
 

@@ -2,12 +2,14 @@
 
 Per-image CSV (one per run, ``<run_dir>/metrics_per_image.csv``), columns in this order:
 
-    method, protocol, record_id, dssim, mse, lpips, seconds
+    method, protocol, record_id, dssim, mse, lpips, seconds[, rule][, status]
 
 ``protocol`` is ``same`` ((i) target light estimated from the same person) or ``different``
 ((ii) from a different person); other names are allowed and sort after these. ``seconds`` is the
 wall time spent relighting that image (empty if unknown). Metric values are those of
-:mod:`difareli.metrics` (``[0, 1]`` images).
+:mod:`difareli.metrics` (``[0, 1]`` images) under the metric rule in the ``rule`` column (``paper`` or
+``composite``, :data:`difareli.metrics.RULES`); a CSV without that column predates the rules and was scored
+with ``composite``. One table never mixes rules, and every rendering states its rule.
 
 Statistics per (method, protocol) and metric: mean and standard error
 ``SE = std(ddof=1) / sqrt(n)`` (sample standard deviation; SE is NaN when n < 2). Every rendered table
@@ -18,6 +20,9 @@ they have no scores, count as failed in the table and never enter a mean. Readin
 malformed row (wrong field count, a cut last line), a non-finite or empty metric of a scored row, or a file
 with no rows is a :class:`TableError` naming the file and line, or with ``drop_bad_rows`` the row is left out
 and the count is shown under the table.
+
+Rows quoted from a paper (:attr:`Table.published`, e.g. ``difareli.multipie.published``) are marked as such in
+every rendering and never take part in the bold "best" marks, which compare what was measured here.
 """
 
 from __future__ import annotations
@@ -32,9 +37,12 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from difareli.errors import UserError
+from difareli.metrics import DEFAULT_RULE, RULES, describe
 
 PER_IMAGE_CSV = "metrics_per_image.csv"
 COLUMNS = ("method", "protocol", "record_id", "dssim", "mse", "lpips", "seconds")
+#: The rule of a per-image CSV without a ``rule`` column: every score before issue 22 was composited.
+LEGACY_RULE = "composite"
 METRICS = ("dssim", "mse", "lpips")
 METRIC_LABELS = {"dssim": "DSSIM", "mse": "MSE", "lpips": "LPIPS"}
 PROTOCOL_LABELS = {"same": "(i) same subject", "different": "(ii) different subject"}
@@ -52,6 +60,7 @@ class Record:
     lpips: float
     seconds: float = math.nan
     status: str = "ok"  # "failed": the relight was invalid (no scores)
+    rule: str = DEFAULT_RULE  # the metric rule the scores were computed under (difareli.metrics.RULES)
 
 
 @dataclass(frozen=True)
@@ -96,6 +105,9 @@ def _row_problem(row: list[str], header: list[str], last: bool, cut: bool) -> tu
     status = d.get("status", "ok").strip() or "ok"
     if status not in ("ok", "failed"):
         return f"status {status!r} is neither 'ok' nor 'failed'", None
+    rule = d.get("rule", LEGACY_RULE).strip() or LEGACY_RULE
+    if rule not in RULES:
+        return f"rule {rule!r} is not one of {', '.join(RULES)}", None
     if not all(d[k].strip() for k in ("method", "protocol", "record_id")):
         return "empty method, protocol or record_id", None
     vals = {}
@@ -109,7 +121,7 @@ def _row_problem(row: list[str], header: list[str], last: bool, cut: bool) -> tu
         if k != "seconds" and status == "ok" and not d[k].strip():
             return f"{k} is empty in a scored row", None
     return "", Record(d["method"], d["protocol"], d["record_id"], *(vals[k] for k in (*METRICS, "seconds")),
-                      status=status)
+                      status=status, rule=rule)
 
 
 def read_records_checked(path: str | Path, drop_bad_rows: bool = False) -> tuple[list[Record], list[str]]:
@@ -141,8 +153,15 @@ def read_records_checked(path: str | Path, drop_bad_rows: bool = False) -> tuple
     return records, dropped
 
 
+def record_row(r: Record, status: bool = True) -> list[str]:
+    """One CSV row of ``r``: :data:`COLUMNS`, ``rule`` and (``status``) its status, floats at full precision."""
+    return ([r.method, r.protocol, r.record_id]
+            + ["" if math.isnan(x) else repr(float(x)) for x in (r.dssim, r.mse, r.lpips, r.seconds)]
+            + [r.rule] + ([r.status] if status else []))
+
+
 def write_records(path: str | Path, records: Iterable[Record]) -> Path:
-    """Write per-image records to a CSV with :data:`COLUMNS` (full float precision)."""
+    """Write per-image records to a CSV with :data:`COLUMNS` and ``rule`` (full float precision)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     records = list(records)
@@ -150,11 +169,9 @@ def write_records(path: str | Path, records: Iterable[Record]) -> Path:
     status = any(r.status != "ok" for r in records)
     with open(path, "w", newline="") as f:
         w = csv.writer(f)
-        w.writerow(COLUMNS + (("status",) if status else ()))
+        w.writerow(COLUMNS + ("rule",) + (("status",) if status else ()))
         for r in records:
-            w.writerow([r.method, r.protocol, r.record_id]
-                       + ["" if math.isnan(x) else repr(float(x)) for x in (r.dssim, r.mse, r.lpips, r.seconds)]
-                       + ([r.status] if status else []))
+            w.writerow(record_row(r, status))
     return path
 
 
@@ -183,12 +200,30 @@ class Table:
     failed: dict[tuple[str, str], int] = field(default_factory=dict)
     #: "file:line: problem" of rows left out by ``drop_bad_rows``
     dropped: list[str] = field(default_factory=list)
+    #: the metric rule every measured row was scored under (difareli.metrics.RULES)
+    rule: str = DEFAULT_RULE
+    #: rows quoted from a paper: method -> where the figures come from (rendered as published, never bold)
+    published: dict[str, str] = field(default_factory=dict)
+
+    def add_published(self, rows: dict[tuple[str, str], dict[str, Stat]], source: str) -> None:
+        """Append rows quoted from ``source`` (``{(method, protocol): {metric: Stat}}``) after the measured ones."""
+        for (m, p), stats in rows.items():
+            if m in self.methods and m not in self.published:
+                raise UserError(f"published row {m!r} has the name of a measured method; rename one of them")
+            if m not in self.methods:
+                self.methods.append(m)
+            self.published[m] = source
+            self.cells[(m, p)] = dict(stats)
+            if p not in self.protocols:
+                self.protocols = sorted([*self.protocols, p], key=_protocol_key)
 
     # -- formatting helpers
     def _best(self) -> dict[tuple[str, str], float]:
-        """Lowest mean per (protocol, metric): every metric here is lower-is-better."""
+        """Lowest mean per (protocol, metric) over the measured rows: every metric here is lower-is-better."""
         best: dict[tuple[str, str], float] = {}
-        for (_, p), stats in self.cells.items():
+        for (m, p), stats in self.cells.items():
+            if m in self.published:
+                continue
             for k, s in stats.items():
                 if math.isfinite(s.mean):
                     best[(p, k)] = min(best.get((p, k), math.inf), s.mean)
@@ -211,13 +246,22 @@ class Table:
     def _n(self, method: str, protocol: str) -> str:
         """The n of the protocol's means, with failed relights counted next to it."""
         stats = self.cells.get((method, protocol), {})
+        if not stats and method in self.published:
+            return "–"  # not in that protocol's published table
         n = max((s.n for s in stats.values()), default=0)
         k = self.failed.get((method, protocol), 0)
         return f"{n} (+{k} failed)" if k else str(n)
 
+    def label(self, method: str) -> str:
+        """The row label: published rows end in ``[published]``."""
+        return f"{method} [published]" if method in self.published else method
+
     def notes(self) -> list[str]:
-        """Lines to print under a table: failed relights and rows left out."""
-        out = []
+        """Lines to print under a table: the metric rule, published rows, failed relights and rows left out."""
+        out = [f"Metrics {describe(self.rule)}."]
+        for src in dict.fromkeys(self.published.values()):
+            names = ", ".join(m for m, s in self.published.items() if s == src)
+            out.append(f"[published]: {names}: figures quoted from {src}; not measured here, never marked best.")
         fails = sum(self.failed.values())
         if fails:
             out.append(f"{fails} relight(s) failed (non-finite result): counted in n as '+k failed', not averaged.")
@@ -246,20 +290,21 @@ class Table:
                              for c in [*(METRIC_LABELS[k] for k in METRICS), "n"]] + ["s/img"]
         lines = ["| " + " | ".join(head) + " |", "|" + "---|" + "---:|" * (len(head) - 1)]
         for m in self.methods:
-            row = [m]
+            row = [self.label(m)]
             for p in self.protocols:
                 row += [self._cell(m, p, k, digits, False, bold_best and self._is_best(best, m, p, k, digits))
                         for k in METRICS] + [self._n(m, p)]
             lines.append("| " + " | ".join(row + [self._time(m)]) + " |")
-        notes = self.notes()
-        return "\n".join(lines) + "\n" + ("\n" + "\n".join(notes) + "\n" if notes else "")
+        return "\n".join(lines) + "\n\n" + "\n".join(self.notes()) + "\n"
 
     def to_latex(self, digits: int = 4, bold_best: bool = True, caption: str | None = None) -> str:
         """Booktabs table: a column group per protocol (DSSIM, MSE, LPIPS), then seconds/image."""
         best = self._best()
         out = [r"\begin{table}[t]", r"\centering"]
+        out.append(f"% metrics {describe(self.rule)}")
+        out += [f"% [published] {m}: {src}" for m, src in self.published.items()]
         if caption:
-            out.append(f"\\caption{{{_tex_escape(caption)}}}")
+            out.append(f"\\caption{{{_tex_escape(caption)} (metrics rule: {self.rule})}}")
         out += [r"\begin{tabular}{l" + "cccr" * len(self.protocols) + "c}", r"\toprule"]
         groups = " & ".join(f"\\multicolumn{{4}}{{c}}{{{_tex_escape(PROTOCOL_LABELS.get(p, p))}}}"
                             for p in self.protocols)
@@ -273,18 +318,19 @@ class Table:
             for p in self.protocols:
                 cells += [self._cell(m, p, k, digits, True, bold_best and self._is_best(best, m, p, k, digits))
                           for k in METRICS] + [_tex_escape(self._n(m, p))]
-            out.append(" & ".join([_tex_escape(m)] + cells + [self._time(m)]) + r" \\")
+            out.append(" & ".join([_tex_escape(self.label(m))] + cells + [self._time(m)]) + r" \\")
         out += [r"\bottomrule", r"\end{tabular}", r"\end{table}"]
         return "\n".join(out) + "\n"
 
     def to_csv(self, path: str | Path | None = None) -> str:
-        """Wide CSV, full precision: ``method, <protocol>_<metric>_{mean,se}, <protocol>_n, seconds_per_image``."""
+        """Wide CSV, full precision: ``method, <protocol>_<metric>_{mean,se}, <protocol>_n, seconds_per_image,
+        rule, source`` (``source``: ``measured``, or where a published row's figures come from)."""
         header = ["method"]
         failed = any(self.failed.values())  # the column only when a relight failed: otherwise unchanged
         for p in self.protocols:
             header += [f"{p}_{k}_{s}" for k in METRICS for s in ("mean", "se")] + [f"{p}_n"]
             header += [f"{p}_failed"] if failed else []
-        header.append("seconds_per_image")
+        header += ["seconds_per_image", "rule", "source"]
         buf = io.StringIO()
         w = csv.writer(buf, lineterminator="\n")
         w.writerow(header)
@@ -298,6 +344,7 @@ class Table:
                 row.append(str(max((s.n for s in stats.values()), default=0)))
                 row += [str(self.failed.get((m, p), 0))] if failed else []
             row.append(_fmt(self.seconds[m].mean) if m in self.seconds else "")
+            row += [self.rule, self.published.get(m, "measured")]
             w.writerow(row)
         text = buf.getvalue()
         if path is not None:
@@ -337,7 +384,20 @@ def summarize(records: Sequence[Record], methods: Sequence[str] | None = None) -
     protocols = sorted({p for _, p in keys}, key=_protocol_key)
     cells = {k: {m: mean_se(getattr(r, m) for r in rs) for m in METRICS} for k, rs in keys.items()}
     seconds = {m: mean_se(r.seconds for r in records if r.method == m and r.status == "ok") for m in order}
-    return Table(order, protocols, cells, seconds, failed)
+    return Table(order, protocols, cells, seconds, failed, rule=_one_rule(records))
+
+
+def _one_rule(records: Sequence[Record], where: dict | None = None) -> str:
+    """The metric rule shared by ``records``; scores under different rules in one table are an error."""
+    rules = sorted({r.rule for r in records})
+    if len(rules) > 1:
+        by = {}
+        for r in records:
+            by.setdefault(r.rule, (where or {}).get((r.method, r.protocol, r.record_id), r.method))
+        raise TableError("records scored under different metric rules (" + "; ".join(
+            f"{k}: e.g. {v}" for k, v in sorted(by.items())) + "); rerun the benchmark with one metrics.rule for "
+            "every run (a CSV without a rule column was scored with 'composite'), or make one table per rule")
+    return rules[0] if rules else DEFAULT_RULE
 
 
 def merge_runs(run_dirs: Iterable[str | Path], filename: str = PER_IMAGE_CSV,
@@ -363,6 +423,7 @@ def merge_runs(run_dirs: Iterable[str | Path], filename: str = PER_IMAGE_CSV,
                 raise ValueError(f"duplicate record {key} in {where[key]} and {path}")
             where[key] = path
             records.append(r)
+    _one_rule(records, where)  # names a run dir of each rule
     table = summarize(records, methods)
     table.dropped = dropped
     return table

@@ -1,4 +1,5 @@
-"""difareli-benchmark: one relighting method on the SynthFaces protocols -> relit images, per-image CSV, tables."""
+"""difareli-benchmark: one relighting method on a store's protocols (SynthFaces, or Multi-PIE from difareli-multipie)
+-> relit images, per-image CSV, tables; scored under ``metrics.rule`` (paper | composite, difareli.metrics)."""
 
 from __future__ import annotations
 
@@ -8,23 +9,29 @@ import hydra
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from difareli import errors, zoo
+from difareli import errors, metrics, zoo
 from difareli import shard as sharding
 from difareli.baselines import build_method
 from difareli.light_fit import light_fit_from_config
-from difareli.benchmark import BenchmarkResult, run_benchmark
+from difareli.benchmark import BenchmarkResult, rescore, run_benchmark
 from difareli.cli import common
 from difareli.lit import logging as lit_logging
 from difareli.store import EncodingStore
 
 #: The config keys that define a benchmark job; shards of one job differ only by ``shard``.
 SHARD_JOB_KEYS = ("store", "method", "sampler", "protocols", "limit", "oracle_light", "oracle_shadow",
-                  "light_fit", "versions")
+                  "light_fit", "versions", "metrics")
 
 
 def run(cfg: DictConfig) -> BenchmarkResult:
     """Benchmark the configured method; prints and returns the summary."""
     validate(cfg)
+    rule = metric_rule(cfg)
+    if cfg.get("rescore"):  # the saved relit images of a finished run, scored again under `rule`
+        store = EncodingStore.open(cfg.store).use_versions(cfg.get("versions"))
+        result = rescore(store, cfg.rescore, cfg.out_dir, rule)
+        print(result.paths["summary_md"].read_text())
+        return result
     try:
         spec = sharding.parse(cfg.get("shard"))  # before any work: a bad value fails in one line
     except ValueError as e:
@@ -46,7 +53,8 @@ def run(cfg: DictConfig) -> BenchmarkResult:
     result = run_benchmark(store, method, list(cfg.protocols), Path(cfg.out_dir), limit=limit,
                            oracle_light=bool(cfg.oracle_light), oracle_shadow=bool(cfg.get("oracle_shadow", False)),
                            estimator=estimator, grid_pairs=int(cfg.grid_pairs),
-                           save_images=bool(cfg.save_images), progress=bool(cfg.progress), shard=spec)
+                           save_images=bool(cfg.save_images), progress=bool(cfg.progress), shard=spec,
+                           rule=rule)
     if spec is not None:  # what difareli-table checks before merging shards: same job, every shard once
         job = {k: OmegaConf.to_container(cfg[k], resolve=True) if OmegaConf.is_config(cfg[k]) else cfg[k]
                for k in SHARD_JOB_KEYS}
@@ -56,6 +64,15 @@ def run(cfg: DictConfig) -> BenchmarkResult:
     print(result.paths["summary_md"].read_text())
     print(f"per-image scores: {result.paths['per_image']}")
     return result
+
+
+def metric_rule(cfg: DictConfig) -> str:
+    """``cfg.metrics.rule`` (absent: the default, ``paper``), checked."""
+    rule = OmegaConf.select(cfg, "metrics.rule", default=None)
+    try:
+        return metrics.check_rule(rule)
+    except ValueError as e:
+        raise errors.UserError(f"metrics.rule={rule!r}: {e}") from None
 
 
 def validate(cfg: DictConfig) -> None:

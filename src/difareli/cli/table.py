@@ -1,8 +1,10 @@
-"""difareli-table: merge benchmark run dirs into one table (rows = methods, column groups = protocols)."""
+"""difareli-table: merge benchmark run dirs into one table (rows = methods, column groups = protocols); on Multi-PIE
+runs, ``published=all|ours|[names]`` adds the paper's Table I rows, labelled as published figures."""
 
 from __future__ import annotations
 
 import glob
+import json
 from pathlib import Path
 from typing import Iterable
 
@@ -32,6 +34,37 @@ def expand_runs(patterns: Iterable[str]) -> list[Path]:
     return list(dict.fromkeys(found))
 
 
+def published_methods(value) -> list[str] | None | bool:
+    """``published``: null/false (no rows), ``all``, ``ours`` (DiFaReli, DiFaReli++, DiFaReli++_ss) or a list."""
+    from difareli.multipie import published
+
+    if value in (None, False, "", "none", "null"):
+        return False
+    if value in (True, "all"):
+        return None
+    if value == "ours":
+        return list(published.OURS)
+    names = [str(v) for v in value] if isinstance(value, ListConfig) else [str(value)]
+    unknown = sorted(set(names) - set(published.FIGURES))
+    if unknown:
+        raise errors.UserError(f"published={value}: no published Multi-PIE figures for {unknown}; use all, ours or "
+                               f"names from {list(published.FIGURES)}")
+    return names
+
+
+def check_multipie(dirs: list[Path], rule: str) -> None:
+    """Published Multi-PIE rows go only beside Multi-PIE runs scored with the paper's rule."""
+    if rule != "paper":
+        raise errors.UserError(f"published=...: the runs were scored with metrics.rule={rule}, the paper's figures "
+                               "with the authors' evaluator; rerun the benchmark with metrics.rule=paper")
+    for d in dirs:
+        prov = Path(d) / "provenance.json"
+        data = json.loads(prov.read_text()).get("data set") if prov.is_file() else None
+        if data != "multipie":
+            raise errors.UserError(f"published=...: run dir {d} was benchmarked on {data or 'an unknown data set'}, "
+                                   "not Multi-PIE; the paper's rows go beside Multi-PIE runs (difareli-multipie)")
+
+
 def run(cfg: DictConfig) -> tables.Table:
     """Merge, print the Markdown table, write table.{md,csv,tex} into ``cfg.out``."""
     errors.check_int(cfg.digits, "digits", 0)
@@ -43,6 +76,12 @@ def run(cfg: DictConfig) -> tables.Table:
     sharding.check_complete(dirs)  # sharded benchmark runs: every shard of each job exactly once
     table = tables.merge_runs(dirs, methods=list(cfg.methods) if cfg.methods else None,
                               drop_bad_rows=bool(cfg.get("drop_bad_rows", False)))
+    chosen = published_methods(cfg.get("published"))
+    if chosen is not False:
+        from difareli.multipie import published
+
+        check_multipie(dirs, table.rule)
+        published.add_to(table, chosen)
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     md = table.to_markdown(digits=int(cfg.digits))
