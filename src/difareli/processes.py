@@ -1,8 +1,16 @@
-"""Worker processes that die with their parent (issue 15): a killed CLI must not leave orphans behind.
+"""Processes that behave on a shared machine: workers that die with their parent (issue 15), threads that sleep
+when idle (issue 26).
 
 Use :func:`die_with_parent` as a ``ProcessPoolExecutor`` initializer with the parent's pid. On Linux the
 kernel delivers SIGKILL to the worker the moment its parent exits, however it exits (SIGKILL included,
 ``prctl(PR_SET_PDEATHSIG)``); elsewhere a daemon thread polls the parent pid and exits the worker.
+
+:func:`passive_openmp` sets ``OMP_WAIT_POLICY=PASSIVE`` where the environment leaves it unset. torch's OpenMP
+runtime (libgomp) otherwise spins 300,000 iterations after every parallel region before sleeping: on a machine
+shared with another job those spinning threads hold cores the other job needs, and the same relight took 1.75 s
+to 50 s between rounds (issue 26); passive waiting removed the spread. libgomp reads the variable once, when
+torch loads it, so this must run before ``import torch`` (a console entry's first line); processes started later
+inherit it either way.
 """
 
 from __future__ import annotations
@@ -16,6 +24,35 @@ import threading
 import time
 
 _PR_SET_PDEATHSIG = 1
+#: OpenMP settings a command starts with unless its environment sets them (see the module docstring).
+OPENMP_DEFAULTS = {"OMP_WAIT_POLICY": "PASSIVE"}
+_SET_BEFORE_TORCH: dict[str, str] = {}
+
+
+def passive_openmp(environ: dict[str, str] | None = None) -> bool:
+    """Set :data:`OPENMP_DEFAULTS` where ``environ`` (default ``os.environ``) leaves them unset; True if this
+    process's OpenMP runtime will see them (torch not imported yet). Explicit settings are kept."""
+    env = os.environ if environ is None else environ
+    for key, value in OPENMP_DEFAULTS.items():
+        env.setdefault(key, value)
+    effective = "torch" not in sys.modules
+    if effective and environ is None:
+        _SET_BEFORE_TORCH.update({k: env[k] for k in OPENMP_DEFAULTS})
+    return effective
+
+
+def openmp_wait_policy() -> str:
+    """The wait policy this process's OpenMP runtime uses, as far as Python can tell: what :func:`passive_openmp`
+    set before torch loaded, else what the process was started with, else libgomp's default (spin, then sleep)."""
+    if "OMP_WAIT_POLICY" in _SET_BEFORE_TORCH:
+        return _SET_BEFORE_TORCH["OMP_WAIT_POLICY"]
+    try:  # the environment the process started with (os.environ changes after exec are not in it)
+        with open("/proc/self/environ", "rb") as f:
+            start = dict(kv.split(b"=", 1) for kv in f.read().split(b"\0") if b"=" in kv)
+        value = start.get(b"OMP_WAIT_POLICY")
+    except OSError:
+        value = os.environ.get("OMP_WAIT_POLICY", "").encode() or None
+    return value.decode().upper() if value else "unset (libgomp spins 300k iterations, then sleeps)"
 
 
 def _set_pdeathsig() -> bool:
