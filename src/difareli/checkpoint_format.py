@@ -57,3 +57,29 @@ def upgrade_checkpoint(ckpt: dict[str, Any]) -> dict[str, Any]:
     ckpt.setdefault(MODULE_KEY, LEGACY_MODULE)
     ckpt[FORMAT_KEY] = FORMAT_VERSION
     return ckpt
+
+
+# ---------------------------------------------------------------------------------------------- official files
+#: The official DiFaReli code, whose checkpoints difareli-import-checkpoint converts (difareli.official).
+OFFICIAL_REPO = "github.com/diffusion-face-relighting/difareli_code"
+
+
+def is_official(obj: Any) -> str | None:
+    """``"unet"`` / ``"modulator"`` if ``obj`` is an official state dict (UNet / Modulator), else None."""
+    from collections.abc import Mapping
+
+    if not isinstance(obj, Mapping) or "hyper_parameters" in obj or "input_blocks.0.0.weight" not in obj:
+        return None
+    return "unet" if "time_embed.0.weight" in obj else "modulator"
+
+
+def refuse_official(obj: Any, path: Any) -> None:
+    """Raise the one-line message that names the import command when ``obj`` (loaded from ``path``) is an
+    official state dict; a no-op otherwise. Every loader (``lit.read_checkpoint``) calls it."""
+    from difareli.errors import UserError
+
+    role = is_official(obj)
+    if role is not None:
+        raise UserError(f"checkpoint={path} is an official DiFaReli {role} state dict ({OFFICIAL_REPO}); convert it "
+                        f"once: difareli-import-checkpoint {path} config=<its official YAML> out=<name>.ckpt, then "
+                        "use checkpoint=<name>.ckpt")

@@ -36,9 +36,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from difareli.checkpoint_format import OFFICIAL_REPO as REPO
+from difareli.checkpoint_format import is_official
 from difareli.errors import UserError, check_file
 
-REPO = "github.com/diffusion-face-relighting/difareli_code"
 #: The defaults (``config/base_config.py``) of the keys this module reads.
 DEFAULTS: dict[str, dict[str, Any]] = {
     "img_model": {"name": "Img", "arch": "UNet", "image_size": 128, "num_channels": 128, "in_channels": 3,
@@ -174,23 +175,6 @@ def read_config(path: str | Path) -> OfficialConfig:
 
 
 # ---------------------------------------------------------------------------------------------- files
-def is_official(obj: Any) -> str | None:
-    """``"unet"`` / ``"modulator"`` if ``obj`` is an official state dict (UNet / Modulator), else None."""
-    if not isinstance(obj, Mapping) or "hyper_parameters" in obj or "input_blocks.0.0.weight" not in obj:
-        return None
-    return "unet" if "time_embed.0.weight" in obj else "modulator"
-
-
-def refuse_official(obj: Any, path: Any) -> None:
-    """Raise the one-line message that names the import command when ``obj`` (loaded from ``path``) is an
-    official state dict; a no-op otherwise. Every loader (``lit.read_checkpoint``) calls it."""
-    role = is_official(obj)
-    if role is not None:
-        raise UserError(f"checkpoint={path} is an official DiFaReli {role} state dict ({REPO}); convert it once: "
-                        f"difareli-import-checkpoint {path} config=<its official YAML> out=<name>.ckpt, then use "
-                        "checkpoint=<name>.ckpt")
-
-
 def _load(path: Path, what: str) -> dict[str, Any]:
     from difareli.errors import load_torch_file
 

@@ -53,7 +53,7 @@ def read_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     path = zoo.resolve(path)  # a file, or the name of a shipped checkpoint (difareli.zoo)
     ckpt = load_torch_file(path, "checkpoint", map_location)  # torch.load(weights_only=True), errors name the file
     if "hyper_parameters" not in ckpt or "state_dict" not in ckpt:
-        from difareli.official import refuse_official
+        from difareli.checkpoint_format import refuse_official
 
         refuse_official(ckpt, path)  # the authors' ImgCond/ImgEncoder .pt: a message naming the import command
         raise ValueError(f"{path} is not a difareli Lightning checkpoint (no hyper_parameters/state_dict)")
