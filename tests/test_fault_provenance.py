@@ -91,3 +91,33 @@ def test_a_second_writer_into_a_locked_folder_is_refused_naming_the_first(tmp_pa
         proc.wait()
     with folder_lock(tmp_path / "out", "benchmark"):  # the lock died with its holder
         assert (tmp_path / "out" / ".difareli.lock").read_text().startswith("difareli-benchmark")
+
+
+def test_a_resumed_benchmark_with_another_checkpoint_is_refused(synth_store, tiny_checkpoint, tmp_path):
+    """Killed with one checkpoint, rerun with another into the same out_dir: refused, naming the model (it kept
+    the other checkpoint's rows); the same checkpoint resumes."""
+    import torch
+
+    from difareli.baselines import DiffusionMethod
+    from difareli.benchmark import PARTIAL_CSV, run_benchmark
+    from difareli.lit import load_checkpoint
+
+    store = EncodingStore.open(synth_store)
+    sampler = {"name": "ddim", "steps": 2}
+    a = load_checkpoint(tiny_checkpoint("difareli_pp"))
+    b = load_checkpoint(tiny_checkpoint("difareli_pp"))
+    with torch.no_grad():
+        next(b.model.parameters()).view(-1)[0] += 1e-2  # another checkpoint of the same variant
+
+    class Dies(DiffusionMethod):
+        def relight(self, *args, **kwargs):
+            raise KeyboardInterrupt
+
+    out = tmp_path / "bench"
+    with pytest.raises(KeyboardInterrupt):
+        run_benchmark(store, Dies(a, sampler, name="pp"), ["same_subject"], out, limit=2, progress=False)
+    (out / PARTIAL_CSV).write_text("method,protocol,record_id,dssim,mse,lpips,seconds,rule\n")  # a kept row's header
+    with pytest.raises(UserError, match=r"holds benchmark rows made with other settings \(model: 'weights:"):
+        run_benchmark(store, DiffusionMethod(b, sampler, name="pp"), ["same_subject"], out, limit=2, progress=False)
+    res = run_benchmark(store, DiffusionMethod(a, sampler, name="pp"), ["same_subject"], out, limit=2, progress=False)
+    assert len(res.records) == 2

@@ -28,7 +28,7 @@ import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 import torch
@@ -37,8 +37,10 @@ from tqdm.auto import tqdm
 from difareli import errors, metrics, tables, viz
 from difareli.targets import target_shadow_of
 from difareli import shard as sharding
+from difareli import provenance
 from difareli.baselines import Method, exact_light_name, irradiance_error
 from difareli.light_fit import LightFit
+from difareli.fileio import folder_lock
 from difareli.store import EncodingStore
 from difareli.synth.splits import PROTOCOLS_FILE
 
@@ -47,6 +49,8 @@ PROTOCOLS = {"same_subject": "same", "different_subject": "different"}
 LIGHT_CSV = "light_estimation.csv"
 #: Rows scored so far, appended one by one: a killed run resumes from them (removed when the run completes).
 PARTIAL_CSV = ".metrics_per_image.partial.csv"
+#: What scored a run's rows (difareli.provenance): a resumed run must match it.
+SETTINGS = "benchmark_settings.json"
 
 
 def _scored_so_far(out_dir: Path, method: str, rule: str) -> dict[tuple[str, str], tables.Record]:
@@ -208,9 +212,39 @@ def run_benchmark(store: EncodingStore, method: Method, protocols: Sequence[str]
     outputs into ``out_dir``.
 
     ``shard="i/n"`` scores only that shard's pairs (by pair id, after ``limit``): the n shards' per-image
-    CSVs together hold exactly the unsharded run's rows (``difareli-table`` merges them)."""
+    CSVs together hold exactly the unsharded run's rows (``difareli-table`` merges them).
+
+    ``out_dir`` is locked for the run, and :data:`SETTINGS` records what scores its rows (the method and its
+    model's weights, sampler and precision, the store, protocols, limit, oracles, rule, shard): a resumed run
+    with other settings is refused, naming what differs, instead of keeping another checkpoint's rows."""
     out_dir = Path(out_dir)
     rule = metrics.check_rule(rule)
+    with folder_lock(out_dir, "benchmark"):
+        provenance.ensure(out_dir, run_settings(store, method, protocols, limit=limit, oracle_light=oracle_light,
+                                                oracle_shadow=oracle_shadow, rule=rule, shard=shard),
+                          "benchmark rows", name=SETTINGS,
+                          has_results=(out_dir / PARTIAL_CSV).is_file() or (out_dir / tables.PER_IMAGE_CSV).is_file())
+        return _run(store, method, protocols, out_dir, limit=limit, oracle_light=oracle_light,
+                    oracle_shadow=oracle_shadow, estimator=estimator, grid_pairs=grid_pairs, save_images=save_images,
+                    progress=progress, shard=shard, rule=rule)
+
+
+def run_settings(store: EncodingStore, method: Method, protocols: Sequence[str], *, limit: int | None,
+                 oracle_light: bool, oracle_shadow: bool, rule: str, shard: str | None) -> dict[str, Any]:
+    """What decides a benchmark run's rows (compared when a run resumes into the same folder)."""
+    relighter = getattr(method, "relighter", None)
+    model = getattr(relighter, "model", None)
+    return {"method": method.name, "model": provenance.model_identity(model) if model is not None else None,
+            "sampler": relighter.spec.to_config() if getattr(relighter, "spec", None) is not None else None,
+            "precision": relighter.runtime.precision if relighter is not None else None,
+            "store": provenance.store_identity(store), "versions": dict(getattr(store, "versions", {}) or {}),
+            "protocols": list(protocols), "limit": limit, "oracle_light": bool(oracle_light),
+            "oracle_shadow": bool(oracle_shadow), "rule": rule, "shard": shard}
+
+
+def _run(store: EncodingStore, method: Method, protocols: Sequence[str], out_dir: Path, *, limit: int | None,
+         oracle_light: bool, oracle_shadow: bool, estimator: LightFit | None, grid_pairs: int, save_images: bool,
+         progress: bool, shard: str | None, rule: str) -> BenchmarkResult:
     doc = protocols_doc(store)
     exact = bool(doc.get("exact_lights", True))
     if oracle_light and not exact:
