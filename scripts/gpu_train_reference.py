@@ -97,7 +97,7 @@ def main() -> None:
     from difareli.synth.generator import generate
 
     gen = generate(out_dir=str(data), subjects=cfg["subjects"], lights=4, resolution=res, seed=0,
-                   workers=os.cpu_count() or 1, realism="full", inputs="estimated")
+                   workers=os.cpu_count() or 1, realism="full", inputs="estimated_light")
     report["stages"]["data_s"] = round(time.perf_counter() - t0, 1)
     report["data"] = {"records": cfg["subjects"] * 4, "resolution": res, "written": getattr(gen, "written", None)}
     print(f"SynthFaces v2: {cfg['subjects'] * 4} records at {res} px in {report['stages']['data_s']} s")
@@ -110,6 +110,7 @@ def main() -> None:
         minutes = cfg["minutes"][model]
         cmd = [sys.executable, "-m", "difareli.cli.train", "experiment=reference_gpu", f"model={model}",
                f"data.root={data}", f"data.resolution={res}", f"hydra.run.dir={run_dir}",
+               "data.versions.shadow_map=null",  # the ray-traced maps: no DiFaReli has made difference maps here
                f"paths.root_dir={work}", f"trainer.max_time=00:00:{int(minutes):02d}:{int(minutes % 1 * 60):02d}",
                *cfg["overrides"]]
         wall = run(cmd, out / f"train_{model}.log" if args.small else work / f"train_{model}.log")
@@ -124,7 +125,7 @@ def main() -> None:
         achieved = None if ips is None else flops / batch * ips
         name = f"{model}-synth{res}"
         facts = {"summary": f"Reference {model} trained by scripts/gpu_train_reference.sh on {report['device']}.",
-                 "data": f"SynthFaces v2 (realism=full, inputs=estimated), {cfg['subjects']} subjects x 4 lights, "
+                 "data": f"SynthFaces v2 (realism=full, inputs=estimated_light), {cfg['subjects']} subjects x 4 lights, "
                          f"{res} px, seed 0 (train split)", "seed": 42, "batch_size": batch,
                  "precision": "bf16-mixed" if cuda else "32-true", "hardware": report["device"],
                  "wall_time": f"{wall:.0f} s (process), trainer.max_time {minutes} min",

@@ -3,12 +3,18 @@ on average for
 
 - ``difference``: derived difference-method versions (``--version [LABEL=]VERSION``, repeatable: one row each,
   e.g. the maps of DiFaReli checkpoints at several training steps),
-- ``ray-marched``: screen-space ray marching on the stored depth toward the record's light (``targets.target_shadow_map``),
-- ``mesh``: the store's own ``shadow_map`` (SynthFaces v2 ``inputs=estimated``: mesh rays toward the fitted light;
-  in an ``inputs=exact`` store it is the ground truth itself, so its row is 1 by construction and is flagged),
-- ``whole face (baseline)``: every mesh pixel, the score of a map that covers the whole face,
+- ``ray-marched``: screen-space ray marching on the stored depth toward the record's fitted light
+  (``targets.target_shadow_map``), and toward the exact light (``light_gt``, where stored: an oracle light),
+- ``mesh``: the store's own ``shadow_map`` (SynthFaces ``inputs=estimated``: mesh rays toward the fitted light, on
+  the estimated surface in v3; in an ``inputs=exact`` store it is the ground truth itself, flagged),
+- ``key sun, exact mesh (upper bound)`` (SynthFaces v3 stores): the subject re-built and its exact mesh ray cast
+  toward the exact key-sun direction; equal to the GT on single-sun records, whose score is printed apart,
+- ``whole face (baseline)``: every mesh pixel (the exact mesh where ``depth_gt`` is stored), the score of a map
+  that covers the whole face,
 
-each binarised as ``map > 0`` against ``shadow_map_gt > 0`` (or ``shadow_map`` in a v1 store). Records whose GT
+each binarised as ``map > 0`` against the visibly-shadowed mask ``shadow_visible_gt`` (SynthFaces v3's ground truth:
+the pixels losing more than the store's ``shadow_visible`` share of their light, or in the key sun's cast shadow),
+else ``shadow_map_gt > 0`` (v2), else ``shadow_map`` (v1). Records whose GT
 and prediction are both empty have no IoU (counted apart); the pooled IoU counts every pixel of every record once.
 Only records that hold every given version are scored. Writes ``shadow_map_quality.md`` / ``.csv`` and a figure
 (image | GT | each method) for the first records.
@@ -32,6 +38,35 @@ from difareli.targets import target_shadow_map
 
 #: The row of a map covering every mesh pixel: scored, not drawn in the figure.
 BASELINE = "whole face (baseline)"
+UPPER = "key sun, exact mesh (upper bound)"
+
+
+class KeySun:
+    """The key sun's cast mask on the exact mesh of a SynthFaces record (the subject re-built from the header)."""
+
+    def __init__(self, store: EncodingStore):
+        from dataclasses import fields, replace
+
+        from difareli.synth.generator import SynthConfig
+
+        meta = store.store_meta
+        cfg = SynthConfig(**{f.name: meta[f.name] for f in fields(SynthConfig) if f.name in meta})
+        self.cfg = replace(cfg, realism="lambertian", effects={}, inputs="exact")  # geometry only: same draws
+        self.store, self.cache = store, {}
+
+    def __call__(self, rid: str) -> tuple[np.ndarray, bool]:
+        from difareli.render import cast_shadow
+        from difareli.synth.generator import build_subject
+
+        m = self.store.meta(rid)
+        k = int(m["subject"].lstrip("s"))
+        if k not in self.cache:
+            self.cache = {k: build_subject(k, self.cfg)}
+        sub = self.cache[k]
+        single = not any(np.any(np.asarray(e["rgb"]) > 0) for e in m.get("extra_suns", []))
+        if not np.any(np.asarray(m["sun_rgb"]) > 0):
+            return np.zeros_like(sub.gbuffer.hit), single
+        return cast_shadow(sub.scene, sub.gbuffer, np.asarray(m["sun_dir"])) & sub.gbuffer.hit, single
 
 
 def parse_versions(specs: list[str]) -> dict[str, str]:
@@ -43,18 +78,37 @@ def parse_versions(specs: list[str]) -> dict[str, str]:
     return out
 
 
-def maps_of(store: EncodingStore, rid: str, versions: dict[str, str], light_name: str) -> dict[str, np.ndarray]:
+def gt_name(store: EncodingStore) -> str:
+    for name in ("shadow_visible_gt", "shadow_map_gt", "shadow_map"):
+        if store.available(name):
+            return name
+    raise KeyError(f"store {store.root} has no shadow map")
+
+
+def maps_of(store: EncodingStore, rid: str, versions: dict[str, str], light_name: str,
+            key_sun: KeySun | None = None) -> dict[str, np.ndarray]:
     """The binary maps of one record: GT, then each method."""
-    gt_name = "shadow_map_gt" if store.available("shadow_map_gt") else "shadow_map"
-    a = {k: np.asarray(v) for k, v in store.read(rid, ["depth", "normal", "cam", gt_name, "shadow_map",
-                                                       light_name]).items()}
-    out = {"gt": a[gt_name] > 0}
+    gt = gt_name(store)
+    lights = [light_name] + (["light_gt"] if light_name != "light_gt" and store.available("light_gt") else [])
+    mesh = "depth_gt" if store.available("depth_gt") else "depth"
+    exact_geo = [f"{k}_gt" for k in ("depth", "normal", "cam")] if store.available("depth_gt") else []
+    a = {k: np.asarray(v) for k, v in store.read(rid, sorted({"depth", "normal", "cam", gt, "shadow_map", mesh,
+                                                                *lights, *exact_geo})).items()}
+    out = {"gt": a[gt] > 0}
     for label, version in versions.items():
         name = f"shadow_map@{version}"
         out[label] = np.asarray(store.read(rid, [name])[name]) > 0
-    out["ray-marched"] = target_shadow_map(a, a[light_name], 0.0) > 0  # c = 0 > C_LO: only the support matters
+    for name in lights:  # c = 0 inside the range: only the support matters
+        label = "ray-marched" if name == light_name else "ray-marched toward the exact light (oracle)"
+        out[label] = target_shadow_map(a, a[name], 0.0, (-10.0, 10.0)) > 0
+    if exact_geo and "light_gt" in a:  # what the estimated geometry costs: the same march on the exact one
+        g = {k: a[f"{k}_gt"] for k in ("depth", "normal", "cam")}
+        out["ray-marched on the exact depth toward the exact light (oracle)"] = \
+            target_shadow_map(g, a["light_gt"], 0.0, (-10.0, 10.0)) > 0
     out["mesh"] = a["shadow_map"] > 0
-    out[BASELINE] = a["depth"] != 0  # every mesh pixel: the IoU a map earns by covering all
+    if key_sun is not None:
+        out[UPPER], _ = key_sun(rid)
+    out[BASELINE] = a[mesh] != 0  # every mesh pixel: the IoU a map earns by covering all
     return out
 
 
@@ -79,6 +133,9 @@ def main(argv=None) -> None:
     ap.add_argument("--split", default=None, help="only this split's records (default: all)")
     ap.add_argument("--light", default="light", help="light the ray-marched map aims at: light (a user's) | light_gt")
     ap.add_argument("--every", type=int, default=1, help="score every N-th record only (a quick look)")
+    ap.add_argument("--region", choices=("all", "face"), default="all",
+                    help="face: GT and every map restricted to the exact face parts (face_mask_gt, else face_mask), "
+                         "where the difference recipe's maps live")
     ap.add_argument("--figure-rows", type=int, default=8)
     ap.add_argument("--out", default=".")
     args = ap.parse_args(argv)
@@ -93,11 +150,19 @@ def main(argv=None) -> None:
     if not ids:
         ap.error(f"no record of {store.root} holds every given version; run difareli-shadow-maps first")
     exact_store = store.store_meta.get("inputs", "exact") == "exact" or not store.available("shadow_map_gt")
+    key_sun = KeySun(store) if store.available("shadow_visible_gt") else None
+    fm = "face_mask_gt" if store.available("face_mask_gt") else "face_mask"
+    single: list[float] = []
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     rows, fig, per, pooled = [], [], {}, {}
     for rid in ids:
-        m = maps_of(store, rid, versions, args.light)
+        m = maps_of(store, rid, versions, args.light, key_sun)
+        if args.region == "face":
+            face = np.asarray(store.read(rid, [fm])[fm], bool)
+            m = {k: v & face for k, v in m.items()}
+        if key_sun is not None and key_sun(rid)[1]:
+            single.append(float(binary_scores(m[UPPER][None], m["gt"][None])["iou"][0]))
         for method in [k for k in m if k != "gt"]:
             s = binary_scores(m[method][None], m["gt"][None])
             rows.append({"record": rid, "method": method, **{k: float(v[0]) for k, v in s.items()}})
@@ -113,9 +178,16 @@ def main(argv=None) -> None:
         w = csv.DictWriter(f, fieldnames=["record", "method", "iou", "precision", "recall"])
         w.writeheader()
         w.writerows(rows)
-    where = f"split {args.split}" if args.split else "all splits"
-    lines = [f"Shadow-map quality on {store.root} ({len(ids)} records of {where}; binary maps > 0 vs the exact "
-             "cast map)", ""] + summary_lines(per, pooled, exact_store)
+    where = (f"split {args.split}" if args.split else "all splits") + ("" if args.region == "all" else
+                                                                        f", restricted to {fm}")
+    lines = [f"Shadow-map quality on {store.root} ({len(ids)} records of {where}; binary maps > 0 vs the "
+             f"GT {gt_name(store)})", ""] + summary_lines(per, pooled, exact_store)
+    if single:
+        lines.append(f"\n{UPPER} on the {len(single)} single-sun records: IoU {np.nanmean(single):.3f} "
+                     f"(records with an IoU: {int(np.isfinite(single).sum())})")
+    if "shadow_visible" in store.store_meta:
+        lines.append(f"GT: shadow_visible_gt, share of a pixel's light removed > {store.store_meta['shadow_visible']} "
+                     "or in the key sun's cast shadow")
     for label, version in versions.items():
         prov = store.derived[f"shadow_map@{version}"]
         keys = ("global_step", "sampler", "threshold", "threshold_rule", "median", "c_min", "c_max")

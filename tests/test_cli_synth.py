@@ -34,7 +34,8 @@ def test_missing_out_dir_and_unknown_key():
 
 def test_run_then_nothing_to_do(tmp_path, capsys):
     out = tmp_path / "sf"
-    cfg = _cfg([f"out_dir={out}", "subjects=3", "lights=2", "resolution=24", "workers=1", "preview.cell=48"])
+    cfg = _cfg([f"out_dir={out}", "subjects=3", "lights=2", "resolution=24", "workers=1", "preview.cell=48",
+                "inputs=estimated_light"])  # v3 needs the photo estimators (test_synth_v3 covers it)
     report = cli.run(cfg)
     text = capsys.readouterr().out
     assert report.written == 6 and "wrote 6 records" in text and "images/s" in text

@@ -16,6 +16,8 @@ from difareli.store import EncodingStore
 from difareli.targets import Targets
 
 ROWS, COLS = slice(12, 20), slice(12, 20)  # an 8x8 square in the middle of a 32 px face
+#: The issue-12 rule these tests were written for (Otsu, 3x3 median, no parts zeroed); the recipe has its own tests.
+OTSU = {"threshold": "otsu", "median": 3, "zero_parts": ()}
 
 
 class Crafted(torch.nn.Module):
@@ -84,7 +86,7 @@ def test_difference_pipeline_on_a_crafted_model(store):
     assert min(train) <= c_min < c_max <= max(train)
     with pytest.raises(UserError, match="c_quantile"):
         sm.c_range(store, quantile=0.5)
-    rep = sm.compute(Crafted(), store, None, provenance={"checkpoint": "crafted"}, batch_size=3, progress=False)
+    rep = sm.compute(Crafted(), store, None, provenance={"checkpoint": "crafted"}, **OTSU, batch_size=3, progress=False)
     assert rep.relit == len(ids) and rep.written == len(ids) and rep.name.startswith("shadow_map@diff-")
     sig = lambda c: 1 / (1 + np.exp(-c))  # noqa: E731
     delta = 0.4 * (sig(c_max) - sig(c_min)) / 2  # luminance difference on the square, [0, 1] units
@@ -113,10 +115,10 @@ def test_difference_pipeline_on_a_crafted_model(store):
         EncodingStore.open(store.root).use_versions({"shadow_map": "nope"})
 
     # Resumable: a rerun relights nothing; a record that lost its raw difference is the only one redone.
-    again = sm.compute(Crafted(), store, None, provenance={"checkpoint": "crafted"}, progress=False)
+    again = sm.compute(Crafted(), store, None, provenance={"checkpoint": "crafted"}, **OTSU, progress=False)
     assert again.relit == 0 and again.name == rep.name and again.threshold == rep.threshold
     derived.path_of(store, ids[1], rep.raw).unlink()
-    assert sm.compute(Crafted(), store, None, provenance={"checkpoint": "crafted"}, progress=False).relit == 1
+    assert sm.compute(Crafted(), store, None, provenance={"checkpoint": "crafted"}, **OTSU, progress=False).relit == 1
     assert not list(store.records_dir.glob("*/.*tmp*"))  # no scratch files left behind
 
 
@@ -146,7 +148,11 @@ def test_derived_versions_are_checked(store):
     assert not derived.write(store, rid, name, np.ones((32, 32), np.float32))  # exists: kept
     np.testing.assert_array_equal(store.read(rid, [name])[name], 0.0)
     assert derived.missing(store, name, store.ids()) == store.ids()[1:]
-    assert EncodingStore.open(store.root).verify() == []  # derived files do not disturb the record check
+    # A version may cover some records (one split): verify checks the files that are there, whole and shaped.
+    assert EncodingStore.open(store.root).verify() == []
+    np.save(store.root / "records" / rid / f"{name}.npy", np.zeros((8, 8), np.float32))
+    problems = EncodingStore.open(store.root).verify()
+    assert problems == [f"{rid}: derived {name} has shape (8, 8), schema wants (32, 32)"]
 
 
 def test_cli_on_a_trained_difareli_batches_like_one_at_a_time(tiny_checkpoint, store, tmp_path, one_thread):
@@ -161,7 +167,7 @@ def test_cli_on_a_trained_difareli_batches_like_one_at_a_time(tiny_checkpoint, s
     ids = store.ids()[:3]
     cfg = compose_train(tmp_path / "run", [f"checkpoint={ckpt}", f"store={store.root}", f"records=[{','.join(ids)}]",
                                            "sampler.steps=3", "batch_size=2", "progress=false", "runtime.device=cpu",
-                                           "threshold=0.01"],  # a 20-step toy does not darken with c yet
+                                           "threshold=0.01", "min_contrast=0"],  # a 20-step toy barely responds to c
                         config_name="shadow_maps")
     rep = run(cfg)
     assert rep.relit == 3 and rep.written == 3 and (tmp_path / "run" / "shadow_maps.json").is_file()
@@ -198,7 +204,8 @@ def test_quality_script_scores_known_maps(store, tmp_path):
     spec = importlib.util.spec_from_file_location("shadow_map_quality", path)
     q = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(q)
-    gt_name = "shadow_map_gt" if store.available("shadow_map_gt") else "shadow_map"
+    gt_name = q.gt_name(store)
+    assert gt_name == "shadow_visible_gt"  # the visibly-shadowed mask, in every store this generator writes
     ids = store.ids()[:3]
     # A "perfect" version (the GT support itself) and an empty one, written as derived versions.
     for version, fn in (("perfect", lambda g: (g > 0).astype(np.float32)), ("empty", np.zeros_like)):
@@ -215,7 +222,9 @@ def test_quality_script_scores_known_maps(store, tmp_path):
     assert float(rows["difference"][0]) == 0.0 and float(rows["difference"][3]) == 0.0
     assert int(rows["difference (a)"][4]) == sum(gt_any)
     csv_rows = (tmp_path / "shadow_map_quality.csv").read_text().splitlines()
-    assert len(csv_rows) == 1 + 3 * 5  # 3 records x (2 versions, ray-marched, mesh, whole face)
+    # 3 records x (2 versions, ray-marched toward the fitted and the exact light, mesh, key-sun bound, whole face)
+    assert len(csv_rows) == 1 + 3 * 7
+    assert [float(v) for v in rows["key sun, exact mesh (upper bound)"][:2]][1] == 1.0  # inside the GT by definition
     whole = [float(v) for v in rows["whole face (baseline)"][:3]]
     assert whole[2] == 1.0 and 0 < whole[0] < 1  # covering the face: recall 1, IoU = the GT's share of the face
     assert (tmp_path / "shadow_map_quality.png").is_file()
@@ -227,9 +236,9 @@ def test_record_subsets_get_their_own_version_and_a_flat_model_is_refused(store)
     """The global threshold is taken over the chosen records, so another record set is another version; a model
     whose relights do not darken with c gives no positive Otsu threshold and is refused, not written."""
     ids = store.ids()
-    a = sm.compute(Crafted(), store, None, provenance={"checkpoint": "crafted"}, ids=ids[:4], progress=False)
-    b = sm.compute(Crafted(), store, None, provenance={"checkpoint": "crafted"}, ids=ids[2:6], progress=False)
-    full = sm.compute(Crafted(), store, None, provenance={"checkpoint": "crafted"}, progress=False)
+    a = sm.compute(Crafted(), store, None, provenance={"checkpoint": "crafted"}, **OTSU, ids=ids[:4], progress=False)
+    b = sm.compute(Crafted(), store, None, provenance={"checkpoint": "crafted"}, **OTSU, ids=ids[2:6], progress=False)
+    full = sm.compute(Crafted(), store, None, provenance={"checkpoint": "crafted"}, **OTSU, progress=False)
     assert len({a.name, b.name, full.name}) == 3 and a.raw == b.raw == full.raw  # raw differences are shared
     assert b.relit == 2 and full.relit == len(ids) - 6  # only records without a raw difference are relit
     prov = EncodingStore.open(store.root).derived
@@ -240,7 +249,7 @@ def test_record_subsets_get_their_own_version_and_a_flat_model_is_refused(store)
             return 1.0 - super().relight_once(x0, source, target)  # lighter as c grows: differences <= 0
 
     with pytest.raises(UserError, match="does not darken"):
-        sm.compute(Brightens(), store, None, provenance={"checkpoint": "bright"}, progress=False)
+        sm.compute(Brightens(), store, None, provenance={"checkpoint": "bright"}, **OTSU, progress=False)
     assert not any(k.startswith("shadow_map@diff-") and v.get("checkpoint") == "bright"
                    for k, v in EncodingStore.open(store.root).derived.items())
 
@@ -258,3 +267,76 @@ def test_versions_override_composes_as_documented(config_name, key, tmp_path):
     assert OmegaConf.select(base, f"{key}.shadow_map", default="missing") is None
     cfg = compose_train(tmp_path / "b", [f"{key}.shadow_map=diff-1a2b"], config_name=config_name)
     assert OmegaConf.select(cfg, f"{key}.shadow_map") == "diff-1a2b"
+
+
+# ------------------------------------------------------------------------------------------ the authors' recipe
+def test_recipe_median_scales_with_the_resolution():
+    assert [sm.median_size("auto", r) for r in (32, 64, 128, 256, 512)] == [1, 1, 3, 5, 9]
+    assert sm.median_size(7, 64) == 7
+
+
+def test_otsu_refuses_a_one_peaked_histogram_and_names_what_it_found():
+    rng = np.random.default_rng(0)
+    gauss = rng.normal(0.0, 0.01, 20000)  # a DiFaReli whose response to c is noise
+    t = sm.otsu_threshold(gauss)
+    assert abs(t) < 0.005 and 0.4 < (gauss > t).mean() < 0.6  # Otsu cuts near the mean: half the face
+    with pytest.raises(UserError, match="one mode, not two.*lower peak"):
+        sm.check_two_modes(gauss, t)
+    two = np.r_[rng.normal(0.0, 0.005, 9000), rng.normal(0.2, 0.01, 1000)]
+    sm.check_two_modes(two, sm.otsu_threshold(two))  # separated modes pass
+
+
+def test_fixed_threshold_map_on_a_crafted_difference():
+    """0.05 on the grey-level difference, parts zeroed, times the face mask and c normalised by a given range."""
+    diff = np.zeros((8, 8))
+    diff[2:6, 2:6] = 0.06   # above the recipe's threshold
+    diff[0, :] = 0.049      # just below: not shadow
+    keep = np.ones((8, 8), bool)
+    keep[2, 2:6] = False    # an eye row, zeroed
+    keep[:, 7] = False      # off the face mask
+    out = sm.finish_map(diff, sm.RECIPE_THRESHOLD, 1, -2.0, None, keep, (-4.0, -1.0))
+    want = np.zeros((8, 8), bool)
+    want[3:6, 2:6] = True
+    np.testing.assert_allclose(out, want * (2.0 / 3.0), atol=1e-7)  # (-2 - -4) / (-1 - -4)
+
+
+def test_recipe_defaults_and_a_weak_difareli_is_refused_with_its_contrast(store):
+    class Weak(Crafted):
+        def relight_once(self, x0, source, target):
+            return 0.5 + 0.01 * (super().relight_once(x0, source, target) - 0.5)  # 1% of the response
+
+    with pytest.raises(UserError, match=r"barely changes the image with c.*99th percentile.* is 0\.0"):
+        sm.compute(Weak(), store, None, provenance={"checkpoint": "weak"}, progress=False)
+    rep = sm.compute(Weak(), store, None, provenance={"checkpoint": "weak"}, min_contrast=0, progress=False)
+    prov = EncodingStore.open(store.root).derived[rep.name]
+    assert prov["threshold"] == 0.05 and prov["median"] == 1 and prov["zero_parts"] == list(sm.ZERO_PARTS)
+    assert prov["contrast_p99"] < 0.01 and prov["c_norm_range"] == "fixed"  # a pre-v3 store: the fixed range
+    for r in store.ids():
+        assert not (store.read(r, [rep.name])[rep.name] > 0).any()  # nothing clears 0.05: empty, not noise
+
+
+def test_records_split_selects_a_split_and_names_an_empty_one(store):
+    from omegaconf import OmegaConf
+
+    from difareli.cli.shadow_maps import record_ids
+
+    cfg = OmegaConf.create({"records": None, "records_split": "train"})
+    assert record_ids(cfg, store) == store.ids(split="train")
+    assert record_ids(OmegaConf.create({"records": ["a"], "records_split": "train"}), store) == ["a"]
+    assert record_ids(OmegaConf.create({"records": None, "records_split": None}), store) is None
+    with pytest.raises(UserError, match="records_split=nope"):
+        record_ids(OmegaConf.create({"records": None, "records_split": "nope"}), store)
+
+
+def test_a_difareli_whose_response_to_c_is_noise_is_refused(store):
+    class Noisy(Crafted):
+        def relight_once(self, x0, source, target):
+            g = torch.Generator().manual_seed(int(abs(float(target.flatten()[0])) * 1000))  # differs with c
+            noise = 0.2 * (torch.rand(x0.shape[0], 1, *x0.shape[-2:], generator=g) - 0.5)
+            return (0.5 + noise).expand(-1, 3, -1, -1)
+
+    with pytest.raises(UserError, match=r"response to c is noise.*darken by more than 0\.05.*brighten"):
+        sm.compute(Noisy(), store, None, provenance={"checkpoint": "noisy"}, progress=False)
+    rep = sm.compute(Noisy(), store, None, provenance={"checkpoint": "noisy"}, min_contrast=0, progress=False)
+    prov = EncodingStore.open(store.root).derived[rep.name]
+    assert prov["brightened"] >= 0.5 * prov["darkened"] > 0

@@ -122,7 +122,7 @@ def test_realism_lambertian_is_v1_bit_for_bit():
     if int(np.__version__.split(".")[0]) < 2:
         for rid, hashes in overrides.items():
             gold[rid].update(hashes)
-    for inputs in ("exact", "estimated"):
+    for inputs in ("exact", "estimated_light"):
         cfg = gen.SynthConfig(subjects=3, lights=3, resolution=32, seed=7, realism="lambertian", inputs=inputs)
         seen = 0
         for k in range(2):  # the golden file has 3 subjects; two (with a hard sun each) keep this fast
@@ -132,7 +132,7 @@ def test_realism_lambertian_is_v1_bit_for_bit():
                     if name.startswith("_"):
                         continue
                     # The exact values: in place with exact inputs, under *_gt with estimated ones.
-                    key = f"{name}_gt" if inputs == "estimated" and f"{name}_gt" in arrays else name
+                    key = f"{name}_gt" if inputs == "estimated_light" and f"{name}_gt" in arrays else name
                     assert _sha(arrays[key]) == h, (inputs, rid, name)
                     seen += 1
         assert seen == 6 * 13
@@ -140,7 +140,7 @@ def test_realism_lambertian_is_v1_bit_for_bit():
 
 @pytest.fixture(scope="module")
 def full_records():
-    cfg = gen.SynthConfig(subjects=2, lights=3, resolution=48, seed=3, realism="full", inputs="estimated")
+    cfg = gen.SynthConfig(subjects=2, lights=3, resolution=48, seed=3, realism="full", inputs="estimated_light")
     subject = gen.build_subject(1, cfg)
     recs = list(gen.render_records(1, [0, 1, 2], cfg, "train"))
     return cfg, subject, recs
@@ -153,11 +153,11 @@ def test_full_preset_is_deterministic_and_records_its_effects(full_records):
         assert m == m2
         for name in a:
             np.testing.assert_array_equal(a[name], b[name])
-    other = gen.SynthConfig(subjects=2, lights=3, resolution=48, seed=4, realism="full", inputs="estimated")
+    other = gen.SynthConfig(subjects=2, lights=3, resolution=48, seed=4, realism="full", inputs="estimated_light")
     assert not np.array_equal(next(gen.render_records(1, [0], other, "train"))[1]["image"], recs[0][1]["image"])
     for _, arrays, meta in recs:
         assert meta["effects"] == {"specular": True, "subsurface": True, "ambient_occlusion": True, "multi_sun": True}
-        assert meta["realism"] == "full" and meta["inputs"] == "estimated"
+        assert meta["realism"] == "full" and meta["inputs"] == "estimated_light"
         assert 0 < meta["energy"]["subsurface"] < 0.5 and 0 <= meta["energy"]["specular"] < 0.5
         assert set(gen.ENCODINGS) == set(arrays)
     ao = subject.ao[subject.gbuffer.hit]
@@ -225,7 +225,7 @@ def test_v2_store_oracle_reads_exact_lights_and_v1_stores_stay_readable(tmp_path
     from difareli.store import EncodingStore
 
     root = tmp_path / "v2"
-    gen.generate(str(root), subjects=1, lights=2, resolution=32, seed=0, realism="full", inputs="estimated")
+    gen.generate(str(root), subjects=1, lights=2, resolution=32, seed=0, realism="full", inputs="estimated_light")
     store = EncodingStore.open(root)
     assert store.schema_version == 2
     rid = store.ids()[0]

@@ -64,7 +64,7 @@ def test_shipped_checkpoint_changes_the_light_of_an_unseen_face(name, tmp_path):
     from difareli.synth.generator import generate
 
     generate(out_dir=str(tmp_path / "s"), subjects=10, lights=2, resolution=res, seed=77, realism="full",
-             inputs="estimated")
+             inputs="estimated_light")
     store = EncodingStore.open(tmp_path / "s")
     rid = store.ids(split="test")[0]
     arrays = store.read(rid, ["image", "light", "shadow"])

@@ -41,7 +41,7 @@ def make_store(root: Path, *, subjects: int, resolution: int, seed: int, progres
     from difareli.synth.generator import generate
 
     generate(out_dir=str(root), subjects=subjects, lights=4, resolution=resolution, seed=seed, workers=1,
-             realism="full", inputs="estimated",
+             realism="full", inputs="estimated_light",
              progress=_bar("SynthFaces", progress) if progress else None)
     return EncodingStore.open(root)
 

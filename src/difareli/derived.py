@@ -50,6 +50,35 @@ def content_version(prefix: str, provenance: Mapping[str, Any], length: int = 8)
     return f"{prefix}-{hashlib.sha1(text.encode()).hexdigest()[:length]}"
 
 
+def update_header(store, key: str, value: Any) -> None:
+    """Set ``meta[key]`` of a store's header (atomic rename) and of the open ``store``."""
+    from difareli.store import HEADER
+
+    path = Path(store.root) / HEADER
+    header = json.loads(path.read_text())
+    header.setdefault("meta", {})[key] = json.loads(json.dumps(value, default=str))
+    tmp = path.with_name(f"{HEADER}.tmp-{os.getpid()}")
+    tmp.write_text(json.dumps(header, indent=2, sort_keys=True) + "\n")
+    os.replace(tmp, path)
+    store.store_meta[key] = header["meta"][key]
+
+
+def replace_base(store, record_id: str, name: str, array: np.ndarray) -> None:
+    """Rewrite one record's own encoding ``name`` in place (scratch file, then rename), validated by its schema."""
+    final = Path(store.records_dir) / record_id / f"{name}.npy"
+    if not final.is_file():
+        raise KeyError(f"record {record_id!r} of store {store.root} has no {name}")
+    arr = np.ascontiguousarray(enc.get(name).validate(np.asarray(array), store.dims))
+    tmp = final.with_name(f".{final.name}.tmp-{os.getpid()}")
+    try:
+        with open(tmp, "wb") as f:
+            np.save(f, arr, allow_pickle=False)
+        os.replace(tmp, final)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
 def declare(store, base: str, version: str, provenance: Mapping[str, Any]) -> str:
     """Record a derived version and its provenance in the store header (atomic rename); returns its name.
 

@@ -31,9 +31,31 @@ SHADOW_C_LO = math.log(SHADOW_S_MIN / (1 - SHADOW_S_MIN))
 SHADOW_C_HI = math.log(0.25 / 0.75)
 
 
-def normalise_c(c):
-    """Map a shadow logit c to [0, 1] with the fixed range [SHADOW_C_LO, SHADOW_C_HI]."""
-    return np.clip((np.asarray(c, dtype=np.float64) - SHADOW_C_LO) / (SHADOW_C_HI - SHADOW_C_LO), 0.0, 1.0)
+#: Store-header key (and record-array key, for re-rendering target maps) of a store's own c range: SynthFaces v3
+#: stores normalise c by their training split's (c_min, c_max), the authors' recipe; stores without it use the
+#: fixed range above (v1/v2, photos).
+C_RANGE_KEY = "shadow_c_range"
+
+
+def normalise_c(c, c_range=None):
+    """Map a shadow logit c to [0, 1]: ``(c - lo) / (hi - lo)`` clipped, with ``c_range = (lo, hi)`` (a store's
+    training-split range, :func:`store_c_range`) or, when None, the fixed [SHADOW_C_LO, SHADOW_C_HI]."""
+    lo, hi = (SHADOW_C_LO, SHADOW_C_HI) if c_range is None else (float(c_range[0]), float(c_range[1]))
+    if not hi > lo:
+        raise ValueError(f"shadow c range ({lo}, {hi}) is empty: c_max must exceed c_min")
+    return np.clip((np.asarray(c, dtype=np.float64) - lo) / (hi - lo), 0.0, 1.0)
+
+
+def store_c_range(meta: Mapping[str, Any] | None) -> tuple[float, float] | None:
+    """The c range a store's header records (``meta[C_RANGE_KEY]``: ``{"lo", "hi", ...}``), or None (fixed range).
+    Also accepts a record's arrays, where readers put it as a 2-vector under the same key."""
+    value = None if meta is None else meta.get(C_RANGE_KEY)
+    if value is None or (isinstance(value, Mapping) and value.get("lo") is None):
+        return None
+    if isinstance(value, Mapping):
+        return float(value["lo"]), float(value["hi"])
+    lo, hi = np.asarray(value, dtype=np.float64).reshape(-1)[:2]
+    return float(lo), float(hi)
 
 
 def known_normals(normal) -> np.ndarray:
@@ -181,6 +203,20 @@ _ENCODINGS = (
     Encoding("shadow_map_gt", ("H", "W"), "float32", "exact cast-shadow map (union over suns) times "
              "normalised shadow_gt, as `shadow_map`", spatial=True,
              rerender="difareli.targets:render_shadow_map", needs=("depth", "normal", "cam", "shadow"), oracle=True),
+    # SynthFaces v3 (docs/synthfaces_v3.md): geometry is estimated too; the renderer's values for oracle studies.
+    Encoding("shape_gt", ("S",), "float32", "exact BFM shape / expression / pose parameters, as `shape`", oracle=True),
+    Encoding("cam_gt", (3,), "float32", "exact camera, as `cam`", oracle=True),
+    Encoding("identity_gt", ("D",), "float32", "the subject's identity vector, as `identity`", oracle=True),
+    Encoding("masks_gt", ("H", "W"), "uint8", "exact part labels, as `masks`", spatial=True, onehot=NUM_MASK_PARTS,
+             oracle=True),
+    Encoding("normal_gt", ("H", "W", 3), "float32", "exact normal, as `normal`", spatial=True, oracle=True),
+    Encoding("depth_gt", ("H", "W"), "float32", "exact whole-mesh depth, as `depth`", spatial=True, oracle=True),
+    Encoding("face_mask_gt", ("H", "W"), "bool", "exact face region, as `face_mask`", spatial=True, oracle=True),
+    # SynthFaces v3: what "visibly shadowed" means, for scoring shadow maps.
+    Encoding("shadow_fraction_gt", ("H", "W"), "float32", "share of each pixel's unshadowed light (every sun and "
+             "the ambient) that cast shadows remove, 0 off the mesh", spatial=True, oracle=True),
+    Encoding("shadow_visible_gt", ("H", "W"), "bool", "visibly shadowed: shadow_fraction_gt above the store's "
+             "threshold, or in the key sun's own cast shadow", spatial=True, oracle=True),
 )
 
 #: All encodings by name, in schema order.

@@ -454,10 +454,17 @@ class EncodingStore:
                             check_light(np.asarray(arr), f"{name}")
                 except (OSError, ValueError, EOFError) as e:  # EOFError: an empty (truncated) file
                     problems.append(f"{rid}: {name} unreadable ({type(e).__name__}: {e})")
-            for derived in self.derived:  # a version a reader may pick (versions.<base>=...) must be whole
-                if not (path / f"{derived}.npy").is_file():
-                    problems.append(f"{rid}: missing derived {derived!r} (rerun the command that made it; its "
-                                    "provenance is under 'derived' in store.json)")
+            for derived in self.derived:  # a derived version may cover one split; where present it must be whole
+                file = path / f"{derived}.npy"
+                base = derived.partition("@")[0]
+                if file.is_file() and base in enc.ENCODINGS:
+                    try:
+                        arr = np.load(file, mmap_mode="r", allow_pickle=False)
+                        if arr.shape != enc.get(base).resolve(self.dims):
+                            problems.append(f"{rid}: derived {derived} has shape {arr.shape}, schema wants "
+                                            f"{enc.get(base).resolve(self.dims)}")
+                    except (OSError, ValueError, EOFError) as e:
+                        problems.append(f"{rid}: derived {derived} unreadable ({type(e).__name__}: {e})")
         return problems
 
     def _splits_used(self) -> bool:

@@ -144,9 +144,11 @@ def rotation_targets(source: Mapping[str, np.ndarray], axis: str, frames: int, *
     return Targets.of(lights, [c] * len(lights), f"rotation about {axis}"), why
 
 
-def target_shadow_map(arrays: Mapping[str, np.ndarray], light: np.ndarray, c: float) -> np.ndarray:
+def target_shadow_map(arrays: Mapping[str, np.ndarray], light: np.ndarray, c: float, c_range=None) -> np.ndarray:
     """Binary cast-shadow map toward ``light``'s dominant direction, ray-marched on the stored depth, times
-    the normalised shadow strength ``c`` (the ``shadow_map`` encoding's definition)."""
+    the normalised shadow strength ``c`` (the ``shadow_map`` encoding's definition). ``c_range``: the store's
+    c range (``encodings.store_c_range``), else the one the arrays carry under ``encodings.C_RANGE_KEY``
+    (SynthFaces v3 readers put it there), else the fixed range."""
     depth = np.asarray(arrays["depth"], dtype=np.float64)
     normal = np.asarray(arrays["normal"], dtype=np.float64)
     cam = OrthoCamera(*np.asarray(arrays["cam"], dtype=np.float64).tolist())
@@ -156,7 +158,8 @@ def target_shadow_map(arrays: Mapping[str, np.ndarray], light: np.ndarray, c: fl
     # Where the face normal is known, a point turned away from the light is in attached, not cast, shadow.
     known = encodings.known_normals(normal)
     cast &= ~(known & (normal @ d <= 0))
-    return (cast * normalise_c(c)).astype(np.float32)
+    c_range = c_range if c_range is not None else encodings.store_c_range(arrays)
+    return (cast * normalise_c(c, c_range)).astype(np.float32)
 
 
 def render_shading(arrays: Mapping[str, np.ndarray], light: np.ndarray, shadow: float | None = None) -> np.ndarray:
@@ -228,9 +231,10 @@ def split_typical_c(store, split: str = "train") -> float | None:
 
 def stored_shadow_is_estimate(store) -> bool:
     """Whether a store's ``shadow`` is what a user has (an estimator's c): photo stores and SynthFaces
-    ``inputs=estimated``; a SynthFaces ``inputs=exact`` store holds the exact c there (an oracle)."""
+    ``inputs=estimated`` (v3) or ``estimated_light`` (v2); a SynthFaces ``inputs=exact`` store holds the exact c
+    there (an oracle)."""
     meta = store.store_meta
-    return meta.get("generator") != "synthfaces" or meta.get("inputs") == "estimated"
+    return meta.get("generator") != "synthfaces" or meta.get("inputs") in ("estimated", "estimated_light")
 
 
 def target_shadow_of(store, record_id: str, *, oracle: bool = False, split: str = "train") -> tuple[float | None, str]:

@@ -29,14 +29,18 @@ def run(cfg: DictConfig):
                   "sampler": OmegaConf.to_container(cfg.sampler, resolve=True), "precision": runtime.precision}
     threshold = cfg.threshold if cfg.threshold == "otsu" else float(cfg.threshold)
     rep = shadow_maps.compute(ckpt.model.to(runtime.torch_device), store, spec, provenance=provenance,
-                              ids=list(cfg.records) if cfg.records is not None else None, split=cfg.split,
+                              ids=record_ids(cfg, store), split=cfg.split,
                               c_quantile=float(cfg.c_quantile),
-                              threshold=threshold, median=int(cfg.median), batch_size=int(cfg.batch_size),
+                              threshold=threshold, median=cfg.median if cfg.median == "auto" else int(cfg.median),
+                              zero_parts=list(cfg.zero_parts or []),
+                              min_contrast=None if cfg.min_contrast is None else float(cfg.min_contrast),
+                              batch_size=int(cfg.batch_size),
                               version=cfg.version, runtime=runtime, mean_matching=bool(cfg.mean_matching),
                               device=runtime.torch_device, progress=bool(cfg.progress))
     version = rep.name.split("@", 1)[1]
     summary = {"name": rep.name, "raw": rep.raw, "c_min": rep.c_min, "c_max": rep.c_max, "threshold": rep.threshold,
-               "threshold_rule": store.derived[rep.name]["threshold_rule"], "median": int(cfg.median),
+               "threshold_rule": store.derived[rep.name]["threshold_rule"], "median": store.derived[rep.name]["median"],
+               "contrast_p99": store.derived[rep.name]["contrast_p99"],
                "relit_records": rep.relit, "written": rep.written, "seconds": round(rep.seconds, 3),
                "images_per_second": round(rep.images_per_second, 3)}
     out = Path(cfg.out_dir)
@@ -45,18 +49,41 @@ def run(cfg: DictConfig):
     tmp.write_text(json.dumps(summary, indent=2) + "\n")
     tmp.replace(out / "shadow_maps.json")
     print(f"c range of the {cfg.split} split: [{rep.c_min:.3f}, {rep.c_max:.3f}]; threshold {rep.threshold:.5f} "
-          f"({summary['threshold_rule']}); median {cfg.median}")
+          f"({summary['threshold_rule']}); median {summary['median']}; contrast (p99 of the differences) "
+          f"{summary['contrast_p99']:.4f}")
     print(f"relit {rep.relit} record(s) at 2 shadow strengths in {rep.seconds:.1f} s "
           f"({rep.images_per_second:.2f} images/s); wrote {rep.written} map(s) as {rep.name}")
     print(f"train on them: data.versions={{shadow_map: {version}}}   (relight/video: versions={{shadow_map: {version}}})")
     return rep
 
 
+def record_ids(cfg: DictConfig, store) -> list[str] | None:
+    """``records`` if given, else ``records_split``'s records, else None (every record)."""
+    if cfg.records is not None:
+        return list(cfg.records)
+    if cfg.get("records_split"):
+        ids = store.ids(split=cfg.records_split)
+        if not ids:
+            raise errors.UserError(f"records_split={cfg.records_split}: store {store.root} has no record in that split")
+        return ids
+    return None
+
+
 def validate(cfg: DictConfig) -> None:
     """Config values and input files, checked before any work."""
     errors.check_sampler(cfg.sampler)
     zoo.resolve(cfg.checkpoint, "checkpoint")  # a file or a shipped name, as in every other CLI
-    errors.check_int(cfg.median, "median", 1)
+    if cfg.median != "auto":
+        errors.check_int(cfg.median, "median", 1)
+        if int(cfg.median) % 2 == 0:
+            raise errors.UserError(f"median={cfg.median} is even; use an odd window or median=auto")
+    if cfg.min_contrast is not None:
+        errors.check_number(cfg.min_contrast, "min_contrast", allow_none=False)
+    from difareli.encodings import PART_INDEX
+
+    bad = [p for p in (cfg.zero_parts or []) if p not in PART_INDEX]
+    if bad:
+        raise errors.UserError(f"zero_parts={list(cfg.zero_parts)}: unknown parts {bad}; use names of {list(PART_INDEX)}")
     errors.check_int(cfg.batch_size, "batch_size", 1)
     errors.check_out_dir(cfg.out_dir)
     errors.check_number(cfg.c_quantile, "c_quantile", allow_none=False)

@@ -35,8 +35,10 @@ def validate(cfg: DictConfig) -> None:
         Effects.resolve(cfg.realism, OmegaConf.to_container(cfg.effects))
     except ValueError as e:
         raise ConfigError(str(e)) from None
-    if cfg.inputs not in ("estimated", "exact"):
-        raise ConfigError(f"inputs={cfg.inputs!r} is invalid: use 'estimated' or 'exact'")
+    from difareli.synth.generator import INPUTS
+
+    if cfg.inputs not in INPUTS:
+        raise ConfigError(f"inputs={cfg.inputs!r} is invalid: use one of {list(INPUTS)}")
     try:
         parse_shard(cfg.get("shard"))
     except ValueError as e:
@@ -63,7 +65,8 @@ def run(cfg: DictConfig):
         durable=cfg.durable, progress=progress, light_group_size=cfg.light_group_size,
         splits=OmegaConf.to_container(cfg.splits), shading_region=cfg.shading_region, cam_jitter=cfg.cam_jitter,
         realism=cfg.realism, effects=OmegaConf.to_container(cfg.effects), inputs=cfg.inputs,
-        shard=cfg.get("shard"),
+        estimation_resolution=cfg.estimation_resolution, shadow_visible=cfg.shadow_visible,
+        c_quantile=cfg.c_quantile, shard=cfg.get("shard"),
     )
     if report.written == 0:
         print(f"nothing to do: all {n} records already exist in {cfg.out_dir} (skipped {report.skipped})")

@@ -3,14 +3,21 @@
 For every record: relight it with its own light at the largest and at the smallest shadow strength of the
 training split (``c_max``, ``c_min``), through the relighting core (any sampler; records inverted in batches,
 both targets decoded in one batch). The **difference** is ``Y(relit at c_min) - Y(relit at c_max)`` (Rec. 709
-luminance, images in [0, 1]): positive where the stronger shadow darkened the face. Then
+luminance, images in [0, 1]): positive where the stronger shadow darkened the face. Then, by the authors' recipe
+(XezXey/guided-diffusion ``experiment_scripts/TPAMI/cast_shadows/gen_smooth_sdiff/``; issue 23):
 
-1. **one global threshold** over every difference value on the mesh of every record (Otsu's between-class
-   variance maximum on a 256-bin histogram; or a given number),
-2. a ``median`` x ``median`` **median filter** of the binary map (removes speckle; a 3x3 one also drops the
-   corners of a rectangle: 4 of its 9 neighbours are in),
-3. times the record's **normalised c** (``encodings.normalise_c`` of its stored ``shadow``): the
-   ``shadow_map`` encoding's definition. Pixels off the mesh (``depth == 0``, when stored) are 0.
+1. **a fixed threshold** in grey-level units (default 0.05, theirs); ``threshold=otsu`` takes Otsu's cut over every
+   difference value on the face of every record instead, and refuses a histogram without two separated modes;
+2. a **median filter** of the binary map, ``median=auto`` = theirs (5x5 at 256 px) scaled to the resolution;
+3. the eyes, brows and mouth **zeroed** with the stored part masks, times the stored ``face_mask`` (``zero_parts``;
+   pixels off the mesh, ``depth == 0``, are 0 too);
+4. times the record's **normalised c**: ``encodings.normalise_c`` over the store's c range (a SynthFaces v3 store's
+   train split range, ``synth/c_norm.py``; the fixed range in older stores), as everywhere else in the store.
+
+A DiFaReli whose relights barely change with c is refused with the measured contrast (the 99th percentile of the
+differences on the face, against ``min_contrast``, default the threshold), and so is one whose response is noise
+(it brightens at least half as many face pixels past the threshold as it darkens), instead of being turned into
+maps; ``min_contrast=0`` writes them anyway.
 
 The raw differences are kept as the derived version ``shadow_map@diffraw-<hash>`` (resumable: a killed run
 redoes only records without it), the maps as ``shadow_map@<version>`` (:mod:`difareli.derived`), both with their
@@ -34,6 +41,35 @@ from difareli.inputs import condition_tensors, image_to_tensor, relight_reads
 from difareli.relightable import OnePassRelightable, model_inputs
 from difareli.relighting import invert_image, relight
 from difareli.targets import retarget
+
+#: The authors' recipe: threshold on the grey-level difference, median size at 256 px, parts zeroed.
+RECIPE_THRESHOLD = 0.05
+RECIPE_MEDIAN_256 = 5
+ZERO_PARTS = ("l_eye", "r_eye", "l_brow", "r_brow", "mouth")
+
+
+def median_size(median, resolution: int) -> int:
+    """``median`` as an odd window: ``"auto"`` is the recipe's 5 px at 256 scaled to ``resolution`` (1 at 64)."""
+    if median != "auto":
+        return int(median)
+    return max(1, 2 * int(round((RECIPE_MEDIAN_256 * resolution / 256 - 1) / 2)) + 1)
+
+
+def check_two_modes(values: np.ndarray, threshold: float, bins: int = 256, valley: float = 0.5) -> None:
+    """Refuse an Otsu cut on a histogram without two separated modes: the emptiest (5-bin smoothed) bin between
+    the peaks on either side of ``threshold`` must hold at most ``valley`` of the lower peak."""
+    v = np.asarray(values, dtype=np.float64).reshape(-1)
+    hist, edges = np.histogram(v, bins=bins)
+    h = np.convolve(hist, np.ones(5) / 5, mode="same")
+    k = int(np.clip(np.searchsorted(edges, threshold) - 1, 1, bins - 2))
+    lo, hi = int(np.argmax(h[:k])), k + int(np.argmax(h[k:]))
+    dip = float(h[lo:hi + 1].min()) if hi > lo else float(h[k])
+    lower = float(min(h[lo], h[hi]))
+    if lower <= 0 or dip > valley * lower:
+        raise errors.UserError(
+            f"the differences have one mode, not two: Otsu's cut {threshold:.4f} lies where the histogram still holds "
+            f"{dip / max(lower, 1e-12):.0%} of its lower peak (peaks at {edges[lo]:.4f} and {edges[hi]:.4f}), so it "
+            f"would mark noise; use the recipe's fixed threshold (threshold={RECIPE_THRESHOLD}) or a DiFaReli trained longer")
 
 
 def c_range(store, split: str = "train", quantile: float = 0.01) -> tuple[float, float]:
@@ -74,14 +110,28 @@ def otsu_threshold(values: np.ndarray, bins: int = 256) -> float:
     return float((edges[1 + best[0]] + edges[1 + best[-1]]) / 2)
 
 
-def finish_map(diff: np.ndarray, threshold: float, median: int, c: float, hit: np.ndarray | None = None) -> np.ndarray:
-    """Threshold, median-filter, restrict to the mesh and scale by ``normalise_c(c)`` -> float32 HxW."""
+def finish_map(diff: np.ndarray, threshold: float, median: int, c: float, hit: np.ndarray | None = None,
+               keep: np.ndarray | None = None, c_range=None) -> np.ndarray:
+    """Threshold, median-filter, restrict to the mesh and to ``keep`` (the face less the zeroed parts) and scale by
+    ``normalise_c(c, c_range)`` -> float32 HxW."""
     binary = np.asarray(diff) > threshold
     if median > 1:
         binary = median_mask(binary, int(median))
-    if hit is not None:
-        binary &= np.asarray(hit, bool)
-    return (binary * encodings.normalise_c(c)).astype(np.float32)
+    for m in (hit, keep):
+        if m is not None:
+            binary &= np.asarray(m, bool)
+    return (binary * encodings.normalise_c(c, c_range)).astype(np.float32)
+
+
+def keep_mask(store, rid: str, zero_parts: Sequence[str]) -> np.ndarray | None:
+    """The stored ``face_mask`` less ``zero_parts`` of the stored ``masks`` (None: nothing to restrict by)."""
+    if not zero_parts or not store.available("face_mask"):
+        return None
+    a = store.read(rid, ["face_mask", "masks"] if store.available("masks") else ["face_mask"])
+    keep = np.asarray(a["face_mask"], bool).copy()
+    if "masks" in a:
+        keep &= ~np.isin(np.asarray(a["masks"]), [encodings.PART_INDEX[p] for p in zero_parts])
+    return keep
 
 
 def luminance(x: torch.Tensor) -> np.ndarray:
@@ -134,15 +184,19 @@ class ShadowMapReport:
 
 
 def compute(model, store, spec, *, provenance: Mapping[str, Any], ids: Sequence[str] | None = None,
-            split: str = "train", c_quantile: float = 0.01, threshold: str | float = "otsu", median: int = 3,
+            split: str = "train", c_quantile: float = 0.01, threshold: str | float = RECIPE_THRESHOLD,
+            median: int | str = "auto", zero_parts: Sequence[str] = ZERO_PARTS, min_contrast: float | None = None,
             batch_size: int = 8, version: str | None = None, runtime=None, mean_matching: bool = True,
             device="cpu", progress: bool = True) -> ShadowMapReport:
-    """The whole difference pipeline over ``ids`` (default: every record); writes two derived versions."""
+    """The whole difference pipeline over ``ids`` (default: every record); writes two derived versions.
+    ``min_contrast`` None: the threshold (Otsu: none)."""
     if "shadow" not in model_inputs(model):
         raise errors.UserError(f"the difference method relights at two shadow strengths c, but this model consumes "
                                f"{model_inputs(model)} (no 'shadow'); give a DiFaReli checkpoint (model=difareli)")
     ids = list(ids) if ids is not None else store.ids()
     c_min, c_max = c_range(store, split, c_quantile)
+    median = median_size(median, int(store.dims["H"]))
+    norm_range = encodings.store_c_range(store.store_meta)
     prov = {**dict(provenance), "c_min": c_min, "c_max": c_max, "split": split, "mean_matching": mean_matching,
             "c_quantile": float(c_quantile),
             "difference": "Y(relit at c_min) - Y(relit at c_max), own light"}
@@ -154,12 +208,13 @@ def compute(model, store, spec, *, provenance: Mapping[str, Any], ids: Sequence[
                                                           "records": chosen})
     todo = derived.missing(store, raw, ids)
     needed = relight_reads(model_inputs(model))
+    extra = {encodings.C_RANGE_KEY: np.array(norm_range)} if norm_range else {}  # target maps: the store's range
     start = time.perf_counter()
     bar = tqdm(total=len(todo), desc="difference maps", disable=not progress)
     for i in range(0, len(todo), batch_size):
         chunk = todo[i:i + batch_size]
-        recs = [dict(errors.check_record({k: np.asarray(v) for k, v in store.read(r, needed).items()}, r, store.root))
-                for r in chunk]
+        recs = [{**errors.check_record({k: np.asarray(v) for k, v in store.read(r, needed).items()}, r, store.root),
+                 **extra} for r in chunk]
         for rid, d in zip(chunk, relight_pairs(model, recs, c_min, c_max, spec, runtime=runtime,
                                                mean_matching=mean_matching, device=device)):
             derived.write(store, rid, raw, d.astype(np.float32), overwrite=True)
@@ -169,20 +224,52 @@ def compute(model, store, spec, *, provenance: Mapping[str, Any], ids: Sequence[
     seconds = time.perf_counter() - start
     hits = {r: (np.asarray(store.read(r, ["depth"])["depth"]) != 0) if store.available("depth") else None for r in ids}
     diffs = {r: np.asarray(store.read(r, [raw])[raw], dtype=np.float64) for r in ids}
+    keeps = {r: keep_mask(store, r, zero_parts) for r in ids}
+
+    def on_face(r, d):
+        m = np.ones(d.shape, bool)
+        for x in (hits[r], keeps[r]):
+            m = m if x is None else m & x
+        return d[m].reshape(-1)
+
+    values = np.concatenate([on_face(r, d) for r, d in diffs.items()])
+    contrast = float(np.quantile(values, 0.99)) if values.size else 0.0
     if threshold == "otsu":
-        values = np.concatenate([(d[hits[r]] if hits[r] is not None else d).reshape(-1) for r, d in diffs.items()])
-        thr, rule = otsu_threshold(values), "otsu over every difference value on the mesh of every record"
+        thr, rule = otsu_threshold(values), "otsu over every difference value on the face of every record"
+        check_two_modes(values, thr)
         if thr <= 0:  # a shadow darkens: a non-positive cut would call pixels that brightened with c shadow
             raise errors.UserError(
                 f"Otsu's threshold of the differences is {thr:.4f} <= 0: this model does not darken the face as c "
                 f"grows (step {provenance.get('global_step')}); train the DiFaReli longer or give threshold=<number>")
     else:
-        thr, rule = float(threshold), "given"
+        thr, rule = float(threshold), "fixed (the authors' recipe: 0.05)" if float(threshold) == RECIPE_THRESHOLD \
+            else "given"
+    need = (thr if threshold != "otsu" else 0.0) if min_contrast is None else float(min_contrast)
+    if contrast < need:
+        raise errors.UserError(
+            f"this DiFaReli barely changes the image with c (step {provenance.get('global_step')}): the 99th "
+            f"percentile of Y(c_min) - Y(c_max) on the face is {contrast:.4f}, below {need:.4f}; train it longer, or "
+            "set min_contrast=0 to write the maps anyway")
+    # A shadow only darkens: a response to c that brightens about as many pixels past the threshold as it darkens
+    # is sampling noise between the two decodes, not a shadow.
+    cut = thr if threshold != "otsu" else float(np.quantile(np.abs(values), 0.99)) if values.size else 0.0
+    dark, bright = (float((values > cut).mean()), float((values < -cut).mean())) if values.size else (0.0, 0.0)
+    if need > 0 and dark > 0 and bright >= 0.5 * dark:
+        raise errors.UserError(
+            f"this DiFaReli's response to c is noise (step {provenance.get('global_step')}): on the face "
+            f"{dark:.1%} of the pixels darken by more than {cut:.4f} from c_min to c_max, and {bright:.1%} brighten by "
+            "as much (a shadow only darkens); train it longer, or set min_contrast=0 to write the maps anyway")
     final = {**prov, "threshold": thr, "threshold_rule": rule, "median": int(median), "raw": raw, "records": chosen,
-             "n_records": len(ids)}
-    name = derived.declare(store, "shadow_map", version, final)
+             "n_records": len(ids), "zero_parts": list(zero_parts), "contrast_p99": round(contrast, 6),
+             "darkened": round(dark, 6), "brightened": round(bright, 6),
+             "c_norm_range": list(norm_range) if norm_range else "fixed"}
+    try:
+        name = derived.declare(store, "shadow_map", version, final)
+    except ValueError as e:
+        raise errors.UserError(f"{e} (e.g. version=difference-2)") from None
     written = 0
     for r in ids:
         c = encodings.shadow_logit(store.read(r, ["shadow"]))
-        written += derived.write(store, r, name, finish_map(diffs[r], thr, median, c, hits[r]), overwrite=True)
+        m = finish_map(diffs[r], thr, median, c, hits[r], keeps[r], norm_range)
+        written += derived.write(store, r, name, m, overwrite=True)
     return ShadowMapReport(name, raw, c_min, c_max, thr, len(todo), written, seconds)

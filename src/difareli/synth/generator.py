@@ -26,19 +26,23 @@ SynthFaces v2 (``docs/synthfaces_v2.md``): ``realism`` selects appearance effect
 specular, subsurface wrap, ambient occlusion, key + fill + rim suns; ``lambertian`` = the formation above,
 bit for bit). With several suns, every sun casts its own shadow: ``s`` sums the light each one's cast
 shadow removes (``cast_i * Y(sun_i f_i(n)) / Y(E_unshadowed)``) and the binary map is the union of their cast
-maps. ``inputs: estimated`` stores the estimated ``light``/``shading``/``shadow``/``shadow_map``
+maps. ``inputs: estimated_light`` stores the estimated ``light``/``shading``/``shadow``/``shadow_map``
 (``synth/estimated.py``); the exact ones are always kept as ``light_gt``, ``shading_gt``, ``shadow_gt``,
 ``shadow_map_gt``.
+
+SynthFaces v3 (``docs/synthfaces_v3.md``): ``inputs: estimated`` estimates every model input from the rendered
+image with the photo estimators (geometry, masks and identity too; exact values under ``*_gt``), and the store's
+c range is its training split's (``synth/c_norm.py``). Every mode stores what "visibly shadowed" means:
+``shadow_fraction_gt`` (per pixel, the share of its unshadowed light that cast shadows remove, every sun) and
+``shadow_visible_gt`` (that share above ``shadow_visible``, or in the key sun's own cast shadow); in v3 stores
+``shadow_map_gt`` is the visible mask times the normalised exact c.
 """
 
 from __future__ import annotations
 
-import contextlib
-import ctypes
 import math
 import multiprocessing as mp
 import os
-import re
 import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field
@@ -49,6 +53,7 @@ import numpy as np
 from difareli import sh
 from difareli.imageops import LUMA
 from difareli.processes import die_with_parent
+from difareli.synth.blas import single_thread_blas
 from difareli.encodings import (FACE_PARTS, FOREGROUND_PARTS, PART_INDEX, SHADOW_C_HI, SHADOW_C_LO, SHADOW_S_MIN,
                                 normalise_c)
 from difareli.render import OrthoCamera, Scene, cast_shadows, render_gbuffer
@@ -60,9 +65,17 @@ from difareli.synth.appearance import albedo_image, sample_appearance, sample_ba
 from difareli.synth.lights import Light, add_suns, extra_sun_rng, light_rng, sample_light
 
 ENCODINGS = ("image", "light", "shape", "cam", "identity", "shadow", "background", "masks", "shadow_map",
-             "shading", "normal", "depth", "face_mask", "light_gt", "shading_gt", "shadow_gt", "shadow_map_gt")
-#: ``inputs``: what the model-input encodings hold (the exact values are always in the ``*_gt`` ones).
-INPUTS = ("estimated", "exact")
+             "shading", "normal", "depth", "face_mask", "light_gt", "shading_gt", "shadow_gt", "shadow_map_gt",
+             "shadow_fraction_gt", "shadow_visible_gt")
+#: v3 (``inputs=estimated``): the geometry's exact values too.
+GEOMETRY_GT = ("shape_gt", "cam_gt", "identity_gt", "masks_gt", "normal_gt", "depth_gt", "face_mask_gt")
+#: ``inputs``: what the model-input encodings hold (the exact values are always in the ``*_gt`` ones):
+#: estimated = every input (v3), estimated_light = light/shading/shadow/shadow_map only (v2), exact.
+INPUTS = ("estimated", "estimated_light", "exact")
+#: ``estimation_resolution=0``: the smallest multiple of the stored size >= this (measured: docs/synthfaces_v3.md).
+AUTO_ESTIMATION = 128
+#: The generator version in the store header (``synthfaces_version``); stores without the key are v1/v2.
+VERSION = 3
 IDENTITY_DIM = 128  # matches the dlib face descriptor used for real photos
 # The c range lives in the schema (shared with targets for relighting); re-exported under short names.
 S_MIN, C_LO, C_HI = SHADOW_S_MIN, SHADOW_C_LO, SHADOW_C_HI
@@ -88,7 +101,10 @@ class SynthConfig:
     cam_jitter: float = 0.05           # relative scale jitter; translation jitter is half of it in NDC
     realism: str = "lambertian"        # effects preset (synth/effects.py); "lambertian" = SynthFaces v1 images
     effects: dict = field(default_factory=dict)  # per-effect overrides of the preset (None keeps it)
-    inputs: str = "exact"              # "estimated": light/shading/shadow(_map) as a user's estimators give them
+    inputs: str = "exact"              # INPUTS: what the model inputs hold
+    estimation_resolution: int = 0     # inputs=estimated: render this large for the estimators (0: AUTO_ESTIMATION)
+    shadow_visible: float = 0.25       # shadow_visible_gt: a pixel losing more than this share of its light
+    c_quantile: float = 0.01           # v3 c range: these quantiles of the train split's c (0: min and max)
 
     def __post_init__(self):
         for key, lo in (("subjects", 1), ("lights", 1), ("resolution", 16), ("light_group_size", 1)):
@@ -102,46 +118,26 @@ class SynthConfig:
         except ValueError as e:
             raise ConfigError(str(e)) from None
         if self.inputs not in INPUTS:
-            raise ConfigError(f"inputs={self.inputs!r} is invalid: use 'estimated' or 'exact'")
+            raise ConfigError(f"inputs={self.inputs!r} is invalid: use one of {list(INPUTS)}")
+        r = int(self.estimation_resolution) or -(-AUTO_ESTIMATION // self.resolution) * self.resolution
+        object.__setattr__(self, "estimation_resolution", r)  # 0 = auto, stored resolved
+        if r < self.resolution or r % self.resolution:
+            raise ConfigError(f"estimation_resolution={r} is invalid: 0 or a multiple of resolution={self.resolution}")
+        if not 0.0 < float(self.shadow_visible) < 1.0 or not 0.0 <= float(self.c_quantile) < 0.5:
+            raise ConfigError(f"shadow_visible={self.shadow_visible} / c_quantile={self.c_quantile} is invalid: use "
+                              "shadow_visible in (0, 1) and c_quantile in [0, 0.5)")
 
     @property
     def fx(self) -> "fx_mod.Effects":
         return fx_mod.Effects(**self.effects)
 
+    @property
+    def encodings(self) -> tuple[str, ...]:
+        return ENCODINGS + (GEOMETRY_GT if self.inputs == "estimated" else ())
+
     def header_meta(self) -> dict:
-        return {"generator": "synthfaces", **asdict(self), "gamma": "none", "identity_dim": IDENTITY_DIM,
-                "shadow_c": {"s_min": S_MIN, "c_lo": C_LO, "c_hi": C_HI}}
-
-
-@contextlib.contextmanager
-def single_thread_blas():
-    """Run numpy's OpenBLAS on one thread: its multi-threaded gemv sums in a thread-count dependent order,
-    which changed mesh vertices in the last float bit (and pixels at silhouettes) between a run in this
-    process and one in pool workers. (threadpoolctl does this too but is not a dependency.)"""
-    libs = []
-    try:
-        with open("/proc/self/maps") as f:
-            maps = f.read()
-    except OSError:
-        maps = ""
-    for path in sorted(set(re.findall(r"(/\S*openblas\S*\.so\S*)", maps))):
-        try:
-            lib = ctypes.CDLL(path)
-        except OSError:
-            continue
-        for prefix, suffix in (("scipy_openblas", "64_"), ("openblas", "64_"), ("openblas", ""),
-                               ("scipy_openblas", "")):
-            get, set_ = f"{prefix}_get_num_threads{suffix}", f"{prefix}_set_num_threads{suffix}"
-            if hasattr(lib, get) and hasattr(lib, set_):
-                libs.append((getattr(lib, set_), int(getattr(lib, get)())))
-                break
-    for set_, _ in libs:
-        set_(ctypes.c_int(1))
-    try:
-        yield
-    finally:
-        for set_, n in libs:
-            set_(ctypes.c_int(n))
+        return {"generator": "synthfaces", "synthfaces_version": VERSION, **asdict(self), "gamma": "none",
+                "identity_dim": IDENTITY_DIM, "shadow_c": {"s_min": S_MIN, "c_lo": C_LO, "c_hi": C_HI}}
 
 
 # ------------------------------------------------------------------------------------------ one subject
@@ -220,9 +216,24 @@ def _cast_list(cast, n: int, hit: np.ndarray) -> list[np.ndarray]:
     return [m & hit for m in maps]
 
 
-def shade(subject: Subject, light: Light, cast, cfg: SynthConfig) -> tuple[dict[str, np.ndarray], dict]:
+def visible_shadow(e_open: np.ndarray, sun_terms: list, casts: list, key: np.ndarray, hit: np.ndarray,
+                   threshold: float) -> tuple[np.ndarray, np.ndarray]:
+    """(fraction, visible): per pixel, the share of its unshadowed irradiance ``e_open`` that the cast shadows
+    remove (``sum_i cast_i Y(sun_i) / Y(e_open)``, 0 off the mesh) and ``fraction > threshold | key`` (the key
+    sun's own cast mask) on the mesh."""
+    den = np.maximum(e_open @ LUMA, 1e-6)
+    frac = np.zeros(hit.shape, np.float64)
+    for sun, c in zip(sun_terms, casts):
+        frac += c * ((sun @ LUMA) / den)
+    frac = np.where(hit, np.clip(frac, 0.0, 1.0), 0.0)
+    return frac.astype(np.float32), hit & ((frac > threshold) | key)
+
+
+def shade(subject: Subject, light: Light, cast, cfg: SynthConfig,
+          est_image: np.ndarray | None = None) -> tuple[dict[str, np.ndarray], dict]:
     """All encodings of ``subject`` under ``light`` and the record's effect meta; ``cast``: one bool cast-shadow
-    map per sun of ``light.suns()`` (a single map or None are accepted for one sun or none)."""
+    map per sun of ``light.suns()`` (a single map or None are accepted for one sun or none); ``est_image``: the
+    same record rendered at the estimation resolution (v3)."""
     gb = subject.gbuffer
     hit = gb.hit
     n = gb.normal.astype(np.float64)
@@ -261,6 +272,8 @@ def shade(subject: Subject, light: Light, cast, cfg: SynthConfig) -> tuple[dict[
     cast_any = np.zeros_like(hit)
     for m in casts:
         cast_any = cast_any | m
+    key = casts[0] if casts and light.has_sun else np.zeros_like(hit)
+    fraction, visible = visible_shadow(e_open, sun_terms, casts, key, hit, cfg.shadow_visible)
 
     label = gb.label.astype(np.uint8)
     face = np.isin(label, _FACE_IDX)
@@ -279,6 +292,7 @@ def shade(subject: Subject, light: Light, cast, cfg: SynthConfig) -> tuple[dict[
         # Whole-mesh depth (hair, hat and neck included) so target shadow maps can be ray-marched from it.
         "depth": np.where(hit, gb.depth, 0.0).astype(np.float32),
         "light_gt": light_sh, "shading_gt": shading, "shadow_gt": shadow, "shadow_map_gt": shadow_map,
+        "shadow_fraction_gt": fraction, "shadow_visible_gt": visible,
     }
     # Share of the face pixels' (unclipped) light in each effect's term: what a ratio image cannot redo.
     total = float((diffuse if spec is None else diffuse + spec)[face].sum()) or 1.0
@@ -288,6 +302,19 @@ def shade(subject: Subject, light: Light, cast, cfg: SynthConfig) -> tuple[dict[
               float((subject.albedo * (e_amb_open - e_amb))[face].sum()) / total}
     meta = {"c_gt": c, "energy": {k: round(v, 6) for k, v in energy.items()}}
     if cfg.inputs == "estimated":
+        from difareli.synth.estimated import estimate_all
+
+        for k in GEOMETRY_GT:
+            arrays[k] = arrays[k[:-3]]
+        arrays["shadow_map_gt"] = visible.astype(np.float32)  # binary until the store's c range is known
+        try:
+            est, info = estimate_all(image, est_image)
+            arrays.update(est)
+            meta.update(info)
+        except ValueError as err:  # a face the estimators miss: the exact inputs are kept, flagged
+            arrays["shadow_map"] = cast_any.astype(np.float32)
+            meta["inputs_fallback"] = f"exact inputs stored: {err}"
+    elif cfg.inputs == "estimated_light":
         from difareli.synth.estimated import estimate_inputs
 
         try:
@@ -297,6 +324,26 @@ def shade(subject: Subject, light: Light, cast, cfg: SynthConfig) -> tuple[dict[
         except ValueError as err:  # too few usable skin pixels: keep the exact inputs, flagged
             meta["inputs_fallback"] = f"exact inputs stored: {err}"
     return arrays, meta
+
+
+def estimation_images(k: int, lights: list, cfg) -> list[np.ndarray] | None:
+    """Subject ``k`` rendered under ``lights`` at ``cfg.estimation_resolution`` (v3), or None when the estimators
+    read the stored image itself."""
+    r = int(cfg.estimation_resolution)
+    if cfg.inputs != "estimated" or r == cfg.resolution:
+        return None
+    from dataclasses import replace
+
+    big = replace(cfg, resolution=r, inputs="exact")
+    subject = build_subject(k, big)
+    dirs = [d for light in lights for d, _ in light.suns()]
+    maps = list(cast_shadows(subject.scene, subject.gbuffer, np.array(dirs))) if dirs else []
+    out = []
+    for light in lights:
+        n = len(light.suns())
+        casts, maps = maps[:n], maps[n:]
+        out.append(shade(subject, light, casts, big)[0]["image"])
+    return out
 
 
 def render_records(k: int, light_indices: list[int], cfg: SynthConfig, split: str) -> Iterator[tuple[str, dict, dict]]:
@@ -310,10 +357,12 @@ def render_records(k: int, light_indices: list[int], cfg: SynthConfig, split: st
     # One cast-shadow pass per sun of every light, in one call (the BVH is built once per subject).
     dirs = [d for light in lights for d, _ in light.suns()]
     maps = list(cast_shadows(subject.scene, subject.gbuffer, np.array(dirs))) if dirs else []
-    for j, light in zip(light_indices, lights):
+
+    big = estimation_images(k, lights, cfg)
+    for i, (j, light) in enumerate(zip(light_indices, lights)):
         k_suns = len(light.suns())
         casts, maps = maps[:k_suns], maps[k_suns:]
-        arrays, fx_meta = shade(subject, light, casts, cfg)
+        arrays, fx_meta = shade(subject, light, casts, cfg, None if big is None else big[i])
         meta = {"subject": sp.subject_name(k), "light_index": j, "light_group": group, "split": split,
                 "source": "synthfaces", "c": float(arrays["shadow"][0]), **light.meta(), **subject.meta,
                 "realism": cfg.realism, "effects": fx.as_dict(), "inputs": cfg.inputs, **fx_meta}
@@ -327,11 +376,20 @@ def _open_store(out_dir: str, cfg: SynthConfig, durable: bool) -> EncodingStore:
     if os.path.exists(os.path.join(out_dir, "store.json")):
         store = EncodingStore.open(out_dir, writable=True, durable=durable)
         have = store.store_meta
+        if have.get("synthfaces_version") is None:
+            old = 2 if "inputs" in have else 1
+            raise ConfigError(
+                f"store {out_dir} is a SynthFaces v{old} store (it still opens for reading); this generator writes v3 "
+                f"records and does not add them to it. Regenerate into a new folder: difareli-synth out_dir=<new dir> "
+                f"subjects={cfg.subjects} lights={cfg.lights} resolution={cfg.resolution} seed={cfg.seed} "
+                f"realism={cfg.realism} inputs={cfg.inputs}")
         diff = {k: (have.get(k), v) for k, v in want.items() if have.get(k) != v}
         if diff:
             raise ConfigError(f"store {out_dir} was generated with a different configuration "
                              f"(key: (existing, requested)) {diff}; use a new out_dir to generate this one")
-    return EncodingStore.create(out_dir, dims, ENCODINGS, want, durable=durable)
+        # Same configuration: the header keeps what generation added to it (the v3 c range).
+        return EncodingStore.create(out_dir, dims, cfg.encodings, None, durable=durable)
+    return EncodingStore.create(out_dir, dims, cfg.encodings, want, durable=durable)
 
 
 def _shape_dim() -> int:
@@ -376,6 +434,11 @@ def generate(out_dir: str, subjects: int, lights: int, resolution: int, seed: in
         splits = sp.assign_splits(cfg.subjects, cfg.splits, cfg.light_group_size, cfg.seed)
     except ValueError as e:
         raise ConfigError(str(e)) from None
+    if cfg.inputs == "estimated":
+        from difareli.synth.estimated import missing_estimators
+
+        if why := missing_estimators():
+            raise ConfigError(why)
     store = _open_store(out_dir, cfg, durable)
     split_of = sp.split_of(splits)
     existing = set(store.ids())
@@ -414,4 +477,8 @@ def generate(out_dir: str, subjects: int, lights: int, resolution: int, seed: in
     missing = [sp.record_id(k, j) for k in mine for j in range(cfg.lights)
                if not store.has(sp.record_id(k, j))]
     problems = [f"{rid}: missing" for rid in missing]
+    if cfg.inputs == "estimated" and not problems and len(store.ids()) == cfg.subjects * cfg.lights:
+        from difareli.synth.c_norm import finalise
+
+        finalise(store, cfg.c_quantile)  # every record is there: the train split's c range, maps scaled by it
     return GenerateReport(written, skipped, seconds, problems)
