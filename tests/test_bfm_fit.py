@@ -127,7 +127,7 @@ def test_preprocessed_store_relights_with_a_synthfaces_checkpoint(tiny_checkpoin
 
     from difareli.cli.preprocess import build_pipeline
     from difareli.cli.relight import run as relight
-    from difareli.estimators.pipeline import run
+    from difareli.estimators.batch import run
     from difareli.store import EncodingStore
 
     from hydra import compose, initialize_config_dir

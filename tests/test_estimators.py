@@ -181,3 +181,34 @@ def test_shadow_map_is_cast_times_normalised_c(results):
         assert np.allclose(arrays["shadow_map"], ctx["cast"] * normalise_c(c), atol=1e-6)
         assert np.isclose(c, meta["shadow_info"]["c"], atol=1e-5) and 0 <= meta["shadow_info"]["p_shadow"] <= 1
         assert not (ctx["cast"] & ~ctx["gbuffer"].hit).any()
+
+
+def test_identity_equals_face_recognition(results):
+    """DlibIdentity calls dlib as face_recognition.face_encodings does, loading only its two models: the same
+    descriptor to float precision."""
+    import face_recognition
+
+    from difareli.estimators.identity import landmark_box
+
+    for name in ("astronaut", "grace"):
+        arrays, _, ctx = results[name]
+        box = landmark_box(np.asarray(ctx["landmarks"])[:, :2], ctx["image"].shape[:2])
+        ref = face_recognition.face_encodings(np.ascontiguousarray(ctx["image"]), known_face_locations=[box],
+                                              num_jitters=1, model="small")[0]
+        np.testing.assert_allclose(arrays["identity"], ref, atol=1e-6)
+
+
+def test_bfm_fit_is_the_same_with_one_blas_thread(results):
+    """The pipeline runs the estimators with one BLAS thread (threadpoolctl): the fit does not move."""
+    from threadpoolctl import threadpool_limits
+
+    from difareli.estimators.bfm_fit import facemesh_to_68, fit_bfm
+
+    lm = facemesh_to_68(np.asarray(results["astronaut"][2]["landmarks"])[:, :2])
+    with threadpool_limits(limits=2, user_api="blas"):
+        many = fit_bfm(lm, S, S)
+    with threadpool_limits(limits=1, user_api="blas"):
+        one = fit_bfm(lm, S, S)
+    np.testing.assert_allclose(one.params.shape_vector(), many.params.shape_vector(), atol=1e-6)
+    np.testing.assert_allclose(one.cam.to_array(), many.cam.to_array(), atol=1e-7)
+    assert one.rmse_px == pytest.approx(many.rmse_px, abs=1e-5)  # px; LAPACK's blocking differs at 1e-7

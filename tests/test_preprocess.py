@@ -107,6 +107,10 @@ def test_cli_two_photos_plus_bad_files_then_rerun_does_nothing(tmp_path):
     report = json.loads((out / "preprocess_report.json").read_text())
     by_file = {Path(e["file"]).name: e for e in report["images"]}
     assert report["written"] == 2 and report["failed"] == len(bad)
+    # Per-stage times in the report and on the console (issue 25): alignment, then every estimator that ran.
+    stages = report["stage_ms_per_image"]
+    assert list(stages)[:2] == ["align", "BFMGeometry"] and {"DlibIdentity", "ShadowEstimator"} <= set(stages)
+    assert all(v > 0 for v in stages.values()) and "per image: align " in log
     for name, reason in bad.items():
         assert by_file[name]["status"] == "failed" and reason in by_file[name]["reason"], by_file[name]
     assert {p.name for p in (out / "previews").iterdir()} == {"astronaut.png", "grace_hopper.png"}
@@ -117,9 +121,10 @@ def test_cli_two_photos_plus_bad_files_then_rerun_does_nothing(tmp_path):
     from hydra import compose, initialize_config_dir
 
     from difareli.cli.preprocess import build_pipeline
-    from difareli.estimators.pipeline import run
+    from difareli.configs import CONFIG_DIR
+    from difareli.estimators.batch import run
 
-    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
         cfg = compose("preprocess", overrides=[f"in_dir={src}", f"out_dir={out}"])
     summary = run(build_pipeline(cfg), str(src), str(out), progress=False)
     report = json.loads((out / "preprocess_report.json").read_text())
@@ -173,3 +178,34 @@ def test_resume_after_a_killed_run(tmp_path):
     assert not [p for p in records.iterdir() if p.name.startswith(".")]
     report = json.loads((out / "preprocess_report.json").read_text())
     assert report["skipped"] == len(done_before) and report["written"] == 5 - len(done_before)
+
+
+@pytest.mark.slow  # two spawned workers start mediapipe and dlib (~20 s on 2 busy cores)
+def test_workers_write_the_same_records(tmp_path):
+    """workers=2: the estimators in two processes, the store written here; every encoding as in one process."""
+    from hydra import compose, initialize_config_dir
+
+    from difareli.cli.preprocess import build_pipeline
+    from difareli.configs import CONFIG_DIR
+    from difareli.estimators.batch import run
+    from difareli.store import EncodingStore
+
+    src = tmp_path / "in"
+    _photos(src)
+    (src / "notes.txt").write_text("not a photo")
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+        names = "[image,shape,cam,normal,masks,light,identity,shadow_map]"
+        cfg = compose("preprocess", overrides=[f"in_dir={src}", "out_dir=x", f"encodings={names}"])
+    pipe = build_pipeline(cfg)
+    one = run(pipe, str(src), str(tmp_path / "one"), previews=False, progress=False)
+    two = run(pipe, str(src), str(tmp_path / "two"), previews=True, progress=False, workers=2)
+    assert (one.written, one.failed) == (two.written, two.failed) == (2, 1)
+    a, b = EncodingStore.open(tmp_path / "one"), EncodingStore.open(tmp_path / "two")
+    assert a.ids() == b.ids() == ["astronaut", "grace_hopper"]
+    for rid in a.ids():
+        ra, rb = a.read(rid), b.read(rid)
+        for name in ra:
+            np.testing.assert_allclose(np.asarray(rb[name], np.float64), np.asarray(ra[name], np.float64),
+                                       atol=1e-5, err_msg=f"{rid}/{name}")
+    assert (tmp_path / "two" / "previews" / "astronaut.png").is_file()
+    assert set(two.stage_ms()) == set(one.stage_ms())

@@ -176,7 +176,8 @@ def test_preprocess_shards_equal_the_unsharded_run(tmp_path):
 
     from PIL import Image
 
-    from difareli.estimators.pipeline import REPORT, Pipeline, run
+    from difareli.estimators.batch import REPORT, run
+    from difareli.estimators.pipeline import Pipeline
 
     src = tmp_path / "in"
     src.mkdir()

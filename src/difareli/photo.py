@@ -1,12 +1,16 @@
-"""A face photo to the encodings a model reads, in memory (``difareli-relight image=photo.jpg``, the demo).
+"""A face photo to the encodings a model reads, in memory (``difareli-relight image=photo.jpg``, the demo, the app),
+and the relit crops back into the whole photo (:func:`PreparedPhoto.compositor`, :mod:`difareli.composite`).
 
 The same estimators as ``difareli-preprocess`` (``conf/preprocess/``), planned for exactly the encodings the
-model needs; nothing is written to disk.
+model needs (plus the part masks the composite blends with); nothing is written to disk. Pipelines are built once
+per process and crop size (:func:`pipeline_for`): building one and its first image load mediapipe and dlib (s).
 """
 
 from __future__ import annotations
 
+import time
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -18,6 +22,8 @@ from difareli.errors import UserError
 DEFAULT_ESTIMATORS = {"align": "mediapipe", "geometry": "bfm", "masks": "facemesh_selfie", "light": "skin_sh",
                       "identity": "dlib", "shadow": "logreg"}
 EXTRAS_FIX = "install the photo estimators: DIFARELI_PREPROCESS=1 bash scripts/install.sh"
+PHOTO_FIX = "use a photo with one clearly visible face"
+_PIPELINES: dict[Any, Any] = {}
 
 
 def default_estimators(size: int) -> dict[str, Any]:
@@ -31,24 +37,71 @@ def default_estimators(size: int) -> dict[str, Any]:
     return out
 
 
-def preprocess_photo(rgb: np.ndarray, encodings: Sequence[str], *, size: int,
-                     estimators: Mapping[str, Any] | None = None, what: str = "photo") -> dict[str, np.ndarray]:
-    """The ``encodings`` of one decoded RGB photo (uint8 HxWx3), aligned to ``size`` px."""
-    from difareli.estimators.loading import BadInput
+def pipeline_for(encodings: Sequence[str], size: int, estimators: Mapping[str, Any] | None = None):
+    """A :class:`~difareli.estimators.pipeline.Pipeline` for ``encodings`` at ``size`` px, built once per process
+    (the default estimators only: a caller's own block builds a new one)."""
     from difareli.estimators.pipeline import Pipeline
 
+    names = tuple(dict.fromkeys(["image", *encodings]))
+    key = (names, int(size))
+    if estimators is not None:
+        return Pipeline.from_config(estimators, names)
+    if key not in _PIPELINES:
+        _PIPELINES[key] = Pipeline.from_config(default_estimators(size), names)
+    return _PIPELINES[key]
+
+
+@dataclass
+class PreparedPhoto:
+    """One photo, preprocessed once: the decoded original, the encodings of its aligned crop, the alignment quad
+    (photo coordinates) and the estimators' meta (seconds per stage, notes)."""
+
+    rgb: np.ndarray
+    arrays: dict[str, np.ndarray]
+    quad: np.ndarray
+    meta: dict = field(default_factory=dict)
+    seconds: float = 0.0
+
+    def compositor(self, mode: str = "ratio", feather: float = 0.03, parts: Sequence[str] | None = None):
+        """A :class:`difareli.composite.Compositor` putting relit crops of this photo back into it."""
+        from difareli.composite import DEFAULT_PARTS, Compositor
+
+        return Compositor(self.rgb, np.asarray(self.arrays["image"]), np.asarray(self.arrays["masks"]), self.quad,
+                          mode=mode, feather=float(feather), parts=tuple(parts or DEFAULT_PARTS))
+
+
+def prepare_photo(rgb: np.ndarray, encodings: Sequence[str], *, size: int,
+                  estimators: Mapping[str, Any] | None = None, what: str = "photo",
+                  composite: bool = True) -> PreparedPhoto:
+    """Preprocess one decoded RGB photo (uint8 HxWx3) for ``encodings`` at ``size`` px; ``composite`` adds the
+    part masks the composite blends with. Errors: a UserError naming ``what`` (no face...), or an ImportError
+    naming the install command."""
+    from difareli.estimators.loading import BadInput
+
+    rgb = np.ascontiguousarray(np.asarray(rgb)[..., :3])
+    names = [*encodings, *(["masks"] if composite else [])]
+    start = time.perf_counter()
     try:
-        pipeline = Pipeline.from_config(estimators or default_estimators(size), ["image", *encodings])
-        arrays, _, _ = pipeline.process(np.ascontiguousarray(rgb[..., :3]))
+        arrays, meta, ctx = pipeline_for(names, size, estimators).process(rgb)
     except ImportError as e:
         raise ImportError(f"relighting a photo needs the estimators' packages ({e}); {EXTRAS_FIX}") from e
     except BadInput as e:
-        raise UserError(f"{what}: {e}; use a photo with one clearly visible face") from None
-    return {k: np.asarray(v) for k, v in arrays.items()}
+        raise UserError(f"{what}: {e}; {PHOTO_FIX}") from None
+    meta["notes"] = list(ctx["notes"])
+    return PreparedPhoto(rgb, {k: np.asarray(v) for k, v in arrays.items()}, np.asarray(ctx["quad"], np.float64),
+                         meta, time.perf_counter() - start)
 
 
-def read_photo(path: str | Path, key: str = "image") -> np.ndarray:
-    """Decode a photo file to uint8 RGB (the preprocess loader's checks), or a UserError naming ``key``."""
+def preprocess_photo(rgb: np.ndarray, encodings: Sequence[str], *, size: int,
+                     estimators: Mapping[str, Any] | None = None, what: str = "photo") -> dict[str, np.ndarray]:
+    """The ``encodings`` of one decoded RGB photo (uint8 HxWx3), aligned to ``size`` px."""
+    prepared = prepare_photo(rgb, encodings, size=size, estimators=estimators, what=what, composite=False)
+    return prepared.arrays
+
+
+def read_photo(path: str | Path, key: str = "image", name: str | None = None) -> np.ndarray:
+    """Decode a photo file to uint8 RGB (the preprocess loader's checks), or a UserError naming ``key`` and the
+    file (``name``: how to name it instead of its path, e.g. an uploaded file's name)."""
     from difareli.errors import check_file
     from difareli.estimators.loading import BadInput, load_image
 
@@ -56,5 +109,6 @@ def read_photo(path: str | Path, key: str = "image") -> np.ndarray:
     try:
         rgb, _ = load_image(p)
     except BadInput as e:
-        raise UserError(f"{key}={p}: {e}; give a JPEG/PNG face photo") from None
+        why = str(e).replace(str(p), name) if name else str(e)  # a temporary path means nothing to the user
+        raise UserError(f"{key}={name or p}: {why}; give a JPEG/PNG face photo") from None
     return rgb

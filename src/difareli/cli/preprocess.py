@@ -15,7 +15,7 @@ import hydra
 from omegaconf import DictConfig
 
 from difareli.cli.common import CONFIG_PATH
-from difareli.errors import UserError, check_out_dir, cli_entry
+from difareli.errors import UserError, check_int, check_out_dir, cli_entry
 
 def requested_encodings(cfg: DictConfig) -> list[str] | None:
     """``cfg.encodings``, else the chosen variant's spatial + non-spatial inputs plus ``image``, else None (all)."""
@@ -39,7 +39,7 @@ def build_pipeline(cfg: DictConfig):
 @hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name="preprocess")
 @cli_entry("preprocess")
 def main(cfg: DictConfig) -> None:
-    from difareli.estimators.pipeline import REPORT, run
+    from difareli.estimators.batch import REPORT, run
     from difareli.shard import parse as parse_shard
 
     if not Path(str(cfg.in_dir)).is_dir():
@@ -50,14 +50,17 @@ def main(cfg: DictConfig) -> None:
         parse_shard(cfg.get("shard"))
     except ValueError as e:
         raise UserError(f"shard={cfg.get('shard')!r}: {e}") from None
+    check_int(cfg.get("workers") or 1, "workers", 1)
     pipeline = build_pipeline(cfg)
     names = [type(s).__name__ for s in pipeline.steps]
     print(f"encodings: {', '.join(pipeline.encodings)}\nestimators: {', '.join(names) or '(alignment only)'}")
     summary = run(pipeline, str(cfg.in_dir), str(cfg.out_dir), overwrite=bool(cfg.overwrite),
                   previews=bool(cfg.previews), durable=bool(cfg.durable), progress=bool(cfg.progress),
-                  shard=cfg.get("shard"))
+                  shard=cfg.get("shard"), workers=int(cfg.get("workers") or 1))
     print(f"written {summary.written}, skipped {summary.skipped}, failed {summary.failed}; "
           f"{summary.images_per_second:.2f} images/s at {pipeline.size}px; report: {cfg.out_dir}/{REPORT}")
+    if summary.stages:
+        print("per image: " + ", ".join(f"{k} {v:.0f} ms" for k, v in summary.stage_ms().items()))
     for e in summary.entries:
         if e["status"] == "failed":
             print(f"  FAILED {e['file']}: {e['reason']}", file=sys.stderr)

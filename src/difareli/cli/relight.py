@@ -16,28 +16,48 @@ from omegaconf import DictConfig
 
 from difareli import errors, photo, viz
 from difareli.cli import common
+from difareli.composite import write_gif
 from difareli.relighting import Relighter, Source
 from difareli.store import EncodingStore
 from difareli.targets import Targets, rotation_targets, target_lights
-from difareli.video import rotation_video
+from difareli.video import rotation_video, write_video
 
 
 def read_source(cfg: DictConfig, relighter: Relighter, store: EncodingStore | None) -> Source:
     """The source, read and checked once: a store record, or a photo preprocessed in memory by the estimators of
     difareli-preprocess (only the encodings the model reads)."""
+    return read_source_and_photo(cfg, relighter, store)[0]
+
+
+def read_source_and_photo(cfg: DictConfig, relighter: Relighter, store: EncodingStore | None
+                          ) -> tuple[Source, photo.PreparedPhoto | None]:
+    """:func:`read_source`, and for a photo the :class:`~difareli.photo.PreparedPhoto` (original, quad, masks)
+    the composite needs."""
     if cfg.image is not None:
-        start = time.perf_counter()
-        arrays = photo.preprocess_photo(photo.read_photo(cfg.image), relighter.needed_encodings(),
-                                        size=int(cfg.photo_size), what=f"image={cfg.image}")
-        print(f"preprocessed {cfg.image} in {time.perf_counter() - start:.1f} s ({cfg.photo_size} px)")
-        return relighter.source_from_arrays(arrays, f"image={cfg.image}", key=("image", str(cfg.image)))
+        prepared = photo.prepare_photo(photo.read_photo(cfg.image), relighter.needed_encodings(),
+                                       size=int(cfg.photo_size), what=f"image={cfg.image}")
+        stages = ", ".join(f"{k} {1000 * v:.0f} ms" for k, v in prepared.meta.get("seconds", {}).items())
+        print(f"preprocessed {cfg.image} in {prepared.seconds:.1f} s ({cfg.photo_size} px crop of "
+              f"{prepared.rgb.shape[1]}x{prepared.rgb.shape[0]}; {stages})")
+        source = relighter.source_from_arrays(prepared.arrays, f"image={cfg.image}", key=("image", str(cfg.image)))
+        return source, prepared
     rid = cfg.record
     if rid is None:
         test = store.ids(split="test")
         rid = (test or store.ids())[0]
         print(f"record=null: relighting {rid}, the first record of the {'test split' if test else 'store'} "
               f"(record=<id> picks another)")
-    return relighter.source(store, rid)
+    return relighter.source(store, rid), None
+
+
+def composite_frames(cfg: DictConfig, prepared: photo.PreparedPhoto, relit: np.ndarray) -> np.ndarray:
+    """Relit crops (N, S, S, 3) back into the whole photo (``cfg.composite``), with the seconds printed."""
+    c = cfg.composite
+    start = time.perf_counter()
+    out = prepared.compositor(c.mode, c.feather, list(c.parts) if c.parts else None)(relit)
+    print(f"composited {len(relit)} frame(s) into the {prepared.rgb.shape[1]}x{prepared.rgb.shape[0]} photo in "
+          f"{time.perf_counter() - start:.2f} s ({c.mode})")
+    return out
 
 
 def run(cfg: DictConfig) -> dict[str, Path]:
@@ -46,7 +66,7 @@ def run(cfg: DictConfig) -> dict[str, Path]:
     store = EncodingStore.open(cfg.store).use_versions(cfg.get("versions")) if cfg.store is not None else None
     relighter = Relighter(cfg.checkpoint, cfg.sampler, runtime=cfg.runtime, mean_matching=cfg.mean_matching,
                           batch_size=cfg.batch_size, progress=cfg.progress)
-    source = read_source(cfg, relighter, store)
+    source, prepared = read_source_and_photo(cfg, relighter, store)
     out_dir, written, t = Path(cfg.out_dir), {}, cfg.target
     if any(t[k] is not None for k in ("light", "record", "yaw", "roll", "envmap")):
         other = store.read(t.record, ["light", "shadow"]) if t.record is not None else {}
@@ -62,14 +82,27 @@ def run(cfg: DictConfig) -> dict[str, Path]:
             row.append(np.asarray(store.read(t.record, ["image"])["image"]))  # ground truth: same subject
         written["image"] = viz.save_png(relit, out_dir / "relit.png")
         written["comparison"] = viz.save_png(viz.grid([row]), out_dir / "comparison.png")
+        if prepared is not None:  # the whole photo back: the aligned crop and the full composite
+            full = composite_frames(cfg, prepared, relit[None])[0]
+            written["aligned"] = viz.save_png(source.arrays["image"], out_dir / "aligned.png")
+            written["composite"] = viz.save_png(full, out_dir / "composite.png")
+            written["composite_comparison"] = viz.save_png(viz.grid([[prepared.rgb, full]]),
+                                                           out_dir / "composite_comparison.png")
     if cfg.video.axis is not None:
         targets, why = rotation_targets(source.arrays, cfg.video.axis, cfg.video.frames, store=store,
                                         given=t.shadow)
         print(f"video shadow strength: {why}")
         video = rotation_video(relighter, source, targets, out_dir, f"rotation_{cfg.video.axis}", fps=cfg.video.fps,
                                fmt=cfg.video.format)
-        print(f"{len(video.frames)} frames in {video.seconds:.1f} s")
+        print(f"{len(video.frames)} frames in {video.seconds:.1f} s ({video.seconds / len(video.frames):.2f} s/frame, "
+              f"{relighter.describe()})")
         written.update(video.paths)
+        if prepared is not None:  # every frame back into the whole photo
+            frames = composite_frames(cfg, prepared, video.frames)
+            name = f"rotation_{cfg.video.axis}_composite"
+            path = out_dir / f"{name}.{cfg.video.format}"
+            written["video_composite"] = (write_gif(frames, path, cfg.video.fps) if cfg.video.format == "gif"
+                                          else write_video(frames, path, cfg.video.fps))
     for k, p in written.items():
         print(f"{k}: {p}")
     return written
@@ -88,6 +121,18 @@ def validate(cfg: DictConfig) -> None:
         raise errors.UserError("nothing to do: give a target (target.light|record|yaw|roll|envmap) or "
                                "video.axis=yaw|roll")
     errors.check_int(cfg.photo_size, "photo_size", 16)
+    if cfg.image is not None:
+        from difareli.composite import MODES, part_mask
+
+        c = cfg.composite
+        if c.mode not in MODES:
+            raise errors.UserError(f"composite.mode={c.mode}: not a composite mode; use one of {', '.join(MODES)}")
+        if errors.check_number(c.feather, "composite.feather", allow_none=False) < 0:
+            raise errors.UserError(f"composite.feather={c.feather}: must be >= 0 (a fraction of the crop size)")
+        try:
+            part_mask(np.zeros((1, 1), np.uint8), list(c.parts or []))
+        except ValueError as e:
+            raise errors.UserError(f"composite.parts: {e}") from None
     for key in ("yaw", "roll"):
         errors.check_number(cfg.target[key], f"target.{key}")
     if cfg.target.light is not None:

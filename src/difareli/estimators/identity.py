@@ -2,7 +2,10 @@
 
 The weights ship in ``face_recognition_models``; ArcFace (512-d, the paper's) needs downloads, so D = 128
 here, as in SynthFaces. Descriptors of one person are < 0.6 apart (Euclidean), dlib's own threshold.
-The face box is given from the FaceMesh landmarks, so dlib's HOG detector never runs.
+The face box is given from the FaceMesh landmarks, so dlib's HOG detector never runs. dlib is called directly
+with exactly ``face_recognition.face_encodings``' calls (pose predictor on the box, then the ResNet descriptor),
+loading only the two models it uses: importing ``face_recognition`` also loads the 68-point predictor and the
+CNN detector, seconds of every photo's cold start spent on nothing.
 """
 
 from __future__ import annotations
@@ -30,16 +33,31 @@ class DlibIdentity:
     requires = ("image", "landmarks")
 
     def __init__(self, num_jitters: int = 1, model: str = "small"):
+        if model not in ("small", "large"):
+            raise ValueError(f"identity model must be 'small' (5 points) or 'large' (68 points), got {model!r}")
         self.num_jitters = num_jitters
         self.model = model
+        self._models = None
+
+    def models(self):
+        """(pose predictor, face encoder), loaded on first use (face_recognition's model files)."""
+        if self._models is None:
+            import dlib
+            import face_recognition_models as frm
+
+            pose = (frm.pose_predictor_five_point_model_location() if self.model == "small"
+                    else frm.pose_predictor_model_location())
+            self._models = (dlib.shape_predictor(pose), dlib.face_recognition_model_v1(frm.face_recognition_model_location()))
+        return self._models
 
     def __call__(self, ctx: dict, needed: set[str]) -> dict:
-        import face_recognition
+        import dlib
 
         image = np.ascontiguousarray(ctx["image"])
-        box = landmark_box(np.asarray(ctx["landmarks"])[:, :2], image.shape[:2])
-        enc = face_recognition.face_encodings(image, known_face_locations=[box], num_jitters=self.num_jitters,
-                                              model=self.model)
-        if not enc:
+        top, right, bottom, left = landmark_box(np.asarray(ctx["landmarks"])[:, :2], image.shape[:2])
+        predictor, encoder = self.models()
+        shape = predictor(image, dlib.rectangle(left, top, right, bottom))
+        enc = np.asarray(encoder.compute_face_descriptor(image, shape, self.num_jitters))
+        if enc.shape != (IDENTITY_DIM,) or not np.isfinite(enc).all():
             raise BadInput("dlib produced no identity descriptor")
-        return {"identity": np.asarray(enc[0], dtype=np.float32)}
+        return {"identity": enc.astype(np.float32)}

@@ -8,19 +8,15 @@ estimator only if something requested depends on one of its outputs.
 
 from __future__ import annotations
 
-import json
-import os
+import contextlib
 import time
-from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Any, Iterable, Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
 from difareli.encodings import ENCODINGS
-from difareli.store import EncodingStore
 
-from .loading import BadInput, list_inputs, load_image, record_ids
 
 REPORT = "preprocess_report.json"
 #: Estimator roles of a config's ``estimators`` block, in the order they are instantiated.
@@ -46,13 +42,18 @@ class Pipeline:
 
     @classmethod
     def from_config(cls, estimators: Mapping[str, Any], encodings: Iterable[str] | None = None,
-                    **kwargs: Any) -> "Pipeline":
+                    **kwargs: Any) -> Pipeline:
         """Instantiate the aligner and the estimators of an ``estimators`` config block (``conf/preprocess/``:
         ``align`` plus one entry per role) into a Pipeline for ``encodings``."""
         from hydra.utils import instantiate
+        from omegaconf import OmegaConf
 
         roles = [instantiate(estimators[r]) for r in ROLES if estimators.get(r)]
-        return cls(instantiate(estimators["align"]), roles, encodings, **kwargs)
+        pipe = cls(instantiate(estimators["align"]), roles, encodings, **kwargs)
+        plain = OmegaConf.to_container(estimators, resolve=True) if OmegaConf.is_config(estimators) else estimators
+        # What a worker process needs to build the same pipeline (run(..., workers=n)).
+        pipe.config = {"estimators": dict(plain), "encodings": list(pipe.encodings), "kwargs": dict(kwargs)}
+        return pipe
 
     @property
     def size(self) -> int:
@@ -98,9 +99,33 @@ class Pipeline:
 
     def process(self, rgb: np.ndarray) -> tuple[dict[str, np.ndarray], dict, dict]:
         """Encodings of one decoded photo, its meta, and the full context (for previews)."""
+        with self._one_blas_thread():
+            return self._process(rgb)
+
+    def _one_blas_thread(self):
+        """BLAS limited to one thread while the estimators run: their solves are 50x50, where OpenBLAS's second
+        thread only waits to be scheduled (on a busy 2-core machine 0.2 ms solves took 80 ms); parallelism comes
+        from worker processes (``workers=``), one image each. The controller is built after the first image,
+        when every estimator's library is loaded (building one costs ~4 ms)."""
+        try:
+            from threadpoolctl import ThreadpoolController
+        except ImportError:  # pragma: no cover - a dependency; without it the estimators still run
+            return contextlib.nullcontext()
+        ctl = getattr(self, "_blas", None)
+        if ctl is None:
+            from threadpoolctl import threadpool_limits
+
+            self._blas = "next"
+            return threadpool_limits(limits=1, user_api="blas")
+        if ctl == "next":
+            ctl = self._blas = ThreadpoolController()
+        return ctl.limit(limits=1, user_api="blas")
+
+    def _process(self, rgb: np.ndarray) -> tuple[dict[str, np.ndarray], dict, dict]:
         t0 = time.perf_counter()
         aligned = self.aligner(rgb)
-        ctx: dict[str, Any] = {"image": aligned["image"], "notes": list(aligned["notes"])}
+        # The quad unrounded: compositing warps the relit crop back through it (difareli.composite).
+        ctx: dict[str, Any] = {"image": aligned["image"], "quad": aligned["quad"], "notes": list(aligned["notes"])}
         meta = {"faces": aligned["faces"], "box": aligned["box"], "quad": np.round(aligned["quad"], 2).tolist()}
         timings = {"align": time.perf_counter() - t0}
         for est in self.steps:
@@ -115,95 +140,3 @@ class Pipeline:
                 meta[key] = ctx[key]
         arrays = {name: ctx[name] for name in self.encodings}
         return arrays, meta, ctx
-
-
-@dataclass
-class RunSummary:
-    """What one run did; ``entries`` is the report's per-file list."""
-
-    written: int = 0
-    skipped: int = 0
-    failed: int = 0
-    seconds: float = 0.0
-    entries: list[dict] = field(default_factory=list)
-
-    @property
-    def images_per_second(self) -> float:
-        return self.written / self.seconds if self.seconds > 0 else 0.0
-
-
-def _write_json(path: Path, obj: Any) -> None:
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    tmp.write_text(json.dumps(obj, indent=1, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)) + "\n")
-    os.replace(tmp, path)
-
-
-def run(pipeline: Pipeline, in_dir: str, out_dir: str, *, overwrite: bool = False, previews: bool = True,
-        durable: bool = False, progress: bool = True, shard: str | None = None) -> RunSummary:
-    """Process every file of ``in_dir`` (or the single file) into the store at ``out_dir``; never raises
-    for a bad image: each gets a report entry and nothing is written for it. ``shard="i/n"`` processes only
-    the records of that shard (``difareli.shard``; shards may run concurrently into one store) and writes
-    its report as ``preprocess_report.shard-i-of-n.json``."""
-    from tqdm import tqdm
-
-    from difareli import shard as sharding
-
-    out = Path(out_dir)
-    spec = sharding.parse(shard)
-    files = list_inputs(in_dir)
-    ids = record_ids(files)
-    files = sharding.select(files, spec, key=lambda f: ids[f])
-    store = EncodingStore.create(out, pipeline.dims(), pipeline.encodings,
-                                 {"source": "difareli-preprocess", "size": pipeline.size, "gamma": "none"},
-                                 durable=durable)
-    if previews:
-        (out / PREVIEWS).mkdir(parents=True, exist_ok=True)
-    summary = RunSummary()
-    busy = 0.0
-    t_start = time.perf_counter()
-    bar = tqdm(files, desc="preprocess", unit="img", disable=not progress)
-    for f in bar:
-        rid = ids[f]
-        entry: dict[str, Any] = {"file": str(f), "id": rid}
-        if store.has(rid) and not overwrite:
-            entry["status"] = "skipped"
-            entry["reason"] = "record exists"
-            summary.skipped += 1
-            summary.entries.append(entry)
-            continue
-        t0 = time.perf_counter()
-        try:
-            rgb, notes = load_image(f, pipeline.min_side, pipeline.max_side)
-            arrays, meta, ctx = pipeline.process(rgb)
-            notes += ctx["notes"]
-            meta.update(source_file=f.name, input_size=list(rgb.shape[:2]), notes=notes, split="predict")
-            store.write(rid, arrays, meta, overwrite=overwrite)
-            if previews:
-                from .preview import save_preview
-
-                save_preview(out / PREVIEWS / f"{rid}.png", ctx)
-            entry.update(status="ok", notes=notes, faces=meta["faces"])
-            for key in ("reprojection_px", "bfm_fit", "light_fit"):
-                if key in meta:
-                    entry[key] = meta[key]
-            summary.written += 1
-        except BadInput as e:
-            entry.update(status="failed", reason=str(e))
-        except Exception as e:  # noqa: BLE001 - an estimator bug must not stop the other images
-            entry.update(status="failed", reason=f"internal error: {type(e).__name__}: {e}")
-        dt = time.perf_counter() - t0
-        entry["seconds"] = round(dt, 3)
-        if entry["status"] == "failed":
-            summary.failed += 1
-        else:
-            busy += dt
-        summary.entries.append(entry)
-        bar.set_postfix(ok=summary.written, failed=summary.failed)
-    bar.close()
-    summary.seconds = busy
-    report = {"in_dir": str(in_dir), "out_dir": str(out), "encodings": list(pipeline.encodings),
-              "size": pipeline.size, "written": summary.written, "skipped": summary.skipped,
-              "failed": summary.failed, "images_per_second": round(summary.images_per_second, 3),
-              "wall_seconds": round(time.perf_counter() - t_start, 3), "images": summary.entries}
-    _write_json(out / (REPORT if spec is None else REPORT.replace(".json", f".{spec.suffix}.json")), report)
-    return summary
