@@ -19,7 +19,7 @@ from difareli import encodings, perf
 from difareli.cli.ablate import table_rows
 from difareli.diffusion.spec import SamplerSpec
 from difareli.nn import build_network
-from difareli.relighting import relight
+from difareli.relight_core import relight
 from difareli.runtime import count_flops
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -248,7 +248,7 @@ def main() -> int:
     from difareli import official
     from difareli.lit import load_checkpoint
     from difareli.processes import openmp_wait_policy
-    from difareli.relighting import relight
+    from difareli.relight_core import relight
     from difareli.runtime import Runtime
 
     torch.set_num_threads(args.threads)

@@ -28,7 +28,7 @@ import torch  # noqa: E402
 
 from difareli import perf  # noqa: E402
 from difareli.diffusion.relight import SamplerSpec  # noqa: E402
-from difareli.relighting import invert_image, relight  # noqa: E402
+from difareli.relight_core import invert_image, relight  # noqa: E402
 from difareli.runtime import Runtime, count_flops, peak_flops  # noqa: E402
 
 MODES = {"fp32": {}, "bf16": {"precision": "bf16"}, "cuda_graphs": {"precision": "bf16", "cuda_graphs": True},

@@ -11,7 +11,8 @@ from difareli import encodings, sh
 from difareli.encodings import ENCODINGS, NUM_MASK_PARTS
 from difareli.errors import NonFiniteError
 from difareli.lit import LoadedCheckpoint
-from difareli.relighting import (DiffusionRelightable, OnePassRelightable, Relightable, Relighter, needed_encodings,
+from difareli.relightable import DiffusionRelightable, OnePassRelightable, Relightable
+from difareli.relighting import (Relighter, needed_encodings,
                                  relight)
 from difareli.store import EncodingStore
 from difareli.targets import retarget

@@ -137,7 +137,8 @@ class DiffusionMethod:
 
     def __init__(self, checkpoint: str | None = None, sampler: Mapping[str, Any] | None = None, *,
                  name: str | None = None, runtime: Mapping[str, Any] | None = None, mean_matching: bool = True, batch_size: int = 16):
-        from difareli.relighting import OnePassRelightable, Relighter
+        from difareli.relightable import OnePassRelightable
+        from difareli.relighting import Relighter
 
         if not checkpoint or checkpoint == "???":
             raise ValueError("method=diffusion needs method.checkpoint=<run>/checkpoints/last.ckpt")

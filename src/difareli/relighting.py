@@ -11,21 +11,20 @@ The :class:`~difareli.runtime.Runtime` decides device, precision, compile and CU
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import warnings
 from dataclasses import dataclass
 from typing import Any, Mapping
 
 import numpy as np
-import torch
 from torch import Tensor
 from tqdm.auto import tqdm
 
 from difareli import errors, viz
-from difareli.inputs import Condition, condition_tensors, image_to_tensor, relight_reads
-from difareli.diffusion.relight import Inversion, SamplerSpec, decode, invert
-from difareli.relightable import DiffusionRelightable, OnePassRelightable, Relightable, model_inputs
+from difareli.inputs import condition_tensors, image_to_tensor, relight_reads
+from difareli.diffusion.relight import Inversion, SamplerSpec
+from difareli.relight_core import invert_image, relight  # noqa: F401 (callers import the tensor-level call here too)
+from difareli.relightable import OnePassRelightable, Relightable, model_inputs
 from difareli.runtime import Runtime
 from difareli.store import EncodingStore
 from difareli.targets import Targets, retarget
@@ -34,54 +33,6 @@ from difareli.targets import Targets, retarget
 def needed_encodings(model: Relightable) -> list[str]:
     """Encodings read per record: the image, its light, the model's inputs and what re-rendering them needs."""
     return relight_reads(model_inputs(model))
-
-
-def _denoiser(model: DiffusionRelightable, cond: Any, runtime: Runtime | None):
-    forward = getattr(model, "net", None)
-    if runtime is None or forward is None:
-        return model.denoiser(cond)
-    return runtime.denoiser(forward, cond)
-
-
-def _condition(model: Relightable, inputs: Condition, runtime: Runtime | None):
-    if runtime is None:
-        return model.condition(*inputs)
-    with runtime.autocast():
-        return model.condition(*inputs)
-
-
-@torch.no_grad()
-def invert_image(model: DiffusionRelightable, x0: Tensor, source: Condition, spec: SamplerSpec, *,
-                 runtime: Runtime | None = None, mean_matching: bool = True, progress: bool = False) -> Inversion:
-    """Passes 1-2 for one image: inversion with its own condition and the mean-matching offsets."""
-    den = _denoiser(model, _condition(model, source, runtime), runtime)
-    return invert(den, x0, model.schedule, spec, mean_matching=mean_matching, progress=progress)
-
-
-@torch.no_grad()
-def relight(model: Relightable, x0: Tensor, source: Condition, targets: Condition, spec: SamplerSpec | None = None,
-            *, runtime: Runtime | None = None, mean_matching: bool = True, inversion: Inversion | None = None,
-            progress: bool = False) -> Tensor:
-    """Relight one image ``x0`` [1, 3, H, W] under ``B`` targets in one batch -> [B, 3, H, W] float.
-
-    ``source`` is the input's own condition (batch 1), ``targets`` batch ``B``. A diffusion model inverts once
-    (or reuses ``inversion``) and decodes every target in one batch: the Modulator runs once for the source and
-    once for the targets. A one-pass model maps the image in one network pass per target.
-    """
-    n = next(v.shape[0] for v in targets if v is not None)
-    if isinstance(model, OnePassRelightable):
-        src = tuple(None if v is None else v.expand(n, *v.shape[1:]) for v in source)
-        with runtime.autocast() if runtime is not None else contextlib.nullcontext():
-            out = model.relight_once(x0.expand(n, -1, -1, -1), model.condition(*src), model.condition(*targets))
-        return out.float()
-    if spec is None:
-        raise ValueError(f"{type(model).__name__} is a diffusion model: relighting it needs a sampler spec")
-    if inversion is None:
-        inversion = invert_image(model, x0, source, spec, runtime=runtime, mean_matching=mean_matching,
-                                 progress=progress)
-    den = _denoiser(model, _condition(model, targets, runtime), runtime)
-    return decode(den, inversion.expand(n) if inversion.x_T.shape[0] != n else inversion, model.schedule,
-                  progress=progress)
 
 
 @dataclass(frozen=True)

@@ -34,7 +34,7 @@ from difareli import encodings, metrics, viz
 from difareli.diffusion.relight import SamplerSpec
 from difareli.inputs import Condition, condition_tensors, image_to_tensor
 from difareli.perf import random_condition
-from difareli.relighting import relight
+from difareli.relight_core import relight
 from difareli.runtime import Runtime
 from difareli.store import EncodingStore
 

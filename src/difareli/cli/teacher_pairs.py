@@ -12,7 +12,8 @@ from difareli.cli import common
 def run(cfg: DictConfig) -> dict:
     """Generate (or resume) the pair store as configured; returns the counts and pairs/s."""
     from difareli.jobs.teacher_pairs import generate_teacher_pairs
-    from difareli.relighting import DiffusionRelightable, Relighter
+    from difareli.relightable import DiffusionRelightable
+    from difareli.relighting import Relighter
     from difareli.store import EncodingStore
 
     errors.check_sampler(cfg.sampler)

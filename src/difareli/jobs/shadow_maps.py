@@ -39,7 +39,7 @@ from difareli.diffusion.relight import Inversion
 from difareli.imageops import median_mask
 from difareli.inputs import condition_tensors, image_to_tensor, relight_reads
 from difareli.relightable import OnePassRelightable, model_inputs
-from difareli.relighting import invert_image, relight
+from difareli.relight_core import invert_image, relight
 from difareli.targets import retarget
 
 #: The authors' recipe: threshold on the grey-level difference, median size at 256 px, parts zeroed.

@@ -21,7 +21,7 @@ from difareli.errors import UserError, check_record
 from difareli.fileio import folder_lock
 from difareli.inputs import condition_tensors, image_to_tensor
 from difareli.pairs import LIGHT_FROM_KEY, SOURCE_KEY, target_arrays
-from difareli.relighting import relight
+from difareli.relight_core import relight
 from difareli.provenance import model_identity, store_identity
 from difareli.store import EncodingStore
 

@@ -136,7 +136,7 @@ class RelightMetrics(L.Callback):
     @torch.no_grad()
     def evaluate(self, trainer: L.Trainer, pl_module) -> dict[str, float]:
         """Relight the prepared pairs with ``pl_module``'s current weights; log and return the metrics."""
-        from difareli.relighting import relight
+        from difareli.relight_core import relight
         from difareli.runtime import Runtime
 
         since = time.perf_counter() - (self._clock or time.perf_counter())

@@ -5,7 +5,7 @@ the source's spatial inputs and the target's light-dependent ones (shading refer
 paper's 8 channels, plus the masks where the variant declares them); AdaGN takes the source's non-spatial inputs
 (plus the target's light-dependent non-spatial ones, e.g. c' for a DiFaReli-style variant). The time embedding
 sees a constant ``timestep``. Trained with L2 (optionally + LPIPS) on pairs served by the DataModule's pair
-sampler (``data.pairs``). Implements :class:`~difareli.relighting.OnePassRelightable`, so every relighting CLI,
+sampler (``data.pairs``). Implements :class:`~difareli.relightable.OnePassRelightable`, so every relighting CLI,
 the benchmark and the speed tables take its checkpoint unchanged.
 """
 
