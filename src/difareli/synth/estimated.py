@@ -149,6 +149,7 @@ def estimate_all(image: np.ndarray, est_image: np.ndarray | None = None) -> tupl
               "background": np.where(np.isin(masks, _FG_IDX)[..., None], 0, image).astype(np.uint8)}
     est, info = estimate_light_and_shadow(arrays, gb.hit, gb, ctx["scene"])
     arrays.update(est, shadow_map=est["cast"].astype(np.float32))  # binary until the store's c range is known
-    info["estimation"] = {"resolution": int(big.shape[0]), "bfm_fit": meta.get("bfm_fit"),
-                          "seconds": meta.get("seconds")}
+    # No timings in record meta: a record must not depend on the machine's load (resumed and sharded stores equal
+    # the unsharded one byte for byte); the generator reports the rate.
+    info["estimation"] = {"resolution": int(big.shape[0]), "bfm_fit": meta.get("bfm_fit")}
     return {k: arrays[k] for k in ESTIMATED}, info
