@@ -39,6 +39,7 @@ from typing import Any
 from difareli.checkpoint_format import OFFICIAL_REPO as REPO
 from difareli.checkpoint_format import is_official
 from difareli.errors import UserError, check_file
+from difareli.fileio import torch_save_atomic
 
 #: The defaults (``config/base_config.py``) of the keys this module reads.
 DEFAULTS: dict[str, dict[str, Any]] = {
@@ -393,8 +394,6 @@ def import_checkpoint(official: str | Path, config: str | Path, out: str | Path,
                       verify: bool = True) -> dict[str, Any]:
     """Convert an official UNet + Modulator pair to a difareli checkpoint at ``out`` (written atomically) and,
     with ``verify``, check that ``load_checkpoint(out)`` predicts exactly the eps of the converted network."""
-    import torch
-
     from difareli.errors import check_out_dir
 
     cfg = read_config(config)
@@ -412,9 +411,7 @@ def import_checkpoint(official: str | Path, config: str | Path, out: str | Path,
     ckpt, module = convert(unet_sd, mod_sd, cfg, shape_parts=parts, step=got,
                            files={"unet": str(unet_file), "modulator": str(mod_file)})
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f".{out.name}.tmp")
-    torch.save(ckpt, tmp)
-    tmp.replace(out)
+    torch_save_atomic(ckpt, out)
     summary = {"out": str(out), "unet": str(unet_file), "modulator": str(mod_file), "step": got,
                "parameters": sum(v.numel() for v in ckpt["state_dict"].values()),
                "spatial_inputs": module.spatial_inputs, "nonspatial_inputs": module.nonspatial_inputs,

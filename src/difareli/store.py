@@ -431,12 +431,13 @@ class EncodingStore:
         """
         problems = []
         self.refresh()
+        splits_used = self._splits_used()  # once: whether every record must name its split
         for rid in self.ids() if ids is None else ids:
             path = self.records_dir / rid
             if not path.is_dir():
                 problems.append(f"{rid}: record folder missing")
                 continue
-            problems += self._verify_meta(rid, path / META)
+            problems += self._verify_meta(rid, path / META, splits_used)
             for name in self.encodings:
                 file = path / f"{name}.npy"
                 if not file.is_file():
@@ -478,7 +479,7 @@ class EncodingStore:
             return False  # the first readable record decides (records of one store are written alike)
         return False
 
-    def _verify_meta(self, rid: str, path: Path) -> list[str]:
+    def _verify_meta(self, rid: str, path: Path, splits_used: bool) -> list[str]:
         """Problems of one record's meta: unreadable, not an object, or without the keys readers select by."""
         try:
             meta = json.loads(path.read_text())
@@ -487,7 +488,7 @@ class EncodingStore:
         if not isinstance(meta, dict):
             return [f"{rid}: {META} holds {type(meta).__name__}, not an object"]
         synth = self.store_meta.get("generator") == "synthfaces"
-        need = (["split", "subject", "light_index"] if synth else []) + (["split"] if self._splits_used() else [])
+        need = (["split", "subject", "light_index"] if synth else []) + (["split"] if splits_used else [])
         need = list(dict.fromkeys(need))
         missing = [k for k in need if k not in meta]
         return [f"{rid}: {META} lacks {missing} (the record drops out of every split and protocol)"] if missing else []

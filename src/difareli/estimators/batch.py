@@ -11,7 +11,6 @@ parts of the work. ``spawn``: a fork would copy a parent's loaded mediapipe/torc
 
 from __future__ import annotations
 
-import json
 import multiprocessing as mp
 import os
 import time
@@ -21,6 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from difareli.fileio import write_json_atomic
 from difareli.store import EncodingStore
 
 from .loading import BadInput, list_inputs, load_image, record_ids
@@ -84,12 +84,6 @@ class RunSummary:
     def stage_ms(self) -> dict[str, float]:
         """Mean milliseconds per written image of each stage (alignment, then one per estimator)."""
         return {k: round(1000 * v / self.written, 1) for k, v in self.stages.items()} if self.written else {}
-
-
-def _write_json(path: Path, obj: Any) -> None:
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    tmp.write_text(json.dumps(obj, indent=1, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)) + "\n")
-    os.replace(tmp, path)
 
 
 def compute_one(pipeline: Pipeline, f: Path, preview: Path | None) -> dict:
@@ -180,5 +174,5 @@ def run(pipeline: Pipeline, in_dir: str, out_dir: str, *, overwrite: bool = Fals
               "failed": summary.failed, "images_per_second": round(summary.images_per_second, 3),
               "wall_seconds": round(time.perf_counter() - t_start, 3),
               "stage_ms_per_image": summary.stage_ms(), "images": summary.entries}
-    _write_json(out / (REPORT if spec is None else REPORT.replace(".json", f".{spec.suffix}.json")), report)
+    write_json_atomic(out / (REPORT if spec is None else REPORT.replace(".json", f".{spec.suffix}.json")), report, indent=1)
     return summary
