@@ -109,3 +109,24 @@ def test_a_full_disk_leaves_no_truncated_png(tmp_path, monkeypatch):
     monkeypatch.undo()
     np.testing.assert_array_equal(iio.imread(tmp_path / "relit.png"), img)  # the previous image, whole
     assert sorted(p.name for p in tmp_path.iterdir()) == ["relit.png"]
+
+
+def test_a_run_stopped_between_periodic_checkpoints_keeps_its_last_steps(synth_store, tmp_path):
+    """Lightning writes ``last`` at train end only when none was written yet: stopping at step 5 with checkpoints
+    every 3 steps used to leave last.ckpt at step 3. The stop-aware callback writes it at step 5, with the raw
+    weights (not the EMA average) as the resume state."""
+    from difareli.cli.train import train
+
+    from .helpers import compose_train
+
+    cfg = compose_train(tmp_path, [
+        f"data.root={synth_store}", "data.resolution=32", "data.synth=null", "data.num_workers=0",
+        "data.batch_size=2", "model=difareli", "model.preset=tiny", "trainer=cpu", "trainer.max_steps=5",
+        "trainer.val_check_interval=3", "trainer.limit_val_batches=1", "sample_grid=false", "logger=[]",
+        "callbacks.ema.decay=0.9", "callbacks.relight_metrics.enabled=false",
+    ])
+    train(cfg)
+    ckpt = torch.load(tmp_path / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
+    assert ckpt["global_step"] == 5
+    raw, ema = ckpt["current_model_state"], ckpt["state_dict"]
+    assert any(not torch.equal(raw[k], ema[k]) for k in ema if ema[k].is_floating_point())
