@@ -13,7 +13,7 @@ from difareli import encodings
 from difareli.imageops import LUMA
 from difareli.store import EncodingStore
 from difareli.synth import generator as gen
-from difareli.synth.c_norm import finalise, range_arrays
+from difareli.synth.c_norm import finalise
 from difareli.synth.estimated import mode_downsample
 
 
@@ -86,9 +86,13 @@ def test_finalise_scales_maps_by_the_train_split_range(synth_store, tmp_path):
     finalise(store, 0.0)
     for r in store.ids():
         np.testing.assert_array_equal(store.read(r, ["shadow_map"])["shadow_map"], first[r])
-    # Target maps of this store's records use its range once the reader gives it with the record.
+    # Target maps of this store's records use its range: the readers (inputs.read_record, behind Relighter.source,
+    # the student's pairs and the training relight metrics) give it with the record.
+    from difareli.inputs import read_record
+
     rid = store.ids()[0]
-    a = {**{k: np.asarray(v) for k, v in store.read(rid, ["depth", "normal", "cam"]).items()}, **range_arrays(store)}
+    a = read_record(store, rid, ["depth", "normal", "cam"])
+    np.testing.assert_array_equal(a[encodings.C_RANGE_KEY], c_range)
     light = np.asarray(store.read(rid, ["light"])["light"])
     mid = (c_range[0] + c_range[1]) / 2
     fixed = target_shadow_map({k: a[k] for k in ("depth", "normal", "cam")}, light, mid)

@@ -58,6 +58,13 @@ def store_c_range(meta: Mapping[str, Any] | None) -> tuple[float, float] | None:
     return float(lo), float(hi)
 
 
+def c_range_arrays(meta: Mapping[str, Any] | None) -> dict[str, np.ndarray]:
+    """``{C_RANGE_KEY: (lo, hi)}`` to put beside a record's arrays when a store header records a c range (target
+    maps then scale by the store's range, as its stored maps do), else ``{}`` (the fixed range)."""
+    r = store_c_range(meta)
+    return {} if r is None else {C_RANGE_KEY: np.array(r, dtype=np.float64)}
+
+
 def known_normals(normal) -> np.ndarray:
     """Where a stored ``normal`` map holds a normal (unit vectors on the mesh, 0 off it): ``|n| > 0.5``."""
     return np.linalg.norm(np.asarray(normal, dtype=np.float64), axis=-1) > 0.5

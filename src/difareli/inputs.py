@@ -53,6 +53,16 @@ def condition_tensors(model: Relightable, arrays_list: Sequence[Mapping[str, np.
     return sp, ns
 
 
+def read_record(store, record_id: str, names: Sequence[str]) -> dict[str, np.ndarray]:
+    """A store record's encodings ``names`` as checked arrays (finite, plausible lights), with the store's c range
+    beside them (``encodings.C_RANGE_KEY``) when its header records one: every reader that re-renders a target
+    shadow map from a record then scales it as the store's own maps are (SynthFaces v3)."""
+    from difareli.errors import check_record
+
+    arrays = {k: np.asarray(v) for k, v in store.read(record_id, list(names)).items()}
+    return {**check_record(arrays, record_id, store.root), **enc.c_range_arrays(store.store_meta)}
+
+
 def relight_reads(inputs: Sequence[str], *, rerender: bool = True) -> list[str]:
     """The encodings a relight of a record reads: the image, its light, the model's ``inputs`` and (``rerender``)
     what re-rendering the light-dependent ones toward a target light needs (the registry's ``needs``)."""

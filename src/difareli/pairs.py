@@ -31,7 +31,7 @@ import torch
 from torch.utils.data import ConcatDataset, Dataset
 
 from difareli import encodings as enc
-from difareli.inputs import image_to_tensor, prepare_nonspatial, prepare_spatial, relight_reads
+from difareli.inputs import image_to_tensor, prepare_nonspatial, prepare_spatial, read_record, relight_reads
 from difareli.errors import UserError, check_record
 from difareli.store import EncodingStore
 from difareli.targets import retarget
@@ -67,7 +67,7 @@ class PairDataset(Dataset):
         return len(self.ids)
 
     def source(self, rid: str) -> dict[str, np.ndarray]:
-        return dict(check_record(self.store.read(rid, self.names), rid, self.store.root))
+        return read_record(self.store, rid, self.names)
 
     def item(self, rid: str, src: Mapping[str, np.ndarray], tgt: Mapping[str, np.ndarray],
              target_image: np.ndarray) -> dict[str, Any]:

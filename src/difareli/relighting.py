@@ -21,7 +21,7 @@ from torch import Tensor
 from tqdm.auto import tqdm
 
 from difareli import errors, viz
-from difareli.inputs import condition_tensors, image_to_tensor, relight_reads
+from difareli.inputs import condition_tensors, image_to_tensor, read_record, relight_reads
 from difareli.diffusion.relight import Inversion, SamplerSpec
 from difareli.relight_core import invert_image, relight  # noqa: F401 (callers import the tensor-level call here too)
 from difareli.relightable import OnePassRelightable, Relightable, model_inputs
@@ -89,8 +89,7 @@ class Relighter:
         if missing:
             raise KeyError(f"relighting with this model needs encoding(s) {missing}, which the store at "
                            f"{store.root} does not have")
-        arrays = {k: np.asarray(v) for k, v in store.read(record_id, self.needed_encodings()).items()}
-        return Source(dict(errors.check_record(arrays, record_id, store.root)), (str(store.root), record_id),
+        return Source(read_record(store, record_id, self.needed_encodings()), (str(store.root), record_id),
                       f"record {record_id!r} of {store.root}")
 
     def source_from_arrays(self, arrays: Mapping[str, np.ndarray], what: str = "in-memory record",

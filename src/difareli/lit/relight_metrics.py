@@ -20,7 +20,7 @@ import math
 import time
 import warnings
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any, Mapping
 
 import lightning as L
 import numpy as np
@@ -28,7 +28,7 @@ import torch
 
 from difareli import metrics, viz
 from difareli.diffusion.spec import SamplerSpec, as_spec
-from difareli.inputs import condition_tensors, image_to_tensor, relight_reads
+from difareli.inputs import condition_tensors, image_to_tensor, read_record, relight_reads
 from difareli.lit.logging import log_image
 from difareli.relightable import OnePassRelightable, Relightable, model_inputs
 
@@ -110,7 +110,7 @@ class RelightMetrics(L.Callback):
         from difareli.targets import retarget, target_shadow_of
 
         names = relight_reads(model_inputs(model))
-        arrays = {k: np.asarray(v) for k, v in store.read(pair["source"], names).items()}
+        arrays = read_record(store, pair["source"], names)
         fit, targets = LightFit(), []
         for proto in PROTOCOLS.values():
             light = fit.from_store(store, pair[proto])

@@ -52,12 +52,6 @@ def finalise(store, quantile: float) -> dict:
     return rng
 
 
-def range_arrays(store) -> dict[str, np.ndarray]:
-    """``{C_RANGE_KEY: (lo, hi)}`` to put beside a record's arrays (target maps then use the store's range), or {}."""
-    r = store_c_range(store.store_meta)
-    return {} if r is None else {C_RANGE_KEY: np.array(r, dtype=np.float64)}
-
-
 def scale_map(binary: np.ndarray, c: float, c_range) -> np.ndarray:
     """``binary * normalise_c(c, c_range)`` as float32 (the ``shadow_map`` definition)."""
     return (np.asarray(binary, bool) * normalise_c(c, c_range)).astype(np.float32)
