@@ -151,3 +151,15 @@ def test_multirun_one_directory_per_variant(synth_store, tmp_path):
     assert runs == ["0", "1"]
     for r in runs:
         assert (tmp_path / "sweep" / r / ".hydra" / "config.yaml").is_file()
+
+
+@pytest.mark.parametrize("native, expected", [("bf16", "bf16-mixed"), ("fp32", "32-true")])
+def test_cpu_recipes_train_in_bf16_only_where_the_cpu_has_it(native, expected, tmp_path, monkeypatch):
+    """Emulated bf16 (an AVX2-only CPU) was ~30x slower than fp32: the CPU recipes resolve their precision from
+    the CPU's flags (runtime.auto_precision)."""
+    import difareli.runtime
+
+    monkeypatch.setattr(difareli.runtime, "auto_precision", lambda device: native)
+    for experiment in ("reference_cpu", "student_cpu"):
+        cfg = compose_train(tmp_path / experiment, [f"experiment={experiment}"])
+        assert cfg.trainer.precision == expected, experiment

@@ -12,10 +12,25 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from omegaconf import OmegaConf
+
 #: The shipped config folder (a real folder: setuptools installs package data as files).
 CONFIG_DIR = Path(__file__).resolve().parent / "conf"
 #: What ``@hydra.main(config_path=...)`` is given.
 CONFIG_PATH = "pkg://difareli.conf"
+
+
+def train_precision() -> str:
+    """``${difareli_precision:}`` in a trainer config: ``bf16-mixed`` where this CPU has native bf16 arithmetic
+    (``avx512_bf16`` / ``amx_bf16``, :func:`difareli.runtime.auto_precision`), else ``32-true``. Without it bf16 is
+    emulated: on an AVX2-only EPYC one 3x3 convolution (16x64x64x64, forward + backward) took 29.4 s in bf16
+    autocast against 0.91 s in fp32, and a bf16 recipe trained at 0.02 it/s."""
+    from difareli.runtime import auto_precision
+
+    return "bf16-mixed" if auto_precision("cpu") == "bf16" else "32-true"
+
+
+OmegaConf.register_new_resolver("difareli_precision", train_precision, replace=True)
 
 
 def config_file(group: str, name: str) -> Path:
