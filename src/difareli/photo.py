@@ -4,6 +4,11 @@ and the relit crops back into the whole photo (:func:`PreparedPhoto.compositor`,
 The same estimators as ``difareli-preprocess`` (``conf/preprocess/``), planned for exactly the encodings the
 model needs (plus the part masks the composite blends with); nothing is written to disk. Pipelines are built once
 per process and crop size (:func:`pipeline_for`): building one and its first image load mediapipe and dlib (s).
+
+:func:`training_resolution` reads the resolution a checkpoint was trained at (``hyper_parameters.input_dims``):
+a photo is aligned at it unless told otherwise, and an input at another resolution is named in a warning
+(:func:`resolution_warning`). A grey photo (:func:`is_grey`) gets a grey light and comes back grey
+(:func:`grey_like`): it has no colour for the model to keep.
 """
 
 from __future__ import annotations
@@ -17,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from difareli.errors import UserError
+from difareli.estimators.light import describe_light, is_grey, light_direction  # noqa: F401 (re-exported)
 
 #: The default estimators (``conf/preprocess.yaml``'s choices) as plain config, for callers without Hydra.
 DEFAULT_ESTIMATORS = {"align": "mediapipe", "geometry": "bfm", "masks": "facemesh_selfie", "light": "skin_sh",
@@ -24,6 +30,31 @@ DEFAULT_ESTIMATORS = {"align": "mediapipe", "geometry": "bfm", "masks": "facemes
 EXTRAS_FIX = "install the photo estimators: DIFARELI_PREPROCESS=1 bash scripts/install.sh"
 PHOTO_FIX = "use a photo with one clearly visible face"
 _PIPELINES: dict[Any, Any] = {}
+
+
+def training_resolution(config: Mapping[str, Any] | None) -> int | None:
+    """The image size (px) a checkpoint was trained at, from its hyperparameters (``input_dims.resolution``, which
+    difareli-train takes from the DataModule), or None where it records none."""
+    dims = dict((config or {}).get("input_dims") or {})
+    res = dims.get("resolution")
+    return int(res) if res else None
+
+
+def resolution_warning(checkpoint: Any, trained: int | None, what: str, size: int, fix: str) -> str | None:
+    """One line when ``what`` (``size`` px) differs from the checkpoint's training resolution, else None."""
+    if trained is None or int(size) == int(trained):
+        return None
+    return (f"warning: checkpoint={checkpoint} was trained at {trained} px, {what} is {size} px: the model runs "
+            f"outside its training resolution (slower, grainy results); {fix}")
+
+
+def grey_like(images: np.ndarray) -> np.ndarray:
+    """uint8 images (..., 3) as their Rec. 709 luminance in all three channels (a grey photo's relights)."""
+    from difareli.imageops import LUMA
+
+    a = np.asarray(images)
+    y = np.clip(np.round(a.astype(np.float64) @ np.asarray(LUMA, np.float64)), 0, 255).astype(np.uint8)
+    return np.repeat(y[..., None], 3, axis=-1)
 
 
 def default_estimators(size: int) -> dict[str, Any]:

@@ -7,6 +7,8 @@ video.
 
 from __future__ import annotations
 
+import json
+import sys
 import time
 from pathlib import Path
 
@@ -33,21 +35,89 @@ def read_source_and_photo(cfg: DictConfig, relighter: Relighter, store: Encoding
                           ) -> tuple[Source, photo.PreparedPhoto | None]:
     """:func:`read_source`, and for a photo the :class:`~difareli.photo.PreparedPhoto` (original, quad, masks)
     the composite needs."""
+    trained = photo.training_resolution(relighter.config)
     if cfg.image is not None:
+        size = photo_size(cfg, trained)
         prepared = photo.prepare_photo(photo.read_photo(cfg.image), relighter.needed_encodings(),
-                                       size=int(cfg.photo_size), what=f"image={cfg.image}")
+                                       size=size, what=f"image={cfg.image}")
         stages = ", ".join(f"{k} {1000 * v:.0f} ms" for k, v in prepared.meta.get("seconds", {}).items())
-        print(f"preprocessed {cfg.image} in {prepared.seconds:.1f} s ({cfg.photo_size} px crop of "
+        print(f"preprocessed {cfg.image} in {prepared.seconds:.1f} s ({size} px crop of "
               f"{prepared.rgb.shape[1]}x{prepared.rgb.shape[0]}; {stages})")
         source = relighter.source_from_arrays(prepared.arrays, f"image={cfg.image}", key=("image", str(cfg.image)))
+        for note in prepared.meta.get("notes", []):
+            print(f"image={cfg.image}: {note}")
+        print(f"source light (fitted on the photo): {photo.describe_light(source.arrays['light'])}")
         return source, prepared
+    check_store(cfg, relighter, store, trained)
     rid = cfg.record
     if rid is None:
         test = store.ids(split="test")
         rid = (test or store.ids())[0]
         print(f"record=null: relighting {rid}, the first record of the {'test split' if test else 'store'} "
               f"(record=<id> picks another)")
-    return relighter.source(store, rid), None
+    source = relighter.source(store, rid)
+    print(f"source light (record {rid}): {photo.describe_light(source.arrays['light'])}")
+    return source, None
+
+
+def photo_size(cfg: DictConfig, trained: int | None) -> int:
+    """The photo's crop size: ``photo_size``, or (null) the checkpoint's training resolution; a size other than
+    the training resolution is run, with a warning."""
+    if cfg.photo_size is None:
+        if trained is None:
+            raise errors.UserError(f"checkpoint={cfg.checkpoint} records no training resolution "
+                                   "(hyper_parameters.input_dims.resolution); give the crop size: photo_size=<px>")
+        return trained
+    warn(photo.resolution_warning(cfg.checkpoint, trained, f"photo_size={cfg.photo_size}", int(cfg.photo_size),
+                                  f"leave photo_size unset (null) or give photo_size={trained}"))
+    return int(cfg.photo_size)
+
+
+def warn(line: str | None) -> None:
+    if line:
+        print(f"difareli-relight: {line}", file=sys.stderr)
+
+
+def check_store(cfg: DictConfig, relighter: Relighter, store: EncodingStore, trained: int | None) -> None:
+    """Before reading a record: the store has what a relight reads (else a KeyError naming the fix) and its
+    resolution is the checkpoint's (else a warning naming the fix)."""
+    made_by = store.store_meta.get("source")
+    in_dir = "<the photos>"
+    if made_by == "difareli-preprocess":
+        try:
+            in_dir = json.loads((Path(store.root) / "preprocess_report.json").read_text())["in_dir"]
+        except (OSError, ValueError, KeyError, TypeError):
+            pass
+    size = int(store.dims.get("H", 0))
+    redo = f"difareli-preprocess in_dir={in_dir} out_dir=<a new store> checkpoint={cfg.checkpoint}"
+    missing = [n for n in relighter.needed_encodings() if not store.available(n)]
+    if missing:
+        fix = (f"{redo} writes them (at the checkpoint's {trained} px)" if made_by == "difareli-preprocess" else
+               "use a store that has them (difareli-synth writes every encoding)")
+        raise KeyError(f"relighting with checkpoint={cfg.checkpoint} needs encoding(s) {missing}, which the store at "
+                       f"{store.root} does not have; {fix}")
+    fix = (f"preprocess at {trained} px: {redo}" if made_by == "difareli-preprocess" else f"use a {trained} px store")
+    warn(photo.resolution_warning(cfg.checkpoint, trained, f"the store {store.root}", size, fix))
+
+
+def print_targets(targets: Targets, first: int = 0) -> None:
+    """One line per target light: where it comes from (``photo.describe_light``; see docs/photos.md)."""
+    for i, light in enumerate(targets.lights):
+        print(f"target light {first + i}: {photo.describe_light(light)}")
+
+
+class GreyRelighter:
+    """A relighter whose relights of a grey source come back grey (:func:`photo.grey_like`): a grey photo has no
+    colour, any the model adds is invented."""
+
+    def __init__(self, relighter: Relighter):
+        self._relighter = relighter
+
+    def __getattr__(self, name):
+        return getattr(self._relighter, name)
+
+    def relight(self, source, targets):
+        return photo.grey_like(self._relighter.relight(source, targets))
 
 
 def composite_frames(cfg: DictConfig, prepared: photo.PreparedPhoto, relit: np.ndarray) -> np.ndarray:
@@ -67,14 +137,19 @@ def run(cfg: DictConfig) -> dict[str, Path]:
     relighter = Relighter(cfg.checkpoint, cfg.sampler, runtime=cfg.runtime, mean_matching=cfg.mean_matching,
                           batch_size=cfg.batch_size, progress=cfg.progress)
     source, prepared = read_source_and_photo(cfg, relighter, store)
+    if photo.is_grey(source.arrays["image"]):
+        print(f"{source.what} is grey: its light is grey and its relights are made grey (their luminance)")
+        relighter = GreyRelighter(relighter)
     out_dir, written, t = Path(cfg.out_dir), {}, cfg.target
     if any(t[k] is not None for k in ("light", "record", "yaw", "roll", "envmap")):
         other = store.read(t.record, ["light", "shadow"]) if t.record is not None else {}
         light = target_lights(source.arrays["light"], light=t.light, other_light=other.get("light"), yaw=t.yaw,
                               roll=t.roll, envmap=t.envmap)
         shadow = t.shadow if t.shadow is not None else (float(other["shadow"][0]) if "shadow" in other else None)
+        targets = Targets.of([light], [shadow], "the target")
+        print_targets(targets)
         start = time.perf_counter()
-        relit = relighter.relight(source, Targets.of([light], [shadow], "the target"))[0]
+        relit = relighter.relight(source, targets)[0]
         print(f"relit {source.what} in {time.perf_counter() - start:.2f} s ({relighter.describe()})")
         row = [source.arrays["image"], relit]
         rid = source.key[1] if store is not None else None
@@ -92,6 +167,9 @@ def run(cfg: DictConfig) -> dict[str, Path]:
         targets, why = rotation_targets(source.arrays, cfg.video.axis, cfg.video.frames, store=store,
                                         given=t.shadow)
         print(f"video shadow strength: {why}")
+        quarter = len(targets) // 4
+        print(f"video: frame 0 light {photo.describe_light(targets.lights[0])}"
+              + (f"; frame {quarter}: {photo.describe_light(targets.lights[quarter])}" if quarter else ""))
         video = rotation_video(relighter, source, targets, out_dir, f"rotation_{cfg.video.axis}", fps=cfg.video.fps,
                                fmt=cfg.video.format)
         print(f"{len(video.frames)} frames in {video.seconds:.1f} s ({video.seconds / len(video.frames):.2f} s/frame, "
@@ -120,7 +198,8 @@ def validate(cfg: DictConfig) -> None:
     if all(cfg.target[k] is None for k in ("light", "record", "yaw", "roll", "envmap")) and cfg.video.axis is None:
         raise errors.UserError("nothing to do: give a target (target.light|record|yaw|roll|envmap) or "
                                "video.axis=yaw|roll")
-    errors.check_int(cfg.photo_size, "photo_size", 16)
+    if cfg.photo_size is not None:
+        errors.check_int(cfg.photo_size, "photo_size", 16)
     if cfg.image is not None:
         from difareli.composite import MODES, part_mask
 

@@ -152,6 +152,14 @@ def run(pipeline: Pipeline, in_dir: str, out_dir: str, *, overwrite: bool = Fals
         rid = ids[f]
         entry: dict[str, Any] = {"file": str(f), "id": rid, **res["entry"]}
         if entry["status"] == "ok":
+            if "light" in res["arrays"]:  # where the fitted light comes from, one line per photo (and the report)
+                from .light import describe_light
+
+                entry["light_from"] = describe_light(res["arrays"]["light"])
+                tqdm.write(f"{f.name}: light {entry['light_from']}")
+            for note in entry.get("notes", []):
+                if note.startswith(("small face", "grey photo")):  # what changes the result, on the console too
+                    tqdm.write(f"{f.name}: {note}")
             try:
                 store.write(rid, res["arrays"], res["meta"], overwrite=overwrite)
                 for k, v in res["meta"]["seconds"].items():

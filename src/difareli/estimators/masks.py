@@ -116,11 +116,17 @@ class FaceMeshSelfieMasks:
     requires = ("image", "landmarks")
 
     def __init__(self, person_threshold: float = 0.5, neck_depth: float = 0.45, neck_halfwidth: float = 0.4,
-                 model_selection: int = 0):
+                 model_selection: int = 0, colour: bool = True, skin_chroma: float = 14.0, skin_dark: float = 45.0,
+                 neck_max_depth: float = 0.9, neck_max_halfwidth: float = 0.6, hat_chroma: float = 20.0,
+                 hat_lightness: float = 40.0, hat_min_share: float = 0.15, hat_min_width: float = 0.6):
         self.person_threshold = person_threshold
         self.neck_depth = neck_depth
         self.neck_halfwidth = neck_halfwidth
         self.model_selection = model_selection
+        self.colour, self.skin_chroma, self.skin_dark = colour, skin_chroma, skin_dark
+        self.neck_max_depth, self.neck_max_halfwidth = neck_max_depth, neck_max_halfwidth
+        self.hat_chroma, self.hat_lightness, self.hat_min_share = hat_chroma, hat_lightness, hat_min_share
+        self.hat_min_width = hat_min_width
         self._seg = None
 
     def person(self, image: np.ndarray) -> np.ndarray:
@@ -158,6 +164,63 @@ class FaceMeshSelfieMasks:
             labels[rest & above] = PART_INDEX["hair"]
             labels[neck] = PART_INDEX["neck"]
             labels[rest & ~above & ~neck] = PART_INDEX["clothes"]
+            if self.colour:
+                self.refine(image, labels, lm, rows, cols, h, w, jaw)
             out.update(masks=labels, person=person,
                        background=np.where(np.isin(labels, _FG_IDX)[..., None], 0, image).astype(np.uint8))
         return out
+
+    def refine(self, image: np.ndarray, labels: np.ndarray, lm: np.ndarray, rows: np.ndarray, cols: np.ndarray,
+               h: float, w: float, jaw: float) -> None:
+        """The colour rules of the module docstring, in place on ``labels`` (neck by skin colour, hat by a colour
+        unlike the hair beside the face)."""
+        from scipy import ndimage
+        from skimage.color import rgb2lab
+
+        lab = rgb2lab(image)
+        skin = labels == PART_INDEX["skin"]
+        if skin.sum() < 50:
+            return
+        ref = np.median(lab[skin], axis=0)
+        chroma = np.hypot(lab[..., 1] - ref[1], lab[..., 2] - ref[2])
+        chin = lm[CHIN]
+        # Neck: skin-coloured person pixels below the jaw line, connected to the strip under the chin.
+        below = np.isin(labels, [PART_INDEX["neck"], PART_INDEX["clothes"]])
+        zone = (below & (rows < chin[1] + self.neck_max_depth * h)
+                & (np.abs(cols - chin[0]) < self.neck_max_halfwidth * w))
+        skinlike = zone & (chroma < self.skin_chroma) & (lab[..., 0] > ref[0] - self.skin_dark)
+        skinlike = ndimage.binary_opening(skinlike, iterations=1)
+        comp, n = ndimage.label(skinlike)
+        seed = skinlike & (rows < chin[1] + 0.15 * h) & (np.abs(cols - chin[0]) < 0.25 * w)
+        keep = np.unique(comp[seed])
+        neck = np.isin(comp, keep[keep > 0])
+        if neck.sum() > 0.02 * h * w:
+            neck = ndimage.binary_closing(neck, iterations=2) & below
+            labels[below] = PART_INDEX["clothes"]
+            labels[neck] = PART_INDEX["neck"]
+        # Hat: hair above the forehead unlike the hair beside the face.
+        hair = labels == PART_INDEX["hair"]
+        eyes_y = 0.5 * (lm[33, 1] + lm[263, 1])
+        xs = lm[:, 0]
+        beside = hair & (rows > eyes_y) & (rows < jaw) & (((cols < xs.min()) & (cols > xs.min() - 0.35 * w))
+                                                         | ((cols > xs.max()) & (cols < xs.max() + 0.35 * w)))
+        top = hair & (rows < lm[FOREHEAD, 1])
+        if beside.sum() < 30 or top.sum() < 30:
+            return
+        hair_ref = np.median(lab[beside], axis=0)
+        # Unlike in hue (a cap, a hood) or far in lightness (a black cap over grey hair); highlights in the hair
+        # differ in lightness only moderately.
+        unlike = top & ((np.hypot(lab[..., 1] - hair_ref[1], lab[..., 2] - hair_ref[2]) > self.hat_chroma)
+                        | (np.abs(lab[..., 0] - hair_ref[0]) > self.hat_lightness))
+        unlike = ndimage.binary_opening(unlike, iterations=2)
+        if unlike.sum() >= self.hat_min_share * top.sum():
+            comp, n = ndimage.label(unlike)
+            keep = []
+            for i, sl in enumerate(ndimage.find_objects(comp), start=1):
+                area = (comp[sl] == i).sum()
+                bw, bh = sl[1].stop - sl[1].start, sl[0].stop - sl[0].start
+                # A hat is one solid band across the head: wide, filling its box (hair highlights are streaks).
+                if area >= 0.05 * top.sum() and bw >= self.hat_min_width * w and area >= 0.5 * bw * bh:
+                    keep.append(i)
+            if keep:
+                labels[ndimage.binary_closing(np.isin(comp, keep), iterations=2) & hair] = PART_INDEX["hat"]

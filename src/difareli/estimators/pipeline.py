@@ -17,11 +17,15 @@ import numpy as np
 
 from difareli.encodings import ENCODINGS
 
+from .quiet import native_logs
+
 
 REPORT = "preprocess_report.json"
 #: Estimator roles of a config's ``estimators`` block, in the order they are instantiated.
 ROLES = ("geometry", "masks", "light", "identity", "shadow")
 PREVIEWS = "previews"
+#: A face whose FFHQ square is smaller than this share of the crop size gets a note (the crop enlarges it).
+UPSAMPLE_NOTE = 0.5
 
 
 class Pipeline:
@@ -99,7 +103,7 @@ class Pipeline:
 
     def process(self, rgb: np.ndarray) -> tuple[dict[str, np.ndarray], dict, dict]:
         """Encodings of one decoded photo, its meta, and the full context (for previews)."""
-        with self._one_blas_thread():
+        with self._one_blas_thread(), native_logs():  # mediapipe's native INFO/WARNING lines dropped (.quiet)
             return self._process(rgb)
 
     def _one_blas_thread(self):
@@ -127,6 +131,11 @@ class Pipeline:
         # The quad unrounded: compositing warps the relit crop back through it (difareli.composite).
         ctx: dict[str, Any] = {"image": aligned["image"], "quad": aligned["quad"], "notes": list(aligned["notes"])}
         meta = {"faces": aligned["faces"], "box": aligned["box"], "quad": np.round(aligned["quad"], 2).tolist()}
+        side = float(np.linalg.norm(np.asarray(aligned["quad"])[3] - np.asarray(aligned["quad"])[0]))
+        if side < UPSAMPLE_NOTE * self.size:  # a small face: the crop is an enlargement, say so (report, console)
+            ctx["notes"].append(f"small face: the crop's square is {side:.0f} px in the photo, enlarged "
+                                f"{self.size / max(side, 1e-6):.1f}x to {self.size} px (soft detail; a larger face "
+                                "or a smaller size= is sharper)")
         timings = {"align": time.perf_counter() - t0}
         for est in self.steps:
             t0 = time.perf_counter()

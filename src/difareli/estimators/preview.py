@@ -1,4 +1,10 @@
-"""Preview strip per image: input | mesh overlay | shading reference | masks | shadow map."""
+"""Preview strip per image: input | mesh overlay | shading reference | masks | shadow map, each panel labelled
+with its name (drawn into the panel's top rows; the strip keeps its size).
+
+The shading reference R is unclipped and often above 1 on a lit face (0.7 x irradiance): the panel shows it
+divided by its 99th percentile on the face (the label says by how much), so the face is not clipped to white;
+the input panel's label names the fitted light's direction.
+"""
 
 from __future__ import annotations
 
@@ -31,8 +37,62 @@ def mesh_overlay(image: np.ndarray, landmarks_xy: np.ndarray, triangles: np.ndar
     return out
 
 
+def shading_display(shading: np.ndarray, face: np.ndarray | None) -> tuple[np.ndarray, float]:
+    """R for viewing: ``(uint8 image, scale)`` with ``scale`` = 1 / its 99th percentile on ``face`` (or on its
+    non-zero pixels), so at most 1% of the face clips to white."""
+    r = np.asarray(shading, dtype=np.float64)
+    on = r[face] if face is not None and face.any() else r[r > 0]
+    top = float(np.percentile(on, 99)) if on.size else 0.0
+    scale = 1.0 / top if top > 1e-6 else 1.0
+    return (np.clip(r * scale, 0, 1) * 255).astype(np.uint8), scale
+
+
+def labels(ctx: dict) -> list[str]:
+    """The panels' names (what :func:`panels` shows)."""
+    from .light import describe_light
+
+    face = ctx.get("face_mask")
+    shading = "shading (not computed)"
+    if "shading" in ctx:
+        shading = f"shading x{shading_display(ctx['shading'], face)[1]:.2f} (p99 on face = white)"
+    light = f"input; light {describe_light(ctx['light'])}" if "light" in ctx else "input"
+    return [light, "FaceMesh" if "landmarks" in ctx else "mesh (not computed)", shading,
+            "masks" if "masks" in ctx else ("face mask" if "face_mask" in ctx else "masks (not computed)"),
+            "shadow map (red: cast x c)" if "shadow_map" in ctx else "shadow map (not computed)"]
+
+
+def label(panel: np.ndarray, text: str) -> np.ndarray:
+    """``panel`` with ``text`` drawn over its top rows, white on a dark band, wrapped to the panel's width."""
+    from PIL import Image, ImageDraw, ImageFont
+
+    im = Image.fromarray(panel)
+    size = max(8, round(panel.shape[0] / 22))
+    try:
+        font = ImageFont.load_default(size=size)
+    except TypeError:  # pragma: no cover - Pillow < 10.1: the fixed bitmap font
+        font = ImageFont.load_default()
+    draw = ImageDraw.Draw(im)
+    lines, cur = [], ""
+    for word in text.split():
+        trial = f"{cur} {word}".strip()
+        if cur and draw.textlength(trial, font=font) > panel.shape[1] - 4:
+            lines.append(cur)
+            cur = word
+        else:
+            cur = trial
+    lines.append(cur)
+    band = (size + 2) * len(lines) + 2
+    dark = np.asarray(im).copy()
+    dark[:band] = (dark[:band] * 0.35).astype(np.uint8)
+    im = Image.fromarray(dark)
+    draw = ImageDraw.Draw(im)
+    for i, line in enumerate(lines):
+        draw.text((2, 1 + i * (size + 2)), line, fill=(255, 255, 255), font=font)
+    return np.asarray(im)
+
+
 def panels(ctx: dict) -> list[np.ndarray]:
-    """The five uint8 panels (grey where an encoding was not computed)."""
+    """The five uint8 panels (grey where an encoding was not computed), unlabelled."""
     image = ctx["image"]
     blank = np.full_like(image, 64)
     out = [image]
@@ -42,8 +102,8 @@ def panels(ctx: dict) -> list[np.ndarray]:
         out.append(mesh_overlay(image, ctx["landmarks"][:NUM_VERTICES, :2], tessellation_triangles()))
     else:
         out.append(blank)
-    # The stored R is unclipped; a clipped copy is for viewing (SPEC 3).
-    out.append((np.clip(ctx["shading"], 0, 1) * 255).astype(np.uint8) if "shading" in ctx else blank)
+    # The stored R is unclipped (SPEC 3); the view is scaled by its 99th percentile on the face.
+    out.append(shading_display(ctx["shading"], ctx.get("face_mask"))[0] if "shading" in ctx else blank)
     if "masks" in ctx:
         out.append((0.35 * image + 0.65 * PALETTE[ctx["masks"]]).astype(np.uint8))
     elif "face_mask" in ctx:
@@ -68,7 +128,7 @@ def save_preview(path: str | Path, ctx: dict) -> None:
 
     path = Path(path)
     strip = np.concatenate([np.concatenate([p, np.full((p.shape[0], 2, 3), 255, np.uint8)], axis=1)
-                            for p in panels(ctx)], axis=1)[:, :-2]
+                            for p in (label(p, t) for p, t in zip(panels(ctx), labels(ctx)))], axis=1)[:, :-2]
     tmp = path.with_name(f".{path.stem}.tmp.png")
     Image.fromarray(strip).save(tmp)
     tmp.replace(path)
