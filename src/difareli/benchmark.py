@@ -4,7 +4,8 @@ Multi-PIE store made by ``difareli-multipie`` from a user's copy (the same ``pro
 For each pair of ``protocols.json`` (written with the store by ``synth.splits``): relight ``source`` under the
 light estimated from ``light_source`` (protocol (i) ``same_subject``: the same person under the target light;
 (ii) ``different_subject``: another person under that very light) and score the result against ``target``
-on the target's ``face_mask``. The light is fitted from the light-source image (:class:`baselines.LightFit`)
+on the target's ``face_mask`` (``score_mask``: another mask key of the store, e.g. ``face_mask_gt``, the
+renderer's exact face region that SynthFaces v3 stores beside its estimated ``face_mask``). The light is fitted from the light-source image (:class:`baselines.LightFit`)
 as a user would get it, with the shadow strength c a user has (``targets.target_shadow_of``: the estimated c of
 a v2 ``inputs=estimated`` store, else the training split's median shadowed c); ``oracle_light`` takes the exact
 light and c instead (``light_gt``/``shadow_gt`` in SynthFaces v2 stores, whose ``light``/``shadow`` are estimated),
@@ -15,13 +16,15 @@ lights (``"exact_lights": false`` in ``protocols.json``: Multi-PIE) gets no ligh
 
 Outputs in the run dir: ``relit/<protocol>/<pair id>.png``, ``metrics_per_image.csv`` (tables.py schema),
 ``summary.{md,csv,tex}``, ``light_estimation.csv`` and ``comparison_<protocol>.png`` (input | light source |
-relit | ground truth for the first pairs).
+relit | ground truth for the first pairs). Every file is written atomically (a full disk is one line naming it,
+nothing half-written; rows already scored are kept and a rerun resumes from them).
 """
 
 from __future__ import annotations
 
 import csv
 import dataclasses
+import io
 import json
 import sys
 import math
@@ -40,7 +43,9 @@ from difareli import shard as sharding
 from difareli import provenance
 from difareli.baselines import Method, exact_light_name, irradiance_error
 from difareli.light_fit import LightFit
-from difareli.fileio import folder_lock
+from difareli import encodings
+from difareli.fileio import RESUME, append_text, atomic_path, folder_lock, on_full_disk, write_json_atomic, \
+    write_text_atomic
 from difareli.store import EncodingStore
 from difareli.synth.splits import PROTOCOLS_FILE
 
@@ -51,6 +56,22 @@ LIGHT_CSV = "light_estimation.csv"
 PARTIAL_CSV = ".metrics_per_image.partial.csv"
 #: What scored a run's rows (difareli.provenance): a resumed run must match it.
 SETTINGS = "benchmark_settings.json"
+#: The mask every pair is scored on unless ``score_mask`` names another one.
+DEFAULT_MASK = "face_mask"
+
+
+def check_score_mask(store: EncodingStore, key: str | None) -> str:
+    """``key`` (None: :data:`DEFAULT_MASK`) if the store has it as a mask (a bool HxW encoding), else a UserError
+    naming the masks it has."""
+    key = DEFAULT_MASK if key is None else str(key)
+    have = [n for n in store.encodings if n in encodings.ENCODINGS and encodings.get(n).dtype == "bool"
+            and tuple(encodings.get(n).shape) == ("H", "W")]
+    if key not in have:
+        what = f"has {key} but it is not a mask (a bool HxW encoding)" if store.available(key) else \
+            f"has no {key}"
+        raise errors.UserError(f"score_mask={key}: store {store.root} {what}; give one of its masks: "
+                               f"{', '.join(have)} (default score_mask={DEFAULT_MASK})")
+    return key
 
 
 def _scored_so_far(out_dir: Path, method: str, rule: str) -> dict[tuple[str, str], tables.Record]:
@@ -73,14 +94,14 @@ def _read_png(path: Path) -> np.ndarray:
 
 
 def _append_row(out_dir: Path, r: tables.Record) -> None:
+    """Append one scored row (whole or not at all: a full disk leaves the rows before it intact)."""
     path = out_dir / PARTIAL_CSV
-    new = not path.is_file()
-    out_dir.mkdir(parents=True, exist_ok=True)
-    with open(path, "a", newline="") as f:
-        w = csv.writer(f)
-        if new:
-            w.writerow((*tables.COLUMNS, "rule", "status"))
-        w.writerow(tables.record_row(r))
+    buf = io.StringIO()
+    w = csv.writer(buf)
+    if not path.is_file() or path.stat().st_size == 0:
+        w.writerow((*tables.COLUMNS, "rule", "status"))
+    w.writerow(tables.record_row(r))
+    append_text(path, buf.getvalue())
 
 
 @dataclass(frozen=True)
@@ -133,7 +154,7 @@ def _to_tensor(img: np.ndarray) -> torch.Tensor:
 
 def score(pred: np.ndarray, target: np.ndarray, face_mask: np.ndarray, rule: str | None = None,
           scorer=None) -> dict[str, float]:
-    """DSSIM / MSE / LPIPS of one uint8 image against the ground truth on the face mask under ``rule``; through
+    """DSSIM / MSE / LPIPS of one uint8 image against the ground truth on the mask under ``rule``; through
     ``scorer`` (a :func:`metrics.relight_metrics` collection, which also accumulates the score) when given."""
     scorer = scorer if scorer is not None else metrics.relight_metrics(rule)
     scorer.update(_to_tensor(pred), _to_tensor(target), torch.from_numpy(np.array(face_mask, dtype=bool))[None])
@@ -207,30 +228,44 @@ def _pm(s: tables.Stat) -> str:
 def run_benchmark(store: EncodingStore, method: Method, protocols: Sequence[str], out_dir: str | Path, *,
                   limit: int | None = None, oracle_light: bool = False, oracle_shadow: bool = False, estimator: LightFit | None = None,
                   grid_pairs: int = 4, save_images: bool = True, progress: bool = True,
-                  shard: str | None = None, rule: str | None = None) -> BenchmarkResult:
-    """Relight and score every pair of ``protocols`` under the metric ``rule`` (None: ``paper``); write the run's
-    outputs into ``out_dir``.
+                  shard: str | None = None, rule: str | None = None, score_mask: str | None = None) -> BenchmarkResult:
+    """Relight and score every pair of ``protocols`` under the metric ``rule`` (None: ``paper``) on the target's
+    ``score_mask`` (None: ``face_mask``); write the run's outputs into ``out_dir``.
 
     ``shard="i/n"`` scores only that shard's pairs (by pair id, after ``limit``): the n shards' per-image
     CSVs together hold exactly the unsharded run's rows (``difareli-table`` merges them).
 
     ``out_dir`` is locked for the run, and :data:`SETTINGS` records what scores its rows (the method and its
-    model's weights, sampler and precision, the store, protocols, limit, oracles, rule, shard): a resumed run
-    with other settings is refused, naming what differs, instead of keeping another checkpoint's rows."""
+    model's weights, sampler and precision, the store, protocols, limit, oracles, rule, score mask, shard): a
+    resumed run with other settings is refused, naming what differs, instead of keeping another checkpoint's rows."""
     out_dir = Path(out_dir)
     rule = metrics.check_rule(rule)
-    with folder_lock(out_dir, "benchmark"):
-        provenance.ensure(out_dir, run_settings(store, method, protocols, limit=limit, oracle_light=oracle_light,
-                                                oracle_shadow=oracle_shadow, rule=rule, shard=shard),
-                          "benchmark rows", name=SETTINGS,
+    score_mask = check_score_mask(store, score_mask)
+    with folder_lock(out_dir, "benchmark"), on_full_disk(out_dir, scratch=[out_dir], fix=RESUME):
+        settings = run_settings(store, method, protocols, limit=limit, oracle_light=oracle_light,
+                                oracle_shadow=oracle_shadow, rule=rule, shard=shard, score_mask=score_mask)
+        recorded = _recorded(out_dir)
+        if score_mask == DEFAULT_MASK and recorded and "score_mask" not in recorded:
+            settings.pop("score_mask")  # rows of a run from before the option: scored on face_mask, resumable
+        provenance.ensure(out_dir, settings, "benchmark rows", name=SETTINGS,
                           has_results=(out_dir / PARTIAL_CSV).is_file() or (out_dir / tables.PER_IMAGE_CSV).is_file())
         return _run(store, method, protocols, out_dir, limit=limit, oracle_light=oracle_light,
                     oracle_shadow=oracle_shadow, estimator=estimator, grid_pairs=grid_pairs, save_images=save_images,
-                    progress=progress, shard=shard, rule=rule)
+                    progress=progress, shard=shard, rule=rule, score_mask=score_mask)
+
+
+def _recorded(out_dir: Path) -> dict:
+    """The settings recorded in ``out_dir`` ({} if none; an unreadable file is left to provenance.ensure)."""
+    try:
+        have = json.loads((out_dir / SETTINGS).read_text())
+    except (OSError, ValueError):
+        return {}
+    return have if isinstance(have, dict) else {}
 
 
 def run_settings(store: EncodingStore, method: Method, protocols: Sequence[str], *, limit: int | None,
-                 oracle_light: bool, oracle_shadow: bool, rule: str, shard: str | None) -> dict[str, Any]:
+                 oracle_light: bool, oracle_shadow: bool, rule: str, shard: str | None,
+                 score_mask: str = DEFAULT_MASK) -> dict[str, Any]:
     """What decides a benchmark run's rows (compared when a run resumes into the same folder)."""
     relighter = getattr(method, "relighter", None)
     model = getattr(relighter, "model", None)
@@ -239,12 +274,12 @@ def run_settings(store: EncodingStore, method: Method, protocols: Sequence[str],
             "precision": relighter.runtime.precision if relighter is not None else None,
             "store": provenance.store_identity(store), "versions": dict(getattr(store, "versions", {}) or {}),
             "protocols": list(protocols), "limit": limit, "oracle_light": bool(oracle_light),
-            "oracle_shadow": bool(oracle_shadow), "rule": rule, "shard": shard}
+            "oracle_shadow": bool(oracle_shadow), "rule": rule, "score_mask": score_mask, "shard": shard}
 
 
 def _run(store: EncodingStore, method: Method, protocols: Sequence[str], out_dir: Path, *, limit: int | None,
          oracle_light: bool, oracle_shadow: bool, estimator: LightFit | None, grid_pairs: int, save_images: bool,
-         progress: bool, shard: str | None, rule: str) -> BenchmarkResult:
+         progress: bool, shard: str | None, rule: str, score_mask: str = DEFAULT_MASK) -> BenchmarkResult:
     doc = protocols_doc(store)
     exact = bool(doc.get("exact_lights", True))
     if oracle_light and not exact:
@@ -257,7 +292,7 @@ def _run(store: EncodingStore, method: Method, protocols: Sequence[str], out_dir
     result = BenchmarkResult(records=[], provenance={
         "target light": "exact (oracle_light)" if oracle_light else "fitted to the light-source image (LightFit)",
         "target maps": getattr(method, "target_maps", "none (the method reads no light-dependent map)"),
-        "data set": str(doc.get("dataset", "synthfaces")), "metrics rule": rule})
+        "data set": str(doc.get("dataset", "synthfaces")), "metrics rule": rule, "score mask": score_mask})
     done = _scored_so_far(out_dir, method.name, rule)
     for proto, pairs in load_pairs(store, protocols, limit).items():
         pairs = sharding.select(pairs, shard, key=lambda p: p.id)
@@ -277,7 +312,7 @@ def _run(store: EncodingStore, method: Method, protocols: Sequence[str], out_dir
                 rel, free = lights.error(method.estimator.from_store(store, pair.source), pair.source, pair.source)
                 result.light_errors.append({"protocol": short, "record_id": pair.id, "light": "source",
                                             "from": pair.source, "rel_error": rel, "rel_error_gain_free": free})
-            gt = store.read(pair.target, ["image", "face_mask"])
+            gt = store.read(pair.target, ["image", score_mask])
             png = out_dir / "relit" / proto / f"{pair.id}.png"
             prev = done.get((short, pair.id))
             if prev is not None and (len(grid_rows) >= grid_pairs or prev.status != "ok" or png.is_file()):
@@ -297,8 +332,8 @@ def _run(store: EncodingStore, method: Method, protocols: Sequence[str], out_dir
                 if relit.shape != gt["image"].shape or relit.dtype != np.uint8:
                     raise ValueError(f"{method.name} returned {relit.dtype} {relit.shape}; expected uint8 "
                                      f"{gt['image'].shape}")
-                s = score(relit, gt["image"], gt["face_mask"], rule, scorer)
-                errors.check_finite(list(s.values()), f"scores of pair {pair.id} (is its face_mask empty?)")
+                s = score(relit, gt["image"], gt[score_mask], rule, scorer)
+                errors.check_finite(list(s.values()), f"scores of pair {pair.id} (is its {score_mask} empty?)")
             except errors.UserError as e:
                 print(f"FAILED {proto} {pair.id}: {e}", file=sys.stderr)
                 rec = tables.Record(method.name, short, pair.id, math.nan, math.nan, math.nan,
@@ -317,20 +352,25 @@ def _run(store: EncodingStore, method: Method, protocols: Sequence[str], out_dir
         result.metric_stats[short] = {k: m.stat() for k, m in scorer.items()}
         if grid_rows:
             result.paths[f"comparison_{proto}"] = viz.save_png(viz.grid(grid_rows), out_dir / f"comparison_{proto}.png")
-    result.paths.update(write_outputs(result, out_dir, caption=f"{method.name} on {Path(store.root).name}"))
+    result.paths.update(write_outputs(result, out_dir, caption=f"{method.name} on {Path(store.root).name}"
+                                      + ("" if score_mask == DEFAULT_MASK else f", scored on {score_mask}")))
     (out_dir / PARTIAL_CSV).unlink(missing_ok=True)
     return result
 
 
-def rescore(store: EncodingStore, run_dir: str | Path, out_dir: str | Path, rule: str | None = None) -> BenchmarkResult:
-    """Score the relit PNGs a finished run saved (``relit/<protocol>/<pair id>.png``) again under ``rule``, into
-    ``out_dir``: the same images, another metric rule (seconds and failed rows are kept from the run)."""
+def rescore(store: EncodingStore, run_dir: str | Path, out_dir: str | Path, rule: str | None = None,
+            score_mask: str | None = None) -> BenchmarkResult:
+    """Score the relit PNGs a finished run saved (``relit/<protocol>/<pair id>.png``) again under ``rule`` on
+    ``score_mask``, into ``out_dir``: the same images, another metric rule or mask (seconds and failed rows are
+    kept from the run)."""
     run_dir, rule = Path(run_dir), metrics.check_rule(rule)
+    score_mask = check_score_mask(store, score_mask)
     rows = tables.read_records(run_dir / tables.PER_IMAGE_CSV)
     pairs = {(PROTOCOLS[p.protocol], p.id): p for v in load_pairs(store, list(PROTOCOLS)).values() for p in v}
     prov = run_dir / "provenance.json"
     result = BenchmarkResult(records=[], provenance={**(json.loads(prov.read_text()) if prov.is_file() else {}),
-                                                     "metrics rule": rule, "rescored from": str(run_dir)})
+                                                     "metrics rule": rule, "score mask": score_mask,
+                                                     "rescored from": str(run_dir)})
     scorers = {short: metrics.relight_metrics(rule) for short in PROTOCOLS.values()}
     for r in rows:
         if r.status != "ok":
@@ -341,36 +381,35 @@ def rescore(store: EncodingStore, run_dir: str | Path, out_dir: str | Path, rule
         if pair is None or not png.is_file():
             raise errors.UserError(f"rescore={run_dir}: no relit image {png} for {r.protocol} pair {r.record_id} "
                                    "(was the run made with save_images=true on this store?); rerun the benchmark")
-        gt = store.read(pair.target, ["image", "face_mask"])
-        s = score(_read_png(png), gt["image"], gt["face_mask"], rule, scorers[r.protocol])
+        gt = store.read(pair.target, ["image", score_mask])
+        s = score(_read_png(png), gt["image"], gt[score_mask], rule, scorers[r.protocol])
         result.records.append(dataclasses.replace(r, dssim=s["dssim"], mse=s["mse"], lpips=s["lpips"], rule=rule))
     result.metric_stats = {p: {k: m.stat() for k, m in sc.items()} for p, sc in scorers.items()}
-    result.paths.update(write_outputs(result, Path(out_dir), caption=f"{run_dir.name} rescored ({rule})"))
+    with on_full_disk(out_dir, scratch=[out_dir]):
+        result.paths.update(write_outputs(result, Path(out_dir), caption=f"{run_dir.name} rescored ({rule})"))
     return result
 
 
 def write_outputs(result: BenchmarkResult, out_dir: Path, caption: str | None = None) -> dict[str, Path]:
-    """Per-image CSV, summary tables (Markdown with the light-estimation errors, CSV, LaTeX), light CSV."""
+    """Per-image CSV, summary tables (Markdown with the light-estimation errors, CSV, LaTeX), light CSV; each
+    written atomically (a full disk is one line naming the file and leaves the previous one whole)."""
     out_dir.mkdir(parents=True, exist_ok=True)
     table = result.table
-    paths = {"per_image": tables.write_records(out_dir / tables.PER_IMAGE_CSV, result.records)}
+    paths = {"per_image": out_dir / tables.PER_IMAGE_CSV}
+    with atomic_path(paths["per_image"]) as tmp:
+        tables.write_records(tmp, result.records)
     md = table.to_markdown()
-    if result.provenance:  # every table says which inputs were estimated and which were oracle
+    if result.provenance:  # every table says which inputs were estimated and which were oracle (and the mask)
         md = "Inputs: " + "; ".join(f"{k}: {v}" for k, v in result.provenance.items()) + "\n\n" + md
-        paths["provenance"] = out_dir / "provenance.json"
-        paths["provenance"].write_text(json.dumps(result.provenance, indent=2) + "\n")
+        paths["provenance"] = write_json_atomic(out_dir / "provenance.json", result.provenance)
     if result.light_errors:
         md += "\nLight estimation (relative irradiance error on the ground truth's face normals):\n\n"
         md += result.light_summary()
-    paths["summary_md"] = out_dir / "summary.md"
-    paths["summary_md"].write_text(md)
-    paths["summary_csv"] = out_dir / "summary.csv"
-    table.to_csv(paths["summary_csv"])
-    paths["summary_tex"] = out_dir / "summary.tex"
-    paths["summary_tex"].write_text(table.to_latex(caption=caption))
+    paths["summary_md"] = write_text_atomic(out_dir / "summary.md", md)
+    paths["summary_csv"] = write_text_atomic(out_dir / "summary.csv", table.to_csv())
+    paths["summary_tex"] = write_text_atomic(out_dir / "summary.tex", table.to_latex(caption=caption))
     if result.light_errors:
         cols = ["protocol", "record_id", "light", "from", "rel_error", "rel_error_gain_free"]
         lines = [",".join(cols)] + [",".join(str(e[c]) for c in cols) for e in result.light_errors]
-        paths["light_csv"] = out_dir / LIGHT_CSV
-        paths["light_csv"].write_text("\n".join(lines) + "\n")
+        paths["light_csv"] = write_text_atomic(out_dir / LIGHT_CSV, "\n".join(lines) + "\n")
     return paths

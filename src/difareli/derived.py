@@ -16,13 +16,13 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
 import numpy as np
 
 from difareli import encodings as enc
+from difareli.fileio import save_npy_atomic, write_text_atomic
 
 SEP = "@"
 KEY = "derived"
@@ -57,9 +57,7 @@ def update_header(store, key: str, value: Any) -> None:
     path = Path(store.root) / HEADER
     header = json.loads(path.read_text())
     header.setdefault("meta", {})[key] = json.loads(json.dumps(value, default=str))
-    tmp = path.with_name(f"{HEADER}.tmp-{os.getpid()}")
-    tmp.write_text(json.dumps(header, indent=2, sort_keys=True) + "\n")
-    os.replace(tmp, path)
+    write_text_atomic(path, json.dumps(header, indent=2, sort_keys=True) + "\n")
     store.store_meta[key] = header["meta"][key]
 
 
@@ -69,14 +67,7 @@ def replace_base(store, record_id: str, name: str, array: np.ndarray) -> None:
     if not final.is_file():
         raise KeyError(f"record {record_id!r} of store {store.root} has no {name}")
     arr = np.ascontiguousarray(enc.get(name).validate(np.asarray(array), store.dims))
-    tmp = final.with_name(f".{final.name}.tmp-{os.getpid()}")
-    try:
-        with open(tmp, "wb") as f:
-            np.save(f, arr, allow_pickle=False)
-        os.replace(tmp, final)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    save_npy_atomic(final, arr)
 
 
 def declare(store, base: str, version: str, provenance: Mapping[str, Any]) -> str:
@@ -100,9 +91,7 @@ def declare(store, base: str, version: str, provenance: Mapping[str, Any]) -> st
     else:
         derived[name] = prov
         header[KEY] = derived
-        tmp = path.with_name(f"{HEADER}.tmp-{os.getpid()}")
-        tmp.write_text(json.dumps(header, indent=2, sort_keys=True) + "\n")
-        os.replace(tmp, path)
+        write_text_atomic(path, json.dumps(header, indent=2, sort_keys=True) + "\n")
     store.derived = derived
     return name
 
@@ -133,15 +122,5 @@ def write(store, record_id: str, name: str, array: np.ndarray, *, overwrite: boo
     if final.exists() and not overwrite:
         return False
     arr = np.ascontiguousarray(enc.get(base).validate(np.asarray(array), store.dims))
-    tmp = final.with_name(f".{final.name}.tmp-{os.getpid()}")
-    try:
-        with open(tmp, "wb") as f:
-            np.save(f, arr, allow_pickle=False)
-            if store.durable:
-                f.flush()
-                os.fsync(f.fileno())
-        os.replace(tmp, final)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    save_npy_atomic(final, arr, durable=store.durable)
     return True

@@ -6,6 +6,9 @@
 - :func:`torch_save_atomic`, :func:`write_text_atomic`, :func:`write_json_atomic` are that for torch objects,
   text and JSON; a full disk is a :class:`~difareli.errors.UserError` naming the file, and the temporary file is
   removed.
+- :func:`append_text` appends whole lines or nothing (a full disk truncates back what it began: resumable row
+  logs); :func:`on_full_disk` turns a full disk anywhere in a command's writes into the same one-line error and
+  removes this process's scratch files (``*.tmp-<pid>``) that writers outside this module leave behind.
 - :func:`folder_lock` holds an exclusive ``fcntl`` lock on ``<folder>/.difareli.lock`` for a command's whole run:
   a second concurrent writer into the same output folder stops at once with a message naming the first one's
   command and pid (the lock dies with its process, so a killed run never leaves a stale lock).
@@ -18,7 +21,7 @@ import errno
 import json
 import os
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Iterable, Iterator
 
 from difareli.errors import UserError
 
@@ -39,10 +42,81 @@ def fsync_dir(folder: str | Path) -> None:
         os.close(fd)
 
 
-def no_space(path: str | Path, err: OSError) -> UserError:
+NO_SPACE_ERRNOS = (errno.ENOSPC, errno.EDQUOT)
+#: The fix of a full disk in a resumable command (records, rows or files already complete are kept).
+RESUME = "free space and rerun the same command to resume (what was already written is complete and kept)"
+
+
+def is_no_space(err: BaseException) -> bool:
+    """Whether ``err`` is a full disk or an exceeded quota."""
+    return isinstance(err, OSError) and err.errno in NO_SPACE_ERRNOS
+
+
+class NoSpaceError(UserError):
+    """A full disk (or quota) while writing ``path``: the message names the file and the fix."""
+
+    def __init__(self, path: str | Path, err: OSError, fix: str | None = None):
+        self.path, self.err = path, err
+        fix = fix or "free space or write elsewhere (nothing already written was changed)"
+        super().__init__(f"no space left on the device writing {path} ({err.strerror}); {fix}")
+
+
+def no_space(path: str | Path, err: OSError, fix: str | None = None) -> UserError:
     """The one-line error for a full disk (or quota) while writing ``path``."""
-    return UserError(f"no space left on the device writing {path} ({err.strerror}); free space or write elsewhere "
-                     "(nothing already written was changed)")
+    return NoSpaceError(path, err, fix)
+
+
+def remove_scratch(folders: Iterable[str | Path]) -> None:
+    """Remove this process's scratch files ``<folder>/*.tmp-<pid>`` (and ``.*.tmp-<pid>``): what a writer that
+    renames into place leaves when a full disk stops it before the rename."""
+    suffix = f".tmp-{os.getpid()}"
+    for folder in folders:
+        folder = Path(folder)
+        if folder.is_dir():
+            for p in folder.iterdir():
+                if p.name.endswith(suffix) and p.is_file():
+                    p.unlink(missing_ok=True)
+
+
+@contextlib.contextmanager
+def on_full_disk(what: str | Path, *, scratch: Iterable[str | Path] = (), fix: str | None = None) -> Iterator[None]:
+    """Inside the body, a full disk becomes :func:`no_space` naming the file (the OSError's, else ``what``), after
+    removing this process's scratch files in ``scratch`` folders; other errors pass unchanged."""
+    try:
+        yield
+    except NoSpaceError as e:  # an atomic writer inside already named its file: give this command's fix
+        remove_scratch(scratch)
+        raise no_space(e.path, e.err, fix) from None
+    except OSError as e:
+        if not is_no_space(e):
+            raise
+        remove_scratch(scratch)
+        raise no_space(e.filename or what, e, fix) from None
+
+
+def append_text(path: str | Path, text: str, *, durable: bool = False, fix: str | None = None) -> Path:
+    """Append ``text`` (whole lines) to ``path``, creating it: all of it or, on a full disk, none of it (the
+    file is truncated back to its previous size and the error is :func:`no_space`)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    data = text.encode()
+    fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+    try:
+        start = os.fstat(fd).st_size
+        try:
+            view = memoryview(data)
+            while view:
+                view = view[os.write(fd, view):]
+            if durable:
+                os.fsync(fd)
+        except OSError as e:
+            if not is_no_space(e):
+                raise
+            os.ftruncate(fd, start)  # the lines already there stay whole; none is left half-written
+            raise no_space(path, e, fix or RESUME) from None
+    finally:
+        os.close(fd)
+    return path
 
 
 @contextlib.contextmanager
@@ -61,7 +135,7 @@ def atomic_path(path: str | Path, *, durable: bool = False) -> Iterator[Path]:
             fsync_dir(path.parent)
     except OSError as e:
         tmp.unlink(missing_ok=True)
-        if e.errno in (errno.ENOSPC, errno.EDQUOT):
+        if is_no_space(e):
             raise no_space(path, e) from None
         raise
     except BaseException:
@@ -76,6 +150,16 @@ def torch_save_atomic(obj: Any, path: str | Path, *, durable: bool = True) -> Pa
     with atomic_path(path, durable=durable) as tmp:
         with open(tmp, "wb") as f:
             torch.save(obj, f)
+    return Path(path)
+
+
+def save_npy_atomic(path: str | Path, array: Any, *, durable: bool = False) -> Path:
+    """``np.save`` into ``path`` atomically (no pickles)."""
+    import numpy as np
+
+    with atomic_path(path, durable=durable) as tmp:
+        with open(tmp, "wb") as f:
+            np.save(f, array, allow_pickle=False)
     return Path(path)
 
 

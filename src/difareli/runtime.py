@@ -188,8 +188,52 @@ def _compiled(forward: Callable) -> Callable:
     # Static shapes: a batch size is a recompile (like a CUDA graph per batch size); dynamic shapes compiled
     # several times slower here and give slower kernels.
     if forward not in _COMPILED:
-        _COMPILED[forward] = torch.compile(forward, dynamic=False)
+        _COMPILED[forward] = _CompiledOrEager(forward)
     return _COMPILED[forward]
+
+
+class _CompiledOrEager:
+    """``torch.compile(forward)``, falling back to ``forward`` itself (one warning saying why) where compiling
+    cannot work on this machine: no working C++ compiler for inductor's kernels. Compile is only a speed option,
+    so a missing compiler costs speed, not the run; any other compile error is raised as it is."""
+
+    def __init__(self, forward: Callable):
+        self.forward = forward
+        self.compiled: Callable | None = torch.compile(forward, dynamic=False)
+
+    def __call__(self, *args, **kwargs):
+        if self.compiled is not None:
+            try:
+                return self.compiled(*args, **kwargs)
+            except Exception as e:  # only a missing compiler is handled, the rest is re-raised
+                why = _missing_compiler(e)
+                if why is None:
+                    raise
+                self.compiled = None  # once: every later call runs eagerly without retrying the compile
+                warnings.warn(f"runtime.compile=true but torch.compile cannot build kernels here ({why}); running "
+                              "eagerly (same results, slower): install a C++ compiler (e.g. apt-get install g++, "
+                              "or set CXX) to compile, or set runtime.compile=false", stacklevel=2)
+        return self.forward(*args, **kwargs)
+
+
+def _missing_compiler(exc: BaseException) -> str | None:
+    """The message of an ``InvalidCxxCompiler`` anywhere in ``exc``'s chain (dynamo wraps backend errors in
+    ``BackendCompilerFailed``), else None."""
+    try:
+        from torch._inductor.exc import InvalidCxxCompiler
+    except ImportError:  # pragma: no cover - a torch without inductor cannot raise it
+        return None
+    seen: set[int] = set()
+    todo: list[BaseException | None] = [exc]
+    while todo:
+        e = todo.pop()
+        if e is None or id(e) in seen:
+            continue
+        seen.add(id(e))
+        if isinstance(e, InvalidCxxCompiler):
+            return str(e).strip().splitlines()[0] if str(e).strip() else "no working C++ compiler"
+        todo += [getattr(e, "inner_exception", None), e.__cause__, e.__context__]
+    return None
 
 
 # ---------------------------------------------------------------------- CUDA graphs

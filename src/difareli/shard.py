@@ -27,6 +27,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping, Sequence, TypeVar
 
+from difareli.fileio import write_text_atomic
+
 T = TypeVar("T")
 
 #: Written by a sharded benchmark run into its run dir: ``{"shard": "i/n", "job": {...}}``.
@@ -96,7 +98,8 @@ def write_marker(run_dir: str | Path, shard: Shard, job: Mapping[str, Any]) -> P
     sharded: everything but the shard itself)."""
     path = Path(run_dir) / MARKER
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps({"shard": str(shard), "job": dict(job)}, sort_keys=True, indent=1) + "\n")
+    # Atomic: a full disk or a kill leaves no truncated marker (difareli-table would refuse the shard).
+    write_text_atomic(path, json.dumps({"shard": str(shard), "job": dict(job)}, sort_keys=True, indent=1) + "\n")
     return path
 
 

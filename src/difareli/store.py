@@ -25,7 +25,7 @@ from typing import Any, Iterable, Mapping
 
 import numpy as np
 
-from difareli.fileio import fsync_dir
+from difareli.fileio import RESUME, fsync_dir, is_no_space, no_space, write_text_atomic
 from difareli import encodings as enc
 from difareli.errors import UserError, check_light
 
@@ -145,9 +145,7 @@ class EncodingStore:
                 warnings.warn(f"store {root} exists with different meta; keeping the existing header", stacklevel=2)
             return store
         (root / RECORDS).mkdir(parents=True, exist_ok=True)
-        tmp = root / f"{HEADER}.tmp-{os.getpid()}"
-        tmp.write_text(json.dumps(header, indent=2, sort_keys=True) + "\n")
-        os.replace(tmp, root / HEADER)
+        write_text_atomic(root / HEADER, json.dumps(header, indent=2, sort_keys=True) + "\n")  # full disk: one line
         fsync_dir(root)
         return cls(root, header, durable=durable)
 
@@ -253,20 +251,25 @@ class EncodingStore:
         tmp = self.records_dir / f"{_TMP}{record_id}-{os.getpid()}"
         if tmp.exists():
             shutil.rmtree(tmp)
-        tmp.mkdir()
+        file = final
         try:
+            tmp.mkdir()
             for name, arr in checked.items():
-                with open(tmp / f"{name}.npy", "wb") as f:
+                file = final / f"{name}.npy"
+                with open(tmp / file.name, "wb") as f:
                     np.save(f, arr, allow_pickle=False)
                     self._sync(f)
+            file = final / META
             with open(tmp / META, "w") as f:
                 f.write(meta_text + "\n")
                 self._sync(f)
             if self.durable:
                 fsync_dir(tmp)
             written = self._commit(tmp, final, overwrite)
-        except BaseException:
-            shutil.rmtree(tmp, ignore_errors=True)
+        except BaseException as e:
+            shutil.rmtree(tmp, ignore_errors=True)  # a full disk or a kill leaves no partial record
+            if is_no_space(e):
+                raise no_space(file, e, RESUME) from None
             raise
         if written:
             if self._ids is not None and record_id not in self._ids:

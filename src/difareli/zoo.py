@@ -17,6 +17,7 @@ import torch
 
 from difareli.checkpoint_format import SLIM_KEYS
 from difareli.errors import UserError, check_file, load_torch_file
+from difareli.fileio import torch_save_atomic, write_text_atomic
 
 #: Where the shipped checkpoints and their model cards live (package data).
 SHIPPED_DIR = Path(__file__).resolve().parent / "checkpoints"
@@ -74,14 +75,8 @@ def export(run_checkpoint: str | Path, name: str, facts: Mapping[str, Any], *, o
     ckpt = load_torch_file(Path(run_checkpoint), "checkpoint")
     small = slim(ckpt, dtype)
     small["model_card"] = {k: v for k, v in facts.items() if isinstance(v, (str, int, float, bool))}
-    target = out / f"{name}.ckpt"
-    tmp = target.with_suffix(".ckpt.tmp")
-    torch.save(small, tmp)
-    tmp.replace(target)
-    md = out / f"{name}.md"
-    tmp_md = md.with_suffix(".md.tmp")
-    tmp_md.write_text(model_card(name, small, facts))
-    tmp_md.replace(md)
+    target = torch_save_atomic(small, out / f"{name}.ckpt")
+    md = write_text_atomic(out / f"{name}.md", model_card(name, small, facts))
     return target, md
 
 

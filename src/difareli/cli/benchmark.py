@@ -13,14 +13,14 @@ from difareli import errors, metrics, zoo
 from difareli import shard as sharding
 from difareli.baselines import build_method
 from difareli.light_fit import light_fit_from_config
-from difareli.benchmark import BenchmarkResult, rescore, run_benchmark
+from difareli.benchmark import DEFAULT_MASK, BenchmarkResult, check_score_mask, rescore, run_benchmark
 from difareli.cli import common
 from difareli.lit import logging as lit_logging
 from difareli.store import EncodingStore
 
 #: The config keys that define a benchmark job; shards of one job differ only by ``shard``.
 SHARD_JOB_KEYS = ("store", "method", "sampler", "protocols", "limit", "oracle_light", "oracle_shadow",
-                  "light_fit", "versions", "metrics")
+                  "light_fit", "versions", "metrics", "score_mask")
 
 
 def run(cfg: DictConfig) -> BenchmarkResult:
@@ -29,7 +29,7 @@ def run(cfg: DictConfig) -> BenchmarkResult:
     rule = metric_rule(cfg)
     if cfg.get("rescore"):  # the saved relit images of a finished run, scored again under `rule`
         store = EncodingStore.open(cfg.store).use_versions(cfg.get("versions"))
-        result = rescore(store, cfg.rescore, cfg.out_dir, rule)
+        result = rescore(store, cfg.rescore, cfg.out_dir, rule, score_mask=cfg.get("score_mask"))
         print(result.paths["summary_md"].read_text())
         return result
     try:
@@ -39,6 +39,7 @@ def run(cfg: DictConfig) -> BenchmarkResult:
     if cfg.num_threads:
         torch.set_num_threads(int(cfg.num_threads))
     store = EncodingStore.open(cfg.store).use_versions(cfg.get("versions"))
+    check_score_mask(store, cfg.get("score_mask"))  # before the method (and its checkpoint) is built
     estimator = light_fit_from_config(OmegaConf.to_container(cfg.light_fit, resolve=True))
     method = build_method(OmegaConf.to_container(cfg.method, resolve=True),
                           sampler=OmegaConf.to_container(cfg.sampler, resolve=True),
@@ -54,10 +55,12 @@ def run(cfg: DictConfig) -> BenchmarkResult:
                            oracle_light=bool(cfg.oracle_light), oracle_shadow=bool(cfg.get("oracle_shadow", False)),
                            estimator=estimator, grid_pairs=int(cfg.grid_pairs),
                            save_images=bool(cfg.save_images), progress=bool(cfg.progress), shard=spec,
-                           rule=rule)
+                           rule=rule, score_mask=cfg.get("score_mask"))
     if spec is not None:  # what difareli-table checks before merging shards: same job, every shard once
         job = {k: OmegaConf.to_container(cfg[k], resolve=True) if OmegaConf.is_config(cfg[k]) else cfg[k]
-               for k in SHARD_JOB_KEYS}
+               for k in SHARD_JOB_KEYS if k in cfg}
+        if job.get("score_mask") == DEFAULT_MASK:  # shards of runs from before the option stay mergeable
+            job.pop("score_mask")
         sharding.write_marker(cfg.out_dir, spec, {**job, "store": str(Path(cfg.store).resolve())})
     if cfg.get("logger"):  # the summary table and comparison grids to wandb / TensorBoard (logger=many_loggers)
         lit_logging.log_benchmark(cfg, result)

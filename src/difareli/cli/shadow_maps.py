@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import hydra
@@ -10,6 +9,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from difareli import errors, zoo
 from difareli.cli import common
+from difareli.fileio import write_json_atomic
 from difareli.store import EncodingStore
 
 
@@ -21,15 +21,18 @@ def run(cfg: DictConfig):
     from difareli.runtime import Runtime
 
     validate(cfg)
+    store = EncodingStore.open(cfg.store, writable=True)
+    ids = record_ids(cfg, store)  # the splits named, checked before the checkpoint is loaded
+    given = c_range_given(cfg)
+    shadow_maps.c_source(store, cfg.split, given)
     runtime = Runtime.from_config(cfg.runtime)
     ckpt = load_checkpoint(cfg.checkpoint, runtime.torch_device)
-    store = EncodingStore.open(cfg.store, writable=True)
     spec = SamplerSpec.from_config(cfg.sampler)
     provenance = {"checkpoint": str(Path(cfg.checkpoint).resolve()), "global_step": ckpt.global_step,
                   "sampler": OmegaConf.to_container(cfg.sampler, resolve=True), "precision": runtime.precision}
-    threshold = cfg.threshold if cfg.threshold == "otsu" else float(cfg.threshold)
+    threshold = shadow_maps.check_threshold(cfg.threshold)
     rep = shadow_maps.compute(ckpt.model.to(runtime.torch_device), store, spec, provenance=provenance,
-                              ids=record_ids(cfg, store), split=cfg.split,
+                              ids=ids, split=cfg.split, c_range=given,
                               c_quantile=float(cfg.c_quantile),
                               threshold=threshold, median=cfg.median if cfg.median == "auto" else int(cfg.median),
                               zero_parts=list(cfg.zero_parts or []),
@@ -42,13 +45,9 @@ def run(cfg: DictConfig):
                "threshold_rule": store.derived[rep.name]["threshold_rule"], "median": store.derived[rep.name]["median"],
                "contrast_p99": store.derived[rep.name]["contrast_p99"],
                "relit_records": rep.relit, "written": rep.written, "seconds": round(rep.seconds, 3),
-               "images_per_second": round(rep.images_per_second, 3)}
-    out = Path(cfg.out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    tmp = out / "shadow_maps.json.tmp"
-    tmp.write_text(json.dumps(summary, indent=2) + "\n")
-    tmp.replace(out / "shadow_maps.json")
-    print(f"c range of the {cfg.split} split: [{rep.c_min:.3f}, {rep.c_max:.3f}]; threshold {rep.threshold:.5f} "
+               "images_per_second": round(rep.images_per_second, 3), "c_source": rep.c_source}
+    write_json_atomic(Path(cfg.out_dir) / "shadow_maps.json", summary)
+    print(f"c range ({rep.c_source}): [{rep.c_min:.3f}, {rep.c_max:.3f}]; threshold {rep.threshold:.5f} "
           f"({summary['threshold_rule']}); median {summary['median']}; contrast (p99 of the differences) "
           f"{summary['contrast_p99']:.4f}")
     print(f"relit {rep.relit} record(s) at 2 shadow strengths in {rep.seconds:.1f} s "
@@ -62,11 +61,24 @@ def record_ids(cfg: DictConfig, store) -> list[str] | None:
     if cfg.records is not None:
         return list(cfg.records)
     if cfg.get("records_split"):
-        ids = store.ids(split=cfg.records_split)
-        if not ids:
-            raise errors.UserError(f"records_split={cfg.records_split}: store {store.root} has no record in that split")
-        return ids
+        from difareli.jobs.shadow_maps import split_ids
+
+        return split_ids(store, cfg.records_split, "records_split")  # an unknown split names the store's splits
     return None
+
+
+def c_range_given(cfg: DictConfig) -> tuple[float, float] | None:
+    """``c_range=[c_min, c_max]`` (null: from ``split``), checked."""
+    value = cfg.get("c_range")
+    if value is None:
+        return None
+    if not OmegaConf.is_list(value) or len(value) != 2:
+        raise errors.UserError(f"c_range={value!r} is invalid: give two numbers, c_range=[c_min,c_max], or null "
+                               "for the split's range")
+    lo, hi = (errors.check_number(v, "c_range", allow_none=False) for v in value)
+    if not hi > lo:
+        raise errors.UserError(f"c_range={list(value)} is invalid: give [c_min, c_max] with c_min < c_max")
+    return lo, hi
 
 
 def validate(cfg: DictConfig) -> None:
@@ -87,8 +99,10 @@ def validate(cfg: DictConfig) -> None:
     errors.check_int(cfg.batch_size, "batch_size", 1)
     errors.check_out_dir(cfg.out_dir)
     errors.check_number(cfg.c_quantile, "c_quantile", allow_none=False)
-    if cfg.threshold != "otsu":
-        errors.check_number(cfg.threshold, "threshold", allow_none=False)
+    from difareli.jobs.shadow_maps import check_threshold
+
+    check_threshold(cfg.threshold)  # otsu, or a number strictly between 0 and 1
+    c_range_given(cfg)
 
 
 @hydra.main(version_base="1.3", config_path=common.CONFIG_PATH, config_name="shadow_maps")

@@ -19,6 +19,11 @@ differences on the face, against ``min_contrast``, default the threshold), and s
 (it brightens at least half as many face pixels past the threshold as it darkens), instead of being turned into
 maps; ``min_contrast=0`` writes them anyway.
 
+Inputs are checked before any relight: a threshold outside (0, 1), a split the store does not have, and a store
+without a train split (the c range must come from the split the DiFaReli was trained on: ``split=``, or
+``c_range=[c_min, c_max]``; a SynthFaces v3 store's recorded range is used, and said so, where it has one) are
+refused. The store is locked for the run (:func:`difareli.fileio.folder_lock`): a second writer is refused.
+
 The raw differences are kept as the derived version ``shadow_map@diffraw-<hash>`` (resumable: a killed run
 redoes only records without it), the maps as ``shadow_map@<version>`` (:mod:`difareli.derived`), both with their
 provenance (checkpoint, sampler, c range, threshold rule and value, median size) in the store header.
@@ -36,6 +41,7 @@ from tqdm.auto import tqdm
 
 from difareli import derived, encodings, errors, imageops
 from difareli.diffusion.relight import Inversion
+from difareli.fileio import folder_lock
 from difareli.imageops import median_mask
 from difareli.inputs import condition_tensors, image_to_tensor, relight_reads
 from difareli.relightable import OnePassRelightable, model_inputs
@@ -72,14 +78,87 @@ def check_two_modes(values: np.ndarray, threshold: float, bins: int = 256, valle
             f"would mark noise; use the recipe's fixed threshold (threshold={RECIPE_THRESHOLD}) or a DiFaReli trained longer")
 
 
-def c_range(store, split: str = "train", quantile: float = 0.01) -> tuple[float, float]:
-    """``(c_min, c_max)`` of the stored ``shadow`` over ``split`` (all records if the split is empty): the
-    ``quantile`` and ``1 - quantile`` quantiles. 0 is the paper's strict min and max; the default 0.01 keeps an
-    estimator's outliers (one record of 3,200 at c = -39.6 in SynthFaces v2) from setting the range, where the
-    DiFaReli never saw such a c (docs/shadow_maps.md: pooled IoU 0.06 -> 0.12)."""
+def check_threshold(threshold) -> str | float:
+    """``threshold`` as ``"otsu"`` or a float in (0, 1): the grey-level differences lie in [-1, 1] and a shadow
+    darkens, so a cut <= 0 marks nearly every pixel (and >= 1 none)."""
+    if threshold == "otsu":
+        return "otsu"
+    try:
+        t = float(threshold)
+    except (TypeError, ValueError):
+        t = float("nan")
+    if not 0.0 < t < 1.0:  # NaN included
+        raise errors.UserError(f"threshold={threshold!r} is out of range: it cuts the grey-level difference in [0, 1] "
+                               f"and must lie strictly between 0 and 1 (<= 0 marks almost every pixel); use the "
+                               f"recipe's threshold={RECIPE_THRESHOLD} (the default) or threshold=otsu")
+    return t
+
+
+#: ``split=all``: the c range over every record of the store (said so in the provenance and the summary).
+ALL = "all"
+
+
+def store_splits(store) -> list[str]:
+    """The split names the store's records carry (empty: its records name no split)."""
+    return sorted({str(m["split"]) for m in store.index.values() if "split" in m})
+
+
+def split_ids(store, split: str, key: str = "split") -> list[str]:
+    """The records of ``split`` (``all``: every record); a split the store has no record of is refused, naming
+    the splits it has (a misspelt ``split=trian`` never falls back to every record)."""
+    if split == ALL:
+        return store.ids()
+    ids = store.ids(split=str(split))
+    if not ids:
+        have = store_splits(store)
+        named = f"its splits: {', '.join(have)}" if have else "its records name no split"
+        raise errors.UserError(f"{key}={split}: store {store.root} has no record with split={split} ({named}); give "
+                               f"one of them, e.g. {key}={(have or [ALL])[0]}, or {key}={ALL} for every record")
+    return ids
+
+
+def c_source(store, split: str, given=None) -> tuple[list[str] | None, tuple[float, float] | None, str]:
+    """Where the c range comes from, checked before any work: ``(ids, None, what)`` for the stored c of those
+    records, ``(None, (lo, hi), what)`` for a given range or a v3 store's recorded one."""
+    if given is not None:
+        lo, hi = (errors.check_number(v, "c_range", allow_none=False) for v in given)
+        if not hi > lo:
+            raise errors.UserError(f"c_range={list(given)} is invalid: give [c_min, c_max] with c_min < c_max")
+        return None, (lo, hi), f"c_range=[{lo:g}, {hi:g}] given"
+    if split == "train" and not store.ids(split="train"):
+        rng = store.store_meta.get(encodings.C_RANGE_KEY)
+        stored = encodings.store_c_range(store.store_meta)
+        if stored is not None and isinstance(rng, dict) and rng.get("state", "final") == "final":
+            over = "every record's" if rng.get("split") == ALL else f"the {rng.get('split')} split's"
+            return None, stored, (f"the store header's {encodings.C_RANGE_KEY}: {over} c at quantile "
+                                  f"{rng.get('quantile')}, {rng.get('records')} records; this store has no train split")
+        have = store_splits(store)
+        named = f"its splits: {', '.join(have)}" if have else "its records name no split"
+        raise errors.UserError(
+            f"split=train: store {store.root} has no record with split=train ({named}), so the c range to relight at "
+            "cannot be the training split's;\ngive the range the DiFaReli was trained with, c_range=[c_min,c_max] "
+            "(printed by difareli-shadow-maps on its training store), or take it from split=<one of them> or "
+            f"split={ALL}")
+    ids = split_ids(store, split)
+    what = "every record's stored c" if split == ALL else f"the {split} split's stored c"
+    return ids, None, f"{what}, {len(ids)} records"
+
+
+def c_range(store, split: str = "train", quantile: float = 0.01, given=None) -> tuple[float, float]:
+    """``(c_min, c_max)`` of the stored ``shadow`` over ``split``: the ``quantile`` and ``1 - quantile``
+    quantiles. 0 is the paper's strict min and max; the default 0.01 keeps an estimator's outliers (one record of
+    3,200 at c = -39.6 in SynthFaces v2) from setting the range, where the DiFaReli never saw such a c
+    (docs/shadow_maps.md: pooled IoU 0.06 -> 0.12). :func:`c_source` says which records (or range) it takes."""
+    return c_range_of(store, split, quantile, given)[:2]
+
+
+def c_range_of(store, split: str = "train", quantile: float = 0.01, given=None) -> tuple[float, float, str]:
+    """:func:`c_range` and where it came from (printed and kept in the provenance)."""
     if not 0.0 <= float(quantile) < 0.5:
         raise errors.UserError(f"c_quantile={quantile} is out of range; use a number in [0, 0.5), e.g. 0.01")
-    ids = store.ids(split=split) or store.ids()
+    ids, fixed, what = c_source(store, split, given)
+    if fixed is not None:
+        return fixed[0], fixed[1], what
     c = np.array([encodings.shadow_logit(store.read(r, ["shadow"])) for r in ids])
     errors.check_finite(c, f"shadow c of the {split} split of {store.root}")
     lo, hi = (float(v) for v in np.quantile(c, [quantile, 1.0 - quantile])) if c.size else (0.0, 0.0)
@@ -87,7 +166,7 @@ def c_range(store, split: str = "train", quantile: float = 0.01) -> tuple[float,
         raise errors.UserError(f"the {split} split of {store.root} has no spread of shadow c between its {quantile} "
                                f"and {1 - quantile} quantiles ({lo} to {hi}); the difference method needs records "
                                "with and without cast shadows")
-    return lo, hi
+    return lo, hi, f"{what}, quantiles {quantile:g} and {1 - quantile:g}"
 
 
 def otsu_threshold(values: np.ndarray, bins: int = 256) -> float:
@@ -177,6 +256,7 @@ class ShadowMapReport:
     relit: int                # records relit in this run (the rest were resumed)
     written: int
     seconds: float
+    c_source: str = ""        # which records (or which given / recorded range) c_min and c_max came from
 
     @property
     def images_per_second(self) -> float:
@@ -187,19 +267,32 @@ def compute(model, store, spec, *, provenance: Mapping[str, Any], ids: Sequence[
             split: str = "train", c_quantile: float = 0.01, threshold: str | float = RECIPE_THRESHOLD,
             median: int | str = "auto", zero_parts: Sequence[str] = ZERO_PARTS, min_contrast: float | None = None,
             batch_size: int = 8, version: str | None = None, runtime=None, mean_matching: bool = True,
-            device="cpu", progress: bool = True) -> ShadowMapReport:
+            device="cpu", progress: bool = True, c_range=None) -> ShadowMapReport:
     """The whole difference pipeline over ``ids`` (default: every record); writes two derived versions.
-    ``min_contrast`` None: the threshold (Otsu: none)."""
+    ``min_contrast`` None: the threshold (Otsu: none). ``c_range``: ``(c_min, c_max)`` to relight at instead of
+    ``split``'s. The store is locked for the run: a second concurrent writer is refused, naming this one."""
     if "shadow" not in model_inputs(model):
         raise errors.UserError(f"the difference method relights at two shadow strengths c, but this model consumes "
                                f"{model_inputs(model)} (no 'shadow'); give a DiFaReli checkpoint (model=difareli)")
+    threshold = check_threshold(threshold)
+    with folder_lock(store.root, "shadow-maps"):
+        return _compute(model, store, spec, provenance=provenance, ids=ids, split=split, c_quantile=c_quantile,
+                        threshold=threshold, median=median, zero_parts=zero_parts, min_contrast=min_contrast,
+                        batch_size=batch_size, version=version, runtime=runtime, mean_matching=mean_matching,
+                        device=device, progress=progress, given=c_range)
+
+
+def _compute(model, store, spec, *, provenance, ids, split, c_quantile, threshold, median, zero_parts, min_contrast,
+             batch_size, version, runtime, mean_matching, device, progress, given) -> ShadowMapReport:
     ids = list(ids) if ids is not None else store.ids()
-    c_min, c_max = c_range(store, split, c_quantile)
+    c_min, c_max, source = c_range_of(store, split, c_quantile, given)
     median = median_size(median, int(store.dims["H"]))
     norm_range = encodings.store_c_range(store.store_meta)
     prov = {**dict(provenance), "c_min": c_min, "c_max": c_max, "split": split, "mean_matching": mean_matching,
             "c_quantile": float(c_quantile),
             "difference": "Y(relit at c_min) - Y(relit at c_max), own light"}
+    if given is not None or split == ALL or (split == "train" and not store.ids(split="train")):
+        prov["c_source"] = source  # not the train split's records: said so (the default's versions are unchanged)
     raw = derived.declare(store, "shadow_map", derived.content_version("diffraw", prov),
                           {**prov, "stage": "raw difference"})
     # The global threshold depends on which records it is taken over: another record set is another version.
@@ -272,4 +365,4 @@ def compute(model, store, spec, *, provenance: Mapping[str, Any], ids: Sequence[
         c = encodings.shadow_logit(store.read(r, ["shadow"]))
         m = finish_map(diffs[r], thr, median, c, hits[r], keeps[r], norm_range)
         written += derived.write(store, r, name, m, overwrite=True)
-    return ShadowMapReport(name, raw, c_min, c_max, thr, len(todo), written, seconds)
+    return ShadowMapReport(name, raw, c_min, c_max, thr, len(todo), written, seconds, source)

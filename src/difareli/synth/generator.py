@@ -51,6 +51,7 @@ from typing import Callable, Iterator
 import numpy as np
 
 from difareli import sh
+from difareli.fileio import RESUME, on_full_disk
 from difareli.imageops import LUMA
 from difareli.processes import die_with_parent
 from difareli.synth.blas import single_thread_blas
@@ -427,8 +428,16 @@ def generate(out_dir: str, subjects: int, lights: int, resolution: int, seed: in
     ``workers > 1`` renders subjects in a process pool; results do not depend on it.
     ``durable`` fsyncs every file (atomicity against a killed run does not need it: records are renamed
     into place whole either way). ``shard="i/n"`` renders only the subjects of that shard (``difareli.shard``);
-    shards may run concurrently into one ``out_dir``.
+    shards may run concurrently into one ``out_dir``. A full disk is one line naming the file (records already
+    written are whole: rerun to resume), with no partial record or scratch file left.
     """
+    with on_full_disk(out_dir, scratch=[out_dir], fix=RESUME):
+        return _generate(out_dir, subjects, lights, resolution, seed, workers=workers, durable=durable,
+                         progress=progress, shard=shard, **options)
+
+
+def _generate(out_dir: str, subjects: int, lights: int, resolution: int, seed: int, *, workers: int, durable: bool,
+              progress: Callable[[int, int], None] | None, shard: str | None, **options) -> GenerateReport:
     cfg = SynthConfig(subjects=subjects, lights=lights, resolution=resolution, seed=seed, **options)
     try:
         splits = sp.assign_splits(cfg.subjects, cfg.splits, cfg.light_group_size, cfg.seed)
@@ -472,7 +481,8 @@ def generate(out_dir: str, subjects: int, lights: int, resolution: int, seed: in
                 if progress:
                     progress(written, total)
     seconds = time.perf_counter() - t0
-    sp.write_split_files(out_dir, splits, cfg.lights, cfg.light_group_size, cfg.seed)
+    with on_full_disk(f"{out_dir}/{sp.SPLITS_FILE}, {sp.PROTOCOLS_FILE}", scratch=[out_dir], fix=RESUME):
+        sp.write_split_files(out_dir, splits, cfg.lights, cfg.light_group_size, cfg.seed)
     store.refresh()
     missing = [sp.record_id(k, j) for k in mine for j in range(cfg.lights)
                if not store.has(sp.record_id(k, j))]
@@ -480,5 +490,7 @@ def generate(out_dir: str, subjects: int, lights: int, resolution: int, seed: in
     if cfg.inputs == "estimated" and not problems and len(store.ids()) == cfg.subjects * cfg.lights:
         from difareli.synth.c_norm import finalise
 
-        finalise(store, cfg.c_quantile)  # every record is there: the train split's c range, maps scaled by it
+        with on_full_disk(f"{out_dir}/store.json (the c range) and the records' shadow maps", scratch=[out_dir],
+                          fix="free space and rerun the same command to finish scaling the maps"):
+            finalise(store, cfg.c_quantile)  # every record is there: the train split's c range, maps scaled by it
     return GenerateReport(written, skipped, seconds, problems)

@@ -14,6 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
+from difareli.fileio import write_text_atomic
+
 SPLITS = ("train", "val", "test")
 SPLITS_FILE = "splits.json"
 PROTOCOLS_FILE = "protocols.json"
@@ -98,9 +100,7 @@ def protocol_pairs(test_subjects: list[int], lights: int, group_size: int) -> di
 
 
 def _write_json(path: Path, obj) -> None:
-    tmp = path.with_name(f"{path.name}.tmp-{os.getpid()}")
-    tmp.write_text(json.dumps(obj, indent=1) + "\n")
-    os.replace(tmp, path)
+    write_text_atomic(path, json.dumps(obj, indent=1) + "\n")
 
 
 def write_split_files(root: str | os.PathLike, splits: dict[str, list[int]], lights: int, group_size: int,
