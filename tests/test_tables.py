@@ -167,3 +167,25 @@ def test_published_rows_are_labelled_never_bold_and_quoted_exactly(two_runs):
     assert r"DiFaReli++ [published] & $0.0604 \pm 0.0010$" in t.to_latex()
     with pytest.raises(ValueError, match="no published Multi-PIE figures for"):
         published.rows(["Ours"])
+
+
+def test_random_bytes_and_bad_rows_name_the_file_and_a_fix_the_caller_has(two_runs, tmp_path):
+    import os
+
+    bad = tmp_path / "bytes"
+    bad.mkdir()
+    (bad / T.PER_IMAGE_CSV).write_bytes(b"\xb9" + os.urandom(2000))
+    with pytest.raises(T.TableError, match=r"metrics_per_image.csv: not a text CSV \(.*\); is it a "
+                                           r"metrics_per_image.csv written by difareli-benchmark"):
+        T.merge_runs([bad])
+    path = two_runs[0] / T.PER_IMAGE_CSV
+    lines = path.read_text().splitlines()
+    fields = lines[1].split(",")
+    fields[T.COLUMNS.index("dssim")] = "nan"
+    path.write_text("\n".join([lines[0], ",".join(fields), *lines[2:]]) + "\n")
+    # difareli-table has drop_bad_rows; difareli-ablate and rescore (read_records) do not: no key they lack.
+    with pytest.raises(T.TableError, match=r":2: dssim=.* is not finite; .*pass drop_bad_rows=true"):
+        T.merge_runs([two_runs[0]])
+    with pytest.raises(T.TableError) as e:
+        T.read_records(path)
+    assert str(e.value).endswith("is not finite; fix or remove the row, or rerun the benchmark that wrote it")

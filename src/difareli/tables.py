@@ -124,13 +124,26 @@ def _row_problem(row: list[str], header: list[str], last: bool, cut: bool) -> tu
                       status=status, rule=rule)
 
 
-def read_records_checked(path: str | Path, drop_bad_rows: bool = False) -> tuple[list[Record], list[str]]:
+#: The fix a bad row's message names where the caller has no drop_bad_rows option (difareli-ablate, rescore).
+BAD_ROW_FIX = "fix or remove the row, or rerun the benchmark that wrote it"
+#: difareli-table's (it has the option).
+TABLE_BAD_ROW_FIX = ("fix or remove the row, or pass drop_bad_rows=true to leave bad rows out (the table then "
+                     "shows how many)")
+
+
+def read_records_checked(path: str | Path, drop_bad_rows: bool = False, *,
+                         bad_row_fix: str = BAD_ROW_FIX) -> tuple[list[Record], list[str]]:
     """Read a per-image CSV, checking every row; returns (records, "file:line: problem" of dropped rows).
 
-    Without ``drop_bad_rows`` the first bad row, or a file without rows, raises :class:`TableError`."""
-    with open(path, newline="") as f:
-        text = f.read()
-    rows = list(csv.reader(io.StringIO(text)))
+    Without ``drop_bad_rows`` the first bad row (its message ends with ``bad_row_fix``), a file without rows, or
+    a file that is not a text CSV raises :class:`TableError`."""
+    try:
+        with open(path, newline="", encoding="utf-8") as f:
+            text = f.read()
+        rows = list(csv.reader(io.StringIO(text)))
+    except (UnicodeDecodeError, csv.Error) as e:
+        raise TableError(f"{path}: not a text CSV ({str(e)[:80]}); is it a {PER_IMAGE_CSV} written by "
+                         "difareli-benchmark? rerun the benchmark for this run dir or leave it out") from None
     header = rows[0] if rows else []
     missing = set(COLUMNS) - set(header)
     if missing:
@@ -143,8 +156,7 @@ def read_records_checked(path: str | Path, drop_bad_rows: bool = False) -> tuple
         if rec is not None:
             records.append(rec)
         elif not drop_bad_rows:
-            raise TableError(f"{path}:{i}: {problem}; fix or remove the row, or pass drop_bad_rows=true to "
-                             "leave bad rows out (the table then shows how many)")
+            raise TableError(f"{path}:{i}: {problem}; {bad_row_fix}")
         else:
             dropped.append(f"{path}:{i}: {problem}")
     if not records:
@@ -415,7 +427,7 @@ def merge_runs(run_dirs: Iterable[str | Path], filename: str = PER_IMAGE_CSV,
         path = Path(d) / filename
         if not path.is_file():
             raise FileNotFoundError(f"no {filename} in run dir {d}")
-        rows, bad = read_records_checked(path, drop_bad_rows)
+        rows, bad = read_records_checked(path, drop_bad_rows, bad_row_fix=TABLE_BAD_ROW_FIX)
         dropped += bad
         for r in rows:
             key = (r.method, r.protocol, r.record_id)
