@@ -146,8 +146,11 @@ def test_bench_checkpoint_writes_table_and_plots(tiny_checkpoint, synth_store, t
         assert by[("unipc", 2)][k] == by[("ddim", 2)][k]
     assert all(0 < r["gt/mse"] < 1 and 0 < r["gt/dssim"] < 0.5 and r["time/seconds"] > 0 for r in rows)
     table = read_csv(out["paths"]["csv"])
-    assert list(table[0]) == ["sampler", "steps", "nfe", "records", "time/seconds", "time/std", "ref/mse",
-                              "ref/dssim", "gt/mse", "gt/dssim"]
+    assert list(table[0]) == ["sampler", "steps", "nfe", "records", "time/seconds", "time/std", "time/targets",
+                              "time/end_to_end", "ref/mse", "ref/dssim", "gt/mse", "gt/dssim"]
+    # The target shadow map and shading, re-rendered once per case, are the same for every sampler's row.
+    assert len({r["time/targets"] for r in rows}) == 1 and rows[0]["time/targets"] > 0
+    assert all(r["time/end_to_end"] == pytest.approx(r["time/seconds"] + r["time/targets"]) for r in rows)
     assert float(table[3]["gt/dssim"]) == pytest.approx(rows[3]["gt/dssim"])
     assert iio.imread(out["paths"]["plot"]).ndim == 3
     grid = iio.imread(out["paths"]["grid"])  # 32 px cells enlarged 4x: a head row + one row per sampler

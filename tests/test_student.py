@@ -279,6 +279,13 @@ def test_student_through_benchmark_and_bench_samplers(student_ckpt, synth_store,
     rows = {r["sampler"]: r for r in out["rows"]}
     assert rows["student"]["nfe"] == 1 and np.isfinite(rows["student"]["gt/mse"])
     assert rows["ddim"]["speedup"] == pytest.approx(rows["ddim"]["time/seconds"] / rows["student"]["time/seconds"])
+    # End to end, both sides pay the same target shadow map (the same record and target light).
+    assert rows["ddim"]["time/targets"] > 0 and rows["student"]["time/targets"] > 0
+    for r in rows.values():
+        assert r["time/end_to_end"] == pytest.approx(r["time/seconds"] + r["time/targets"])
+    assert rows["ddim"]["speedup/end_to_end"] == pytest.approx(
+        rows["ddim"]["time/end_to_end"] / rows["student"]["time/end_to_end"])
+    assert rows["ddim"]["speedup/end_to_end"] < rows["ddim"]["speedup"]  # the maps narrow the one-pass lead
 
 
 def test_bench_samplers_refuses_a_student_as_the_swept_checkpoint(student_ckpt, synth_store, tmp_path):

@@ -2,9 +2,12 @@
 
 A *relight* is the whole per-image pipeline of :func:`difareli.relighting.relight` at batch 1: Modulator on the
 source condition, inversion, the mean-matching self-decode, Modulator on the target condition, and the decode,
-run by a :class:`~difareli.runtime.Runtime` (device, precision, compile, CUDA graphs). Only these network passes
-are timed: encodings are read, retargeted and moved to the device beforehand (:class:`Case`), the device is
-synchronised around the timed region, and each sampler runs once untimed first.
+run by a :class:`~difareli.runtime.Runtime` (device, precision, compile, CUDA graphs). ``time/seconds`` times these
+network passes: encodings are read, retargeted and moved to the device beforehand (:class:`Case`), the device is
+synchronised around the timed region, and each sampler runs once untimed first. On store cases the retargeting is
+timed too (``time/targets``: the target shadow map ray-marched on the source's depth and the shading re-rendered,
+what every relight toward a new light pays on top), and ``time/end_to_end`` is the sum; with a student,
+``speedup/end_to_end`` compares both sides with their target maps counted.
 
 Quality is measured on the face mask with :mod:`difareli.metrics` (MSE, DSSIM, images in [0, 1]) against two
 references: the reference sampler's relight of the same input and target (DDIM-1000 by default: the
@@ -20,6 +23,7 @@ from __future__ import annotations
 
 import csv
 import math
+import time
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -54,6 +58,7 @@ class Case:
     gt: Tensor | None = None                 # [1, 3, H, W] in [-1, 1]: the target record's image
     mask: Tensor | None = None               # [1, H, W] bool face mask
     inputs: str = ""                         # how the target condition was made (estimated or oracle inputs)
+    target_seconds: float | None = None      # re-rendering the target's light-dependent encodings (shadow map)
 
 
 def random_cases(n: int, model, resolution: int, device: str | torch.device = "cpu", seed: int = 0) -> list[Case]:
@@ -109,14 +114,21 @@ def store_cases(store: EncodingStore, model, records: Iterable[str] | None = Non
             note = "oracle target: the target record's stored light-dependent encodings"
         else:
             c, how = target_shadow_of(store, tid)
-            tgt = {**src, **retarget(src, rerender, fit.from_store(store, tid), c)}
+            light = fit.from_store(store, tid)
+            # What a relight toward a new light pays besides the network: the target shadow map ray-marched on
+            # the source's depth (and the shading re-rendered), timed so rows can report the end-to-end relight.
+            clock = time.perf_counter()
+            tgt = {**src, **retarget(src, rerender, light, c)}
+            target_seconds = time.perf_counter() - clock
             note = (f"target light fitted to the target image (LightFit); {how}; "
                                 f"re-rendered on the source: {', '.join(rerender) or 'nothing'}")
+        if oracle_target:
+            target_seconds = None
         mask = torch.from_numpy(np.array(src["face_mask"]))[None].bool().to(device) if "face_mask" in src else None
         cases.append(Case(rid, tid, image_to_tensor(src["image"])[None].to(device),
                           condition_tensors(model, [src], device), condition_tensors(model, [tgt], device),
                           gt=image_to_tensor(store.read(tid, ["image"])["image"])[None].to(device), mask=mask,
-                          inputs=note))
+                          inputs=note, target_seconds=target_seconds))
     if not cases:
         raise ValueError(f"no record of {ids[:5]}{'...' if len(ids) > 5 else ''} in {store.root} has another record "
                          "of the same subject to relight toward (the benchmark's target and ground truth)")
@@ -132,6 +144,15 @@ def timed_relight(model, case: Case, spec: SamplerSpec | None, runtime: Runtime,
         out = relight(model, case.x0, case.source, case.target_cond, spec, runtime=runtime,
                       mean_matching=mean_matching)
     return out.float(), timer.seconds
+
+
+def add_end_to_end(row: dict[str, Any], cases: Sequence[Case]) -> None:
+    """``time/targets`` (median seconds re-rendering a case's target encodings: the shadow-map ray march) and
+    ``time/end_to_end`` (network passes + that) on a row whose cases were made from a store's records."""
+    secs = [c.target_seconds for c in cases]
+    if secs and all(s is not None for s in secs):
+        row["time/targets"] = float(np.median(secs))
+        row["time/end_to_end"] = row["time/seconds"] + row["time/targets"]
 
 
 def face_errors(pred: Tensor, ref: Tensor, mask: Tensor | None) -> dict[str, float]:
@@ -182,6 +203,7 @@ def benchmark(model, cases: Sequence[Case], samplers: Mapping[str, Mapping[str, 
         # The median resists other processes' bursts on a shared machine; the spread is reported beside it.
         rows.append({"sampler": name, "steps": n, "nfe": passes * n, "records": len(cases),
                      "time/seconds": float(np.median(secs)), "time/std": float(np.std(secs))})
+        add_end_to_end(rows[-1], cases)
     ref_out = None
     if reference is not None:
         same = reference[0] in samplers and dict(samplers[reference[0]]) == dict(reference_config)
@@ -219,6 +241,7 @@ def add_one_pass(rows: list[dict[str, Any]], outputs: dict, model, cases: Sequen
         outs.append(out)
     row = {"sampler": name, "steps": 1, "nfe": 1, "records": len(cases), "time/seconds": float(np.median(secs)),
            "time/std": float(np.std(secs)), "speedup": 1.0}
+    add_end_to_end(row, cases)
     for key, refs in (("ref", outputs.get("reference")), ("gt", [c.gt for c in cases])):
         if refs is None or any(r is None for r in refs):
             continue
@@ -227,6 +250,10 @@ def add_one_pass(rows: list[dict[str, Any]], outputs: dict, model, cases: Sequen
             row[f"{key}/{m}"] = float(np.mean([e[m] for e in errs]))
     for r in rows:
         r["speedup"] = r["time/seconds"] / row["time/seconds"]
+        if "time/end_to_end" in r and "time/end_to_end" in row:  # both sides counting their target shadow maps
+            r["speedup/end_to_end"] = r["time/end_to_end"] / row["time/end_to_end"]
+    if "time/end_to_end" in row:
+        row["speedup/end_to_end"] = 1.0
     rows.append(row)
     outputs[(name, 1)] = outs
     return row
@@ -235,8 +262,8 @@ def add_one_pass(rows: list[dict[str, Any]], outputs: dict, model, cases: Sequen
 # ------------------------------------------------------------------------------------------ reporting
 def columns(rows: Sequence[Mapping[str, Any]]) -> list[str]:
     keys = ["sampler", "steps", "nfe", "records", "time/seconds", "time/std"]
-    return (keys + [c for c in ERROR_COLUMNS if any(c in r for r in rows)]
-            + (["speedup"] if any("speedup" in r for r in rows) else []))
+    optional = ("time/targets", "time/end_to_end", *ERROR_COLUMNS, "speedup", "speedup/end_to_end")
+    return keys + [c for c in optional if any(c in r for r in rows)]
 
 
 def write_csv(rows: Sequence[Mapping[str, Any]], path: str | Path) -> Path:
