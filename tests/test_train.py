@@ -163,3 +163,31 @@ def test_cpu_recipes_train_in_bf16_only_where_the_cpu_has_it(native, expected, t
     for experiment in ("reference_cpu", "student_cpu"):
         cfg = compose_train(tmp_path / experiment, [f"experiment={experiment}"])
         assert cfg.trainer.precision == expected, experiment
+
+
+def test_ema_warmup_forgets_the_initialisation_and_reaches_the_decay():
+    """The warm-up decay against its closed form, and the average it gives on a scalar parameter: after n updates
+    of a parameter stepping 0 -> 1 at update 1, the plain EMA keeps decay**n of the 0, the warm-up one
+    prod_k d_k."""
+    from difareli.lit.ema import ema_warmup_avg_fn, warmup_decay
+
+    assert warmup_decay(0.999, 0) == pytest.approx(0.1) and warmup_decay(0.999, 90) == pytest.approx(0.91)
+    assert warmup_decay(0.999, 10_000) == 0.999
+    update = ema_warmup_avg_fn(0.999)
+    ema = torch.zeros(1)
+    for n in range(1, 501):
+        ema = update(ema, torch.ones(1), torch.tensor(n))
+    kept = np.prod([warmup_decay(0.999, n) for n in range(1, 501)])
+    assert float(ema) == pytest.approx(1 - kept, rel=1e-5)
+    assert kept < 0.05 < 0.999 ** 500  # the initialisation's share at step 500: warm-up vs fixed decay (61%)
+
+
+def test_ema_warmup_trains_through_the_config(synth_store, tmp_path):
+    from difareli.lit.ema import EMA
+
+    cfg = compose_train(tmp_path, [*_cpu_overrides(synth_store), "model=difareli", "trainer.max_steps=3",
+                                   "trainer.val_check_interval=3", "trainer.limit_val_batches=1", "logger=[]",
+                                   "callbacks.ema.warmup=true", "callbacks.ema.decay=0.999"])
+    out = train(cfg)
+    ema = [c for c in out["trainer"].callbacks if isinstance(c, EMA)]
+    assert len(ema) == 1 and ema[0].warmup and int(ema[0]._average_model.n_averaged) == 3
