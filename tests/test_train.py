@@ -191,3 +191,40 @@ def test_ema_warmup_trains_through_the_config(synth_store, tmp_path):
     out = train(cfg)
     ema = [c for c in out["trainer"].callbacks if isinstance(c, EMA)]
     assert len(ema) == 1 and ema[0].warmup and int(ema[0]._average_model.n_averaged) == 3
+
+
+def test_min_snr_weighting_matches_its_formula_and_val_loss_stays_l_simple(synth_store, tmp_path):
+    """Min-SNR-gamma (Hang et al. 2023) for eps-prediction: per-sample error times min(SNR_t, gamma) / SNR_t,
+    recomputed here from the schedule's alpha-bar table; validation keeps the unweighted L_simple."""
+    import torch.nn.functional as F
+
+    cfg = compose_train(tmp_path, [*_cpu_overrides(synth_store), "model=difareli", "model.loss.weighting=min_snr",
+                                   "model.loss.min_snr_gamma=2.0", "trainer.max_steps=2",
+                                   "trainer.val_check_interval=2", "trainer.limit_val_batches=1", "logger=[]"])
+    out = train(cfg)
+    model = out["model"].eval()
+    assert model.hparams["loss"] == {"weighting": "min_snr", "min_snr_gamma": 2.0}
+    batch = next(iter(out["datamodule"].val_dataloader()))
+    with torch.no_grad():
+        got = model.diffusion_loss(batch, torch.Generator().manual_seed(3))
+        simple = model.diffusion_loss(batch, torch.Generator().manual_seed(3), weighted=False)
+        g = torch.Generator().manual_seed(3)
+        x0 = batch["image"]
+        t = torch.randint(0, model.schedule.T, (x0.shape[0],), generator=g)
+        noise = torch.randn(x0.shape, generator=g)
+        eps = model.net(model.schedule.q_sample(x0, t, noise), t,
+                        model.condition(batch.get("spatial"), batch.get("nonspatial")))
+    abar = np.cumprod(1 - np.linspace(1e-4, 0.02, 1000))[t.numpy()]
+    snr = abar / (1 - abar)
+    per = ((eps - noise) ** 2).flatten(1).mean(1).numpy()
+    assert float(got) == pytest.approx(float(np.mean(np.minimum(snr, 2.0) / snr * per)), rel=1e-4)
+    assert float(simple) == pytest.approx(float(F.mse_loss(eps, noise)), rel=1e-5)
+    assert float(got) < float(simple)  # the weights are <= 1 and < 1 wherever SNR_t > gamma
+    # The checkpoint records the weighting and loads with it.
+    assert load_checkpoint(Path(cfg.paths.output_dir) / "checkpoints" / "last.ckpt").model.hparams["loss"][
+        "weighting"] == "min_snr"
+    from difareli.lit.diffusion import loss_config
+
+    for bad in ({"weighting": "snr"}, {"min_snr_gamma": 0}, {"gamma": 5}):
+        with pytest.raises(ValueError, match="weighting is one of"):
+            loss_config(bad)

@@ -24,6 +24,20 @@ from difareli.nn import build_network
 
 #: The public code's optimizer (guided-diffusion TrainLoop: AdamW, constant LR, no weight decay).
 DEFAULT_OPTIMIZER = {"_target_": "torch.optim.AdamW", "_partial_": True, "lr": 1e-4, "weight_decay": 0.0}
+#: The training loss: ``simple`` (the paper's L_simple on eps) or ``min_snr`` (Min-SNR-gamma weighting, Hang et al.
+#: 2023: each sample's eps error times min(SNR_t, gamma) / SNR_t). val/loss is always L_simple.
+LOSS_WEIGHTINGS = ("simple", "min_snr")
+DEFAULT_LOSS = {"weighting": "simple", "min_snr_gamma": 5.0}
+
+
+def loss_config(loss: Mapping[str, Any] | None) -> dict[str, Any]:
+    """The ``loss`` hyperparameters, checked (checkpoints without them: L_simple)."""
+    cfg = {**DEFAULT_LOSS, **dict(loss or {})}
+    unknown = set(cfg) - set(DEFAULT_LOSS)
+    if unknown or cfg["weighting"] not in LOSS_WEIGHTINGS or not float(cfg["min_snr_gamma"]) > 0:
+        raise ValueError(f"model.loss={dict(loss or {})} is invalid: weighting is one of {list(LOSS_WEIGHTINGS)}, "
+                         f"min_snr_gamma > 0, no other keys (e.g. model.loss.weighting=min_snr)")
+    return {"weighting": str(cfg["weighting"]), "min_snr_gamma": float(cfg["min_snr_gamma"])}
 
 
 def _is_plain(value: Any) -> bool:
@@ -161,6 +175,7 @@ class DiffusionModule(RelightingModule):
         schedule: Mapping[str, Any] | None = None,
         nonspatial_stats: Mapping[str, Sequence[float]] | None = None,
         compile: bool = False,
+        loss: Mapping[str, Any] | None = None,
     ):
         super().__init__()
         dims, spatial = self._inputs(input_dims, spatial_inputs, nonspatial_inputs, spatial)
@@ -176,6 +191,7 @@ class DiffusionModule(RelightingModule):
             "optimizer": factory_config(optimizer if optimizer is not None else DEFAULT_OPTIMIZER, "optimizer"),
             "scheduler": factory_config(scheduler, "scheduler"), "schedule": dict(schedule or {}),
             "nonspatial_stats": {"mean": mean.tolist(), "std": std.tolist()}, "compile": bool(compile),
+            "loss": loss_config(loss),
         })
         self._optimizer, self._scheduler = optimizer, scheduler
         # Attention resolutions are feature-map sizes at the data resolution unless overridden.
@@ -208,8 +224,10 @@ class DiffusionModule(RelightingModule):
         return self.net.bind(cond)
 
     # ------------------------------------------------------------------ training
-    def diffusion_loss(self, batch: Mapping[str, Any], generator: torch.Generator | None = None) -> torch.Tensor:
-        """``L_simple``: MSE between the true and the predicted noise at uniform random t."""
+    def diffusion_loss(self, batch: Mapping[str, Any], generator: torch.Generator | None = None, *,
+                       weighted: bool = True) -> torch.Tensor:
+        """``L_simple``: MSE between the true and the predicted noise at uniform random t; with ``weighted`` and
+        ``loss.weighting=min_snr``, each sample's error times ``min(SNR_t, gamma) / SNR_t``."""
         x0 = batch["image"]
         b = x0.shape[0]
         t = torch.randint(0, self.schedule.T, (b,), device=x0.device, generator=generator)
@@ -217,7 +235,14 @@ class DiffusionModule(RelightingModule):
         x_t = self.schedule.q_sample(x0, t, noise)
         cond = self.condition(batch.get("spatial"), batch.get("nonspatial"))
         eps = self.net(x_t, t, cond)
-        return F.mse_loss(eps.float(), noise.float())
+        loss = loss_config(self.hparams.get("loss"))
+        if not weighted or loss["weighting"] == "simple":
+            return F.mse_loss(eps.float(), noise.float())
+        a = self.schedule.alphas_cumprod_t(t, x0).float().reshape(b)
+        snr = a / (1 - a)
+        weight = torch.clamp(snr, max=loss["min_snr_gamma"]) / snr
+        per_sample = (eps.float() - noise.float()).pow(2).flatten(1).mean(1)
+        return (weight * per_sample).mean()
 
     def training_step(self, batch, batch_idx):
         loss = self.diffusion_loss(batch)
@@ -227,7 +252,7 @@ class DiffusionModule(RelightingModule):
     def validation_step(self, batch, batch_idx):
         # Fixed noise and timesteps per batch so val/loss is comparable across validations.
         g = torch.Generator(device=batch["image"].device).manual_seed(1000 + batch_idx)
-        loss = self.diffusion_loss(batch, generator=g)
+        loss = self.diffusion_loss(batch, generator=g, weighted=False)  # L_simple: comparable across weightings
         self.log("val/loss", loss, prog_bar=True, batch_size=batch["image"].shape[0], sync_dist=True)
         return loss
 
