@@ -228,3 +228,24 @@ def test_min_snr_weighting_matches_its_formula_and_val_loss_stays_l_simple(synth
     for bad in ({"weighting": "snr"}, {"min_snr_gamma": 0}, {"gamma": 5}):
         with pytest.raises(ValueError, match="weighting is one of"):
             loss_config(bad)
+
+
+def test_wall_seconds_are_logged_at_each_validation_and_continue_on_resume(synth_store, tmp_path):
+    import csv as csv_
+
+    base = [*_cpu_overrides(synth_store), "model=difareli", "trainer.limit_val_batches=1",
+            "trainer.val_check_interval=2", "logger=csv", "callbacks.relight_metrics.enabled=false"]
+
+    def walls(run: Path) -> list[tuple[int, float]]:
+        with open(run / "csv" / "metrics.csv") as f:
+            return [(int(r["step"]), float(r["perf/wall_s"])) for r in csv_.DictReader(f) if r.get("perf/wall_s")]
+
+    first = compose_train(tmp_path / "a", [*base, "trainer.max_steps=4"])
+    train(first)
+    a = walls(Path(first.paths.output_dir))
+    assert [s for s, _ in a] == [1, 3] and 0 < a[0][1] < a[1][1]  # the validations after steps 2 and 4
+    last = Path(first.paths.output_dir) / "checkpoints" / "last.ckpt"
+    second = compose_train(tmp_path / "b", [*base, "trainer.max_steps=6", f"ckpt_path={last}"])
+    train(second)
+    b = walls(Path(second.paths.output_dir))
+    assert [s for s, _ in b] == [5] and b[0][1] > a[-1][1]  # counted on from the first run's wall time

@@ -173,12 +173,36 @@ class SampleGrid(L.Callback):
 class Throughput(L.Callback):
     """Logs ``perf/images_per_s`` and ``perf/s_per_step`` over each window of ``every_n_steps`` training steps
     (device synchronised; validation and checkpointing inside a window are excluded), so a run's speed sits in
-    its metrics beside the loss (the reference recipes read it back)."""
+    its metrics beside the loss (the reference recipes read it back). At every validation it logs
+    ``perf/wall_s``: the run's wall-clock seconds so far, validation and checkpoints included and resumed runs
+    counted on (its state is checkpointed), so scores can be plotted against the time they cost."""
 
     def __init__(self, every_n_steps: int = 50):
         self.every = int(every_n_steps)
         self._start: float | None = None
         self._steps = self._images = 0
+        self._wall_before = 0.0  # wall seconds of the runs this one resumed
+        self._fit_start: float | None = None
+
+    def on_fit_start(self, trainer, module):
+        import time
+
+        self._fit_start = time.perf_counter()
+
+    def wall_seconds(self) -> float:
+        import time
+
+        return self._wall_before + (time.perf_counter() - self._fit_start if self._fit_start is not None else 0.0)
+
+    def on_validation_epoch_end(self, trainer, module):
+        if not trainer.sanity_checking:
+            module.log("perf/wall_s", self.wall_seconds(), on_step=False, on_epoch=True)
+
+    def state_dict(self) -> dict:
+        return {"wall_s": self.wall_seconds()}
+
+    def load_state_dict(self, state_dict: dict) -> None:
+        self._wall_before = float(state_dict.get("wall_s", 0.0))
 
     def _sync(self, module: L.LightningModule) -> None:
         if module.device.type == "cuda":
