@@ -38,14 +38,16 @@ def test_old_format_checkpoint_loads_with_identical_outputs():
     m = loaded.model
     with torch.no_grad():
         eps = m.denoiser(m.condition(want["spatial"], want["nonspatial"]))(want["x"], want["t"])
-    assert torch.equal(eps, want["eps"])
+    # Equal to float rounding: the file was written on a CPU with AVX-512, whose convolution kernels sum in
+    # another order than an AVX2-only CPU's (bit-equal there, ~1e-7 apart here); a wrong mapping is off by far more.
+    torch.testing.assert_close(eps, want["eps"], rtol=1e-5, atol=1e-6)
     # The translation matters: read as an unmodulated-skip network the same weights give other outputs.
     other = DiffusionModule(**{**{k: v for k, v in cfg.items() if k != "compile"},
                                "spatial": {"type": "modulator", "modulate_skips": False}})
     other.load_state_dict(m.state_dict())
     with torch.no_grad():
         unmodulated = other.denoiser(other.condition(want["spatial"], want["nonspatial"]))(want["x"], want["t"])
-    assert not torch.equal(unmodulated, eps)
+    assert not torch.allclose(unmodulated, eps, rtol=1e-5, atol=1e-6)  # beyond the tolerance above
 
 
 def test_upgrade_strips_stat_buffers_for_resuming():
