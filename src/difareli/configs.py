@@ -12,8 +12,6 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from omegaconf import OmegaConf
-
 #: The shipped config folder (a real folder: setuptools installs package data as files).
 CONFIG_DIR = Path(__file__).resolve().parent / "conf"
 #: What ``@hydra.main(config_path=...)`` is given.
@@ -30,7 +28,16 @@ def train_precision() -> str:
     return "bf16-mixed" if auto_precision("cpu") == "bf16" else "32-true"
 
 
-OmegaConf.register_new_resolver("difareli_precision", train_precision, replace=True)
+def _register_resolvers() -> None:
+    # Only where OmegaConf is installed: the GPU readiness script reads plain YAML on images without Hydra.
+    try:
+        from omegaconf import OmegaConf
+    except ImportError:
+        return
+    OmegaConf.register_new_resolver("difareli_precision", train_precision, replace=True)
+
+
+_register_resolvers()
 
 
 def config_file(group: str, name: str) -> Path:
