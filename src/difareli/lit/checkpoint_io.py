@@ -43,4 +43,8 @@ class StopAwareModelCheckpoint(ModelCheckpoint):
         if (not stopping or not self.save_last or self._last_global_step_saved == trainer.global_step
                 or self._should_skip_saving_checkpoint(trainer)):
             return
+        # Leave the step unmarked as saved: a validation that follows at this step still writes its top-k
+        # checkpoint (and last again), which Lightning skips for a step it has already saved.
+        marked = self._last_global_step_saved
         self._save_last_checkpoint(trainer, self._monitor_candidates(trainer))
+        self._last_global_step_saved = marked
