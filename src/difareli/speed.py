@@ -112,6 +112,7 @@ def store_cases(store: EncodingStore, model, records: Iterable[str] | None = Non
             tgt = store.read(tid, names)
             tgt = {**src, **{k: tgt[k] for k in rerender}}
             note = "oracle target: the target record's stored light-dependent encodings"
+            target_seconds = None
         else:
             c, how = target_shadow_of(store, tid)
             light = fit.from_store(store, tid)
@@ -122,8 +123,6 @@ def store_cases(store: EncodingStore, model, records: Iterable[str] | None = Non
             target_seconds = time.perf_counter() - clock
             note = (f"target light fitted to the target image (LightFit); {how}; "
                                 f"re-rendered on the source: {', '.join(rerender) or 'nothing'}")
-        if oracle_target:
-            target_seconds = None
         mask = torch.from_numpy(np.array(src["face_mask"]))[None].bool().to(device) if "face_mask" in src else None
         cases.append(Case(rid, tid, image_to_tensor(src["image"])[None].to(device),
                           condition_tensors(model, [src], device), condition_tensors(model, [tgt], device),

@@ -43,7 +43,7 @@ from difareli import derived, encodings, errors, imageops
 from difareli.diffusion.relight import Inversion
 from difareli.fileio import folder_lock
 from difareli.imageops import median_mask
-from difareli.inputs import condition_tensors, image_to_tensor, relight_reads
+from difareli.inputs import condition_tensors, image_to_tensor, read_record, relight_reads
 from difareli.relightable import OnePassRelightable, model_inputs
 from difareli.relight_core import invert_image, relight
 from difareli.targets import retarget
@@ -301,13 +301,11 @@ def _compute(model, store, spec, *, provenance, ids, split, c_quantile, threshol
                                                           "records": chosen})
     todo = derived.missing(store, raw, ids)
     needed = relight_reads(model_inputs(model))
-    extra = {encodings.C_RANGE_KEY: np.array(norm_range)} if norm_range else {}  # target maps: the store's range
     start = time.perf_counter()
     bar = tqdm(total=len(todo), desc="difference maps", disable=not progress)
     for i in range(0, len(todo), batch_size):
         chunk = todo[i:i + batch_size]
-        recs = [{**errors.check_record({k: np.asarray(v) for k, v in store.read(r, needed).items()}, r, store.root),
-                 **extra} for r in chunk]
+        recs = [read_record(store, r, needed) for r in chunk]  # with the store's c range: its target maps
         for rid, d in zip(chunk, relight_pairs(model, recs, c_min, c_max, spec, runtime=runtime,
                                                mean_matching=mean_matching, device=device)):
             derived.write(store, rid, raw, d.astype(np.float32), overwrite=True)
