@@ -29,3 +29,9 @@ def compose_train(out_dir: Path, overrides: list[str], config_name: str = "train
             cfg.paths.log_dir = str(out_dir / "logs")
             del cfg.hydra
     return cfg
+
+
+def tiny_cpu_overrides(store: Path, batch_size: int = 4) -> list[str]:
+    """Train overrides for a tiny model on a 32-px test store, on the CPU, without a sample grid."""
+    return [f"data.root={store}", "data.resolution=32", "data.synth=null", "data.num_workers=0",
+            f"data.batch_size={batch_size}", "model.preset=tiny", "trainer=cpu", "sample_grid=false"]

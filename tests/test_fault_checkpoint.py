@@ -117,12 +117,11 @@ def test_a_run_stopped_between_periodic_checkpoints_keeps_its_last_steps(synth_s
     weights (not the EMA average) as the resume state."""
     from difareli.cli.train import train
 
-    from .helpers import compose_train
+    from .helpers import compose_train, tiny_cpu_overrides
 
     cfg = compose_train(tmp_path, [
-        f"data.root={synth_store}", "data.resolution=32", "data.synth=null", "data.num_workers=0",
-        "data.batch_size=2", "model=difareli", "model.preset=tiny", "trainer=cpu", "trainer.max_steps=5",
-        "trainer.val_check_interval=3", "trainer.limit_val_batches=1", "sample_grid=false", "logger=[]",
+        *tiny_cpu_overrides(synth_store, batch_size=2), "model=difareli", "trainer.max_steps=5",
+        "trainer.val_check_interval=3", "trainer.limit_val_batches=1", "logger=[]",
         "callbacks.ema.decay=0.9", "callbacks.relight_metrics.enabled=false",
     ])
     train(cfg)

@@ -23,7 +23,7 @@ from difareli.store import EncodingStore
 from difareli.targets import render_shading, retarget
 from difareli.targets import Targets
 
-from .helpers import compose_train
+from .helpers import compose_train, tiny_cpu_overrides
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -206,9 +206,8 @@ def student_ckpt(synth_store, tmp_path_factory):
 
     out = tmp_path_factory.mktemp("student")
     cfg = compose_train(out, [
-        f"data.root={synth_store}", "data.resolution=32", "data.synth=null", "data.num_workers=0",
-        "data.batch_size=4", "model=student", "data.pairs=gt", "model.preset=tiny", "trainer=cpu",
-        "trainer.max_steps=3", "trainer.val_check_interval=3", "trainer.limit_val_batches=1", "sample_grid=false",
+        *tiny_cpu_overrides(synth_store), "model=student", "data.pairs=gt",
+        "trainer.max_steps=3", "trainer.val_check_interval=3", "trainer.limit_val_batches=1",
         "logger=[]", "callbacks.ema.decay=0.9",
     ])
     train(cfg)

@@ -16,7 +16,7 @@ from difareli.inputs import MissingEncodingError
 from difareli.lit import load_checkpoint
 from difareli.store import EncodingStore
 
-from .helpers import CONF, compose_train
+from .helpers import CONF, compose_train, tiny_cpu_overrides
 
 MODELS = ["difareli", "difareli_pp"]
 #: Every model config (variants and ablations): each must run through the whole loop.
@@ -25,8 +25,7 @@ ALL_MODELS = sorted(str(p.relative_to(CONF / "model").with_suffix("")) for p in 
 
 
 def _cpu_overrides(store: Path) -> list[str]:
-    return [f"data.root={store}", "data.resolution=32", "data.synth=null", "data.num_workers=0", "data.batch_size=4",
-            "model.preset=tiny", "trainer=cpu", "sample_grid=false"]
+    return tiny_cpu_overrides(store)
 
 
 #: Models trained on pairs (input -> relit), not single records: they need a pair sampler (conf/data).
