@@ -23,6 +23,7 @@ from tqdm.auto import tqdm
 from difareli import errors, viz
 from difareli.inputs import condition_tensors, image_to_tensor, read_record, relight_reads
 from difareli.diffusion.relight import Inversion, SamplerSpec
+from difareli.diffusion.spec import DEFAULT_SAMPLER, PRESETS
 from difareli.relight_core import invert_image, relight  # noqa: F401 (callers import the tensor-level call here too)
 from difareli.relightable import OnePassRelightable, Relightable, model_inputs
 from difareli.runtime import Runtime
@@ -66,6 +67,8 @@ class Relighter:
         ckpt = checkpoint if isinstance(checkpoint, LoadedCheckpoint) else load_checkpoint(checkpoint, self.device)
         self.model = ckpt.model.to(self.device)
         self.config = ckpt.config
+        if sampler is None:  # a diffusion model without a named sampler gets the default, the cards' sampler
+            sampler = None if isinstance(self.model, OnePassRelightable) else PRESETS[DEFAULT_SAMPLER]
         self.spec = None if sampler is None else (sampler if isinstance(sampler, SamplerSpec)
                                                   else SamplerSpec.from_config(sampler))
         self.mean_matching, self.batch_size, self.progress = mean_matching, batch_size, progress

@@ -23,11 +23,14 @@ from typing import Any
 import numpy as np
 
 from difareli import encodings, sh
+from difareli.diffusion.spec import DEFAULT_SAMPLER, PRESETS
 from difareli.encodings import SHADOW_C_HI, SHADOW_C_LO
 
 from .envmaps import ENVMAPS, envmap_light
 
 SAMPLERS = ("unipc", "ddim", "dpm_solver", "dpm_solver_pp")
+#: What the page starts with and a request without sampler / steps gets: the default preset, the cards' sampler.
+DEFAULT = PRESETS[DEFAULT_SAMPLER]
 MAX_UPLOAD_BYTES = 32 * 2 ** 20
 
 
@@ -96,7 +99,7 @@ class Service:
     _errors: dict = field(default_factory=dict)
 
     # ------------------------------------------------------------------ models and stores
-    def relighter(self, checkpoint: str | None, sampler: str = "unipc", steps: int = 20):
+    def relighter(self, checkpoint: str | None, sampler: str = DEFAULT.name, steps: int = DEFAULT.steps):
         """A cached :class:`~difareli.relighting.Relighter`; a one-pass student ignores the sampler."""
         from difareli.errors import check_int
         from difareli.relighting import Relighter
@@ -130,6 +133,7 @@ class Service:
         from difareli import zoo
 
         return {"checkpoint": self.checkpoint, "checkpoints": zoo.available(), "samplers": list(SAMPLERS),
+                "default_sampler": {"name": DEFAULT.name, "steps": DEFAULT.steps},
                 "envmaps": list(ENVMAPS), "records": self.records(), "store": self.store}
 
     # ------------------------------------------------------------------ sources
@@ -211,8 +215,8 @@ class Service:
         from difareli.targets import Targets
 
         t_all = time.perf_counter()
-        relighter = self.relighter(request.get("checkpoint"), request.get("sampler", "unipc"),
-                                   request.get("steps", 20))
+        relighter = self.relighter(request.get("checkpoint"), request.get("sampler", DEFAULT.name),
+                                   request.get("steps", DEFAULT.steps))
         s = self._sources.get(request.get("id"))
         if s is None:
             raise RequestError(f"source {request.get('id')!r} is unknown (the app restarted?); upload the photo again")

@@ -191,6 +191,9 @@ class SamplerSpec:
 #: The spec fields a config sets besides the sampler's options.
 _FIELDS = tuple(f.name for f in dataclasses.fields(SamplerSpec) if f.name != "options")
 
+#: The preset a relight uses when none is named (``conf/sampler/default.yaml``, ``Relighter(ckpt)``).
+DEFAULT_SAMPLER = "default"
+
 #: Named sampler configurations; ``conf/sampler/<name>.yaml`` mirrors each.
 PRESETS: dict[str, SamplerSpec] = {
     "ddim": SamplerSpec("ddim"),
@@ -201,6 +204,10 @@ PRESETS: dict[str, SamplerSpec] = {
     # The public DiFaReli code: DDIM over all 1000 levels, x0 clipped to [-1, 1] in both directions, and an
     # inversion table whose last step lands on abar = 0 (x_T = eps); SPEC 5.3.
     "paper": SamplerSpec("ddim", steps=1000, clip_x0_invert=True, clip_x0_generate=True, alpha_zero_end=True),
+    # The default of every relighting command, the app and the notebooks, and the sampler the shipped models'
+    # cards are benchmarked with: chosen by error against seconds on the shipped weights
+    # (difareli-bench-samplers; docs/reference_models.md "Choosing the default sampler").
+    DEFAULT_SAMPLER: SamplerSpec("unipc", steps=50, options={"variant": "bh2"}),
 }
 
 
