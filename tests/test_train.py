@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from difareli.cli.train import nonspatial_stats, train
+from difareli.errors import UserError
 from difareli.inputs import MissingEncodingError
 from difareli.lit import load_checkpoint
 from difareli.store import EncodingStore
@@ -138,6 +139,35 @@ def test_resume_continues_from_last_step(synth_store, tmp_path):
     assert out["trainer"].global_step == 6
     # Statistics restored from the checkpoint, not recomputed (same values either way, but from the file).
     assert torch.equal(out["model"].ns_mean, load_checkpoint(last).stats["mean"])
+
+
+def test_init_from_fine_tunes_from_the_weights_at_step_zero(synth_store, tmp_path):
+    """init_from starts a new run (step 0, fresh optimizer) from another run's weights and its normalisation;
+    with the learning rate at zero the fine-tuned network is the initial one exactly."""
+    base = [*_cpu_overrides(synth_store), "model=difareli", "trainer.limit_val_batches=1",
+            "trainer.val_check_interval=2", "logger=[]"]
+    first = compose_train(tmp_path / "a", [*base, "trainer.max_steps=4"])
+    train(first)
+    last = Path(first.paths.output_dir) / "checkpoints" / "last.ckpt"
+    second = compose_train(tmp_path / "b", [*base, "trainer.max_steps=2", f"init_from={last}",
+                                            "model.optimizer.lr=0.0", "callbacks.ema.decay=0.0"])
+    out = train(second)
+    assert out["trainer"].global_step == 2  # a new run: it counts from 0, not from the first run's 4
+    raw = torch.load(last, map_location="cpu", weights_only=True)["state_dict"]
+    for k, v in out["model"].state_dict().items():
+        if k in raw and v.is_floating_point():
+            torch.testing.assert_close(v, raw[k], rtol=0, atol=0, msg=k)
+    torch.testing.assert_close(out["model"].ns_mean, load_checkpoint(last).stats["mean"])
+
+
+def test_init_from_refuses_another_variant_and_a_resume_at_once(tiny_checkpoint, synth_store, tmp_path):
+    base = [*_cpu_overrides(synth_store), "model=difareli", "trainer.max_steps=1", "logger=[]"]
+    other = tiny_checkpoint("difareli_pp")
+    with pytest.raises(UserError, match=r"init_from=.* was trained as model variant 'difareli_pp', this run "
+                                        r"composes 'difareli'.*start with model="):
+        train(compose_train(tmp_path / "a", [*base, f"init_from={other}"]))
+    with pytest.raises(UserError, match=r"give one \(ckpt_path resumes"):
+        train(compose_train(tmp_path / "b", [*base, f"init_from={other}", f"ckpt_path={other}"]))
 
 
 def test_multirun_one_directory_per_variant(synth_store, tmp_path):

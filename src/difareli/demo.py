@@ -34,6 +34,8 @@ class DemoResult:
     table: tables.Table | None = None
     seconds: dict[str, float] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
+    #: how the model relit: its sampler and steps, or one pass (a student)
+    how: str = ""
 
 
 def make_store(root: Path, *, subjects: int, resolution: int, seed: int, progress: bool) -> EncodingStore:
@@ -76,6 +78,7 @@ def run_demo(checkpoint: Any, out_dir: str | Path, *, sampler: Mapping[str, Any]
     res.seconds["data"] = time.perf_counter() - t0
     loaded = load_checkpoint(checkpoint)
     relighter = Relighter(loaded, sampler, runtime=runtime, batch_size=frames, progress=progress)
+    res.how = relighter.describe()
     test = store.ids(split="test")
     subjects_ids = sorted({store.meta(r)["subject"] for r in test})
 

@@ -43,6 +43,13 @@ def resolve(checkpoint: str | Path, key: str = "checkpoint") -> Path:
                                 f"{', '.join(available()) or 'none shipped'}") from None
 
 
+def suite() -> str | None:
+    """The reference suite (every shipped model beside identity and the Lambertian ratio image on a store of an
+    unseen seed, written by ``scripts/reference_suite.py --ship``), or None when it is not shipped."""
+    path = SHIPPED_DIR / "suite.md"
+    return path.read_text() if path.is_file() else None
+
+
 def card(name: str) -> str:
     """The model card (Markdown) of a shipped checkpoint."""
     path = SHIPPED_DIR / f"{name}.md"

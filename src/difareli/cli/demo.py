@@ -24,11 +24,14 @@ def run(cfg: DictConfig) -> DemoResult:
                    resolution=int(cfg.resolution), seed=int(cfg.seed), frames=int(cfg.frames), pairs=int(cfg.pairs),
                    rows=int(cfg.rows), photo=bool(cfg.photo), progress=bool(cfg.progress))
     if res.table is not None:
-        print(f"Live check on {cfg.pairs} pairs per protocol of unseen subjects ({cfg.sampler.name}-{cfg.sampler.steps}): "
+        print(f"Live check on {cfg.pairs} pairs per protocol of unseen subjects ({res.how}): "
               "too few pairs to rank the methods; read the ± standard errors")
         print(res.table.to_markdown())
-    card = card_benchmark(cfg.checkpoint)
-    if card:
+    suite = zoo.suite()
+    card = None if suite else card_benchmark(cfg.checkpoint)
+    if suite:
+        print(f"The shipped models' suite (the figures the README quotes):\n{suite}")
+    elif card:
         print(f"The model card's table for {cfg.checkpoint} (the figures the README quotes):\n{card}")
     for note in res.notes:
         print(note)

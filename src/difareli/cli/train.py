@@ -9,7 +9,7 @@ import hydra
 import lightning as L
 from omegaconf import DictConfig
 
-from difareli import errors
+from difareli import errors, zoo
 from difareli.cli import common
 from difareli.lit.checkpoint import read_checkpoint
 from difareli.lit import logging as lit_logging
@@ -26,8 +26,14 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     # A resumed checkpoint is read once here (its statistics, the config check); Lightning then restores it.
     # ("last"/"best" are Lightning's names: no file to read here.)
     ckpt = read_checkpoint(ckpt_path) if ckpt_path and Path(ckpt_path).is_file() else None
+    init_from = cfg.get("init_from")
+    if init_from and ckpt_path:
+        raise errors.UserError(f"init_from={init_from} and ckpt_path={ckpt_path}: give one (ckpt_path resumes a run "
+                               "with its optimizer and step; init_from starts a new run from a checkpoint's weights)")
+    if init_from:  # fine-tuning: the weights (and their input normalisation), not the optimizer or the step
+        ckpt = read_checkpoint(str(zoo.resolve(init_from, "init_from")))
     if ckpt is not None:  # another variant's statistics would not even fit the network: name both variants
-        check_resume_variant(ckpt_path, ckpt, cfg.model)
+        check_resume_variant(ckpt_path or init_from, ckpt, cfg.model, "init_from" if init_from else "ckpt_path")
     # The network's input sizes and the non-spatial statistics come from the data set (the training split),
     # or, when resuming, from the checkpoint: a resumed run keeps the normalisation it was trained with.
     model = hydra.utils.instantiate(cfg.model, input_dims=datamodule.input_dims(),
@@ -38,8 +44,10 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         logger=common.instantiate_group(cfg.get("logger")) or False,
     )
     common.log_hyperparameters(trainer, cfg)
-    if ckpt_path:  # a mismatching config: list what differs, not a size-mismatch dump
-        errors.check_resume(ckpt_path, model, ckpt)
+    if ckpt_path or init_from:  # a mismatching config: list what differs, not a size-mismatch dump
+        errors.check_resume(ckpt_path or init_from, model, ckpt)
+    if init_from:
+        model.load_state_dict(ckpt["state_dict"])
     lit_logging.log_run_info(trainer, cfg)  # git commit + resolved config as text
     trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt_path)
     metric = common.metric_value(trainer.callback_metrics, cfg.get("optimized_metric"))
@@ -58,8 +66,9 @@ def check_accelerator(trainer_cfg: DictConfig) -> None:
                                "what is there)")
 
 
-def check_resume_variant(ckpt_path: Any, ckpt: dict[str, Any], model_cfg: DictConfig) -> None:
-    """Resuming into another model variant (other name or inputs) is refused naming both variants."""
+def check_resume_variant(ckpt_path: Any, ckpt: dict[str, Any], model_cfg: DictConfig, key: str = "ckpt_path") -> None:
+    """Resuming (or initialising, ``key="init_from"``) into another model variant (other name or inputs) is
+    refused naming both variants."""
     hp = ckpt.get("hyper_parameters") or {}
     keys = ("name", "spatial_inputs", "nonspatial_inputs")
     saved = {k: hp.get(k) for k in keys}
@@ -68,13 +77,15 @@ def check_resume_variant(ckpt_path: Any, ckpt: dict[str, Any], model_cfg: DictCo
     saved = {k: list(v) if isinstance(v, (list, tuple)) else v for k, v in saved.items()}
     diff = [f"{k}: checkpoint {saved[k]!r}, config {now[k]!r}" for k in keys if saved[k] != now[k]]
     if diff:
-        raise errors.UserError(f"ckpt_path={ckpt_path} was trained as model variant {saved['name']!r}, this run "
-                               f"composes {now['name']!r} ({'; '.join(diff)}); resume with model=<the variant it was "
-                               "trained with> (its <run>/.hydra/config.yaml says which)")
+        raise errors.UserError(f"{key}={ckpt_path} was trained as model variant {saved['name']!r}, this run "
+                               f"composes {now['name']!r} ({'; '.join(diff)}); "
+                               f"{'resume' if key == 'ckpt_path' else 'start'} with model=<the variant it was "
+                               "trained with> (its <run>/.hydra/config.yaml or model card says which)")
 
 
 def nonspatial_stats(datamodule, ckpt: dict[str, Any] | None) -> dict[str, list[float]] | None:
-    """Plain ``{mean, std}`` lists: from the checkpoint dict when resuming, else from the training split."""
+    """Plain ``{mean, std}`` lists: from the checkpoint dict when resuming or initialising from one (the weights
+    were trained with its normalisation), else from the training split."""
     if ckpt is not None:
         return ckpt["hyper_parameters"].get("nonspatial_stats")
     mean, std = datamodule.nonspatial_stats()
