@@ -12,6 +12,7 @@ subprocess so the peak memory (CPU resident set, or CUDA allocation) is its own.
     python scripts/bench_train.py --device cuda                     # GPU: ffhq128 at 128 px, ffhq256 at 256 px
     python scripts/bench_train.py --configs tiny:64:16:32-true tiny:64:16:bf16-mixed --steps 10
     python scripts/bench_train.py --variant mechanism/cn_ca         # any conf/model variant
+    python scripts/bench_train.py --profile --configs tiny:64:16:bf16-mixed tiny:64:16:bf16-mixed:cl   # where time goes
 """
 
 from __future__ import annotations
@@ -36,8 +37,12 @@ def main() -> None:
     p.add_argument("--warmup", type=int, default=2)
     p.add_argument("--variant", default=DEFAULT_VARIANT, help="conf/model variant (e.g. difareli, mechanism/cn_ca)")
     p.add_argument("--json", help="also write the rows to this JSON file")
+    p.add_argument("--profile", action="store_true", help="CPU: where each config's step time goes (torch.profiler "
+                   "self time by category: convolution, GroupNorm/AdaGN, attention, MLPs, casts, optimizer, ...)")
     p.add_argument("--one", help=argparse.SUPPRESS)  # internal: run one config and print JSON
     a = p.parse_args()
+    if a.profile:
+        return profile(a.configs or CPU_DEFAULT, a.variant, a.steps, a.warmup)
     if a.one:
         preset, res, batch, prec, *opts = a.one.split(":")
         print(json.dumps(train_throughput(preset, int(res), int(batch), prec, a.device, a.steps, a.warmup,
@@ -65,6 +70,24 @@ def main() -> None:
     if a.json:
         with open(a.json, "w") as f:
             json.dump(rows, f, indent=1)
+
+
+def profile(configs: list[str], variant: str, steps: int, warmup: int) -> None:
+    """One table: seconds per step and the share of each category, a column per config."""
+    from difareli.perf import profile_train_step
+
+    cols = {}
+    for c in configs:
+        preset, res, batch, prec, *opts = c.split(":")
+        cols[c] = profile_train_step(preset, int(res), int(batch), prec, steps, warmup, variant,
+                                     opts[0] if opts else "")
+    print("| where the step's time goes (self CPU time, torch.profiler) | " + " | ".join(cols) + " |")
+    print("|---|" + "---:|" * len(cols))
+    print("| wall s/step (under the profiler) | " + " | ".join(f"{v['step']:.3f}" for v in cols.values()) + " |")
+    for cat in next(iter(cols.values())):
+        if cat != "step":
+            print(f"| {cat} | " + " | ".join(f"{v[cat]:.3f} s ({100 * v[cat] / sum(x for k, x in v.items() if k != 'step'):.0f}%)"
+                                          for v in cols.values()) + " |")
 
 
 if __name__ == "__main__":

@@ -127,6 +127,16 @@ def test_bench_train_script_reports_the_built_models_parameters():
     assert row["images_per_s"] > 0 and row["step_GFLOP"] > 0
 
 
+def test_profile_train_step_accounts_for_the_step():
+    """Every category is a share of the profiled step: convolutions are there, nothing is negative, and the self
+    times add up to no more than the threads could spend in the wall time (and to most of one thread's)."""
+    prof = perf.profile_train_step("tiny", 16, 2, "32-true", steps=1, warmup=1)
+    assert set(prof) == {"step", *perf.STEP_CATEGORIES, "other"}
+    parts = {k: v for k, v in prof.items() if k != "step"}
+    assert all(v >= 0 for v in parts.values()) and parts["convolution"] > 0 and parts["optimizer (AdamW)"] > 0
+    assert 0.5 * prof["step"] < sum(parts.values()) <= 1.05 * prof["step"]
+
+
 def test_ablation_report_counts_every_pass():
     report = load_script("ablation_report")
     plain = report.measured_costs(perf.variant_config("difareli_pp"), steps=2, repeats=1)

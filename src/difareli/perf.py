@@ -283,6 +283,59 @@ def train_throughput(preset: str, res: int, batch: int, precision: str, device: 
             "peak_MiB": round(peak_mem, 1), "peak_kind": "cuda_allocated" if dev.type == "cuda" else "process_rss"}
 
 
+#: Where a training step's time goes: profiler op names (substrings, first match wins) per category.
+STEP_CATEGORIES: dict[str, tuple[str, ...]] = {
+    "convolution": ("convolution", "conv2d", "mkldnn_conv"),
+    "normalisation (GroupNorm / AdaGN)": ("group_norm", "native_layer_norm"),
+    "attention": ("bmm", "softmax", "scaled_dot_product", "baddbmm"),
+    "linear / MLP (AdaGN, MLP3, time embedding)": ("addmm", "aten::mm", "aten::linear"),
+    "activations": ("silu", "tanh", "gelu", "sigmoid"),
+    "casts and copies (autocast, layout)": ("copy_", "_to_copy", "aten::to", "contiguous", "clone"),
+    "optimizer (AdamW)": ("Optimizer.", "_foreach", "lerp_", "addcdiv_", "addcmul_", "sqrt"),
+    "elementwise": ("aten::mul", "aten::add", "aten::sub", "aten::div", "aten::cat", "aten::where", "aten::sum",
+                    "aten::mean", "aten::pow", "aten::exp", "aten::neg", "aten::rsqrt", "aten::var"),
+}
+
+
+def profile_train_step(preset: str, res: int, batch: int, precision: str, steps: int = 3, warmup: int = 2,
+                       variant: str = DEFAULT_VARIANT, opts: str = "") -> dict[str, float]:
+    """Seconds per training step by category (:data:`STEP_CATEGORIES`, plus "other"), from torch.profiler's self
+    CPU time of ``steps`` steps (forward, backward of L_simple, AdamW) of random batches, after ``warmup`` steps;
+    ``"step"`` is the wall time per step under the profiler. CPU only; ``opts`` as :func:`train_throughput`."""
+    from torch.profiler import ProfilerActivity, profile
+
+    flags = {o for o in opts.split(",") if o}
+    torch.manual_seed(0)
+    module = build_model(variant, preset, res, seed=0, compile="compile" in flags)
+    if "cl" in flags:
+        module.net.to(memory_format=torch.channels_last)
+    batch_ = random_batch(module, batch)
+    if "cl" in flags:
+        batch_ = _channels_last([{k: v[i] for k, v in batch_.items()} for i in range(batch)])
+    opt = torch.optim.AdamW(module.parameters(), lr=1e-4)
+    bf16 = "bf16" in precision
+
+    def step():
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+            loss = module.diffusion_loss(batch_)
+        loss.backward()
+        opt.step()
+        opt.zero_grad(set_to_none=True)
+
+    for _ in range(warmup):
+        step()
+    start = time.perf_counter()
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        for _ in range(steps):
+            step()
+    wall = (time.perf_counter() - start) / steps
+    out = {k: 0.0 for k in [*STEP_CATEGORIES, "other"]}
+    for ev in prof.key_averages():
+        cat = next((c for c, keys in STEP_CATEGORIES.items() if any(k in ev.key for k in keys)), "other")
+        out[cat] += ev.self_cpu_time_total / 1e6 / steps  # microseconds over all profiled steps
+    return {"step": wall, **out}
+
+
 # ------------------------------------------------------------------------------------------ timing
 @dataclass
 class Timings:
