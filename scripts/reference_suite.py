@@ -56,7 +56,7 @@ def section(store: str, models: list[str], pairs: int, out: Path) -> str:
     sampler = PRESETS[DEFAULT_SAMPLER].to_config()
     runs, names = {}, {}
     for name in models:
-        comparison = compare_to_baselines(store, name, sampler, out, pairs=pairs, progress=True)
+        comparison = compare_to_baselines(store, name, sampler, out, pairs=pairs, progress=True, reuse=True)
         runs.update(comparison.runs)  # identity and Lambertian are the same runs for every model (resumed)
         names[comparison.facts["model"]] = f"`{name}` ({comparison.facts['sampler']})"
     table = tables.summarize([r for run in runs.values() for r in run.records])

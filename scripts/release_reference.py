@@ -80,7 +80,7 @@ def benchmark(a: argparse.Namespace, checkpoint: str):
     """Identity, Lambertian and the model on ``a.store``; the card's benchmark section with its commands."""
     sampler = as_spec(a.sampler, steps=a.steps).to_config()
     comparison = compare_to_baselines(a.store, checkpoint, sampler, a.out or f"/tmp/release_{a.name}",
-                                      pairs=a.pairs, grid_pairs=4, progress=True)
+                                      pairs=a.pairs, grid_pairs=4, progress=True, reuse=True)
     options = "" if a.sampler == DEFAULT_SAMPLER and a.steps is None else f" sampler={a.sampler}" + (
         f" sampler.steps={a.steps}" if a.steps else "")
     bench = comparison.card_benchmark(f"of {a.store}") + (

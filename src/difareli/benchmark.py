@@ -254,6 +254,27 @@ def run_benchmark(store: EncodingStore, method: Method, protocols: Sequence[str]
                     progress=progress, shard=shard, rule=rule, score_mask=score_mask)
 
 
+def finished_run(store: EncodingStore, method: Method, protocols: Sequence[str], out_dir: str | Path, *,
+                 limit: int | None = None, oracle_light: bool = False, oracle_shadow: bool = False,
+                 rule: str | None = None, score_mask: str | None = None) -> BenchmarkResult | None:
+    """The completed run in ``out_dir`` when it was made with exactly these settings (its scored rows and what it
+    states about its inputs), else None: what a whole suite rerun reuses instead of relighting again. A killed run
+    (rows still partial) is not finished: :func:`run_benchmark` resumes it."""
+    out_dir = Path(out_dir)
+    if not (out_dir / tables.PER_IMAGE_CSV).is_file() or (out_dir / PARTIAL_CSV).is_file():
+        return None
+    want = run_settings(store, method, protocols, limit=limit, oracle_light=oracle_light,
+                        oracle_shadow=oracle_shadow, rule=metrics.check_rule(rule), shard=None,
+                        score_mask=check_score_mask(store, score_mask))
+    if provenance.differences(_recorded(out_dir), provenance.plain(want)):
+        return None
+    try:
+        stated = json.loads((out_dir / provenance.PROVENANCE).read_text())
+    except (OSError, ValueError):
+        return None
+    return BenchmarkResult(records=tables.read_records(out_dir / tables.PER_IMAGE_CSV), provenance=stated)
+
+
 def _recorded(out_dir: Path) -> dict:
     """The settings recorded in ``out_dir`` ({} if none; an unreadable file is left to provenance.ensure)."""
     try:

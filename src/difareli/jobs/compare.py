@@ -58,15 +58,16 @@ def compare_to_baselines(store: EncodingStore | str | Path, checkpoint: Any, sam
                          out_dir: str | Path, *, pairs: int | None, runtime: Mapping[str, Any] | None = None,
                          protocols: Sequence[str] = PROTOCOLS, oracle_light: bool = False,
                          oracle_shadow: bool = False, grid_pairs: int = 0, save_images: bool = False,
-                         progress: bool = False) -> Comparison:
+                         progress: bool = False, reuse: bool = False) -> Comparison:
     """Benchmark identity, the Lambertian ratio image and ``checkpoint`` (a path, a shipped name or a loaded
     checkpoint, relit with ``sampler`` under ``runtime``) on at most ``pairs`` pairs per protocol of ``store``.
 
     Target lights are fitted to the light-source images and the target c is what a user has (the benchmark's
     defaults), unless ``oracle_light`` / ``oracle_shadow``; the card facts say which. Each method's run is written
-    under ``out_dir/<method name>`` (resumable, as :func:`~difareli.benchmark.run_benchmark` is)."""
+    under ``out_dir/<method name>`` (resumable, as :func:`~difareli.benchmark.run_benchmark` is); ``reuse``: a
+    method's finished run there with the same settings is read back instead of relit again."""
     from difareli.baselines import DiffusionMethod, Identity, LambertianRatio
-    from difareli.benchmark import run_benchmark
+    from difareli.benchmark import finished_run, run_benchmark
     from difareli.light_fit import LightFit
 
     start = time.perf_counter()
@@ -76,12 +77,17 @@ def compare_to_baselines(store: EncodingStore | str | Path, checkpoint: Any, sam
     runs, seconds = {}, {}
     for method in (Identity(), LambertianRatio(estimator=fit), model):
         t0 = time.perf_counter()
-        runs[method.name] = run_benchmark(
-            store, method, list(protocols), Path(out_dir) / slug(method.name), limit=pairs,
-            oracle_light=oracle_light, oracle_shadow=oracle_shadow, estimator=fit, grid_pairs=grid_pairs,
-            save_images=save_images, progress=progress)
-        seconds[method.name] = time.perf_counter() - t0
-    seconds["total"] = time.perf_counter() - start
+        where = Path(out_dir) / slug(method.name)
+        done = finished_run(store, method, list(protocols), where, limit=pairs, oracle_light=oracle_light,
+                            oracle_shadow=oracle_shadow) if reuse else None
+        runs[method.name] = done or run_benchmark(
+            store, method, list(protocols), where, limit=pairs, oracle_light=oracle_light,
+            oracle_shadow=oracle_shadow, estimator=fit, grid_pairs=grid_pairs, save_images=save_images,
+            progress=progress)
+        # A reused run's seconds are its relights' own (what the rows' s/img says), not this reading of them.
+        seconds[method.name] = (sum(r.seconds for r in done.records if r.seconds == r.seconds) if done
+                                else time.perf_counter() - t0)
+    seconds["total"] = sum(seconds.values()) if reuse else time.perf_counter() - start
     table = tables.summarize([r for run in runs.values() for r in run.records])
     own, rt, spec = runs[model.name], model.relighter.runtime, model.relighter.spec
     light = ("exact target lights (oracle)" if oracle_light
