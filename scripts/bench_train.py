@@ -84,10 +84,11 @@ def profile(configs: list[str], variant: str, steps: int, warmup: int) -> None:
     print("| where the step's time goes (self CPU time, torch.profiler) | " + " | ".join(cols) + " |")
     print("|---|" + "---:|" * len(cols))
     print("| wall s/step (under the profiler) | " + " | ".join(f"{v['step']:.3f}" for v in cols.values()) + " |")
+    totals = {c: sum(x for k, x in v.items() if k != "step") for c, v in cols.items()}
     for cat in next(iter(cols.values())):
         if cat != "step":
-            print(f"| {cat} | " + " | ".join(f"{v[cat]:.3f} s ({100 * v[cat] / sum(x for k, x in v.items() if k != 'step'):.0f}%)"
-                                          for v in cols.values()) + " |")
+            print(f"| {cat} | " + " | ".join(f"{v[cat]:.3f} s ({100 * v[cat] / totals[c]:.0f}%)"
+                                          for c, v in cols.items()) + " |")
 
 
 if __name__ == "__main__":

@@ -63,8 +63,8 @@ def section(store: str, models: list[str], pairs: int, out: Path) -> str:
     table.to_csv(out / "suite.csv")
     counts = sorted({n for run in runs.values() for n in _pairs(run).values()})
     return "\n".join([
-        f"**{store}**: {' and '.join(map(str, counts))} pairs per protocol (a seed no shipped model trained on), target "
-        "lights fitted to the target images and c estimated (no oracle inputs), every model at its defaults. Rows: "
+        f"**{store}**: {' and '.join(map(str, counts))} pairs per protocol (a seed no shipped model trained on), "
+        "target lights fitted to the target images and c estimated (no oracle inputs), every model at its defaults. Rows: "
         + "; ".join(f"`{row}` = {shipped}" for row, shipped in names.items()) + ".", "", table.to_markdown(), ""])
 
 

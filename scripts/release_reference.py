@@ -67,7 +67,8 @@ def main() -> None:
     ema = OmegaConf.select(cfg, "callbacks.ema.decay", default=0.999)
     comparison, bench = benchmark(a, a.run_checkpoint)
     train_s = float(timer.get("train", 0.0))
-    facts = {"summary": a.summary or f"The reference {hp.get('name')} trained on this project's CPU.", "data": a.data or DATA,
+    facts = {"summary": a.summary or f"The reference {hp.get('name')} trained on this project's CPU.",
+             "data": a.data or DATA,
              "seed": seed, "batch_size": batch, "optimizer": hp.get("optimizer"), "precision": a.precision,
              "hardware": a.hardware, "wall_time": f"{train_s / 3600:.2f} h of training "
              f"({float(timer.get('validate', 0.0)) / 60:.1f} min of validation besides)",
