@@ -118,6 +118,29 @@ def test_gt_pairs_with_identity_include_the_source_under_its_own_light(synth_sto
     assert 4 <= hits <= 20
 
 
+def test_identity_pairs_are_conditioned_on_the_source_s_own_light_even_with_group_lights(tmp_path):
+    """gt_light=group lends another face's fit to a changed light; the identity pair (target = source) keeps the
+    source's own fit, so that relit under its own light the input is what the student learns to return."""
+    from difareli.synth.generator import generate
+
+    # Estimated lights (v2): the two faces of a light group hold different fits of the same true light.
+    generate(out_dir=str(tmp_path / "s"), subjects=4, lights=2, resolution=32, seed=0, realism="full",
+             inputs="estimated_light")
+    store = EncodingStore.open(tmp_path / "s")
+    ids = store.ids()
+    ds = pair_dataset("gt", store, ids, SP, NS, gt_light="group", gt_identity=True)
+    rid = ids[0]
+    fits = [np.asarray(store.read(o, ["light"])["light"]) for o in ds.light_records[rid]]
+    assert len(fits) == 2 and np.abs(fits[0] - fits[1]).max() > 1e-3  # its group lends two different fits
+    src = {k: np.asarray(v) for k, v in store.read(rid).items()}
+    own_shading = torch.from_numpy(render_shading(src, src["light"])).permute(2, 0, 1)
+    own = image_to_tensor(src["image"])
+    torch.manual_seed(0)
+    identity = [item for item in (ds[0] for _ in range(40)) if torch.equal(item["target_image"], own)]
+    assert len(identity) >= 8  # half the draws with two light indices
+    assert all(torch.allclose(item["target_spatial"][:3], own_shading) for item in identity)
+
+
 def test_student_overfits_a_few_pairs(synth_store):
     """L2 on 2 fixed ground-truth pairs falls >= 3x in 30 Adam steps (measured on 4 pairs: 6.5x, 0.157 -> 0.024)."""
     torch.manual_seed(0)

@@ -125,7 +125,9 @@ class GroundTruthPairs(PairDataset):
         rid = self.ids[i]
         others = self.others[rid]
         tid = others[int(torch.randint(len(others), (1,)))]  # seeded per worker by Lightning
-        lights = self.light_records[tid]
+        # The identity pair is conditioned on the source's own light: relit under its own light, the input comes
+        # back (another face's fit of that light would teach the student to ignore small light changes).
+        lights = self.light_records[tid] if tid != rid else [tid]
         lid = lights[int(torch.randint(len(lights), (1,)))] if len(lights) > 1 else tid
         src = self.source(rid)
         light_names = ["light"] + (["shadow"] if "shadow" in src else [])
