@@ -66,17 +66,21 @@ def test_shipped_checkpoint_changes_the_light_of_an_unseen_face(name, tmp_path):
     generate(out_dir=str(tmp_path / "s"), subjects=10, lights=2, resolution=res, seed=77, realism="full",
              inputs="estimated_light")
     store = EncodingStore.open(tmp_path / "s")
-    rid = store.ids(split="test")[0]
-    arrays = store.read(rid, ["image", "light", "shadow"])
     r = Relighter(loaded, device="cpu")  # the default sampler (the cards'), or one pass for a student
-    own = np.asarray(arrays["light"])
-    c = float(np.asarray(arrays["shadow"]).reshape(-1)[0])
-    same, left, right = r.relight(r.source(store, rid), Targets.of([own, sh.yaw(own, -60.0), sh.yaw(own, 60.0)], [c] * 3))
-    image = np.asarray(arrays["image"]).astype(float)
-    # Its own light gives the input back closely (3-4 grey levels on average for the shipped DiFaReli++ on these
-    # seed-77 subjects); lights from either side change the image visibly and differently (17-41 levels apart).
-    assert np.abs(same - image).mean() < 8
-    assert np.abs(left.astype(float) - right).mean() > 3 * np.abs(same - image).mean()
+    own_errors = []
+    for rid in store.ids(split="test"):  # the unseen faces of the test split (4 records here)
+        arrays = store.read(rid, ["image", "light", "shadow"])
+        own = np.asarray(arrays["light"])
+        c = float(np.asarray(arrays["shadow"]).reshape(-1)[0])
+        same, left, right = r.relight(r.source(store, rid),
+                                      Targets.of([own, sh.yaw(own, -60.0), sh.yaw(own, 60.0)], [c] * 3))
+        image = np.asarray(arrays["image"]).astype(float)
+        own_errors.append(np.abs(same - image).mean())
+        # Lights from either side change the image visibly and differently (17-41 levels apart).
+        assert np.abs(left.astype(float) - right).mean() > 3 * own_errors[-1], rid
+    # Its own light gives the input back closely on average over the unseen faces (on these seed-77 faces:
+    # difareli_pp-synth64 3.0-4.1 grey levels, mean 3.5; difareli_pp_ss-synth64 3.4-8.5, mean 6.2).
+    assert np.mean(own_errors) < 8, own_errors
 
 
 def _relight_once(relighter, store, rid, light):
