@@ -201,7 +201,8 @@ def test_teacher_pairs_resume_after_kill(synth_store, tiny_checkpoint, tmp_path)
 
     cfg = compose_train(tmp_path / "run", [f"checkpoint={tiny_checkpoint('difareli_pp')}", f"store={synth_store}",
                                            f"out={tmp_path / 'part'}", "limit=4", "batch_size=3", "progress=false",
-                                           "sampler.steps=3", "runtime.device=cpu"], config_name="teacher_pairs")
+                                           "sampler=ddim", "sampler.steps=3", "runtime.device=cpu"],
+                      config_name="teacher_pairs")  # the relighter above: DDIM-3
     resumed = run(cfg)
     assert (resumed["written"], resumed["skipped"]) == (2, 2)
     assert not scratch.exists()
