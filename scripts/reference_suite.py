@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from collections import Counter
 from pathlib import Path
 
 from difareli import tables, zoo
@@ -61,18 +62,12 @@ def section(store: str, models: list[str], pairs: int, out: Path) -> str:
         names[comparison.facts["model"]] = f"`{name}` ({comparison.facts['sampler']})"
     table = tables.summarize([r for run in runs.values() for r in run.records])
     table.to_csv(out / "suite.csv")
-    counts = sorted({n for run in runs.values() for n in _pairs(run).values()})
+    counts = sorted({n for run in runs.values() for n in Counter(r.protocol for r in run.records).values()})
     return "\n".join([
         f"**{store}**: {' and '.join(map(str, counts))} pairs per protocol (a seed no shipped model trained on), "
-        "target lights fitted to the target images and c estimated (no oracle inputs), every model at its defaults. Rows: "
+        "target lights fitted to the target images and c estimated (no oracle inputs), every model at its defaults. "
+        "Rows: "
         + "; ".join(f"`{row}` = {shipped}" for row, shipped in names.items()) + ".", "", table.to_markdown(), ""])
-
-
-def _pairs(run) -> dict[str, int]:
-    counts: dict[str, int] = {}
-    for r in run.records:
-        counts[r.protocol] = counts.get(r.protocol, 0) + 1
-    return counts
 
 
 if __name__ == "__main__":

@@ -184,7 +184,10 @@ def random_batch(module, batch: int, device: str | torch.device = "cpu") -> dict
 
 def _channels_last(items: list[dict]) -> dict:
     """Default collation, then NHWC ("channels last") memory for the 4-D tensors."""
-    batch = torch.utils.data.default_collate(items)
+    return _to_channels_last(torch.utils.data.default_collate(items))
+
+
+def _to_channels_last(batch: dict) -> dict:
     return {k: v.contiguous(memory_format=torch.channels_last) if v.dim() == 4 else v for k, v in batch.items()}
 
 
@@ -311,7 +314,7 @@ def profile_train_step(preset: str, res: int, batch: int, precision: str, steps:
         module.net.to(memory_format=torch.channels_last)
     batch_ = random_batch(module, batch)
     if "cl" in flags:
-        batch_ = _channels_last([{k: v[i] for k, v in batch_.items()} for i in range(batch)])
+        batch_ = _to_channels_last(batch_)
     opt = torch.optim.AdamW(module.parameters(), lr=1e-4)
     bf16 = "bf16" in precision
 

@@ -99,7 +99,8 @@ def model_card(name: str, ckpt: Mapping[str, Any], facts: Mapping[str, Any]) -> 
              f"| spatial inputs | {', '.join(hp.get('spatial_inputs') or []) or '-'} |",
              f"| non-spatial inputs | {', '.join(hp.get('nonspatial_inputs') or []) or '-'} |",
              f"| steps | {ckpt.get('global_step')} |"]
-    for key in ("data", "seed", "batch_size", "optimizer", "precision", "hardware", "wall_time", "weights", "sampler"):
+    for key in ("data", "seed", "batch_size", "optimizer", "precision", "hardware", "wall_time", "weights",
+                "sampler"):
         if key in facts:
             lines.append(f"| {key.replace('_', ' ')} | {facts[key]} |")
     lines += ["", "## Benchmark", "", str(facts.get("benchmark", "(not measured)")), "",

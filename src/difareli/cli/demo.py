@@ -28,10 +28,9 @@ def run(cfg: DictConfig) -> DemoResult:
               "too few pairs to rank the methods; read the ± standard errors")
         print(res.table.to_markdown())
     suite = zoo.suite()
-    card = None if suite else card_benchmark(cfg.checkpoint)
     if suite:
         print(f"The shipped models' suite (the figures the README quotes):\n{suite}")
-    elif card:
+    elif card := card_benchmark(cfg.checkpoint):
         print(f"The model card's table for {cfg.checkpoint} (the figures the README quotes):\n{card}")
     for note in res.notes:
         print(note)

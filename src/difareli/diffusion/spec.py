@@ -206,7 +206,7 @@ PRESETS: dict[str, SamplerSpec] = {
     "paper": SamplerSpec("ddim", steps=1000, clip_x0_invert=True, clip_x0_generate=True, alpha_zero_end=True),
     # The default of every relighting command, the app and the notebooks, and the sampler the shipped models'
     # cards are benchmarked with: chosen by error against seconds on the shipped weights
-    # (difareli-bench-samplers; docs/reference_models.md "Choosing the default sampler").
+    # (difareli-bench-samplers; docs/reference_models.md "The default sampler").
     DEFAULT_SAMPLER: SamplerSpec("unipc", steps=50, options={"variant": "bh2"}),
 }
 
