@@ -89,3 +89,51 @@ def test_agrees_with_mesh_ray_tracing_on_synthfaces():
             got = march_shadow(depth, gb.hit, cam, d, normal=gb.normal)
             ious.append((ref & got).sum() / max((ref | got).sum(), 1))
     assert min(ious) > 0.4 and np.mean(ious) > 0.55, ious
+
+
+def _march_one_ray_at_a_time(depth, hit, cam, d, *, max_distance=2.0, thickness=0.5, bias_pixels=0.5):
+    """The march written the slow, obvious way (one ray, one step at a time): the batched march must equal it."""
+    d = np.asarray(d, float) / np.linalg.norm(d)
+    h, w = depth.shape
+    pixel = 2.0 / (cam.scale * w)
+    out = np.zeros((h, w), bool)
+    dxy = math.hypot(d[0], d[1])
+    if dxy < 1e-6:
+        return out
+    step = pixel / dxy
+    n_steps = int(min(math.ceil(max_distance / step), 2 * max(h, w)))
+    x, y = pixel_world_xy(cam, h, w)
+    for r, c in zip(*np.nonzero(hit)):
+        for k in range(1, n_steps + 1):
+            s = k * step
+            qx, qy, qz = x[r, c] + s * d[0], y[r, c] + s * d[1], depth[r, c] + s * d[2]
+            j = int(np.floor(((qx + cam.tx) * cam.scale + 1) / 2 * w))
+            i = int(np.floor((1 - (qy + cam.ty) * cam.scale) / 2 * h))
+            if not (0 <= i < h and 0 <= j < w):
+                break
+            if hit[i, j] and bias_pixels * pixel < depth[i, j] - qz < thickness:
+                out[r, c] = True
+                break
+    return out
+
+
+def test_batched_march_equals_one_ray_at_a_time_and_per_direction():
+    from difareli.render.screen_shadow import march_shadows
+
+    rng = np.random.default_rng(3)
+    res = 24
+    cam = OrthoCamera(scale=1.1, tx=0.05, ty=-0.02)
+    x, y = pixel_world_xy(cam, res, res)
+    # A bumpy dome (a face-like height field) with a hole: shadows of many lengths, rays leaving the surface.
+    r2 = x ** 2 + y ** 2
+    hit = (r2 < 0.7) & ~((np.abs(x - 0.2) < 0.08) & (np.abs(y) < 0.1))
+    depth = np.where(hit, np.sqrt(np.clip(0.8 - r2, 0, None)) + 0.15 * np.sin(9 * x) * np.cos(7 * y), 0.0)
+    dirs = rng.normal(size=(12, 3))
+    dirs[:, 2] = np.abs(dirs[:, 2]) * np.where(np.arange(12) % 4 == 0, -0.3, 1.0)  # some lights from behind
+    dirs[0] = [0, 0, 1]  # along the view axis: no cast shadow at all
+    stack = march_shadows(depth, hit, cam, dirs)
+    assert stack.shape == (12, res, res) and stack[1:].any() and not stack[0].any()
+    for n, d in enumerate(dirs):
+        want = _march_one_ray_at_a_time(depth, hit, cam, d)
+        assert np.array_equal(stack[n], want), n
+        assert np.array_equal(march_shadow(depth, hit, cam, d), want)

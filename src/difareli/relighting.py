@@ -28,7 +28,7 @@ from difareli.relight_core import invert_image, relight  # noqa: F401 (callers i
 from difareli.relightable import OnePassRelightable, Relightable, model_inputs
 from difareli.runtime import Runtime
 from difareli.store import EncodingStore
-from difareli.targets import Targets, retarget
+from difareli.targets import Targets, retarget_many
 
 
 def needed_encodings(model: Relightable) -> list[str]:
@@ -139,7 +139,7 @@ class Relighter:
         out = []
         chunks = range(0, len(targets), self.batch_size)
         for start in tqdm(chunks, desc="relight", disable=not self.progress or len(chunks) == 1):
-            batch = [retarget(arrays, self.model_inputs, light, c) for light, c in targets[start:start + self.batch_size]]
+            batch = retarget_many(arrays, self.model_inputs, targets[start:start + self.batch_size])
             x = relight(self.model, x0, cond, condition_tensors(self.model, batch, self.device), self.spec,
                         runtime=self.runtime, mean_matching=self.mean_matching, inversion=inv)
             errors.check_finite(x.float().cpu().numpy(), f"relight of {source.what}",

@@ -18,7 +18,7 @@ import numpy as np
 
 from difareli import sh
 from difareli.render.camera import OrthoCamera
-from difareli.render.screen_shadow import march_shadow
+from difareli.render.screen_shadow import march_shadows
 from difareli import encodings
 from difareli.encodings import normalise_c
 from difareli.errors import TARGET_LIGHT_MAX_ABS, UserError, check_finite, check_light, check_number
@@ -144,20 +144,31 @@ def rotation_targets(source: Mapping[str, np.ndarray], axis: str, frames: int, *
     return Targets.of(lights, [c] * len(lights), f"rotation about {axis}"), why
 
 
+#: Where :func:`retarget_many` puts the cast shadows it ray-marched for all its targets at once (keyed by the
+#: light direction's bytes), so each target's ``shadow_map`` re-render reads its map instead of marching again.
+CASTS_KEY = "_cast_shadows"
+
+
+def cast_shadows(arrays: Mapping[str, np.ndarray], lights) -> np.ndarray:
+    """Binary cast-shadow maps (N, H, W) toward each light's dominant direction, ray-marched on the stored depth
+    in one batched march; a point turned away from the light (known normal, n.d <= 0) is in attached, not cast,
+    shadow."""
+    depth = np.asarray(arrays["depth"], dtype=np.float64)
+    normal = np.asarray(arrays["normal"], dtype=np.float64)
+    cam = OrthoCamera(*np.asarray(arrays["cam"], dtype=np.float64).tolist())
+    dirs = np.stack([sh.dominant_direction(light) for light in lights])
+    cast = march_shadows(depth, depth != 0, cam, dirs)
+    known = encodings.known_normals(normal)
+    return cast & ~(known[None] & (np.einsum("hwc,nc->nhw", normal, dirs) <= 0))
+
+
 def target_shadow_map(arrays: Mapping[str, np.ndarray], light: np.ndarray, c: float, c_range=None) -> np.ndarray:
     """Binary cast-shadow map toward ``light``'s dominant direction, ray-marched on the stored depth, times
     the normalised shadow strength ``c`` (the ``shadow_map`` encoding's definition). ``c_range``: the store's
     c range (``encodings.store_c_range``), else the one the arrays carry under ``encodings.C_RANGE_KEY``
     (SynthFaces v3 readers put it there), else the fixed range."""
-    depth = np.asarray(arrays["depth"], dtype=np.float64)
-    normal = np.asarray(arrays["normal"], dtype=np.float64)
-    cam = OrthoCamera(*np.asarray(arrays["cam"], dtype=np.float64).tolist())
-    hit = depth != 0
-    d = sh.dominant_direction(light)
-    cast = march_shadow(depth, hit, cam, d)
-    # Where the face normal is known, a point turned away from the light is in attached, not cast, shadow.
-    known = encodings.known_normals(normal)
-    cast &= ~(known & (normal @ d <= 0))
+    marched = arrays.get(CASTS_KEY, {}).get(sh.dominant_direction(light).tobytes())
+    cast = marched if marched is not None else cast_shadows(arrays, [light])[0]
     c_range = c_range if c_range is not None else encodings.store_c_range(arrays)
     return (cast * normalise_c(c, c_range)).astype(np.float32)
 
@@ -200,6 +211,18 @@ def retarget(arrays: Mapping[str, np.ndarray], names: list[str], light: np.ndarr
         e = encodings.get(n)
         out[n] = e.render(arrays, light, shadow) if e.light_dependent else arrays[n]
     return out
+
+
+def retarget_many(arrays: Mapping[str, np.ndarray], names: list[str], pairs) -> list[dict[str, np.ndarray]]:
+    """:func:`retarget` for each ``(light, shadow)`` of ``pairs``; the cast shadows of all their lights are
+    ray-marched first in one batched march (a video's 60 frames: one march, not 60)."""
+    pairs = list(pairs)
+    marched = [n for n in names if encodings.get(n).light_dependent and "depth" in encodings.get(n).needs]
+    if marched and len(pairs) > 1 and "depth" in arrays:
+        lights = [np.asarray(light, dtype=np.float64) for light, _ in pairs]
+        keys = [sh.dominant_direction(light).tobytes() for light in lights]
+        arrays = {**arrays, CASTS_KEY: dict(zip(keys, cast_shadows(arrays, lights)))}
+    return [retarget(arrays, names, light, shadow) for light, shadow in pairs]
 
 
 # ------------------------------------------------------------------------------------------ target c policy
