@@ -6,6 +6,11 @@ The face box is given from the FaceMesh landmarks, so dlib's HOG detector never 
 with exactly ``face_recognition.face_encodings``' calls (pose predictor on the box, then the ResNet descriptor),
 loading only the two models it uses: importing ``face_recognition`` also loads the 68-point predictor and the
 CNN detector, seconds of every photo's cold start spent on nothing.
+
+``backend="torch"`` (default) runs the descriptor network as the PyTorch port of :mod:`.dlib_resnet` on the
+150 px chip ``dlib.get_face_chip`` cuts (what ``compute_face_descriptor(image, shape)`` cuts itself): within
+3e-7 of dlib's descriptor, ~15 ms instead of ~105 ms on one thread. ``backend="dlib"`` is the reference. dlib's
+jitter (``num_jitters > 1``: random crops from dlib's own RNG) is not ported: it always runs on the dlib backend.
 """
 
 from __future__ import annotations
@@ -32,22 +37,32 @@ class DlibIdentity:
     provides = ("identity",)
     requires = ("image", "landmarks")
 
-    def __init__(self, num_jitters: int = 1, model: str = "small"):
+    def __init__(self, num_jitters: int = 1, model: str = "small", backend: str = "torch"):
         if model not in ("small", "large"):
             raise ValueError(f"identity model must be 'small' (5 points) or 'large' (68 points), got {model!r}")
+        if backend not in ("torch", "dlib"):
+            raise ValueError(f"identity backend must be 'torch' or 'dlib', got {backend!r}")
         self.num_jitters = num_jitters
         self.model = model
+        self.backend = "dlib" if num_jitters > 1 else backend  # jitter: dlib's RNG, not ported
         self._models = None
 
     def models(self):
-        """(pose predictor, face encoder), loaded on first use (face_recognition's model files)."""
+        """(pose predictor, face encoder), loaded on first use (face_recognition's model files); the encoder is
+        dlib's for the dlib backend, :class:`~.dlib_resnet.DlibFaceResNet` for the torch one."""
         if self._models is None:
             import dlib
             import face_recognition_models as frm
 
             pose = (frm.pose_predictor_five_point_model_location() if self.model == "small"
                     else frm.pose_predictor_model_location())
-            self._models = (dlib.shape_predictor(pose), dlib.face_recognition_model_v1(frm.face_recognition_model_location()))
+            if self.backend == "torch":
+                from .dlib_resnet import load
+
+                encoder = load(frm.face_recognition_model_location())
+            else:
+                encoder = dlib.face_recognition_model_v1(frm.face_recognition_model_location())
+            self._models = (dlib.shape_predictor(pose), encoder)
         return self._models
 
     def __call__(self, ctx: dict, needed: set[str]) -> dict:
@@ -57,7 +72,13 @@ class DlibIdentity:
         top, right, bottom, left = landmark_box(np.asarray(ctx["landmarks"])[:, :2], image.shape[:2])
         predictor, encoder = self.models()
         shape = predictor(image, dlib.rectangle(left, top, right, bottom))
-        enc = np.asarray(encoder.compute_face_descriptor(image, shape, self.num_jitters))
+        if self.backend == "torch":
+            from .dlib_resnet import face_descriptors
+
+            # The chip compute_face_descriptor(image, shape) cuts: get_face_chip_details(shape, 150, 0.25).
+            enc = face_descriptors(dlib.get_face_chip(image, shape, size=150, padding=0.25), encoder)[0]
+        else:
+            enc = np.asarray(encoder.compute_face_descriptor(image, shape, self.num_jitters))
         if enc.shape != (IDENTITY_DIM,) or not np.isfinite(enc).all():
             raise BadInput("dlib produced no identity descriptor")
         return {"identity": enc.astype(np.float32)}
