@@ -75,6 +75,14 @@ def quad_to_crop(points_xy: np.ndarray, quad: np.ndarray, size: int) -> np.ndarr
     return (np.asarray(points_xy, dtype=np.float64) - quad[0]) @ np.linalg.inv(basis).T
 
 
+def landmarks_to_crop(landmarks: np.ndarray, quad: np.ndarray, size: int) -> np.ndarray:
+    """FaceMesh landmarks (N, 3) in original pixels -> the aligned crop's: x, y through :func:`quad_to_crop`,
+    z scaled like them (the quad is a similarity, and FaceMesh's z shares x's unit)."""
+    lm = np.asarray(landmarks, dtype=np.float64)
+    quad = np.asarray(quad, dtype=np.float64)
+    return np.c_[quad_to_crop(lm[:, :2], quad, size), lm[:, 2] * size / np.hypot(*(quad[3] - quad[0]))]
+
+
 class FaceMeshRunner:
     """Lazily built mediapipe FaceMesh (static images, refined landmarks); returns (478, 3) pixel landmarks."""
 
@@ -154,7 +162,8 @@ class FaceAligner:
         return np.concatenate([lm[:, :2] * scale + quad[0], lm[:, 2:] * scale], axis=1)
 
     def __call__(self, rgb: np.ndarray) -> dict:
-        """``{"image": aligned uint8, "quad": (4, 2), "faces": n, "box": ..., "notes": [...]}``."""
+        """``{"image": aligned uint8, "quad": (4, 2), "faces": n, "box": ..., "notes": [...], "landmarks": (478, 3)
+        FaceMesh landmarks in original pixels}``."""
         faces = self.detect(rgb)
         notes = []
         box = faces[0][1] if faces else None
@@ -168,4 +177,4 @@ class FaceAligner:
             raise BadInput("no face detected" if not faces else "face detected but FaceMesh found no landmarks")
         quad = ffhq_quad(lm[:, :2])
         return {"image": warp_quad(rgb, quad, self.size), "quad": quad, "faces": max(len(faces), 1),
-                "box": None if box is None else box.tolist(), "notes": notes}
+                "box": None if box is None else box.tolist(), "notes": notes, "landmarks": lm}

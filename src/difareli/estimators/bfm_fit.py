@@ -22,14 +22,16 @@ whitened expression coefficients of the BFM of ``synth.face_model``, then yaw, p
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
 
-from difareli.render import OrthoCamera, Scene, render_gbuffer
-from difareli.face_model import N_EXP, N_ID, PIVOT, SHAPE_DIM, FaceModel, FaceParams
+from difareli.render import OrthoCamera, Scene
+from difareli.face_model import N_EXP, N_ID, PIVOT, SHAPE_DIM, FaceModel, FaceParams, pose_points
 
-from .geometry import NUM_VERTICES, FaceMeshGeometry, orient_toward_viewer, tessellation_triangles
+from .align import landmarks_to_crop
+from .geometry import NUM_VERTICES, FaceMeshGeometry, orient_toward_viewer, render_face, tessellation_triangles
 from .loading import BadInput
 
 __all__ = ["FACEMESH_TO_IBUG68", "SHAPE_DIM", "BFMFit", "BFMGeometry", "facemesh_to_68", "fit_bfm",
@@ -50,12 +52,34 @@ FACEMESH_TO_IBUG68 = (
     (78,), (82,), (13,), (312,), (308,), (317,), (14,), (87,),                         # inner lips 60-67
 )
 JAW = np.arange(17)
+# Each iBUG point as the mean of two FaceMesh vertices (a single one twice: (x + x) / 2 == x exactly).
+_IBUG_A = np.array([ids[0] for ids in FACEMESH_TO_IBUG68])
+_IBUG_B = np.array([ids[-1] for ids in FACEMESH_TO_IBUG68])
 
 
 def facemesh_to_68(landmarks: np.ndarray) -> np.ndarray:
     """(68, D) iBUG-order points from FaceMesh landmarks (468 or 478, D)."""
     lm = np.asarray(landmarks, dtype=np.float64)
-    return np.stack([lm[list(ids)].mean(0) for ids in FACEMESH_TO_IBUG68])
+    return (lm[_IBUG_A] + lm[_IBUG_B]) / 2  # what the mean of each pair gives, bit for bit
+
+
+@functools.lru_cache(maxsize=2)
+def _landmark_model(model: FaceModel) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The 68 keypoints' part of ``model``, built once per model: float64 mean (68, 3) and bases (68, 3, 50) for
+    the fit, and the float32 coefficient-major bases (50, 204) for :func:`posed_landmarks` (the full model is
+    ~10k vertices; a fit only ever needs these 68)."""
+    rows = (3 * model.landmarks[:, None] + np.arange(3)).ravel()
+    basis = np.c_[model.id_basis, model.exp_basis][rows]  # (204, 50) float32
+    return (model.mean[model.landmarks].astype(np.float64), basis.astype(np.float64).reshape(-1, 3, N_ID + N_EXP),
+            np.ascontiguousarray(basis.T))
+
+
+def posed_landmarks(model: FaceModel, params: FaceParams) -> np.ndarray:
+    """``model.build(params)[0][model.landmarks]`` (68, 3) float32 without building the other vertices (equal to
+    float32 rounding: the same float32 sums over the 68 keypoints' columns only)."""
+    coeffs = np.r_[params.identity, params.expression].astype(np.float32)
+    v = model.mean[model.landmarks] + np.einsum("i,ij->j", coeffs, _landmark_model(model)[2]).reshape(-1, 3)
+    return pose_points(v, params.pose)
 
 
 def pose_from_rotation(r: np.ndarray) -> np.ndarray:
@@ -87,8 +111,7 @@ class BFMFit:
 
     def landmarks3d(self, model: FaceModel | None = None) -> np.ndarray:
         """Posed BFM 68 keypoints (68, 3) in the model frame."""
-        model = model or FaceModel.load()
-        return model.build(self.params)[0][model.landmarks].astype(np.float64)
+        return posed_landmarks(model or FaceModel.load(), self.params).astype(np.float64)
 
 
 def _pose_step(x: np.ndarray, y: np.ndarray, w: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
@@ -114,22 +137,28 @@ def fit_bfm(landmarks_xy: np.ndarray, H: int, W: int, *, model: FaceModel | None
     model = model or FaceModel.load()
     uv = np.asarray(landmarks_xy, dtype=np.float64)
     y = np.stack([2 * uv[:, 0] / W - 1, 1 - 2 * uv[:, 1] / H], axis=1)  # NDC
-    mean = model.mean[model.landmarks].astype(np.float64)
-    basis = np.c_[model.id_basis, model.exp_basis].astype(np.float64).reshape(-1, 3, N_ID + N_EXP)[model.landmarks]
+    mean, basis, _ = _landmark_model(model)
+    n_c = N_ID + N_EXP
+    # (3, 68 * 50): ``r[:2] @ b3`` is every keypoint's basis rotated, one BLAS product (an einsum took 5x longer).
+    b3 = basis.transpose(1, 0, 2).reshape(3, -1)
+
+    def rotated_basis(r_):  # (136, 50): rows x0, y0, x1, ... of R[:2] times each keypoint's basis
+        return (r_[:2] @ b3).reshape(2, 68, n_c).transpose(1, 0, 2).reshape(-1, n_c)
+
     w = np.ones(68)
     w[JAW] = jaw_weight
-    n_c = N_ID + N_EXP
+    sw = np.repeat(w, 2)
+    ridge = sigma ** 2 * np.eye(n_c)
     c = np.zeros(n_c)
     for _ in range(iterations):
         s, r, t = _pose_step(mean + basis @ c, y, w)
         # Shape: residual in model units (divided by s) so that sigma does not depend on the crop size.
-        a = np.einsum("ij,kjc->kic", r[:2], basis).reshape(-1, n_c)  # (136, 50)
+        a = rotated_basis(r)
         b = ((y - t) / s - mean @ r[:2].T).reshape(-1)
-        sw = np.repeat(w, 2)
-        c = np.linalg.solve(a.T @ (a * sw[:, None]) + sigma ** 2 * np.eye(n_c), a.T @ (sw * b))
+        c = np.linalg.solve(a.T @ (a * sw[:, None]) + ridge, a.T @ (sw * b))
     # Joint Gauss-Newton (Levenberg-damped) on (rotation increment, log s, T, c): the same objective.
     # Residuals are divided by the initial scale s0 (fixed, so shrinking s cannot lower the data term).
-    sqw, s0 = np.sqrt(np.repeat(w, 2)), s
+    sqw, s0 = np.sqrt(sw), s
 
     def residual(r_, s_, t_, c_):
         proj = s_ * (mean + basis @ c_) @ r_[:2].T + t_
@@ -137,20 +166,22 @@ def fit_bfm(landmarks_xy: np.ndarray, H: int, W: int, *, model: FaceModel | None
 
     lam = 1e-3
     cur = residual(r, s, t, c)
+    jac = np.zeros((136 + n_c, 6 + n_c))
+    jac[136:, 6:] = sigma * np.eye(n_c)
+    row_w = (sqw / s0)[:, None]
+    jac[:136, 4:6] = np.tile(np.eye(2), (68, 1)) * row_w  # d/dT: constant
     for _ in range(polish):
-        x_pts = mean + basis @ c  # (68, 3)
-        xr = x_pts @ r.T  # rotated
-        jac = np.zeros((136 + n_c, 6 + n_c))
-        for k in range(3):  # d/dw_k of s (R_delta R x)_xy with R_delta = I + [w]x
-            e = np.zeros(3)
-            e[k] = 1.0
-            jac[:136, k] = s * np.cross(e, xr)[:, :2].reshape(-1)
-        jac[:136, 3] = (s * xr[:, :2]).reshape(-1)
-        jac[:136, 4] = np.tile([1.0, 0.0], 68)
-        jac[:136, 5] = np.tile([0.0, 1.0], 68)
-        jac[:136, 6:] = s * np.einsum("ij,kjc->kic", r[:2], basis).reshape(-1, n_c)
-        jac[:136] *= (sqw / s0)[:, None]
-        jac[136:, 6:] = sigma * np.eye(n_c)
+        xr = (mean + basis @ c) @ r.T  # rotated keypoints (68, 3)
+        # d/dw_k of s (R_delta R x)_xy with R_delta = I + [w]x: the xy of e_k x xr, written out.
+        zero = np.zeros(68)
+        jac[:136, 0] = np.stack([zero, -xr[:, 2]], 1).reshape(-1)
+        jac[:136, 1] = np.stack([xr[:, 2], zero], 1).reshape(-1)
+        jac[:136, 2] = np.stack([-xr[:, 1], xr[:, 0]], 1).reshape(-1)
+        jac[:136, 3] = xr[:, :2].reshape(-1)
+        jac[:136, :4] *= s
+        jac[:136, 6:] = s * rotated_basis(r)
+        jac[:136, :4] *= row_w
+        jac[:136, 6:] *= row_w
         g = jac.T @ cur
         h = jac.T @ jac
         step = np.linalg.solve(h + lam * np.diag(np.diag(h) + 1e-12), -g)
@@ -166,8 +197,7 @@ def fit_bfm(landmarks_xy: np.ndarray, H: int, W: int, *, model: FaceModel | None
     params = FaceParams(c[:N_ID].copy(), c[N_ID:].copy(), pose_from_rotation(r))
     # y = s R x + T with the pose applied about PIVOT: s (R (x - p) + p + t)_xy = s R x + T.
     cam = OrthoCamera(s, *(t / s + (r @ PIVOT)[:2] - PIVOT[:2]))
-    posed = model.build(params)[0][model.landmarks]
-    proj = cam.project(posed, H, W)
+    proj = cam.project(posed_landmarks(model, params), H, W)
     err = np.linalg.norm(proj - uv, axis=1)
     return BFMFit(params, cam, proj, float(np.sqrt((err ** 2).mean())), float(np.sqrt((err[17:] ** 2).mean())))
 
@@ -181,11 +211,25 @@ class BFMGeometry(FaceMeshGeometry):
     shape_dim = SHAPE_DIM
 
     def __init__(self, min_detection_confidence: float = 0.5, jaw_weight: float = 0.25, sigma: float = 0.01,
-                 iterations: int = 8, polish: int = 10, max_rmse: float = 0.03, mesh_min_size: int = 192):
+                 iterations: int = 8, polish: int = 10, max_rmse: float = 0.03, mesh_min_size: int = 192,
+                 landmark_source: str = "crop"):
         super().__init__(min_detection_confidence)
         self.fit_options = dict(jaw_weight=jaw_weight, sigma=sigma, iterations=iterations, polish=polish)
         self.max_rmse = max_rmse
         self.mesh_min_size = mesh_min_size
+        if landmark_source not in ("crop", "alignment"):
+            raise ValueError(f"landmark_source must be 'crop' or 'alignment', got {landmark_source!r}")
+        self.landmark_source = landmark_source
+
+    def landmarks(self, ctx: dict) -> tuple[np.ndarray, list[str]]:
+        """``landmark_source="crop"``: FaceMesh on the aligned crop (:meth:`FaceMeshGeometry.landmarks`).
+        ``"alignment"``: the alignment pass's landmarks mapped into the crop, which saves that second FaceMesh
+        pass (~5 ms per image) but moves them: by a mean 0.4-0.8 px at 256 px on the astronaut and Grace Hopper
+        (about what a 0.35 px shift of the crop does to the second pass), 1.5 px on the cameraman (yaw 50 deg) and
+        5 px on his mirror image (tests/test_preprocess_speed.py); hence not the default."""
+        if self.landmark_source == "alignment" and ctx.get("alignment_landmarks") is not None:
+            return landmarks_to_crop(ctx["alignment_landmarks"], ctx["quad"], ctx["image"].shape[0]), []
+        return super().landmarks(ctx)
 
     def detect(self, image: np.ndarray) -> list[np.ndarray]:
         """FaceMesh landmarks (478, 3) in ``image`` pixels; small crops are upsampled first (FaceMesh misses
@@ -222,7 +266,7 @@ class BFMGeometry(FaceMeshGeometry):
                "reprojection_px": fit.rmse_px, "bfm_fit": info, "notes": notes}
         if needed & {"scene", "gbuffer", "normal", "depth"}:
             scene = Scene.from_arrays(verts, orient_toward_viewer(verts, tessellation_triangles()))
-            gb = render_gbuffer(scene, fit.cam, H, W)
+            gb = render_face(scene, fit.cam, H, W)
             out.update(scene=scene, gbuffer=gb, normal=gb.normal.astype(np.float32),
                        depth=np.where(gb.hit, gb.depth, 0.0).astype(np.float32))
         return out

@@ -16,6 +16,8 @@ No face parser with shipped weights exists offline (OFFLINE.md), so:
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from difareli.encodings import FACE_PARTS, FOREGROUND_PARTS, PART_INDEX
@@ -28,6 +30,37 @@ LIPS_INNER_LOWER = (78, 95, 88, 178, 87, 14, 317, 402, 318, 324, 308)
 CHIN, FOREHEAD = 152, 10
 _FACE_IDX = np.array([PART_INDEX[p] for p in FACE_PARTS])
 _FG_IDX = np.array([PART_INDEX[p] for p in FOREGROUND_PARTS])
+# Label -> bool lookups: ``lut[labels]`` is np.isin(labels, idx) at a fraction of the cost.
+_FACE_LUT = np.isin(np.arange(256), _FACE_IDX)
+_FG_LUT = np.isin(np.arange(256), _FG_IDX)
+_CROSS = np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], dtype=np.uint8)  # scipy.ndimage's default structure
+
+
+def erode(mask: np.ndarray, iterations: int = 1) -> np.ndarray:
+    """``ndimage.binary_erosion(mask, iterations=...)`` (cross element, outside the image counts as False)
+    through OpenCV, ~10x faster."""
+    import cv2
+
+    m = np.ascontiguousarray(mask, dtype=bool).view(np.uint8)
+    return cv2.erode(m, _CROSS, iterations=iterations, borderType=cv2.BORDER_CONSTANT, borderValue=0).view(bool)
+
+
+def dilate(mask: np.ndarray, iterations: int = 1) -> np.ndarray:
+    """``ndimage.binary_dilation(mask, iterations=...)`` (cross element) through OpenCV."""
+    import cv2
+
+    m = np.ascontiguousarray(mask, dtype=bool).view(np.uint8)
+    return cv2.dilate(m, _CROSS, iterations=iterations, borderType=cv2.BORDER_CONSTANT, borderValue=0).view(bool)
+
+
+def opening(mask: np.ndarray, iterations: int = 1) -> np.ndarray:
+    """``ndimage.binary_opening``: erosion, then dilation."""
+    return dilate(erode(mask, iterations), iterations)
+
+
+def closing(mask: np.ndarray, iterations: int = 1) -> np.ndarray:
+    """``ndimage.binary_closing``: dilation, then erosion (which, as scipy's, erodes from the image border)."""
+    return erode(dilate(mask, iterations), iterations)
 
 
 def chains(edges) -> list[list[int]]:
@@ -56,9 +89,14 @@ def chains(edges) -> list[list[int]]:
     return out
 
 
+@functools.lru_cache(maxsize=32)
+def _chains(edges: frozenset) -> tuple[tuple[int, ...], ...]:
+    return tuple(map(tuple, chains(edges)))  # topology only: the same for every image
+
+
 def outline(edges, points_xy: np.ndarray) -> list[int]:
     """One closed outline from a connection set: its cycle, or two paths joined end to end."""
-    parts = chains(edges)
+    parts = [list(p) for p in _chains(frozenset(edges))]
     if len(parts) == 1:
         return parts[0]
     if len(parts) != 2:
@@ -80,13 +118,47 @@ def hull(edges, points_xy: np.ndarray) -> list[int]:
 
 
 def fill(poly_xy: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    """Bool mask of pixels whose centres lie inside the polygon (continuous pixel coordinates)."""
-    from skimage.draw import polygon
-
+    """Bool mask of pixels whose centres lie inside the polygon or on its boundary (continuous pixel
+    coordinates): the rule of ``skimage.draw.polygon`` (O'Rourke's crossing test), one scanline per row instead
+    of one test per pixel (~4x faster; equal to skimage on the tests' photos and on integer polygons, where
+    every centre is a vertex, on an edge, or off it by far more than rounding)."""
     m = np.zeros(shape, dtype=bool)
-    rr, cc = polygon(poly_xy[:, 1] - 0.5, poly_xy[:, 0] - 0.5, shape)
-    m[rr, cc] = True
+    r0, c0, box = fill_box(poly_xy, shape)
+    m[r0:r0 + box.shape[0], c0:c0 + box.shape[1]] = box
     return m
+
+
+def fill_box(poly_xy: np.ndarray, shape: tuple[int, int]) -> tuple[int, int, np.ndarray]:
+    """:func:`fill` within the polygon's bounding box: (first row, first column, bool box mask)."""
+    H, W = shape
+    r, c = poly_xy[:, 1] - 0.5, poly_xy[:, 0] - 0.5  # vertices in pixel-index units
+    r0, r1 = int(max(0, r.min())), min(H - 1, int(np.ceil(r.max())))  # skimage's box
+    c0, c1 = int(max(0, c.min())), min(W - 1, int(np.ceil(c.max())))
+    if r1 < r0 or c1 < c0:
+        return 0, 0, np.zeros((0, 0), dtype=bool)
+    rows = np.arange(r0, r1 + 1, dtype=np.float64)[:, None]
+    prev = np.arange(-1, len(r) - 1)  # edge (i - 1, i), as skimage walks them
+    y0, y1 = r - rows, r[prev] - rows  # relative to each row: (R, E)
+    xa, xb = c, c[prev]
+    right, left = (y0 > 0) != (y1 > 0), (y0 < 0) != (y1 < 0)  # straddles the row (the two senses of skimage)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xi = (xa * y1 - xb * y0) / (y1 - y0)  # column of the crossing
+    n = c1 - c0 + 2
+    ri, ei = np.nonzero(right)
+    # Right crossings (xi > column) counted at the first column they do not reach; left ones (xi < column) at
+    # the first column past them; cumulative sums then give both counts at every column.
+    k = np.clip(np.ceil(xi[ri, ei]) - c0, 0, n - 1).astype(np.intp)
+    r_cross = np.bincount(ri * n + k, minlength=len(rows) * n).reshape(-1, n)[:, ::-1].cumsum(1)[:, ::-1][:, 1:]
+    li, ej = np.nonzero(left)
+    k = np.clip(np.floor(xi[li, ej]) + 1 - c0, 0, n - 1).astype(np.intp)
+    l_cross = np.bincount(li * n + k, minlength=len(rows) * n).reshape(-1, n).cumsum(1)[:, :-1]
+    # Inside: an odd count of right crossings; on an edge: the two counts' parities differ. Both are drawn.
+    box = ((r_cross | l_cross) & 1).astype(bool)
+    on_vertex = (np.abs(r - np.round(r)) < 1e-12) & (np.abs(c - np.round(c)) < 1e-12)  # also drawn
+    vr, vc = np.round(r[on_vertex]).astype(int) - r0, np.round(c[on_vertex]).astype(int) - c0
+    inside = (vr >= 0) & (vr < box.shape[0]) & (vc >= 0) & (vc < box.shape[1])
+    box[vr[inside], vc[inside]] = True
+    return r0, c0, box
 
 
 def face_part_polygons(lm_xy: np.ndarray) -> dict[str, np.ndarray]:
@@ -141,7 +213,8 @@ class FaceMeshSelfieMasks:
         """uint8 label map with the face parts painted, background elsewhere."""
         labels = np.zeros(shape, dtype=np.uint8)
         for name, poly in face_part_polygons(lm_xy).items():
-            labels[fill(poly, shape)] = PART_INDEX[name]
+            r0, c0, box = fill_box(poly, shape)
+            labels[r0:r0 + box.shape[0], c0:c0 + box.shape[1]][box] = PART_INDEX[name]
         return labels
 
     def __call__(self, ctx: dict, needed: set[str]) -> dict:
@@ -150,10 +223,11 @@ class FaceMeshSelfieMasks:
         lm = np.asarray(ctx["landmarks"])[:, :2]
         labels = self.face_labels(lm, (H, W))
         face = labels > 0
-        out = {"skin": labels == PART_INDEX["skin"], "face_mask": np.isin(labels, _FACE_IDX)}
+        out = {"skin": labels == PART_INDEX["skin"], "face_mask": _FACE_LUT[labels]}
         if needed & {"masks", "background", "person"}:
             person = self.person(image) > self.person_threshold
-            rows, cols = np.mgrid[0:H, 0:W] + 0.5
+            # Pixel-centre rows (H, 1) and columns (1, W): every use broadcasts them.
+            rows, cols = np.arange(H)[:, None] + 0.5, np.arange(W)[None, :] + 0.5
             chin = lm[CHIN]
             h = max(chin[1] - lm[FOREHEAD, 1], 1.0)
             w = max(np.ptp(lm[:, 0]), 1.0)
@@ -167,7 +241,7 @@ class FaceMeshSelfieMasks:
             if self.colour:
                 self.refine(image, labels, lm, rows, cols, h, w, jaw)
             out.update(masks=labels, person=person,
-                       background=np.where(np.isin(labels, _FG_IDX)[..., None], 0, image).astype(np.uint8))
+                       background=np.where(_FG_LUT[labels][..., None], 0, image).astype(np.uint8))
         return out
 
     def refine(self, image: np.ndarray, labels: np.ndarray, lm: np.ndarray, rows: np.ndarray, cols: np.ndarray,
@@ -177,25 +251,29 @@ class FaceMeshSelfieMasks:
         from scipy import ndimage
         from skimage.color import rgb2lab
 
-        lab = rgb2lab(image)
         skin = labels == PART_INDEX["skin"]
         if skin.sum() < 50:
             return
-        ref = np.median(lab[skin], axis=0)
-        chroma = np.hypot(lab[..., 1] - ref[1], lab[..., 2] - ref[2])
+        # CIELAB of only the pixels a rule reads (skin, the neck zone, the hair): the whole crop cost ~3 ms.
+        ref = np.median(rgb2lab(image[skin]), axis=0)
         chin = lm[CHIN]
         # Neck: skin-coloured person pixels below the jaw line, connected to the strip under the chin.
-        below = np.isin(labels, [PART_INDEX["neck"], PART_INDEX["clothes"]])
+        below = (labels == PART_INDEX["neck"]) | (labels == PART_INDEX["clothes"])
         zone = (below & (rows < chin[1] + self.neck_max_depth * h)
                 & (np.abs(cols - chin[0]) < self.neck_max_halfwidth * w))
-        skinlike = zone & (chroma < self.skin_chroma) & (lab[..., 0] > ref[0] - self.skin_dark)
-        skinlike = ndimage.binary_opening(skinlike, iterations=1)
+        lab = rgb2lab(image[zone])
+        skinlike = np.zeros_like(zone)
+        skinlike[zone] = ((np.hypot(lab[:, 1] - ref[1], lab[:, 2] - ref[2]) < self.skin_chroma)
+                          & (lab[:, 0] > ref[0] - self.skin_dark))
+        skinlike = opening(skinlike, 1)
         comp, n = ndimage.label(skinlike)
         seed = skinlike & (rows < chin[1] + 0.15 * h) & (np.abs(cols - chin[0]) < 0.25 * w)
-        keep = np.unique(comp[seed])
-        neck = np.isin(comp, keep[keep > 0])
+        keep = np.zeros(n + 1, dtype=bool)
+        keep[comp[seed]] = True
+        keep[0] = False
+        neck = keep[comp]
         if neck.sum() > 0.02 * h * w:
-            neck = ndimage.binary_closing(neck, iterations=2) & below
+            neck = closing(neck, 2) & below
             labels[below] = PART_INDEX["clothes"]
             labels[neck] = PART_INDEX["neck"]
         # Hat: hair above the forehead unlike the hair beside the face.
@@ -207,12 +285,14 @@ class FaceMeshSelfieMasks:
         top = hair & (rows < lm[FOREHEAD, 1])
         if beside.sum() < 30 or top.sum() < 30:
             return
-        hair_ref = np.median(lab[beside], axis=0)
+        hair_ref = np.median(rgb2lab(image[beside]), axis=0)
         # Unlike in hue (a cap, a hood) or far in lightness (a black cap over grey hair); highlights in the hair
         # differ in lightness only moderately.
-        unlike = top & ((np.hypot(lab[..., 1] - hair_ref[1], lab[..., 2] - hair_ref[2]) > self.hat_chroma)
-                        | (np.abs(lab[..., 0] - hair_ref[0]) > self.hat_lightness))
-        unlike = ndimage.binary_opening(unlike, iterations=2)
+        lab = rgb2lab(image[top])
+        unlike = np.zeros_like(top)
+        unlike[top] = ((np.hypot(lab[:, 1] - hair_ref[1], lab[:, 2] - hair_ref[2]) > self.hat_chroma)
+                       | (np.abs(lab[:, 0] - hair_ref[0]) > self.hat_lightness))
+        unlike = opening(unlike, 2)
         if unlike.sum() >= self.hat_min_share * top.sum():
             comp, n = ndimage.label(unlike)
             keep = []
@@ -223,4 +303,4 @@ class FaceMeshSelfieMasks:
                 if area >= 0.05 * top.sum() and bw >= self.hat_min_width * w and area >= 0.5 * bw * bh:
                     keep.append(i)
             if keep:
-                labels[ndimage.binary_closing(np.isin(comp, keep), iterations=2) & hair] = PART_INDEX["hat"]
+                labels[closing(np.isin(comp, keep), 2) & hair] = PART_INDEX["hat"]

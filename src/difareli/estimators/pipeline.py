@@ -130,6 +130,8 @@ class Pipeline:
         aligned = self.aligner(rgb)
         # The quad unrounded: compositing warps the relit crop back through it (difareli.composite).
         ctx: dict[str, Any] = {"image": aligned["image"], "quad": aligned["quad"], "notes": list(aligned["notes"])}
+        # The alignment pass's FaceMesh landmarks (original pixels), for estimators that can reuse them.
+        ctx["alignment_landmarks"] = aligned.get("landmarks")
         meta = {"faces": aligned["faces"], "box": aligned["box"], "quad": np.round(aligned["quad"], 2).tolist()}
         side = float(np.linalg.norm(np.asarray(aligned["quad"])[3] - np.asarray(aligned["quad"])[0]))
         if side < UPSAMPLE_NOTE * self.size:  # a small face: the crop is an enlargement, say so (report, console)
