@@ -321,3 +321,27 @@ def test_bench_samplers_refuses_a_student_as_the_swept_checkpoint(student_ckpt, 
     with pytest.raises(UserError, match=r"one-pass student: it has no sampler .* student="):
         bench_samplers(cfg)
     assert not (tmp_path / "s" / "bench_samplers.csv").exists()
+
+
+def test_bench_samplers_checks_the_student_before_the_teacher_rows(synth_store, tiny_checkpoint, tmp_path,
+                                                                   monkeypatch):
+    """A wrong student= fails in seconds, not after the teacher's DDIM-1000 rows; a shipped name is loaded."""
+    from difareli import speed
+    from difareli.cli.bench_samplers import run as bench_samplers
+
+    class TeacherRowsStarted(Exception):
+        pass
+
+    def teacher_rows(*args, **kwargs):
+        raise TeacherRowsStarted
+
+    monkeypatch.setattr(speed, "benchmark", teacher_rows)
+    overrides = [f"checkpoint={tiny_checkpoint('difareli_pp')}", f"store={synth_store}", "steps=[2]",
+                 "names=[ddim]", "reference=null", "limit=1", "progress=false", "runtime.device=cpu"]
+    with pytest.raises(FileNotFoundError, match="student=.*no_such.ckpt.*shipped checkpoint"):
+        bench_samplers(compose_train(tmp_path / "a", [*overrides, "student=/tmp/no_such.ckpt"],
+                                     config_name="bench_samplers"))
+    # The shipped student by name: loaded and its cases prepared, then the teacher's rows start.
+    with pytest.raises(TeacherRowsStarted):
+        bench_samplers(compose_train(tmp_path / "b", [*overrides, "student=difareli_pp_ss-synth64"],
+                                     config_name="bench_samplers"))

@@ -28,6 +28,8 @@ def run(cfg: DictConfig) -> dict:
     errors.check_out_dir(cfg.out_dir)
     if cfg.checkpoint is not None:
         zoo.resolve(cfg.checkpoint, "checkpoint")
+    if cfg.get("student") not in (None, "untrained"):  # checked before the teacher's (long) rows, not after
+        zoo.resolve(cfg.student, "student")
     runtime = Runtime.from_config(cfg.runtime)
     device = runtime.torch_device
     if cfg.threads:
@@ -65,12 +67,13 @@ def run(cfg: DictConfig) -> dict:
         what = f"untrained {cfg.model.preset} {cfg.model.name} ({res} px), timing only"
     print(f"bench-samplers: {what}, device {device}, {runtime.precision}"
           f"{', compiled' if runtime.compile else ''}{', CUDA graphs' if runtime.cuda_graphs else ''}")
+    # The student and its cases are prepared before the teacher's rows, so that a bad student fails in seconds.
+    student, student_cases = _student(cfg, cases, device) if cfg.get("student") is not None else (None, None)
     rows, outputs = speed.benchmark(model, cases, samplers, steps, reference=reference,
                                     reference_config=configured[reference[0]] if reference else None,
                                     mean_matching=cfg.mean_matching, runtime=runtime, repeats=cfg.repeats,
                                     warmup=cfg.warmup, progress=cfg.progress)
-    if cfg.get("student") is not None:  # the one-pass student timed in this run: one point + every ratio
-        student, student_cases = _student(cfg, cases, device)
+    if student is not None:  # the one-pass student timed in this run: one point + every ratio
         speed.add_one_pass(rows, outputs, student, student_cases, name=student.hparams.get("name", "student"),
                            runtime=runtime, repeats=cfg.repeats, warmup=cfg.warmup)
     out = Path(cfg.out_dir)
@@ -99,8 +102,7 @@ def _student(cfg: DictConfig, cases: list, device) -> tuple:
     else:
         from difareli.lit import load_checkpoint
 
-        errors.check_file(cfg.student, "student")
-        student = load_checkpoint(cfg.student, device).model.to(device)
+        student = load_checkpoint(zoo.resolve(cfg.student, "student"), device).model.to(device)
         if cfg.checkpoint is None:
             raise ValueError("student=<checkpoint> is timed against a teacher checkpoint: give checkpoint=... and "
                              "store=..., or student=untrained for timing only")
