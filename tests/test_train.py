@@ -278,3 +278,21 @@ def test_wall_seconds_are_logged_at_each_validation_and_continue_on_resume(synth
     train(second)
     b = walls(Path(second.paths.output_dir))
     assert [s for s, _ in b] == [5] and b[0][1] > a[-1][1]  # counted on from the first run's wall time
+
+
+def test_default_multirun_sweep_dir_resolves_before_any_job(tmp_path, monkeypatch):
+    """`difareli-train -m ...` without hydra.sweep.dir: the sweeper resolves the sweep dir (under paths.log_dir)
+    before any job has a HydraConfig; with paths.root_dir = ${hydra:runtime.cwd} that raised 'HydraConfig was not
+    set' and no sweep ran. The root is now the working directory."""
+    from hydra.core.utils import setup_globals
+    from omegaconf import OmegaConf
+
+    from difareli.configs import CONFIG_DIR
+
+    setup_globals()  # Hydra's own resolvers (${now:}, ${hydra:...})
+    monkeypatch.chdir(tmp_path)
+    cfg = OmegaConf.create({"task_name": "t", "paths": OmegaConf.load(CONFIG_DIR / "paths" / "default.yaml"),
+                            "hydra": OmegaConf.load(CONFIG_DIR / "hydra" / "default.yaml")})
+    sweep = Path(cfg.hydra.sweep.dir)
+    assert sweep.parent == tmp_path / "logs" / "t" / "multiruns"
+    assert Path(cfg.paths.data_dir) == tmp_path / "data"

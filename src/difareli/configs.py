@@ -9,6 +9,7 @@ shipped ones without touching the installation.
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Any
 
@@ -35,6 +36,9 @@ def _register_resolvers() -> None:
     except ImportError:
         return
     OmegaConf.register_new_resolver("difareli_precision", train_precision, replace=True)
+    # paths.root_dir: the directory the command runs in (jobs never chdir). Not ${hydra:runtime.cwd}: a multirun's
+    # sweeper resolves hydra.sweep.dir (under paths.log_dir) before any job has a HydraConfig, and that failed.
+    OmegaConf.register_new_resolver("difareli_cwd", os.getcwd, replace=True)
 
 
 _register_resolvers()
