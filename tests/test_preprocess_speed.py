@@ -20,7 +20,6 @@ from difareli.estimators import light as light_mod  # noqa: E402
 from difareli.estimators import masks as masks_mod  # noqa: E402
 from difareli.estimators.align import FaceAligner, landmarks_to_crop  # noqa: E402
 from difareli.estimators.bfm_fit import BFMGeometry, facemesh_to_68, fit_bfm, posed_landmarks  # noqa: E402
-from difareli.estimators.geometry import render_face  # noqa: E402
 from difareli.estimators.pipeline import Pipeline  # noqa: E402
 from difareli.estimators.shadow import DEFAULT_WEIGHTS, ShadowEstimator  # noqa: E402
 from difareli.face_model import FaceModel, FaceParams  # noqa: E402
@@ -91,13 +90,13 @@ def test_fit_bfm_and_its_parts_match_the_reference(runs):
         np.testing.assert_allclose(posed_landmarks(model, p), model.build(p)[0][model.landmarks], atol=1e-6)
 
 
-def test_render_face_equals_the_full_render(runs):
+def test_culled_render_equals_the_full_render(runs):
     for name, (new, _) in runs.items():
         scene, cam = new["scene"], new["gbuffer"].cam
-        # As fitted, moved so that the face leaves the crop (the window then stops at the border), and off it.
+        # As fitted, moved so that the face leaves the crop (the culled box then stops at the border), and off it.
         moved = [OrthoCamera(cam.scale, cam.tx + dx, cam.ty + dy) for dx, dy in ((0.6, -0.5), (5, 0), (-5, 0))]
         for c in (cam, *moved):
-            a, b = render_face(scene, c, S, S), render_gbuffer(scene, c, S, S)
+            a, b = render_gbuffer(scene, c, S, S), render_gbuffer(scene, c, S, S, cull=False)
             for key in ("hit", "triangle", "label"):
                 np.testing.assert_array_equal(getattr(a, key), getattr(b, key), err_msg=f"{name}: {key}")
             for key in ("normal", "face_normal", "depth", "bary"):
@@ -105,8 +104,8 @@ def test_render_face_equals_the_full_render(runs):
             np.testing.assert_allclose(a.points, b.points, atol=1e-9)
             for d in ([0.5, 0.3, 1.0], [-0.8, 0.1, 0.4]):
                 np.testing.assert_array_equal(cast_shadow(scene, a, d), cast_shadow(scene, b, d))
-        # Non-square images render in full.
-        a, b = render_face(scene, cam, S, S + 10), render_gbuffer(scene, cam, S, S + 10)
+        # Non-square images too.
+        a, b = render_gbuffer(scene, cam, S, S + 10), render_gbuffer(scene, cam, S, S + 10, cull=False)
         np.testing.assert_array_equal(a.triangle, b.triangle)
 
 

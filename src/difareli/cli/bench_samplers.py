@@ -28,8 +28,6 @@ def run(cfg: DictConfig) -> dict:
     errors.check_out_dir(cfg.out_dir)
     if cfg.checkpoint is not None:
         zoo.resolve(cfg.checkpoint, "checkpoint")
-    if cfg.get("student") not in (None, "untrained"):  # checked before the teacher's (long) rows, not after
-        zoo.resolve(cfg.student, "student")
     runtime = Runtime.from_config(cfg.runtime)
     device = runtime.torch_device
     if cfg.threads:

@@ -27,11 +27,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from difareli.render import OrthoCamera, Scene
+from difareli.render import OrthoCamera, Scene, render_gbuffer
 from difareli.face_model import N_EXP, N_ID, PIVOT, SHAPE_DIM, FaceModel, FaceParams, pose_points
 
 from .align import landmarks_to_crop
-from .geometry import NUM_VERTICES, FaceMeshGeometry, orient_toward_viewer, render_face, tessellation_triangles
+from .geometry import NUM_VERTICES, FaceMeshGeometry, orient_toward_viewer, tessellation_triangles
 from .loading import BadInput
 
 __all__ = ["FACEMESH_TO_IBUG68", "SHAPE_DIM", "BFMFit", "BFMGeometry", "facemesh_to_68", "fit_bfm",
@@ -266,7 +266,7 @@ class BFMGeometry(FaceMeshGeometry):
                "reprojection_px": fit.rmse_px, "bfm_fit": info, "notes": notes}
         if needed & {"scene", "gbuffer", "normal", "depth"}:
             scene = Scene.from_arrays(verts, orient_toward_viewer(verts, tessellation_triangles()))
-            gb = render_face(scene, fit.cam, H, W)
+            gb = render_gbuffer(scene, fit.cam, H, W)
             out.update(scene=scene, gbuffer=gb, normal=gb.normal.astype(np.float32),
                        depth=np.where(gb.hit, gb.depth, 0.0).astype(np.float32))
         return out

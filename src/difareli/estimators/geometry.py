@@ -17,7 +17,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from difareli.render import GBuffer, OrthoCamera, Scene, render_gbuffer
+from difareli.render import OrthoCamera, Scene, render_gbuffer
 
 from .align import FaceMeshRunner
 from .loading import BadInput
@@ -88,32 +88,6 @@ def fit_camera(vertices: np.ndarray, landmarks_xy: np.ndarray, H: int, W: int) -
     return cam, err
 
 
-def render_face(scene: Scene, cam: OrthoCamera, H: int, W: int) -> GBuffer:
-    """``render_gbuffer(scene, cam, H, W)`` casting only the rays of the square around the mesh's projection
-    (~40% of an FFHQ crop; no ray outside the mesh's bounding box can hit it). The window's camera puts its pixel
-    centres where the full image's are, up to float rounding (tests compare the two renders)."""
-    uv = cam.project(scene.vertices, H, W)
-    # Pixel j's centre is j + 0.5; one pixel of margin for embree's float32 edge tests.
-    c0, r0 = np.maximum(np.floor(uv.min(0) - 0.5).astype(int) - 1, 0)
-    c1, r1 = np.ceil(uv.max(0) - 0.5).astype(int) + 2
-    side = max(c1 - c0, r1 - r0, 1)
-    if H != W or side >= W:  # one scale for x and y: the window must have the image's aspect
-        return render_gbuffer(scene, cam, H, W)
-    c0, r0 = min(c0, W - side), min(r0, H - side)
-    s = cam.scale * W / side
-    win = OrthoCamera(s, cam.tx - 1 / s - (2 * c0 / W - 1) / cam.scale, cam.ty + 1 / s - (1 - 2 * r0 / H) / cam.scale)
-    part = render_gbuffer(scene, win, side, side)
-    fill = {"hit": False, "normal": 0, "face_normal": 0, "depth": -np.inf, "points": 0, "bary": 0, "label": 0,
-            "triangle": -1}  # render_gbuffer's off-mesh values
-    out = {}
-    for name, value in fill.items():
-        a = getattr(part, name)
-        full = np.full((H, W, *a.shape[2:]), value, dtype=a.dtype)
-        full[r0:r0 + side, c0:c0 + side] = a
-        out[name] = full
-    return GBuffer(**out, cam=cam)
-
-
 class FaceMeshGeometry:
     """Estimator: FaceMesh on the aligned crop -> landmarks, face surface, shape, cam, normal, depth."""
 
@@ -151,7 +125,7 @@ class FaceMeshGeometry:
                "reprojection_px": err, "notes": notes}
         if needed & {"scene", "gbuffer", "normal", "depth"}:
             scene = Scene.from_arrays(verts, orient_toward_viewer(verts, tessellation_triangles()))
-            gb = render_face(scene, cam, H, W)
+            gb = render_gbuffer(scene, cam, H, W)
             out.update(scene=scene, gbuffer=gb, normal=gb.normal.astype(np.float32),
                        depth=np.where(gb.hit, gb.depth, 0.0).astype(np.float32))
         return out

@@ -191,13 +191,24 @@ def _unit(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return v / np.where(n > 0, n, 1.0), n[..., 0]
 
 
-def render_gbuffer(scene: Scene, cam: OrthoCamera, H: int, W: int) -> GBuffer:
-    """Cast one ray per pixel centre of an ``H x W`` image along -z and return the :class:`GBuffer`."""
+def render_gbuffer(scene: Scene, cam: OrthoCamera, H: int, W: int, *, cull: bool = True) -> GBuffer:
+    """Cast one ray per pixel centre of an ``H x W`` image along -z and return the :class:`GBuffer`.
+
+    ``cull``: cast only the rays through the mesh's xy bounding box (one pixel of margin for embree's float32 edge
+    tests); a ray along -z outside it cannot hit, so the G-buffer is the same, for a fraction of the rays (a face
+    fills ~40% of an FFHQ crop). ``cull=False`` casts every ray (the reference the tests compare with)."""
     if isinstance(cam, (np.ndarray, list, tuple)):
         cam = OrthoCamera.from_array(cam)
     z_start = scene.vertices[:, 2].max() + _RAY_START_MARGIN * scene.scale
     origins, directions = cam.pixel_rays(H, W, z_start)
-    tri_all = scene.intersects_first(origins, directions)
+    if cull:
+        margin = 2.0 / (cam.scale * W)  # one pixel in camera-space units
+        lo, hi = scene.vertices[:, :2].min(0) - margin, scene.vertices[:, :2].max(0) + margin
+        rays = np.flatnonzero(np.all((origins[:, :2] >= lo) & (origins[:, :2] <= hi), axis=1))
+        tri_all = np.full(len(origins), -1, dtype=np.int64)
+        tri_all[rays] = scene.intersects_first(origins[rays], directions[rays])
+    else:
+        tri_all = scene.intersects_first(origins, directions)
     hit_flat = tri_all >= 0
     idx = np.flatnonzero(hit_flat)
     tri = tri_all[idx]

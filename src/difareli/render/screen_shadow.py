@@ -48,20 +48,23 @@ def march_shadows(depth: np.ndarray, hit: np.ndarray, cam: OrthoCamera, directio
     dirs = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
     h, w = depth.shape
     out = np.zeros((len(dirs), h, w), bool)
+    if not hit.any():
+        return out
     pixel = 2.0 / (cam.scale * w)  # camera-space width of one pixel
     x, y = pixel_world_xy(cam, h, w)
     # The visible surface, -inf off it (nothing there occludes), as one flat array to gather from.
     surface = np.where(hit, depth, -np.inf).astype(np.float64).ravel()
+    normal = None if normal is None else np.asarray(normal)
     bias = bias_pixels * pixel
     # A ray rising toward the viewer (dz >= 0) at or above the highest surface less the bias can never be blocked
     # again (blocking needs surface - z > bias): it is dropped there, which ends most lit rays early.
-    top = surface.max() - bias if hit.any() else -np.inf
+    top = surface.max() - bias
     starts = []  # per direction: the pixels whose rays it marches
     for n, d in enumerate(dirs):
         dxy = np.hypot(d[0], d[1])
-        if dxy < 1e-6 or not hit.any():
+        if dxy < 1e-6:
             continue  # light along the view axis: nothing visible can occlude
-        cand = hit if normal is None else hit & (np.asarray(normal) @ d > 0)
+        cand = hit if normal is None else hit & (normal @ d > 0)
         flat = np.flatnonzero(cand)
         step = pixel / dxy  # one pixel of screen-space travel per step; stop after max_distance along the ray
         n_steps = int(min(np.ceil(max_distance / step), 2 * max(h, w)))
