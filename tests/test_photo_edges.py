@@ -313,3 +313,29 @@ def test_one_bad_file_is_a_user_error_and_a_small_face_gets_a_note(tmp_path):
     canvas.paste(Image.fromarray(data.astronaut()).resize((110, 110), Image.LANCZOS), (100, 100))
     notes = prepare_photo(np.asarray(canvas), ["image"], size=256).meta["notes"]
     assert any(n.startswith("small face: the crop's square is ") and "x to 256 px" in n for n in notes), notes
+
+
+class _BlindMesh:
+    """A FaceMesh that finds no face: the aligned crop's pass fails."""
+
+    def __call__(self, rgb):
+        return []
+
+
+def test_geometry_falls_back_to_the_detection_pass_landmarks():
+    """FaceMesh missing the aligned crop reuses the alignment pass's landmarks, mapped from photo pixels into the
+    crop (an axis-aligned 100 px square at (10, 10) into a 200 px crop: (p - 10) * 2, z * 2); without them, the
+    one-line refusal."""
+    from difareli.estimators.geometry import FaceMeshGeometry
+    from difareli.estimators.loading import BadInput
+
+    est = FaceMeshGeometry()
+    est.mesh = _BlindMesh()
+    photo_lm = np.array([[10.0, 10.0, 0.5], [60.0, 35.0, -1.0], [110.0, 110.0, 2.0]])
+    quad = np.array([[10.0, 10.0], [10.0, 110.0], [110.0, 110.0], [110.0, 10.0]])  # tl, bl, br, tr
+    ctx = {"image": np.zeros((200, 200, 3), np.uint8), "quad": quad, "alignment_landmarks": photo_lm}
+    lm, notes = est.landmarks(ctx)
+    np.testing.assert_allclose(lm, [[0, 0, 1], [100, 50, -2], [200, 200, 4]], atol=1e-9)
+    assert notes == ["FaceMesh failed on the aligned crop; used landmarks from the detection pass"]
+    with pytest.raises(BadInput, match="no face in the aligned crop"):
+        est.landmarks({**ctx, "alignment_landmarks": None})

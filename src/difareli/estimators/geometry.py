@@ -19,7 +19,7 @@ import numpy as np
 
 from difareli.render import OrthoCamera, Scene, render_gbuffer
 
-from .align import FaceMeshRunner
+from .align import FaceMeshRunner, landmarks_to_crop
 from .loading import BadInput
 
 NUM_VERTICES = 468
@@ -107,9 +107,9 @@ class FaceMeshGeometry:
         found = self.detect(ctx["image"])
         if found:
             return found[0], []
-        if ctx.get("landmarks_from_alignment") is not None:
-            # FaceMesh missed the aligned crop: reuse the detection pass.
-            return ctx["landmarks_from_alignment"], [
+        if ctx.get("alignment_landmarks") is not None and ctx.get("quad") is not None:
+            # FaceMesh missed the aligned crop: the detection pass's landmarks (photo pixels), mapped into the crop.
+            return landmarks_to_crop(ctx["alignment_landmarks"], ctx["quad"], ctx["image"].shape[0]), [
                 "FaceMesh failed on the aligned crop; used landmarks from the detection pass"]
         raise BadInput("FaceMesh found no face in the aligned crop")
 
