@@ -340,3 +340,33 @@ def test_a_difareli_whose_response_to_c_is_noise_is_refused(store):
     rep = sm.compute(Noisy(), store, None, provenance={"checkpoint": "noisy"}, min_contrast=0, progress=False)
     prov = EncodingStore.open(store.root).derived[rep.name]
     assert prov["brightened"] >= 0.5 * prov["darkened"] > 0
+
+
+class _Noisy(Crafted):
+    """Its two decodes differ by noise, not a shadow; counts the records it relights."""
+
+    calls = 0
+
+    def relight_once(self, x0, source, target):
+        type(self).calls += x0.shape[0]
+        g = torch.Generator().manual_seed(int(abs(float(target.flatten()[0])) * 1000))
+        noise = 0.2 * (torch.rand(x0.shape[0], 1, *x0.shape[-2:], generator=g) - 0.5)
+        return (0.5 + noise).expand(-1, 3, -1, -1)
+
+
+def test_a_refused_difareli_is_refused_before_the_rest_of_the_store(store):
+    """check_after: the response is checked once that many records are relit, so the refusal comes before the rest;
+    what was relit stays in the raw version and a rerun resumes it (relights nothing twice)."""
+    n = len(store.ids())
+    assert n > 4
+    _Noisy.calls = 0
+    with pytest.raises(UserError, match=rf"response to c is noise.*measured on the first 4 of {n} records"):
+        sm.compute(_Noisy(), store, None, provenance={"checkpoint": "noisy"}, batch_size=2, check_after=4,
+                   progress=False)
+    assert _Noisy.calls == 2 * 4  # two decodes (c_min, c_max) of 4 records, not of the whole store
+    raw = next(v for v in EncodingStore.open(store.root).derived if "diffraw" in v)
+    assert len(derived.missing(store, raw, store.ids())) == n - 4
+    _Noisy.calls = 0
+    rep = sm.compute(_Noisy(), store, None, provenance={"checkpoint": "noisy"}, batch_size=2, check_after=4,
+                     min_contrast=0, progress=False)
+    assert _Noisy.calls == 2 * (n - 4) and rep.relit == n - 4 and rep.written == n

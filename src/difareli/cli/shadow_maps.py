@@ -37,7 +37,7 @@ def run(cfg: DictConfig):
                               threshold=threshold, median=cfg.median if cfg.median == "auto" else int(cfg.median),
                               zero_parts=list(cfg.zero_parts or []),
                               min_contrast=None if cfg.min_contrast is None else float(cfg.min_contrast),
-                              batch_size=int(cfg.batch_size),
+                              batch_size=int(cfg.batch_size), check_after=int(cfg.check_after),
                               version=cfg.version, runtime=runtime, mean_matching=bool(cfg.mean_matching),
                               device=runtime.torch_device, progress=bool(cfg.progress))
     version = rep.name.split("@", 1)[1]
@@ -97,6 +97,7 @@ def validate(cfg: DictConfig) -> None:
     if bad:
         raise errors.UserError(f"zero_parts={list(cfg.zero_parts)}: unknown parts {bad}; use names of {list(PART_INDEX)}")
     errors.check_int(cfg.batch_size, "batch_size", 1)
+    errors.check_int(cfg.check_after, "check_after", 0)
     errors.check_out_dir(cfg.out_dir)
     errors.check_number(cfg.c_quantile, "c_quantile", allow_none=False)
     from difareli.jobs.shadow_maps import check_threshold

@@ -51,6 +51,9 @@ from difareli.targets import retarget
 #: The authors' recipe: threshold on the grey-level difference, median size at 256 px, parts zeroed.
 RECIPE_THRESHOLD = 0.05
 RECIPE_MEDIAN_256 = 5
+#: Records relit before the DiFaReli's response to c is first checked (about 2 x 64 x 2,000 face pixels: the shares
+#: of darkened and brightened pixels are then known to well under a percent).
+CHECK_AFTER = 64
 ZERO_PARTS = ("l_eye", "r_eye", "l_brow", "r_brow", "mouth")
 
 
@@ -267,10 +270,12 @@ def compute(model, store, spec, *, provenance: Mapping[str, Any], ids: Sequence[
             split: str = "train", c_quantile: float = 0.01, threshold: str | float = RECIPE_THRESHOLD,
             median: int | str = "auto", zero_parts: Sequence[str] = ZERO_PARTS, min_contrast: float | None = None,
             batch_size: int = 8, version: str | None = None, runtime=None, mean_matching: bool = True,
-            device="cpu", progress: bool = True, c_range=None) -> ShadowMapReport:
+            device="cpu", progress: bool = True, c_range=None, check_after: int = CHECK_AFTER) -> ShadowMapReport:
     """The whole difference pipeline over ``ids`` (default: every record); writes two derived versions.
     ``min_contrast`` None: the threshold (Otsu: none). ``c_range``: ``(c_min, c_max)`` to relight at instead of
-    ``split``'s. The store is locked for the run: a second concurrent writer is refused, naming this one."""
+    ``split``'s. The DiFaReli's response is checked once ``check_after`` records are relit (0: only at the end), so
+    a model that will be refused is refused in minutes, not after the whole store. The store is locked for the
+    run: a second concurrent writer is refused, naming this one."""
     if "shadow" not in model_inputs(model):
         raise errors.UserError(f"the difference method relights at two shadow strengths c, but this model consumes "
                                f"{model_inputs(model)} (no 'shadow'); give a DiFaReli checkpoint (model=difareli)")
@@ -279,11 +284,60 @@ def compute(model, store, spec, *, provenance: Mapping[str, Any], ids: Sequence[
         return _compute(model, store, spec, provenance=provenance, ids=ids, split=split, c_quantile=c_quantile,
                         threshold=threshold, median=median, zero_parts=zero_parts, min_contrast=min_contrast,
                         batch_size=batch_size, version=version, runtime=runtime, mean_matching=mean_matching,
-                        device=device, progress=progress, given=c_range)
+                        device=device, progress=progress, given=c_range, check_after=check_after)
+
+
+def _face_values(store, raw: str, ids: Sequence[str], zero_parts: Sequence[str]):
+    """The raw differences of ``ids``, their mesh and kept-part masks, and every value on a face, concatenated."""
+    hits = {r: (np.asarray(store.read(r, ["depth"])["depth"]) != 0) if store.available("depth") else None for r in ids}
+    diffs = {r: np.asarray(store.read(r, [raw])[raw], dtype=np.float64) for r in ids}
+    keeps = {r: keep_mask(store, r, zero_parts) for r in ids}
+
+    def on_face(r, d):
+        m = np.ones(d.shape, bool)
+        for x in (hits[r], keeps[r]):
+            m = m if x is None else m & x
+        return d[m].reshape(-1)
+
+    values = np.concatenate([on_face(r, d) for r, d in diffs.items()]) if ids else np.zeros(0)
+    return diffs, hits, keeps, values
+
+
+def check_response(values: np.ndarray, threshold, min_contrast: float | None, step, scope: str = ""):
+    """The threshold and its rule, the contrast (99th percentile) and the darkened / brightened shares of the face
+    differences ``values``; refuses a DiFaReli whose response to c is too weak or is noise. ``scope`` ends the
+    refusal (e.g. which records it was measured on)."""
+    contrast = float(np.quantile(values, 0.99)) if values.size else 0.0
+    if threshold == "otsu":
+        thr, rule = otsu_threshold(values), "otsu over every difference value on the face of every record"
+        check_two_modes(values, thr)
+        if thr <= 0:  # a shadow darkens: a non-positive cut would call pixels that brightened with c shadow
+            raise errors.UserError(
+                f"Otsu's threshold of the differences is {thr:.4f} <= 0: this model does not darken the face as c "
+                f"grows (step {step}){scope}; train the DiFaReli longer or give threshold=<number>")
+    else:
+        thr, rule = float(threshold), "fixed (the authors' recipe: 0.05)" if float(threshold) == RECIPE_THRESHOLD \
+            else "given"
+    need = (thr if threshold != "otsu" else 0.0) if min_contrast is None else float(min_contrast)
+    if contrast < need:
+        raise errors.UserError(
+            f"this DiFaReli barely changes the image with c (step {step}): the 99th "
+            f"percentile of Y(c_min) - Y(c_max) on the face is {contrast:.4f}, below {need:.4f}{scope}; train it "
+            "longer, or set min_contrast=0 to write the maps anyway")
+    # A shadow only darkens: a response to c that brightens about as many pixels past the threshold as it darkens
+    # is sampling noise between the two decodes, not a shadow.
+    cut = thr if threshold != "otsu" else float(np.quantile(np.abs(values), 0.99)) if values.size else 0.0
+    dark, bright = (float((values > cut).mean()), float((values < -cut).mean())) if values.size else (0.0, 0.0)
+    if need > 0 and dark > 0 and bright >= 0.5 * dark:
+        raise errors.UserError(
+            f"this DiFaReli's response to c is noise (step {step}): on the face "
+            f"{dark:.1%} of the pixels darken by more than {cut:.4f} from c_min to c_max, and {bright:.1%} brighten by "
+            f"as much (a shadow only darkens){scope}; train it longer, or set min_contrast=0 to write the maps anyway")
+    return thr, rule, contrast, dark, bright
 
 
 def _compute(model, store, spec, *, provenance, ids, split, c_quantile, threshold, median, zero_parts, min_contrast,
-             batch_size, version, runtime, mean_matching, device, progress, given) -> ShadowMapReport:
+             batch_size, version, runtime, mean_matching, device, progress, given, check_after) -> ShadowMapReport:
     ids = list(ids) if ids is not None else store.ids()
     c_min, c_max, source = c_range_of(store, split, c_quantile, given)
     median = median_size(median, int(store.dims["H"]))
@@ -302,8 +356,18 @@ def _compute(model, store, spec, *, provenance, ids, split, c_quantile, threshol
     todo = derived.missing(store, raw, ids)
     needed = relight_reads(model_inputs(model))
     start = time.perf_counter()
+    step = provenance.get("global_step")
+    pending = set(todo)
+    early = check_after > 0 and len(ids) > check_after  # a check on part of the records, before the rest are relit
     bar = tqdm(total=len(todo), desc="difference maps", disable=not progress)
     for i in range(0, len(todo), batch_size):
+        if early and len(ids) - len(pending) >= check_after:
+            done = [r for r in ids if r not in pending]
+            early = False
+            check_response(_face_values(store, raw, done, zero_parts)[3], threshold, min_contrast, step,
+                           f" (measured on the first {len(done)} of {len(ids)} records, before relighting the rest; "
+                           f"their raw differences are kept in {raw}, which a rerun resumes)")
+        pending.difference_update(todo[i:i + batch_size])
         chunk = todo[i:i + batch_size]
         recs = [read_record(store, r, needed) for r in chunk]  # with the store's c range: its target maps
         for rid, d in zip(chunk, relight_pairs(model, recs, c_min, c_max, spec, runtime=runtime,
@@ -313,43 +377,8 @@ def _compute(model, store, spec, *, provenance, ids, split, c_quantile, threshol
         bar.set_postfix(img_s=f"{2 * (i + len(chunk)) / max(time.perf_counter() - start, 1e-9):.2f}")
     bar.close()
     seconds = time.perf_counter() - start
-    hits = {r: (np.asarray(store.read(r, ["depth"])["depth"]) != 0) if store.available("depth") else None for r in ids}
-    diffs = {r: np.asarray(store.read(r, [raw])[raw], dtype=np.float64) for r in ids}
-    keeps = {r: keep_mask(store, r, zero_parts) for r in ids}
-
-    def on_face(r, d):
-        m = np.ones(d.shape, bool)
-        for x in (hits[r], keeps[r]):
-            m = m if x is None else m & x
-        return d[m].reshape(-1)
-
-    values = np.concatenate([on_face(r, d) for r, d in diffs.items()])
-    contrast = float(np.quantile(values, 0.99)) if values.size else 0.0
-    if threshold == "otsu":
-        thr, rule = otsu_threshold(values), "otsu over every difference value on the face of every record"
-        check_two_modes(values, thr)
-        if thr <= 0:  # a shadow darkens: a non-positive cut would call pixels that brightened with c shadow
-            raise errors.UserError(
-                f"Otsu's threshold of the differences is {thr:.4f} <= 0: this model does not darken the face as c "
-                f"grows (step {provenance.get('global_step')}); train the DiFaReli longer or give threshold=<number>")
-    else:
-        thr, rule = float(threshold), "fixed (the authors' recipe: 0.05)" if float(threshold) == RECIPE_THRESHOLD \
-            else "given"
-    need = (thr if threshold != "otsu" else 0.0) if min_contrast is None else float(min_contrast)
-    if contrast < need:
-        raise errors.UserError(
-            f"this DiFaReli barely changes the image with c (step {provenance.get('global_step')}): the 99th "
-            f"percentile of Y(c_min) - Y(c_max) on the face is {contrast:.4f}, below {need:.4f}; train it longer, or "
-            "set min_contrast=0 to write the maps anyway")
-    # A shadow only darkens: a response to c that brightens about as many pixels past the threshold as it darkens
-    # is sampling noise between the two decodes, not a shadow.
-    cut = thr if threshold != "otsu" else float(np.quantile(np.abs(values), 0.99)) if values.size else 0.0
-    dark, bright = (float((values > cut).mean()), float((values < -cut).mean())) if values.size else (0.0, 0.0)
-    if need > 0 and dark > 0 and bright >= 0.5 * dark:
-        raise errors.UserError(
-            f"this DiFaReli's response to c is noise (step {provenance.get('global_step')}): on the face "
-            f"{dark:.1%} of the pixels darken by more than {cut:.4f} from c_min to c_max, and {bright:.1%} brighten by "
-            "as much (a shadow only darkens); train it longer, or set min_contrast=0 to write the maps anyway")
+    diffs, hits, keeps, values = _face_values(store, raw, ids, zero_parts)
+    thr, rule, contrast, dark, bright = check_response(values, threshold, min_contrast, step)
     final = {**prov, "threshold": thr, "threshold_rule": rule, "median": int(median), "raw": raw, "records": chosen,
              "n_records": len(ids), "zero_parts": list(zero_parts), "contrast_p99": round(contrast, 6),
              "darkened": round(dark, 6), "brightened": round(bright, 6),
