@@ -65,13 +65,23 @@ def main() -> None:
     seed = OmegaConf.select(cfg, "seed", default=42)
     batch = OmegaConf.select(cfg, "data.batch_size", default=a.batch_size)
     ema = OmegaConf.select(cfg, "callbacks.ema.decay", default=0.999)
+    # A fine-tuned run (init_from=<checkpoint>) counts the steps and hours of the checkpoint it started from.
+    init = OmegaConf.select(cfg, "init_from", default=None)
+    prior = read_checkpoint(str(zoo.resolve(init, "init_from"))) if init else None
     comparison, bench = benchmark(a, a.run_checkpoint)
     train_s = float(timer.get("train", 0.0))
+    wall = f"{train_s / 3600:.2f} h of training ({float(timer.get('validate', 0.0)) / 60:.1f} min of validation besides)"
+    steps = None
+    if prior is not None:
+        before, step = int(prior.get("global_step") or 0), int(raw.get("global_step") or 0)
+        steps = (f"{before + step} in all: {before} of {init}, then {step} of fine-tuning from its weights "
+                 "(init_from: a fresh optimizer and warm-up)")
+        earlier = (prior.get("model_card") or {}).get("wall_time")
+        wall = f"{wall.replace('of training', 'of fine-tuning', 1)}" + (f", after {init}'s {earlier}" if earlier else "")
     facts = {"summary": a.summary or f"The reference {hp.get('name')} trained on this project's CPU.",
-             "data": a.data or DATA,
+             "data": a.data or DATA, "steps": steps,
              "seed": seed, "batch_size": batch, "optimizer": hp.get("optimizer"), "precision": a.precision,
-             "hardware": a.hardware, "wall_time": f"{train_s / 3600:.2f} h of training "
-             f"({float(timer.get('validate', 0.0)) / 60:.1f} min of validation besides)",
+             "hardware": a.hardware, "wall_time": wall,
              "weights": f"EMA (decay {ema}), fp32", "sampler": comparison.facts["sampler"], "benchmark": bench,
              "intended_use": USE, "licence": LICENCE, "notes": a.notes}
     write(a.run_checkpoint, a.name, facts, comparison)

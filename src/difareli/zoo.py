@@ -98,7 +98,7 @@ def model_card(name: str, ckpt: Mapping[str, Any], facts: Mapping[str, Any]) -> 
              f"| preset | {hp.get('preset')}, {n_params / 1e6:.2f} M parameters |",
              f"| spatial inputs | {', '.join(hp.get('spatial_inputs') or []) or '-'} |",
              f"| non-spatial inputs | {', '.join(hp.get('nonspatial_inputs') or []) or '-'} |",
-             f"| steps | {ckpt.get('global_step')} |"]
+             f"| steps | {facts.get('steps') or ckpt.get('global_step')} |"]  # a fine-tune states its start
     for key in ("data", "seed", "batch_size", "optimizer", "precision", "hardware", "wall_time", "weights",
                 "sampler"):
         if key in facts:
