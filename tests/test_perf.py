@@ -129,14 +129,16 @@ def test_bench_train_script_reports_the_built_models_parameters():
 
 def test_profile_train_step_accounts_for_the_step():
     """Every category is a share of the profiled step: convolutions are there, nothing is negative, and the self
-    times add up to no more than the threads could spend in the wall time (and to most of one thread's)."""
-    # Three profiled steps, not one: a single step on a host that steals CPU (40% seen) once took twice its wall
-    # time outside any operator (0.129 s against 0.065 s of operators) and failed the lower bound below.
+    times add up to no more than the threads could spend in the wall time (and to a good share of it)."""
+    # The operators' share of the wall step is a property of the host, not of the accounting: 0.73-0.79 with two
+    # free threads, 0.50 and 0.497 under this test on a host stealing ~40% of the CPU (a fail at the old 0.5
+    # bound, in a clean-clone run and one of three reruns). The bound below only catches a category set that
+    # misses most of the work.
     prof = perf.profile_train_step("tiny", 16, 2, "32-true", steps=3, warmup=1)
     assert set(prof) == {"step", *perf.STEP_CATEGORIES, "other"}
     parts = {k: v for k, v in prof.items() if k != "step"}
     assert all(v >= 0 for v in parts.values()) and parts["convolution"] > 0 and parts["optimizer (AdamW)"] > 0
-    assert 0.5 * prof["step"] < sum(parts.values()) <= 1.05 * prof["step"]
+    assert 0.3 * prof["step"] < sum(parts.values()) <= 1.05 * prof["step"]
 
 
 def test_ablation_report_counts_every_pass():
