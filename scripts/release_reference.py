@@ -70,14 +70,15 @@ def main() -> None:
     prior = read_checkpoint(str(zoo.resolve(init, "init_from"))) if init else None
     comparison, bench = benchmark(a, a.run_checkpoint)
     train_s = float(timer.get("train", 0.0))
-    wall = f"{train_s / 3600:.2f} h of training ({float(timer.get('validate', 0.0)) / 60:.1f} min of validation besides)"
+    wall = (f"{train_s / 3600:.2f} h of {'fine-tuning' if prior is not None else 'training'} "
+            f"({float(timer.get('validate', 0.0)) / 60:.1f} min of validation besides)")
     steps = None
     if prior is not None:
         before, step = int(prior.get("global_step") or 0), int(raw.get("global_step") or 0)
         steps = (f"{before + step} in all: {before} of {init}, then {step} of fine-tuning from its weights "
                  "(init_from: a fresh optimizer and warm-up)")
         earlier = (prior.get("model_card") or {}).get("wall_time")
-        wall = f"{wall.replace('of training', 'of fine-tuning', 1)}" + (f", after {init}'s {earlier}" if earlier else "")
+        wall += f", after {init}'s {earlier}" if earlier else ""
     facts = {"summary": a.summary or f"The reference {hp.get('name')} trained on this project's CPU.",
              "data": a.data or DATA, "steps": steps,
              "seed": seed, "batch_size": batch, "optimizer": hp.get("optimizer"), "precision": a.precision,

@@ -357,17 +357,16 @@ def _compute(model, store, spec, *, provenance, ids, split, c_quantile, threshol
     needed = relight_reads(model_inputs(model))
     start = time.perf_counter()
     step = provenance.get("global_step")
-    pending = set(todo)
     early = check_after > 0 and len(ids) > check_after  # a check on part of the records, before the rest are relit
     bar = tqdm(total=len(todo), desc="difference maps", disable=not progress)
     for i in range(0, len(todo), batch_size):
-        if early and len(ids) - len(pending) >= check_after:
-            done = [r for r in ids if r not in pending]
+        if early and len(ids) - (len(todo) - i) >= check_after:  # records relit so far, resumed ones included
             early = False
+            rest = set(todo[i:])
+            done = [r for r in ids if r not in rest]
             check_response(_face_values(store, raw, done, zero_parts)[3], threshold, min_contrast, step,
                            f" (measured on the first {len(done)} of {len(ids)} records, before relighting the rest; "
                            f"their raw differences are kept in {raw}, which a rerun resumes)")
-        pending.difference_update(todo[i:i + batch_size])
         chunk = todo[i:i + batch_size]
         recs = [read_record(store, r, needed) for r in chunk]  # with the store's c range: its target maps
         for rid, d in zip(chunk, relight_pairs(model, recs, c_min, c_max, spec, runtime=runtime,
