@@ -26,13 +26,15 @@ from difareli import tables, zoo
 from difareli.diffusion import DEFAULT_SAMPLER, PRESETS
 from difareli.fileio import write_text_atomic
 from difareli.jobs.compare import compare_to_baselines
+from difareli.synth.command import synth_command
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--store", nargs="+", required=True,
                     help="SynthFaces stores of a seed no shipped model trained on (one table each)")
-    ap.add_argument("--store-cmd", nargs="*", default=[], help="the difareli-synth command that made each store")
+    ap.add_argument("--store-cmd", nargs="*", default=None,
+                    help="the command that made each store (default: read back from each store's header)")
     ap.add_argument("--pairs", type=int, default=100, help="pairs per protocol")
     ap.add_argument("--out", required=True, help="folder of the benchmark runs (resumed), one sub-folder per store")
     ap.add_argument("--models", nargs="*", default=None, help="shipped names (default: all of them)")
@@ -41,8 +43,10 @@ def main() -> None:
 
     start = time.perf_counter()
     out = Path(a.out)
+    # Read before the long work, so a store no header describes stops the run at once.
+    store_cmd = a.store_cmd if a.store_cmd is not None else [synth_command(store) for store in a.store]
     sections = [section(store, a.models or zoo.available(), a.pairs, out / Path(store).name) for store in a.store]
-    text = "\n".join([*sections, "Reproduce:", "", "```bash", *a.store_cmd,
+    text = "\n".join([*sections, "Reproduce:", "", "```bash", *store_cmd,
                       f"python scripts/reference_suite.py --store {' '.join(a.store)} --pairs {a.pairs} --out <folder>",
                       "```", ""])
     write_text_atomic(out / "suite.md", text)

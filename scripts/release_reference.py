@@ -9,7 +9,7 @@ options; the card states that command.
 
     difareli-synth out_dir=data/unseen_v2_s777 subjects=100 lights=4 resolution=64 seed=777 inputs=estimated_light
     python scripts/release_reference.py logs/reference_cpu/runs/<time>/checkpoints/last.ckpt difareli_pp-synth64 \
-        --store data/unseen_v2_s777 --store-cmd "difareli-synth out_dir=data/unseen_v2_s777 ..." --pairs 100
+        --store data/unseen_v2_s777 --pairs 100
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ from difareli import zoo
 from difareli.diffusion import DEFAULT_SAMPLER, as_spec
 from difareli.jobs.compare import compare_to_baselines
 from difareli.lit.checkpoint import read_checkpoint
+from difareli.synth.command import synth_command
 
 DATA = ("SynthFaces v2 (realism=full, inputs=estimated_light), 1000 subjects x 4 lights, 64 px, seed 0; trained on "
         "its train split (800 subjects)")
@@ -41,7 +42,7 @@ def main() -> None:
     ap.add_argument("run_checkpoint")
     ap.add_argument("name")
     ap.add_argument("--store", required=True, help="the store benchmarked (its protocols; a seed the model never saw)")
-    ap.add_argument("--store-cmd", default=None, help="the difareli-synth command that made --store (for the card)")
+    ap.add_argument("--store-cmd", default=None, help="the command that made --store, for the card (default: read back from the store's header)")
     ap.add_argument("--pairs", type=int, default=100, help="pairs per protocol")
     ap.add_argument("--sampler", default=DEFAULT_SAMPLER, help="a preset (default: the default sampler)")
     ap.add_argument("--steps", type=int, default=None, help="default: the preset's")
@@ -91,13 +92,14 @@ def main() -> None:
 def benchmark(a: argparse.Namespace, checkpoint: str):
     """Identity, Lambertian and the model on ``a.store``; the card's benchmark section with its commands."""
     sampler = as_spec(a.sampler, steps=a.steps).to_config()
+    store_cmd = a.store_cmd or synth_command(a.store)  # before the benchmark: a store no header describes stops here
     comparison = compare_to_baselines(a.store, checkpoint, sampler, a.out or f"/tmp/release_{a.name}",
                                       pairs=a.pairs, grid_pairs=4, progress=True, reuse=True)
     options = "" if a.sampler == DEFAULT_SAMPLER and a.steps is None else f" sampler={a.sampler}" + (
         f" sampler.steps={a.steps}" if a.steps else "")
     bench = comparison.card_benchmark(f"of {a.store}") + (
         "\n\nReproduce (the model's row with the defaults a user gets):\n\n```bash\n"
-        + (f"{a.store_cmd}\n" if a.store_cmd else "")
+        + f"{store_cmd}\n"
         + f"difareli-benchmark -m store={a.store} method=identity,lambertian limit={a.pairs}\n"
         f"difareli-benchmark store={a.store} method=diffusion method.checkpoint={a.name} limit={a.pairs}{options}\n```")
     return comparison, bench

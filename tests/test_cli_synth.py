@@ -58,3 +58,37 @@ def test_console_script_reports_bad_key(tmp_path):
     assert proc.returncode != 0
     assert "resolution=8 is invalid" in proc.stderr
     assert os.listdir(tmp_path) == []  # no outputs/ or .hydra/ littering the working directory
+
+
+@pytest.mark.parametrize("overrides", [
+    ["inputs=estimated_light"],
+    ["realism=lambertian", "inputs=exact", "cam_jitter=0.1", "light_group_size=1", "effects.specular=true",
+     "shading_region=mesh", "shadow_visible=0.3", "splits.train=0.5", "splits.val=0.25", "splits.test=0.25"],
+])
+def test_store_command_regenerates_the_store(overrides, tmp_path):
+    """The command read back from a store's header makes the same store: a rerun of it finds nothing to do (the
+    resume refuses a header that differs in any key), and it names only the keys that differ from the defaults."""
+    from difareli.synth.command import synth_command
+
+    out = tmp_path / "sf"
+    cli.run(_cfg([f"out_dir={out}", "subjects=2", "lights=2", "resolution=16", "workers=1", "preview.enabled=false",
+                  *overrides]))
+    command = synth_command(out)
+    words = command.split()
+    assert words[:2] == ["difareli-synth", f"out_dir={out}"]
+    assert sorted(words[2:8]) == sorted(["subjects=2", "lights=2", "resolution=16", "seed=0",
+                                        f"realism={'lambertian' if len(overrides) > 1 else 'full'}",
+                                        f"inputs={'exact' if len(overrides) > 1 else 'estimated_light'}"])
+    assert sorted(words[8:]) == sorted(o for o in overrides if not o.startswith(("realism=", "inputs=")))
+    report = cli.run(_cfg([*words[1:], "workers=1", "preview.enabled=false"]))
+    assert report.written == 0 and report.skipped == 4
+    # One key changed: the resume refuses it, so the header does decide the command.
+    with pytest.raises(ConfigError):
+        cli.run(_cfg([*words[1:], "cam_jitter=0.07", "workers=1", "preview.enabled=false"]))
+
+
+def test_store_command_refuses_a_store_synth_did_not_make():
+    from difareli.synth.command import synth_command
+
+    with pytest.raises(ValueError, match="difareli-multipie|state its command"):
+        synth_command("data/mp", {"generator": "multipie"})

@@ -13,6 +13,7 @@ from difareli import tables
 from difareli.baselines import Identity
 from difareli.benchmark import finished_run
 from difareli.store import EncodingStore
+from difareli.synth.command import synth_command
 from difareli.diffusion import DEFAULT_SAMPLER, PRESETS
 
 from .helpers import CONF
@@ -26,7 +27,7 @@ def test_suite_tables_every_model_beside_the_baselines_at_the_default_sampler(ti
     ckpt = tiny_checkpoint("difareli_pp")
     out = tmp_path / "suite"
     cmd = [sys.executable, str(ROOT / "scripts" / "reference_suite.py"), "--store", str(synth_store), "--pairs", "2",
-           "--out", str(out), "--models", str(ckpt), "--store-cmd", "difareli-synth out_dir=x seed=0"]
+           "--out", str(out), "--models", str(ckpt)]
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env, check=False)
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -34,7 +35,7 @@ def test_suite_tables_every_model_beside_the_baselines_at_the_default_sampler(ti
     default = PRESETS[DEFAULT_SAMPLER]
     row = f"difareli_pp/{default.name}-{default.steps}"
     for piece in (f"**{synth_store}**: 2 pairs per protocol", "| identity |", "| lambertian |", f"| {row} |",
-                  "difareli-synth out_dir=x seed=0", f"--store {synth_store} --pairs 2"):
+                  synth_command(synth_store), f"--store {synth_store} --pairs 2"):
         assert piece in text, piece
     # The table is the runs' own per-image scores, summarised (nothing re-scored or rounded away).
     records = [r for d in ("identity", "lambertian", row.replace("/", "_"))
