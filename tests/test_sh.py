@@ -224,3 +224,22 @@ def test_fit_rejects_degenerate_input(rng):
         sh.fit(sh.irradiance(light, planar), planar)
     # Ridge makes the same problem well posed.
     assert np.all(np.isfinite(sh.fit(sh.irradiance(light, same), same, ridge=1e-3)))
+
+
+def test_ridge_fit_equals_the_augmented_least_squares():
+    """fit with a ridge solves the 9x9 normal equations; they must equal the ridge written as 9 extra rows of a
+    least-squares system (numpy's lstsq), for constant, per-channel and per-pixel albedo, with weights."""
+    rng = np.random.default_rng(1)
+    for trial in range(30):
+        n = rng.normal(size=(int(rng.integers(12, 400)), 3))
+        n /= np.linalg.norm(n, axis=1, keepdims=True)
+        y, ridge = rng.uniform(0, 1, (len(n), 3)), 10 ** rng.uniform(-4, 1)
+        albedo = [0.6, rng.uniform(0.2, 0.9, 3), rng.uniform(0.2, 0.9, (len(n), 3))][trial % 3]
+        w = rng.uniform(0, 2, len(n)) if trial % 2 else None
+        sw = np.sqrt(np.ones(len(n)) if w is None else w)
+        alb = np.broadcast_to(np.asarray(albedo, dtype=float), (len(n), 3))
+        theirs = np.stack([np.linalg.lstsq(
+            np.concatenate([sh.sh_basis(n) * (sw * alb[:, c])[:, None], np.sqrt(ridge) * np.eye(9)]),
+            np.concatenate([y[:, c] * sw, np.zeros(9)]), rcond=None)[0] for c in range(3)], axis=1)
+        ours = sh.fit(y, n, albedo, weights=w, ridge=ridge)
+        np.testing.assert_allclose(ours, theirs, rtol=0, atol=1e-9 * np.abs(theirs).max())

@@ -83,17 +83,6 @@ def describe_light(light: np.ndarray) -> str:
     return f"yaw {d['yaw_deg']:+.0f} deg, pitch {d['pitch_deg']:+.0f} deg: from {d['from']}"
 
 
-def ridge_fit(basis: np.ndarray, y: np.ndarray, albedo: np.ndarray, ridge: float) -> np.ndarray:
-    """``sh.fit(y, n, albedo, ridge=ridge)`` for a per-channel constant ``albedo`` (3,) and ``ridge > 0``, from
-    ``basis = sh.sh_basis(n)``: the 9x9 normal equations ``(a^2 B'B + ridge I) l = a B'y`` of each channel share one
-    ``B'B``. sh.fit factors each channel's (N, 9) matrix twice (SVD for a rank check a ridge makes moot, then
-    lstsq): 5x slower, for a difference of ~1e-12 relative here, the ridge keeping the system well conditioned."""
-    gram, rhs = basis.T @ basis, basis.T @ y
-    a = np.asarray(albedo, dtype=np.float64)
-    eye = np.eye(basis.shape[1])
-    return np.stack([np.linalg.solve(a[c] ** 2 * gram + ridge * eye, a[c] * rhs[:, c]) for c in range(3)], axis=1)
-
-
 class SkinSHLight:
     """Estimator: ``light`` (9x3) fitted on a photo's skin, and the shading reference ``shading`` (how it differs
     from a record's :class:`difareli.light_fit.LightFit`: see that module)."""
@@ -140,10 +129,7 @@ class SkinSHLight:
         basis = sh.sh_basis(n)  # (N, 9) once: sh.irradiance(light, n) is basis @ light
         keep = np.ones(len(y), dtype=bool)
         for _ in range(2):
-            if self.ridge > 0:
-                light = ridge_fit(basis[keep], y[keep], albedo, self.ridge * keep.sum())
-            else:  # sh.fit's rank check matters only without a ridge
-                light = sh.fit(y[keep], n[keep], albedo)
+            light = sh.fit(y[keep], n[keep], albedo, ridge=self.ridge * keep.sum())
             if grey:  # one light for the three channels, exactly
                 light = np.repeat(light[:, :1], 3, axis=1)
             irr = basis @ light
