@@ -82,7 +82,7 @@ def test_markdown_has_numbers_and_bold_best(two_runs):
     assert len(lines) == 4
     assert md.strip().splitlines()[-1].startswith("Metrics rule: paper (the authors' evaluator")
     difa, ss = lines[2], lines[3]
-    assert "0.0750 ± 0.0050" in difa and "0.0130 ± 0.0010" in difa and "| 3 |" in difa
+    assert "0.0750 ± 0.0050" in difa and "0.0130 ± 0.0010" in difa and "| 3.00 |" in difa
     assert "**0.0550 ± 0.0050**" in ss and "**0.0850 ± 0.0050**" in ss  # (i) and (ii) DSSIM best
     assert "0.0950 ± 0.0050" in difa and "**" not in difa.split("|")[4]  # (ii) DSSIM: loser not bold
     assert difa.count("|") == ss.count("|") == 2 + 8 + 1
@@ -96,7 +96,7 @@ def test_latex_table_shape_and_escaping(two_runs):
     assert r"\cmidrule(lr){2-5}\cmidrule(lr){6-9}" in tex
     row = next(line for line in tex.splitlines() if line.startswith("DiFaReli++"))
     assert row.startswith(r"DiFaReli++\_ss & $\mathbf{0.0550} \pm 0.0050$ & $\mathbf{0.0080} \pm 0.0010$")
-    assert row.endswith(r"& 0.075 \\")
+    assert row.endswith(r"& 0.0750 \\")
     assert row.count("&") == 9 and row.split("&")[4].strip() == "2"
     difa = next(line for line in tex.splitlines() if line.startswith("DiFaReli &"))
     assert r"$0.0750 \pm 0.0050$" in difa and r"\mathbf" not in difa.split("&")[1]

@@ -283,9 +283,10 @@ class Table:
         return out
 
     def _time(self, method: str) -> str:
-        # 3 significant digits: spans 0.07 s (DiFaReli++) to minutes (DiFaReli) without zeros.
+        # 3 significant digits: spans 0.07 s (DiFaReli++) to minutes (DiFaReli) without leading zeros; trailing
+        # zeros kept (3.00, not 3, which reads as a rounded figure).
         s = self.seconds.get(method)
-        return f"{s.mean:.3g}" if s is not None and s.n else "–"
+        return f"{s.mean:#.3g}".rstrip(".") if s is not None and s.n else "–"
 
     def _is_best(self, best, method, protocol, metric, digits) -> bool:
         s = self.cells.get((method, protocol), {}).get(metric)
