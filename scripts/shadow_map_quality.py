@@ -47,7 +47,7 @@ class KeySun:
     def __init__(self, store: EncodingStore):
         from dataclasses import fields, replace
 
-        from difareli.synth.generator import SynthConfig
+        from difareli.synth.config import SynthConfig
 
         meta = store.store_meta
         cfg = SynthConfig(**{f.name: meta[f.name] for f in fields(SynthConfig) if f.name in meta})
@@ -56,7 +56,7 @@ class KeySun:
 
     def __call__(self, rid: str) -> tuple[np.ndarray, bool]:
         from difareli.render import cast_shadow
-        from difareli.synth.generator import build_subject
+        from difareli.synth.subject import build_subject
 
         m = self.store.meta(rid)
         k = int(m["subject"].lstrip("s"))

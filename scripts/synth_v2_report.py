@@ -80,7 +80,8 @@ def light_errors(run: Path) -> dict[str, float]:
 
 def effects_preview(path: Path, subjects=(0, 1, 2, 3), light=1, res: int = 64, cell: int = 128) -> Path:
     """Rows: subjects; columns: v1, each effect alone on, all on, and 4x |full - v1|."""
-    from difareli.synth.generator import SynthConfig, render_records
+    from difareli.synth.config import SynthConfig
+    from difareli.synth.generator import render_records
     from difareli.synth.preview import _upscale
     from difareli.viz import grid, save_png
 

@@ -9,7 +9,7 @@ from hydra import compose, initialize_config_dir
 
 from difareli.cli import synth as cli
 from difareli.configs import CONFIG_DIR
-from difareli.synth.generator import ConfigError
+from difareli.synth.config import ConfigError
 
 
 def _cfg(overrides):

@@ -19,7 +19,8 @@ from difareli.benchmark import PARTIAL_CSV, run_benchmark
 from difareli.errors import UserError
 from difareli.store import EncodingStore
 from difareli.synth import splits as sp
-from difareli.synth.generator import ENCODINGS, generate
+from difareli.synth.config import ENCODINGS
+from difareli.synth.generator import generate
 
 from .helpers import compose_train
 

@@ -72,7 +72,8 @@ def test_agrees_with_mesh_ray_tracing_on_synthfaces():
     """On SynthFaces heads the depth-only march recovers most of the mesh-traced cast shadow (IoU measured
     0.53-0.76 over 4 subjects x 3 lights at 128 px; here 2 subjects x 2 lights at 96 px)."""
     from difareli.render import cast_shadow
-    from difareli.synth.generator import SynthConfig, build_subject
+    from difareli.synth.config import SynthConfig
+    from difareli.synth.subject import build_subject
 
     cfg = SynthConfig(subjects=2, lights=1, resolution=96, seed=0)
     ious = []

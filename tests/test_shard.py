@@ -116,7 +116,7 @@ def test_synth_bad_shard_is_a_config_error(tmp_path):
 
     from difareli.cli import synth as cli
     from difareli.configs import CONFIG_DIR
-    from difareli.synth.generator import ConfigError
+    from difareli.synth.config import ConfigError
 
     with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
         cfg = compose(config_name="synth", overrides=[f"out_dir={tmp_path / 'x'}", "shard=2/2"])

@@ -119,14 +119,18 @@ def test_backgrounds_include_extremes_and_are_resolution_independent():
 
 from difareli.encodings import FOREGROUND_PARTS, PART_INDEX  # noqa: E402
 from difareli.synth import generator as gen  # noqa: E402
+from difareli.synth import config as synth_config  # noqa: E402
+from difareli.synth import subject as synth_subject  # noqa: E402
+from difareli.render import cast_shadows  # noqa: E402
+from difareli.encodings import normalise_c  # noqa: E402
 from difareli.synth import splits as sp  # noqa: E402
 
-CFG = gen.SynthConfig(subjects=4, lights=3, resolution=48, seed=11)
+CFG = synth_config.SynthConfig(subjects=4, lights=3, resolution=48, seed=11)
 
 
 @pytest.fixture(scope="module")
 def subject():
-    return gen.build_subject(1, CFG)
+    return synth_subject.build_subject(1, CFG)
 
 
 @pytest.fixture(scope="module")
@@ -138,7 +142,7 @@ def test_records_deterministic_and_seeded(records):
     again = {rid: arr for rid, arr, _ in gen.render_records(1, [2], CFG, "train")}
     for name, a in again["s00001_l2"].items():
         np.testing.assert_array_equal(a, records["s00001_l2"][0][name], err_msg=name)
-    other = gen.SynthConfig(subjects=4, lights=3, resolution=48, seed=12)
+    other = synth_config.SynthConfig(subjects=4, lights=3, resolution=48, seed=12)
     diff = next(arr for _, arr, _ in gen.render_records(1, [2], other, "train"))
     assert not np.array_equal(diff["shape"], records["s00001_l2"][0]["shape"])
 
@@ -149,7 +153,7 @@ def test_lights_of_a_subject_share_everything_but_light(records):
         for a in arrs[1:]:
             np.testing.assert_array_equal(a[name], arrs[0][name], err_msg=name)
     assert not np.allclose(arrs[0]["light"], arrs[1]["light"])
-    assert abs(np.linalg.norm(arrs[0]["identity"]) - 1) < 1e-6 and arrs[0]["identity"].shape == (gen.IDENTITY_DIM,)
+    assert abs(np.linalg.norm(arrs[0]["identity"]) - 1) < 1e-6 and arrs[0]["identity"].shape == (synth_config.IDENTITY_DIM,)
     # Subjects 0 and 1 form one light group: same lights, different faces.
     a0 = next(arr for _, arr, _ in gen.render_records(0, [1], CFG, "train"))
     np.testing.assert_array_equal(a0["light"], arrs[1]["light"])
@@ -176,31 +180,31 @@ def test_image_is_albedo_times_irradiance(subject):
     # No sun: the image is albedo x irradiance of the stored light, exactly up to uint8 rounding.
     amb = li.ambient_sh(np.random.default_rng(0), [0.7, 0.6, 0.5], gradient=0.4, band2=0.2)
     soft = li.Light("soft", amb, np.array([0.0, 0.0, 1.0]), np.zeros(3))
-    arr, _ = gen.shade(subject, soft, None, CFG)
+    arr, _ = synth_subject.shade(subject, soft, None, CFG)
     want = np.clip(subject.albedo * sh.irradiance(arr["light"].astype(np.float64), n), 0, 1) * 255
     assert np.abs(arr["image"][gb.hit] - want[gb.hit]).max() <= 0.5 + 1e-3
     np.testing.assert_array_equal(arr["image"][~gb.hit], np.round(subject.background[~gb.hit] * 255))
-    assert arr["shadow"][0] == pytest.approx(gen.C_LO, abs=1e-4) and not arr["shadow_map"].any()
+    assert arr["shadow"][0] == pytest.approx(synth_config.C_LO, abs=1e-4) and not arr["shadow_map"].any()
     # Hard side light from image left and above: cast shadows lose exactly the sun term.
     d = li.direction(-60, 30)
     hard = li.Light("hard", amb * 0.3, d, np.array([1.0, 1.0, 1.0]))
-    cast = gen.cast_shadows(subject.scene, gb, d[None])[0]
-    arr, _ = gen.shade(subject, hard, cast, CFG)
+    cast = cast_shadows(subject.scene, gb, d[None])[0]
+    arr, _ = synth_subject.shade(subject, hard, cast, CFG)
     e_amb = sh.irradiance(hard.ambient, n)
     e_sun = np.maximum(n @ d, 0)[..., None] * hard.sun_rgb
     lit = np.clip(subject.albedo * (e_amb + e_sun * (~cast)[..., None]), 0, 1) * 255
     assert np.abs(arr["image"][gb.hit] - lit[gb.hit]).max() <= 0.5 + 1e-3
     sm = arr["shadow_map"]
     assert cast.sum() > 10 and np.all((sm > 0) == cast)
-    assert gen.C_LO < arr["shadow"][0] < gen.C_HI
-    np.testing.assert_allclose(sm[cast], gen.normalise_c(arr["shadow"][0]), rtol=1e-6)
+    assert synth_config.C_LO < arr["shadow"][0] < synth_config.C_HI
+    np.testing.assert_allclose(sm[cast], normalise_c(arr["shadow"][0]), rtol=1e-6)
     # Shadows follow the sun: with the sun on the image left, shadowed pixels sit right of lit ones
     # on average, and mirroring the sun mirrors that.
     cols = np.arange(gb.hit.shape[1])[None, :].repeat(gb.hit.shape[0], 0)
     lit_px = gb.hit & (n @ d > 0) & ~cast
     assert cols[cast].mean() > cols[lit_px].mean()
     d2 = d * [-1, 1, 1]
-    cast2 = gen.cast_shadows(subject.scene, gb, d2[None])[0]
+    cast2 = cast_shadows(subject.scene, gb, d2[None])[0]
     assert cols[cast2].mean() < cols[gb.hit & (n @ d2 > 0) & ~cast2].mean()
 
 
@@ -234,5 +238,5 @@ def test_generate_resume_and_protocols(tmp_path):
         np.testing.assert_array_equal(store.read(pair["target"], ["light"])["light"],
                                       store.read(pair["light_source"], ["light"])["light"])
         assert store.meta(pair["target"])["subject"] == store.meta(pair["source"])["subject"]
-    with pytest.raises(gen.ConfigError, match="seed"):
+    with pytest.raises(synth_config.ConfigError, match="seed"):
         gen.generate(str(out), 4, 2, 32, seed=4, splits={"train": 0.5, "val": 0.0, "test": 0.5})

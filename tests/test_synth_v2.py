@@ -14,6 +14,8 @@ from difareli.render import OrthoCamera, Scene, render_gbuffer
 from difareli.render.ao import ambient_occlusion
 from difareli.synth import effects as fx
 from difareli.synth import generator as gen
+from difareli.synth import config as synth_config
+from difareli.synth import subject as synth_subject
 from difareli.synth import lights as li
 
 GOLDEN = Path(__file__).parent / "data" / "synthfaces_v1_golden.json"
@@ -123,7 +125,7 @@ def test_realism_lambertian_is_v1_bit_for_bit():
         for rid, hashes in overrides.items():
             gold[rid].update(hashes)
     for inputs in ("exact", "estimated_light"):
-        cfg = gen.SynthConfig(subjects=3, lights=3, resolution=32, seed=7, realism="lambertian", inputs=inputs)
+        cfg = synth_config.SynthConfig(subjects=3, lights=3, resolution=32, seed=7, realism="lambertian", inputs=inputs)
         seen = 0
         for k in range(2):  # the golden file has 3 subjects; two (with a hard sun each) keep this fast
             for rid, arrays, meta in gen.render_records(k, [0, 1, 2], cfg, "train"):
@@ -140,8 +142,8 @@ def test_realism_lambertian_is_v1_bit_for_bit():
 
 @pytest.fixture(scope="module")
 def full_records():
-    cfg = gen.SynthConfig(subjects=2, lights=3, resolution=48, seed=3, realism="full", inputs="estimated_light")
-    subject = gen.build_subject(1, cfg)
+    cfg = synth_config.SynthConfig(subjects=2, lights=3, resolution=48, seed=3, realism="full", inputs="estimated_light")
+    subject = synth_subject.build_subject(1, cfg)
     recs = list(gen.render_records(1, [0, 1, 2], cfg, "train"))
     return cfg, subject, recs
 
@@ -153,13 +155,13 @@ def test_full_preset_is_deterministic_and_records_its_effects(full_records):
         assert m == m2
         for name in a:
             np.testing.assert_array_equal(a[name], b[name])
-    other = gen.SynthConfig(subjects=2, lights=3, resolution=48, seed=4, realism="full", inputs="estimated_light")
+    other = synth_config.SynthConfig(subjects=2, lights=3, resolution=48, seed=4, realism="full", inputs="estimated_light")
     assert not np.array_equal(next(gen.render_records(1, [0], other, "train"))[1]["image"], recs[0][1]["image"])
     for _, arrays, meta in recs:
         assert meta["effects"] == {"specular": True, "subsurface": True, "ambient_occlusion": True, "multi_sun": True}
         assert meta["realism"] == "full" and meta["inputs"] == "estimated_light"
         assert 0 < meta["energy"]["subsurface"] < 0.5 and 0 <= meta["energy"]["specular"] < 0.5
-        assert set(gen.ENCODINGS) == set(arrays)
+        assert set(synth_config.ENCODINGS) == set(arrays)
     ao = subject.ao[subject.gbuffer.hit]
     assert 0 <= ao.min() < 0.9 and ao.max() == 1.0  # creases occluded, open surface not
 
@@ -187,17 +189,17 @@ def test_estimated_inputs_equal_the_estimators_on_the_same_image(full_records):
 
 def test_multi_sun_cast_shadows_remove_every_sun():
     # Every sun blocked everywhere: the image is the ambient-only render, and c counts all of the suns' light.
-    cfg = gen.SynthConfig(subjects=1, lights=1, resolution=32, seed=0, realism="lambertian")
-    subject = gen.build_subject(0, cfg)
+    cfg = synth_config.SynthConfig(subjects=1, lights=1, resolution=32, seed=0, realism="lambertian")
+    subject = synth_subject.build_subject(0, cfg)
     base = li.sample_light(np.random.default_rng(1), "hard")
     light = next(lt for lt in (li.add_suns(base, np.random.default_rng(i)) for i in range(20)) if len(lt.suns()) == 3)
     hit = subject.gbuffer.hit
-    blocked, _ = gen.shade(subject, light, [hit.copy() for _ in light.suns()], cfg)
+    blocked, _ = synth_subject.shade(subject, light, [hit.copy() for _ in light.suns()], cfg)
     ambient = li.Light("x", light.ambient, light.sun_dir, np.zeros(3))
-    amb, _ = gen.shade(subject, ambient, None, cfg)
+    amb, _ = synth_subject.shade(subject, ambient, None, cfg)
     np.testing.assert_array_equal(blocked["image"], amb["image"])
-    open_, _ = gen.shade(subject, light, [np.zeros_like(hit) for _ in light.suns()], cfg)
-    assert open_["shadow_gt"][0] == pytest.approx(math.log(gen.S_MIN / (1 - gen.S_MIN)))
+    open_, _ = synth_subject.shade(subject, light, [np.zeros_like(hit) for _ in light.suns()], cfg)
+    assert open_["shadow_gt"][0] == pytest.approx(math.log(synth_config.S_MIN / (1 - synth_config.S_MIN)))
     n = subject.gbuffer.normal.astype(np.float64)
     e_amb = sh.irradiance(light.ambient, n)
     suns = sum(np.maximum(n @ d, 0)[..., None] * c for d, c in light.suns())
@@ -208,13 +210,13 @@ def test_multi_sun_cast_shadows_remove_every_sun():
 
 
 def test_config_rejects_unknown_presets_and_effects():
-    with pytest.raises(gen.ConfigError, match="realism='glossy' is invalid"):
-        gen.SynthConfig(subjects=1, lights=1, resolution=32, realism="glossy")
-    with pytest.raises(gen.ConfigError, match="effects.bloom is not an effect"):
-        gen.SynthConfig(subjects=1, lights=1, resolution=32, effects={"bloom": True})
-    with pytest.raises(gen.ConfigError, match="inputs='guessed'"):
-        gen.SynthConfig(subjects=1, lights=1, resolution=32, inputs="guessed")
-    cfg = gen.SynthConfig(subjects=1, lights=1, resolution=32, realism="full", effects={"specular": False, "multi_sun": None})
+    with pytest.raises(synth_config.ConfigError, match="realism='glossy' is invalid"):
+        synth_config.SynthConfig(subjects=1, lights=1, resolution=32, realism="glossy")
+    with pytest.raises(synth_config.ConfigError, match="effects.bloom is not an effect"):
+        synth_config.SynthConfig(subjects=1, lights=1, resolution=32, effects={"bloom": True})
+    with pytest.raises(synth_config.ConfigError, match="inputs='guessed'"):
+        synth_config.SynthConfig(subjects=1, lights=1, resolution=32, inputs="guessed")
+    cfg = synth_config.SynthConfig(subjects=1, lights=1, resolution=32, realism="full", effects={"specular": False, "multi_sun": None})
     assert cfg.effects == {"specular": False, "subsurface": True, "ambient_occlusion": True, "multi_sun": True}
 
 

@@ -13,6 +13,8 @@ from difareli import encodings
 from difareli.imageops import LUMA
 from difareli.store import EncodingStore
 from difareli.synth import generator as gen
+from difareli.synth import config as synth_config
+from difareli.synth import subject as synth_subject
 from difareli.synth.c_norm import finalise
 from difareli.synth.estimated import mode_downsample
 
@@ -27,7 +29,7 @@ def test_visible_fraction_in_closed_form():
     key[:, :2] = True
     fill = np.zeros((4, 4), bool)
     fill[0, :] = True
-    frac, vis = gen.visible_shadow(e_a + e_k + e_f, [e_k, e_f], [key & hit, fill & hit], key & hit, hit, 0.25)
+    frac, vis = synth_subject.visible_shadow(e_a + e_k + e_f, [e_k, e_f], [key & hit, fill & hit], key & hit, hit, 0.25)
     y = lambda e: float(e[0, 0] @ LUMA)  # noqa: E731
     total = y(e_a) + y(e_k) + y(e_f)
     np.testing.assert_allclose(frac[1, 0], y(e_k) / total, rtol=1e-6)           # key only: 0.667
@@ -37,7 +39,7 @@ def test_visible_fraction_in_closed_form():
     want = key.copy()
     want[3, 3] = False
     np.testing.assert_array_equal(vis, want)  # the weak fill's shadow is not "visibly shadowed"
-    _, vis_low = gen.visible_shadow(e_a + e_k + e_f, [e_k, e_f], [key, fill], np.zeros_like(key), hit, 0.1)
+    _, vis_low = synth_subject.visible_shadow(e_a + e_k + e_f, [e_k, e_f], [key, fill], np.zeros_like(key), hit, 0.1)
     assert vis_low[0, 3] and not vis_low[2, 3]  # a lower threshold admits it; the key mask is not needed for it
 
 
@@ -109,18 +111,18 @@ def test_v2_stores_open_and_refuse_a_v3_resume(synth_store, tmp_path):
     header["meta"].pop("synthfaces_version")
     header_path.write_text(json.dumps(header))
     assert len(EncodingStore.open(tmp_path / "v2").ids()) == 16  # reads as before
-    with pytest.raises(gen.ConfigError, match=r"SynthFaces v2 store.*difareli-synth out_dir=<new dir> subjects=8"):
+    with pytest.raises(synth_config.ConfigError, match=r"SynthFaces v2 store.*difareli-synth out_dir=<new dir> subjects=8"):
         gen.generate(str(tmp_path / "v2"), 8, 2, 32, seed=0)
 
 
 def test_config_checks_and_the_resolved_estimation_resolution():
-    cfg = gen.SynthConfig(subjects=1, lights=1, resolution=64, inputs="estimated")
+    cfg = synth_config.SynthConfig(subjects=1, lights=1, resolution=64, inputs="estimated")
     assert cfg.estimation_resolution == 128 and "normal_gt" in cfg.encodings
-    assert gen.SynthConfig(subjects=1, lights=1, resolution=256).estimation_resolution == 256
-    assert "normal_gt" not in gen.SynthConfig(subjects=1, lights=1, resolution=64, inputs="estimated_light").encodings
+    assert synth_config.SynthConfig(subjects=1, lights=1, resolution=256).estimation_resolution == 256
+    assert "normal_gt" not in synth_config.SynthConfig(subjects=1, lights=1, resolution=64, inputs="estimated_light").encodings
     for bad in ({"estimation_resolution": 96}, {"inputs": "guessed"}, {"shadow_visible": 1.5}):
-        with pytest.raises(gen.ConfigError):
-            gen.SynthConfig(subjects=1, lights=1, resolution=64, **bad)
+        with pytest.raises(synth_config.ConfigError):
+            synth_config.SynthConfig(subjects=1, lights=1, resolution=64, **bad)
 
 
 def test_mode_downsample_keeps_the_majority_label():
@@ -155,6 +157,6 @@ def test_missing_estimators_stop_before_any_work(tmp_path, monkeypatch):
     import difareli.synth.estimated as est
 
     monkeypatch.setattr(est, "missing_estimators", lambda: "inputs=estimated needs the photo estimators; " + est.FIX)
-    with pytest.raises(gen.ConfigError, match="DIFARELI_PREPROCESS=1 bash scripts/install.sh"):
+    with pytest.raises(synth_config.ConfigError, match="DIFARELI_PREPROCESS=1 bash scripts/install.sh"):
         gen.generate(str(tmp_path / "s"), 1, 1, 32, inputs="estimated")
     assert not (tmp_path / "s").exists()

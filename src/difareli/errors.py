@@ -8,7 +8,7 @@ re-raises user errors too, with the traceback.
 What counts as a user error (:func:`user_message`):
 
 - :class:`UserError` and its subclasses (raised by the checks below);
-- the project's own user-facing types: ``inputs.MissingEncodingError``, ``synth.generator.ConfigError``;
+- the project's own user-facing types: ``inputs.MissingEncodingError``, ``synth.config.ConfigError``;
 - ``ValueError`` / ``KeyError`` / ``FileNotFoundError`` raised *explicitly* by difareli code (the innermost
   frame is a ``raise`` line of this package): those are our validation messages. The same types raised inside
   numpy/torch (a broadcast error, a bad index) are bugs or unchecked inputs, so they keep the traceback;

@@ -18,7 +18,7 @@ _MINIMA = {"subjects": 1, "lights": 1, "resolution": 16, "workers": 1, "light_gr
 
 def validate(cfg: DictConfig) -> None:
     """Raise ConfigError (a ValueError) naming the first invalid key."""
-    from difareli.synth.generator import ConfigError
+    from difareli.synth.config import ConfigError
 
     if OmegaConf.is_missing(cfg, "out_dir") or not str(cfg.out_dir):
         raise ConfigError("out_dir is required: the store root, e.g. out_dir=data/synthfaces_64")
@@ -35,7 +35,7 @@ def validate(cfg: DictConfig) -> None:
         Effects.resolve(cfg.realism, OmegaConf.to_container(cfg.effects))
     except ValueError as e:
         raise ConfigError(str(e)) from None
-    from difareli.synth.generator import INPUTS
+    from difareli.synth.config import INPUTS
 
     if cfg.inputs not in INPUTS:
         raise ConfigError(f"inputs={cfg.inputs!r} is invalid: use one of {list(INPUTS)}")

@@ -1,7 +1,7 @@
 """SH lighting from skin pixels (``sh.fit``) and the shading reference.
 
 Pixel values are used as they are, ``rgb / 255`` with no gamma, because SynthFaces forms its images as
-``albedo * irradiance`` without gamma (``synth/generator.py``, like DECA's photometric fit): a light estimated
+``albedo * irradiance`` without gamma (``synth/subject.py``, like DECA's photometric fit): a light estimated
 here is on the scale of the SynthFaces lights the model was trained with.
 
 Albedo-light ambiguity (paper Sec. VI): ``image = a * E(l)`` cannot separate a constant albedo ``a`` from

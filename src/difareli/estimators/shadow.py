@@ -3,7 +3,7 @@
 Classifier: logistic regression on six hand features of the photo against its fitted SH light and the
 FaceMesh surface (``features``), trained on SynthFaces by ``scripts/train_shadow_classifier.py``. Label:
 "visible cast shadow" = SynthFaces ``c > logit(LABEL_S)``, i.e. cast shadows remove more than 2% of the
-face's light (``synth/generator.py`` defines ``c`` as the logit of that fraction). ``c`` is the
+face's light (``synth/subject.py`` defines ``c`` as the logit of that fraction). ``c`` is the
 classifier's logit, as in the paper; with ``c_scale: synthfaces`` (default) it is mapped by the affine
 calibration fitted at training time onto the SynthFaces ``c`` scale, so that ``encodings.normalise_c``
 (fixed range [SHADOW_C_LO, SHADOW_C_HI]) means the same on real and synthetic records; ``c_scale: logit`` keeps the raw logit.

@@ -1,7 +1,7 @@
 """Per-subject appearance for SynthFaces: albedo (skin tone, part colours, procedural texture) and backgrounds.
 
 Colours are display-space reflectances in [0, 1]; the generator multiplies them by irradiance without any
-gamma (see ``generator.py``). Texture noise is a hashed value noise evaluated at the 3D surface points of
+gamma (see ``subject.py``). Texture noise is a hashed value noise evaluated at the 3D surface points of
 the G-buffer, so it sticks to the surface and is identical under every light of a subject; it depends only
 on the subject's noise seed, not on the resolution.
 """

@@ -15,7 +15,7 @@ import yaml
 
 from difareli.store import EncodingStore
 from difareli.synth.effects import REALISM_PRESETS
-from difareli.synth.generator import AUTO_ESTIMATION
+from difareli.synth.config import AUTO_ESTIMATION
 
 #: Always written, in this order (a reader compares stores by these first).
 _ALWAYS = ("subjects", "lights", "resolution", "seed", "realism", "inputs")

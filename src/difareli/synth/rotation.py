@@ -1,7 +1,7 @@
 """Ground-truth light rotations for SynthFaces: the same subject rendered under moving lights, cast shadows
 included (issue 12, "moving lights, measured").
 
-A SynthFaces record is fully determined by the store header's :class:`~difareli.synth.generator.SynthConfig`,
+A SynthFaces record is fully determined by the store header's :class:`~difareli.synth.config.SynthConfig`,
 its subject index ``k`` and its light index ``j`` (``meta.json``: ``subject``, ``light_index``,
 ``light_group``). :func:`record_source` rebuilds the record's :class:`~difareli.synth.lights.Light`;
 :func:`rotate_light` turns it by a rotation ``R`` (the ambient SH by ``sh.rotate``, every sun direction
@@ -27,7 +27,9 @@ import numpy as np
 from difareli import sh
 from difareli.store import EncodingStore
 from difareli.synth import splits as sp
-from difareli.synth.generator import SynthConfig, build_subject, shade, single_thread_blas
+from difareli.synth.config import SynthConfig
+from difareli.synth.subject import build_subject, shade
+from difareli.synth.blas import single_thread_blas
 from difareli.synth.lights import Light, add_suns, extra_sun_rng, light_rng, sample_light
 
 #: Exact per-frame target encodings returned with the frames.
