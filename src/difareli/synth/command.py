@@ -15,7 +15,7 @@ import yaml
 
 from difareli.store import EncodingStore
 from difareli.synth.effects import REALISM_PRESETS
-from difareli.synth.config import AUTO_ESTIMATION
+from difareli.synth.config import auto_estimation_resolution
 
 #: Always written, in this order (a reader compares stores by these first).
 _ALWAYS = ("subjects", "lights", "resolution", "seed", "realism", "inputs")
@@ -45,9 +45,9 @@ def synth_command(store_dir: str | Path, meta: dict[str, Any] | None = None) -> 
     words += [f"{k}={meta[k]}" for k in _IF_CHANGED if k in meta and meta[k] != default[k]]
     preset = REALISM_PRESETS[meta["realism"]]
     words += [f"effects.{k}={str(v).lower()}" for k, v in sorted(meta.get("effects", {}).items()) if preset.get(k) != v]
-    # The header stores estimation_resolution resolved; 0 (auto) resolves to the smallest multiple >= 128.
+    # The header stores estimation_resolution resolved: name it only where it is not what 0 (auto) resolves to.
     r = int(meta.get("estimation_resolution", 0))
-    if meta["inputs"] == "estimated" and r != -(-AUTO_ESTIMATION // int(meta["resolution"])) * int(meta["resolution"]):
+    if meta["inputs"] == "estimated" and r != auto_estimation_resolution(meta["resolution"]):
         words.append(f"estimation_resolution={r}")
     splits = {k: float(v) for k, v in meta.get("splits", {}).items()}
     if splits and splits != {k: float(v) for k, v in default["splits"].items()}:

@@ -26,6 +26,11 @@ IDENTITY_DIM = 128  # matches the dlib face descriptor used for real photos
 S_MIN, C_LO, C_HI = SHADOW_S_MIN, SHADOW_C_LO, SHADOW_C_HI
 
 
+def auto_estimation_resolution(resolution: int) -> int:
+    """What ``estimation_resolution=0`` resolves to: the smallest multiple of ``resolution`` >= AUTO_ESTIMATION."""
+    return -(-AUTO_ESTIMATION // int(resolution)) * int(resolution)
+
+
 class ConfigError(ValueError):
     """An invalid SynthFaces configuration, or one that does not match the existing store."""
 
@@ -62,7 +67,7 @@ class SynthConfig:
             raise ConfigError(str(e)) from None
         if self.inputs not in INPUTS:
             raise ConfigError(f"inputs={self.inputs!r} is invalid: use one of {list(INPUTS)}")
-        r = int(self.estimation_resolution) or -(-AUTO_ESTIMATION // self.resolution) * self.resolution
+        r = int(self.estimation_resolution) or auto_estimation_resolution(self.resolution)
         object.__setattr__(self, "estimation_resolution", r)  # 0 = auto, stored resolved
         if r < self.resolution or r % self.resolution:
             raise ConfigError(f"estimation_resolution={r} is invalid: 0 or a multiple of resolution={self.resolution}")
