@@ -169,6 +169,28 @@ def test_groupnorm32_statistics_in_float32():
     assert torch.equal(y, F.group_norm(x.float(), 4, gn.weight, gn.bias).bfloat16())
 
 
+def test_groupnorm32_bf16_cpu_kernel_equals_the_float_path():
+    """On a CPU a bf16 input takes the mixed-type kernel (no fp32 copy): output within one bf16 rounding of the
+    explicit cast path, gradients of input and affine equal to float rounding."""
+    torch.manual_seed(0)
+    gn = GroupNorm32(8, 32)
+    torch.nn.init.normal_(gn.weight)
+    torch.nn.init.normal_(gn.bias)
+    x = (torch.randn(4, 32, 16, 16) * 3 + 5).bfloat16().requires_grad_()
+    y = gn(x)
+    ref = F.group_norm(x.float(), 8, gn.weight, gn.bias, gn.eps).bfloat16()
+    assert y.dtype == torch.bfloat16
+    ulp = ref.float().abs().clamp_min(1e-3) * 2 ** -7  # one bf16 rounding step of each value
+    assert ((y.float() - ref.float()).abs() <= ulp).all()
+    assert (y != ref).float().mean() < 1e-3  # nearly all values identical
+    g = torch.randn_like(y)
+    gx, gw, gb = torch.autograd.grad(y, (x, gn.weight, gn.bias), g)
+    rx, rw, rb = torch.autograd.grad(ref, (x, gn.weight, gn.bias), g)
+    assert gx.dtype == torch.bfloat16 and gw.dtype == torch.float32
+    assert torch.allclose(gx.float(), rx.float(), rtol=2 ** -7, atol=1e-2)
+    assert torch.allclose(gw, rw, rtol=1e-4, atol=1e-3) and torch.allclose(gb, rb, rtol=1e-4, atol=1e-3)
+
+
 def _capture(net):
     """Hooks recording each input block's output, the middle output and each decoder block's input."""
     rec: dict[str, list] = {"out": [], "dec_in": []}

@@ -12,7 +12,7 @@ import torch
 from difareli.diffusion.relight import SamplerSpec, decode, invert
 from difareli.diffusion.schedule import DiffusionSchedule
 from difareli.encodings import channels
-from difareli.runtime import Runtime, _flatten, count_flops, peak_flops
+from difareli.runtime import Runtime, _cpu_peak, _flatten, count_flops, peak_flops
 
 # Relight agreement tolerances, as relative L2 errors ||out - ref|| / ||ref|| (see rel_error) of a 10-step DDIM
 # invert + self-decode + batched decode of a random tiny network at 32 px. Its eps is uncorrelated with x_t, so
@@ -81,8 +81,6 @@ def test_from_config_defaults_and_values():
 
 
 def test_default_yaml_matches_the_dataclass():
-    from pathlib import Path
-
     from omegaconf import OmegaConf
 
     from difareli.configs import CONFIG_DIR
@@ -180,3 +178,23 @@ def test_cpu_peak_is_positive_and_bf16_not_slower():
     if fp32 is None:
         pytest.skip(how)
     assert math.isfinite(fp32) and fp32 > 1e9 and bf16 >= fp32 and "MHz" in how
+
+
+def _cpuinfo(vendor: str, family: int, flags: str) -> str:
+    return (f"processor\t: 0\nvendor_id\t: {vendor}\ncpu family\t: {family}\ncpu MHz\t\t: 2000.000\n"
+            f"flags\t\t: fpu sse2 avx2 fma {flags}\n")
+
+
+@pytest.mark.parametrize("vendor, family, flags, fp32_per_cycle, bf16_per_cycle", [
+    ("AuthenticAMD", 25, "avx512f avx512_bf16", 32, 64),  # Zen 4: AVX-512 on 256-bit pipes
+    ("GenuineIntel", 6, "avx512f avx512_bf16", 64, 128),  # two 512-bit FMA pipes
+    ("GenuineIntel", 6, "avx512f avx512_bf16 amx_bf16 amx_tile", 64, 1024),  # AMX: 1,024 bf16 FLOP/cycle/core
+    ("GenuineIntel", 6, "", 32, 32),  # AVX2 only: bf16 runs at most at the fp32 rate
+])
+def test_cpu_peak_per_instruction_set(vendor, family, flags, fp32_per_cycle, bf16_per_cycle):
+    info = _cpuinfo(vendor, family, flags)
+    fp32, _ = _cpu_peak("fp32", info, cores=2)
+    bf16, how = _cpu_peak("bf16", info, cores=2)
+    assert fp32 == 2 * 2000e6 * fp32_per_cycle and bf16 == 2 * 2000e6 * bf16_per_cycle
+    assert ("AMX" in how) == ("amx_bf16" in flags)
+    assert _cpu_peak("fp16", info, cores=2)[0] <= 2 * 2000e6 * max(bf16_per_cycle, fp32_per_cycle)
