@@ -9,14 +9,12 @@ import torch
 
 from difareli.inference_copy import inference_copy
 from difareli.runtime import Runtime, clear_caches
-from tests.test_runtime import random_network
+from tests.test_runtime import random_network, relight_inputs
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def _eps(rt: Runtime, net, seed: int = 3) -> torch.Tensor:
-    from tests.test_runtime import relight_inputs
-
     x0, source, _ = relight_inputs(net, seed=seed)
     with torch.no_grad():
         cond = net.condition(*source)
@@ -32,8 +30,6 @@ def test_precast_weights_give_autocasts_passes_bit_for_bit():
     assert convs and all(m.weight.dtype == torch.bfloat16 for m in convs)
     norms = [m for m in copy.modules() if isinstance(m, torch.nn.GroupNorm)]
     assert norms and all(m.weight.dtype == torch.float32 for m in norms)  # autocast leaves norms in float32
-    from tests.test_runtime import relight_inputs
-
     x0, source, _ = relight_inputs(net)
     cond = net.condition(*source)
     t = torch.tensor([300])

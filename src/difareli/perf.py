@@ -25,6 +25,7 @@ from typing import Any
 import torch
 
 from difareli.configs import read_yaml
+from difareli.inference_copy import to_channels_last
 from difareli.inputs import Condition, input_dims
 
 #: The model variant of the GPU report and the training benchmark (the paper's DiFaReli++).
@@ -184,11 +185,7 @@ def random_batch(module, batch: int, device: str | torch.device = "cpu") -> dict
 
 def _channels_last(items: list[dict]) -> dict:
     """Default collation, then NHWC ("channels last") memory for the 4-D tensors."""
-    return _to_channels_last(torch.utils.data.default_collate(items))
-
-
-def _to_channels_last(batch: dict) -> dict:
-    return {k: v.contiguous(memory_format=torch.channels_last) if v.dim() == 4 else v for k, v in batch.items()}
+    return to_channels_last(torch.utils.data.default_collate(items))
 
 
 # ------------------------------------------------------------------------------------------ training cost
@@ -314,7 +311,7 @@ def profile_train_step(preset: str, res: int, batch: int, precision: str, steps:
         module.net.to(memory_format=torch.channels_last)
     batch_ = random_batch(module, batch)
     if "cl" in flags:
-        batch_ = _to_channels_last(batch_)
+        batch_ = to_channels_last(batch_)
     opt = torch.optim.AdamW(module.parameters(), lr=1e-4)
     bf16 = "bf16" in precision
 

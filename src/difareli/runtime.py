@@ -177,14 +177,23 @@ def auto_precision(device: torch.device | str) -> str:
     device = torch.device(device)
     if device.type == "cuda":
         return "bf16" if torch.cuda.is_bf16_supported() else "fp32"
+    info = _cpuinfo()
+    return "bf16" if info is not None and _cpu_flags(info) & {"avx512_bf16", "amx_bf16"} else "fp32"
+
+
+def _cpuinfo() -> str | None:
+    """The text of /proc/cpuinfo (None where there is none)."""
     try:
         with open("/proc/cpuinfo") as f:
-            info = f.read()
+            return f.read()
     except OSError:
-        return "fp32"
+        return None
+
+
+def _cpu_flags(info: str) -> set[str]:
+    """The instruction-set flags of a /proc/cpuinfo text (empty without a flags line)."""
     found = re.search(r"^flags\s*:(.*)$", info, re.MULTILINE)
-    flags = set(found.group(1).split()) if found else set()
-    return "bf16" if flags & {"avx512_bf16", "amx_bf16"} else "fp32"
+    return set(found.group(1).split()) if found else set()
 
 
 @dataclass
@@ -373,12 +382,10 @@ def peak_flops(device: torch.device | str, precision: str = "bf16") -> tuple[flo
 
 def _cpu_peak(precision: str, info: str | None = None, cores: int | None = None) -> tuple[float | None, str]:
     """Nominal FLOP/s of this CPU (or of ``info``, a /proc/cpuinfo text, with ``cores`` cores) at a precision."""
+    info = _cpuinfo() if info is None else info
     if info is None:
-        try:
-            info = open("/proc/cpuinfo").read()
-        except OSError:
-            return None, "no /proc/cpuinfo"
-    flags = set(re.search(r"^flags\s*:(.*)$", info, re.M).group(1).split())
+        return None, "no /proc/cpuinfo"
+    flags = _cpu_flags(info)
     mhz = float(re.search(r"^cpu MHz\s*:\s*([\d.]+)", info, re.M).group(1))
     family = int(re.search(r"^cpu family\s*:\s*(\d+)", info, re.M).group(1))
     vendor = re.search(r"^vendor_id\s*:\s*(\S+)", info, re.M).group(1)
