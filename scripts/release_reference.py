@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import platform
+import re
 from pathlib import Path
 
 import torch
@@ -75,7 +76,7 @@ def main() -> None:
             f"({float(timer.get('validate', 0.0)) / 60:.1f} min of validation besides)")
     steps = None
     if prior is not None:
-        before, step = int(prior.get("global_step") or 0), int(raw.get("global_step") or 0)
+        before, step = total_steps(prior), int(raw.get("global_step") or 0)
         steps = (f"{before + step} in all: {before} of {init}, then {step} of fine-tuning from its weights "
                  "(init_from: a fresh optimizer and warm-up)")
         earlier = (prior.get("model_card") or {}).get("wall_time")
@@ -87,6 +88,12 @@ def main() -> None:
              "weights": f"EMA (decay {ema}), fp32", "sampler": comparison.facts["sampler"], "benchmark": bench,
              "intended_use": USE, "licence": LICENCE, "notes": a.notes}
     write(a.run_checkpoint, a.name, facts, comparison)
+
+
+def total_steps(checkpoint: dict) -> int:
+    """Every step behind a checkpoint: its card's "N in all" when it was itself fine-tuned, else its global step."""
+    found = re.match(r"(\d+) in all", str((checkpoint.get("model_card") or {}).get("steps") or ""))
+    return int(found.group(1)) if found else int(checkpoint.get("global_step") or 0)
 
 
 def benchmark(a: argparse.Namespace, checkpoint: str):

@@ -10,6 +10,7 @@ from difareli.baselines import Identity, LambertianRatio
 from difareli.benchmark import run_benchmark
 from difareli.jobs.compare import PROTOCOLS, compare_to_baselines, slug
 from difareli.light_fit import LightFit
+from difareli.runtime import Runtime
 from difareli.store import EncodingStore
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -56,10 +57,11 @@ def test_card_facts_state_pairs_sampler_runtime_and_inputs(comparison):
     _, c = comparison
     f = c.facts
     assert f["pairs"] == {"same": 2, "different": 2} and f["protocols"] == list(PROTOCOLS)
-    assert f["sampler"] == "ddim-2" and f["runtime"] == "fp32 on cpu" and f["model"] == "difareli_pp/ddim-2"
+    runtime = f"{Runtime(device='cpu').precision} on cpu"  # the default: bf16 on a CPU with native bf16, else fp32
+    assert f["sampler"] == "ddim-2" and f["runtime"] == runtime and f["model"] == "difareli_pp/ddim-2"
     assert f["inputs"].startswith("target lights fitted to the light-source images (not the oracle), target c: ")
     assert f["inputs"].endswith(c.runs["difareli_pp/ddim-2"].provenance["target c"])
     assert f["table"] == c.table.to_markdown() and f["seconds"] == c.seconds["total"]
     text = c.card_benchmark("of the test split")
     assert text.startswith("2 test pairs per protocol of the test split, target lights fitted")
-    assert ", ddim-2, fp32 on cpu (" in text and text.endswith("s):\n\n" + f["table"])
+    assert f", ddim-2, {runtime} (" in text and text.endswith("s):\n\n" + f["table"])

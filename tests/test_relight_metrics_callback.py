@@ -71,7 +71,8 @@ def _independent(ckpt, store, pairs, sampler):
     from difareli.light_fit import LightFit
     from difareli.targets import target_shadow_of
 
-    method, fit, out = DiffusionMethod(str(ckpt), sampler), LightFit(), {"same": [], "different": []}
+    method = DiffusionMethod(str(ckpt), sampler, runtime={"device": "cpu", "precision": "fp32"})
+    fit, out = LightFit(), {"same": [], "different": []}
     for p in pairs:
         gt = store.read(p["target"], ["image", "face_mask"])
         for k in ("same", "different"):
@@ -90,7 +91,8 @@ def _check_parity(run, synth_store, ckpt, sampler):
     pairs = [c["pair"] for c in cb.cases]
     # The final weights (the EMA average copied in at train end), scored by the callback and independently.
     model = load_checkpoint(ckpt).model.eval()
-    fresh = RelightMetrics(pairs=2, sampler=sampler["name"], steps=sampler.get("steps"))
+    # Both sides in fp32: the same computation to float rounding (bf16 rounds batch 2 and batch 1 differently).
+    fresh = RelightMetrics(pairs=2, sampler=sampler["name"], steps=sampler.get("steps"), precision="fp32")
     fresh.cases = [fresh._prepare(store, model, p) for p in pairs]
     trainer = SimpleNamespace(global_step=99, is_global_zero=True, default_root_dir=str(ckpt.parent), loggers=[],
                               sanity_checking=False)

@@ -70,7 +70,7 @@ def rel_error(out: torch.Tensor, ref: torch.Tensor) -> float:
 def case(one_thread):
     net = random_network()
     x0, src, tgt = relight_inputs(net)
-    return net, x0, src, tgt, relight_with(Runtime(device="cpu"), net, x0, src, tgt)
+    return net, x0, src, tgt, relight_with(Runtime(device="cpu", precision="fp32"), net, x0, src, tgt)
 
 
 # ---------------------------------------------------------------------- configuration
@@ -115,7 +115,7 @@ def test_fp32_denoiser_is_the_network(case):
     cond = net.condition(*src)
     t = torch.tensor([500])
     with torch.no_grad():
-        eps = Runtime(device="cpu").denoiser(net, cond)(x0, t)
+        eps = Runtime(device="cpu", precision="fp32").denoiser(net, cond)(x0, t)
         assert torch.equal(eps, net(x0, t, cond))
     assert eps.abs().mean() > 0.05  # re-initialised: a zero network would make every comparison trivial
 
@@ -135,7 +135,7 @@ def test_cuda_graphs_fall_back_to_eager_on_cpu(case):
     net, x0, src, tgt, ref = case
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        out = relight_with(Runtime(device="cpu", cuda_graphs=True), net, x0, src, tgt)
+        out = relight_with(Runtime(device="cpu", precision="fp32", cuda_graphs=True), net, x0, src, tgt)
     assert torch.equal(out, ref)
     assert any("cuda_graphs" in str(w.message) for w in caught)
 
@@ -143,7 +143,7 @@ def test_cuda_graphs_fall_back_to_eager_on_cpu(case):
 @pytest.mark.slow  # inductor on this shared CPU: minutes per compile
 def test_compiled_relight_agrees_with_eager(case):
     net, x0, src, tgt, ref = case
-    out = relight_with(Runtime(device="cpu", compile=True), net, x0, src, tgt)
+    out = relight_with(Runtime(device="cpu", precision="fp32", compile=True), net, x0, src, tgt)
     assert rel_error(out, ref) < COMPILE_TOL
 
 

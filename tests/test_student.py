@@ -308,7 +308,9 @@ def test_student_through_benchmark_and_bench_samplers(student_ckpt, synth_store,
         assert r["time/end_to_end"] == pytest.approx(r["time/seconds"] + r["time/targets"])
     assert rows["ddim"]["speedup/end_to_end"] == pytest.approx(
         rows["ddim"]["time/end_to_end"] / rows["student"]["time/end_to_end"])
-    assert rows["ddim"]["speedup/end_to_end"] < rows["ddim"]["speedup"]  # the maps narrow the one-pass lead
+    # The same maps added to both sides pull the ratio toward 1 (whichever side is faster at this toy size).
+    s, e2e = rows["ddim"]["speedup"], rows["ddim"]["speedup/end_to_end"]
+    assert min(1.0, s) < e2e < max(1.0, s)
 
 
 def test_bench_samplers_refuses_a_student_as_the_swept_checkpoint(student_ckpt, synth_store, tmp_path):

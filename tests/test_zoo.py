@@ -3,12 +3,16 @@ shipped references themselves (loadable with weights_only=True, they change the 
 
 from __future__ import annotations
 
+import runpy
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
 
 from difareli import sh, zoo
 from difareli.lit import load_checkpoint
+from difareli.lit.checkpoint import read_checkpoint
 from difareli.relighting import Relighter
 from difareli.store import EncodingStore
 from difareli.targets import Targets
@@ -29,8 +33,12 @@ def test_export_is_slim_and_relights_bit_for_bit(tiny_checkpoint, synth_store, t
     for piece in ("# test_pp", "| seed | 42 |", "BFM: non-commercial", "| x | 0.1 |", "| steps | 20 |"):
         assert piece in text
     # A fine-tune's card states the steps of the checkpoint it started from (release_reference's "steps" fact).
-    _, card2 = zoo.export(run, "test_ft", {**FACTS, "steps": "520 in all: 500 of test_pp, then 20"}, out_dir=tmp_path)
+    ft, card2 = zoo.export(run, "test_ft", {**FACTS, "steps": "520 in all: 500 of test_pp, then 20"}, out_dir=tmp_path)
     assert "| steps | 520 in all: 500 of test_pp, then 20 |" in card2.read_text()
+    # A fine-tune of that fine-tune starts from all 520 steps, not from the 20 of its last run.
+    release = runpy.run_path(str(Path(__file__).parents[1] / "scripts" / "release_reference.py"))
+    assert release["total_steps"](read_checkpoint(str(ft))) == 520
+    assert release["total_steps"](read_checkpoint(str(path))) == read_checkpoint(str(path))["global_step"] > 0
     store = EncodingStore.open(synth_store)
     rid = store.ids(split="test")[0]
     light = sh.yaw(np.asarray(store.read(rid, ["light"])["light"]), 45.0)

@@ -46,7 +46,7 @@ class Runtime:
     """Where and how the denoising network runs at inference (validated on construction)."""
 
     device: str = "auto"     # auto | cpu | cuda | cuda:N
-    precision: str = "fp32"  # fp32 | bf16 | fp16 (autocast; fp16 only on CUDA) | auto (auto_precision)
+    precision: str = "auto"  # auto (auto_precision: bf16 where native, else fp32) | fp32 | bf16 | fp16 (CUDA only)
     compile: bool = False    # torch.compile of the network forward, cached per network
     cuda_graphs: bool = False  # CUDA graphs at the denoiser boundary; eager (with a warning) off CUDA
     memory_format: str = "auto"  # auto (channels_last for bf16 on a CPU) | contiguous | channels_last
@@ -170,7 +170,7 @@ _FIELDS = tuple(f.name for f in dataclasses.fields(Runtime))
 
 
 def auto_precision(device: torch.device | str) -> str:
-    """``runtime.precision=auto``: bf16 where the hardware has native bf16 arithmetic (a CUDA GPU that supports
+    """``runtime.precision=auto`` (the default): bf16 where the hardware has native bf16 arithmetic (a CUDA GPU that supports
     it; a CPU with ``avx512_bf16`` or ``amx_bf16``), else fp32. On such a CPU a whole ffhq128 relight took 0.81x
     the fp32 time (0.62x compiled), and a trained model's relight changed by the error docs/official_code.md
     states (issue 26)."""

@@ -64,15 +64,16 @@ class RelightMetrics(L.Callback):
     """Log ``val/{dssim,mse,lpips}/{same,different}`` and a relight grid during fit (see the module docstring).
 
     ``sampler``/``steps``: a preset name, a sampler config or a spec (diffusion models only); ``rule``: the metric
-    rule (``paper`` | ``composite``); ``precision``: ``fp32`` | ``bf16`` autocast for the relights.
+    rule (``paper`` | ``composite``); ``precision``: the relights' :class:`~difareli.runtime.Runtime` precision
+    (``auto``, as every relighting command: bf16 where the hardware has it natively; ``fp32`` | ``bf16``).
     """
 
     def __init__(self, pairs: int = 4, every_n_steps: int | None = None, sampler: Any = "unipc", steps: int | None = 10,
-                 rule: str | None = None, precision: str = "fp32", grid: bool = True, enabled: bool = True):
+                 rule: str | None = None, precision: str = "auto", grid: bool = True, enabled: bool = True):
         self.spec: SamplerSpec = as_spec(sampler, steps=steps)  # a bad sampler fails before training
         self.rule = metrics.check_rule(rule)
-        if precision not in ("fp32", "bf16"):
-            raise ValueError(f"callbacks.relight_metrics.precision={precision!r} is not fp32 or bf16")
+        if precision not in ("auto", "fp32", "bf16"):
+            raise ValueError(f"callbacks.relight_metrics.precision={precision!r} is not auto, fp32 or bf16")
         if every_n_steps is not None and (not isinstance(every_n_steps, int) or every_n_steps < 1):
             raise ValueError(f"callbacks.relight_metrics.every_n_steps={every_n_steps!r} must be null or an int >= 1")
         self.pairs, self.every_n_steps, self.precision = int(pairs), every_n_steps, precision
@@ -142,8 +143,7 @@ class RelightMetrics(L.Callback):
         since = time.perf_counter() - (self._clock or time.perf_counter())
         t0 = time.perf_counter()
         dev = pl_module.device
-        runtime = None if self.precision == "fp32" else Runtime(device="cpu" if dev.type == "cpu" else str(dev),
-                                                                 precision=self.precision)
+        runtime = Runtime(device="cpu" if dev.type == "cpu" else str(dev), precision=self.precision)
         scores = {p: metrics.relight_metrics(self.rule).to(dev) for p in PROTOCOLS.values()}
         was_training = pl_module.training
         pl_module.eval()
