@@ -49,7 +49,7 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=None, help="default: the preset's")
     ap.add_argument("--hardware", default=platform.processor() or platform.machine())
     ap.add_argument("--precision", default="bf16-mixed")
-    ap.add_argument("--data", default=None, help=f"the training data (default: {DATA!r}; a refresh keeps the card's)")
+    ap.add_argument("--data", default=None, help=f"the training data (default: {DATA!r}; a fine-tune or a refresh keeps its card's)")
     ap.add_argument("--batch-size", type=int, default=16, help="when the run's .hydra/config.yaml is missing")
     ap.add_argument("--notes", default="")
     ap.add_argument("--summary", default=None, help="the card's first line (default: the reference <model>)")
@@ -82,7 +82,7 @@ def main() -> None:
         earlier = (prior.get("model_card") or {}).get("wall_time")
         wall += f", after {init}'s {earlier}" if earlier else ""
     facts = {"summary": a.summary or f"The reference {hp.get('name')} trained on this project's CPU.",
-             "data": a.data or DATA, "steps": steps,
+             "data": a.data or fine_tuned_data(prior) or DATA, "steps": steps,
              "seed": seed, "batch_size": batch, "optimizer": hp.get("optimizer"), "precision": a.precision,
              "hardware": a.hardware, "wall_time": wall,
              "weights": f"EMA (decay {ema}), fp32", "sampler": comparison.facts["sampler"], "benchmark": bench,
@@ -94,6 +94,11 @@ def total_steps(checkpoint: dict) -> int:
     """Every step behind a checkpoint: its card's "N in all" when it was itself fine-tuned, else its global step."""
     found = re.match(r"(\d+) in all", str((checkpoint.get("model_card") or {}).get("steps") or ""))
     return int(found.group(1)) if found else int(checkpoint.get("global_step") or 0)
+
+
+def fine_tuned_data(prior: dict | None) -> str | None:
+    """The training-data line of the card a fine-tune started from: a fine-tune trains on the same data."""
+    return ((prior or {}).get("model_card") or {}).get("data")
 
 
 def benchmark(a: argparse.Namespace, checkpoint: str):

@@ -39,6 +39,8 @@ def test_export_is_slim_and_relights_bit_for_bit(tiny_checkpoint, synth_store, t
     release = runpy.run_path(str(Path(__file__).parents[1] / "scripts" / "release_reference.py"))
     assert release["total_steps"](read_checkpoint(str(ft))) == 520
     assert release["total_steps"](read_checkpoint(str(path))) == read_checkpoint(str(path))["global_step"] > 0
+    assert release["fine_tuned_data"](read_checkpoint(str(ft))) == "SynthFaces 32 px"  # same data as it started from
+    assert release["fine_tuned_data"](None) is None
     store = EncodingStore.open(synth_store)
     rid = store.ids(split="test")[0]
     light = sh.yaw(np.asarray(store.read(rid, ["light"])["light"]), 45.0)
