@@ -347,3 +347,33 @@ def test_bench_samplers_checks_the_student_before_the_teacher_rows(synth_store, 
     with pytest.raises(TeacherRowsStarted):
         bench_samplers(compose_train(tmp_path / "b", [*overrides, "student=difareli_pp_ss-synth64"],
                                      config_name="bench_samplers"))
+
+
+
+def test_one_pass_relight_runs_through_the_runtime_denoiser(student_ckpt, synth_store):
+    """relight_core hands the runtime to the student: fp32 equals the plain pass bit for bit, bf16 equals autocast
+    on the original network bit for bit (the inference copy's contract, contiguous), and channels-last bf16
+    stays within bf16 rounding of it."""
+    from difareli import sh
+    from difareli.relight_core import relight
+    from difareli.runtime import Runtime
+
+    rel = Relighter(student_ckpt, device="cpu")
+    store = EncodingStore.open(synth_store)
+    arrays = rel.source(store, store.ids(split="test")[0]).arrays
+    model, names = rel.model, rel.model_inputs
+    x0 = image_to_tensor(arrays["image"])[None]
+    src = condition_tensors(model, [arrays], "cpu")
+    tgt = condition_tensors(model, [retarget(arrays, names, sh.yaw(np.asarray(arrays["light"]), a)) for a in (40, -40)],
+                            "cpu")
+    src2 = tuple(None if v is None else v.expand(2, *v.shape[1:]) for v in src)
+    with torch.no_grad():
+        plain = model.relight_once(x0.expand(2, -1, -1, -1), model.condition(*src2), model.condition(*tgt))
+        with torch.autocast("cpu", dtype=torch.bfloat16, cache_enabled=False):
+            cast = model.relight_once(x0.expand(2, -1, -1, -1), model.condition(*src2), model.condition(*tgt))
+    fp32 = relight(model, x0, src, tgt, runtime=Runtime(device="cpu", precision="fp32"))
+    assert torch.equal(fp32, plain.float())
+    bf16 = relight(model, x0, src, tgt, runtime=Runtime(device="cpu", precision="bf16", memory_format="contiguous"))
+    assert torch.equal(bf16, cast.float())
+    cl = relight(model, x0, src, tgt, runtime=Runtime(device="cpu", precision="bf16", memory_format="channels_last"))
+    assert 0 < (cl - fp32).abs().max() < 0.1 and (cl - cast.float()).abs().mean() < 1e-2

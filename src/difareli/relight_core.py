@@ -8,7 +8,6 @@ core (:mod:`difareli.relighting`), the training callbacks, jobs and benchmarks a
 
 from __future__ import annotations
 
-import contextlib
 from typing import Any
 
 import torch
@@ -55,8 +54,8 @@ def relight(model: Relightable, x0: Tensor, source: Condition, targets: Conditio
     n = next(v.shape[0] for v in targets if v is not None)
     if isinstance(model, OnePassRelightable):
         src = tuple(None if v is None else v.expand(n, *v.shape[1:]) for v in source)
-        with runtime.autocast() if runtime is not None else contextlib.nullcontext():
-            out = model.relight_once(x0.expand(n, -1, -1, -1), model.condition(*src), model.condition(*targets))
+        out = model.relight_once(x0.expand(n, -1, -1, -1), model.condition(*src), model.condition(*targets),
+                                 runtime=runtime)
         return out.float()
     if spec is None:
         raise ValueError(f"{type(model).__name__} is a diffusion model: relighting it needs a sampler spec")

@@ -3,7 +3,7 @@ modules share. Low in the house so the modules that implement them can check the
 
 A model offers :class:`Relightable`: the encodings it consumes (``spatial_inputs``, ``nonspatial_inputs``) and
 ``condition(spatial, nonspatial)``, run once per condition. A diffusion model adds ``denoiser(cond)`` and
-``schedule`` (:class:`DiffusionRelightable`); a one-pass model adds ``relight_once(x0, source_cond, target_cond)``
+``schedule`` (:class:`DiffusionRelightable`); a one-pass model adds ``relight_once(x0, source_cond, target_cond, runtime=None)``
 (:class:`OnePassRelightable`).
 """
 
@@ -37,7 +37,7 @@ class DiffusionRelightable(Relightable, Protocol):
 class OnePassRelightable(Relightable, Protocol):
     """A model that relights in one network pass (the single-shot student)."""
 
-    def relight_once(self, x0: Tensor, source: Any, target: Any) -> Tensor: ...
+    def relight_once(self, x0: Tensor, source: Any, target: Any, runtime: Any = None) -> Tensor: ...
 
 
 def model_inputs(model: Relightable) -> list[str]:

@@ -25,6 +25,7 @@ def run(cfg: DictConfig) -> dict:
         errors.check_int(n, f"steps[{i}]", 1)
     errors.check_int(cfg.limit, "limit", 1, allow_none=True)
     errors.check_int(cfg.repeats, "repeats", 1)
+    errors.check_int(cfg.student_repeats, "student_repeats", 1)
     errors.check_out_dir(cfg.out_dir)
     if cfg.checkpoint is not None:
         zoo.resolve(cfg.checkpoint, "checkpoint")
@@ -73,7 +74,7 @@ def run(cfg: DictConfig) -> dict:
                                     warmup=cfg.warmup, progress=cfg.progress)
     if student is not None:  # the one-pass student timed in this run: one point + every ratio
         speed.add_one_pass(rows, outputs, student, student_cases, name=student.hparams.get("name", "student"),
-                           runtime=runtime, repeats=cfg.repeats, warmup=cfg.warmup)
+                           runtime=runtime, repeats=max(cfg.repeats, cfg.student_repeats), warmup=cfg.warmup)
     out = Path(cfg.out_dir)
     out.mkdir(parents=True, exist_ok=True)
     (out / "inputs.txt").write_text(what + "\n")  # which inputs (estimated or oracle) the table used

@@ -28,6 +28,25 @@ PREVIEWS = "previews"
 UPSAMPLE_NOTE = 0.5
 
 
+@contextlib.contextmanager
+def _one_torch_thread():
+    """torch's intra-op threads at one while an image is processed (the identity network): between mediapipe's
+    graph calls the second OpenMP thread sleeps and is woken per convolution, which on a 2-core VM made the
+    descriptor 2-7x slower than the same call in a loop (34 against 62-108 ms per image for the identity stage,
+    docs/photos.md); parallelism comes from worker processes (``workers=``), which start with one thread."""
+    import sys
+
+    torch = sys.modules.get("torch")  # not imported yet: nothing to limit (and no reason to import it here)
+    before = torch.get_num_threads() if torch is not None else 1
+    if before > 1:
+        torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        if before > 1:
+            torch.set_num_threads(before)
+
+
 class Pipeline:
     """An aligner plus estimators; ``encodings`` (default: every encoding of the schema a photo can give, i.e.
     all but the synthetic ground truth) decide which estimators run."""
@@ -103,7 +122,7 @@ class Pipeline:
 
     def process(self, rgb: np.ndarray) -> tuple[dict[str, np.ndarray], dict, dict]:
         """Encodings of one decoded photo, its meta, and the full context (for previews)."""
-        with self._one_blas_thread(), native_logs():  # mediapipe's native INFO/WARNING lines dropped (.quiet)
+        with self._one_blas_thread(), _one_torch_thread(), native_logs():  # native INFO lines dropped (.quiet)
             return self._process(rgb)
 
     def _one_blas_thread(self):

@@ -99,16 +99,22 @@ class StudentModule(RelightingModule):
         nonspatial = self.normalize_nonspatial(nonspatial)
         return (spatial if spatial is not None and spatial.shape[1] > 0 else None), nonspatial
 
-    def relight_once(self, x0: torch.Tensor, source, target) -> torch.Tensor:
-        """The relit image [B, 3, H, W] of ``x0`` in [-1, 1] from the source and target conditions."""
+    def relight_once(self, x0: torch.Tensor, source, target, runtime=None) -> torch.Tensor:
+        """The relit image [B, 3, H, W] of ``x0`` in [-1, 1] from the source and target conditions. With a
+        :class:`~difareli.runtime.Runtime` the pass runs as its denoiser does (autocast, the inference copy with
+        weights cast once, channels-last, compile), as a diffusion model's passes do; float32 out."""
         (s_sp, s_ns), (t_sp, t_ns) = source, target
         sp = torch.cat([s_sp, t_sp[:, self._sp_dep]], 1) if s_sp is not None and self.net.spatial is not None else None
         ns = s_ns
         if self._ns_dep:
             ns = torch.cat([s_ns, t_ns[:, self._ns_dep]], 1)
-        cond = self.net.condition(sp, ns)
         t = torch.full((x0.shape[0],), self.hparams.timestep, device=x0.device, dtype=torch.long)
-        out = self.net(x0, t, cond)
+        if runtime is None:
+            out = self.net(x0, t, self.net.condition(sp, ns))
+        else:
+            with runtime.autocast():
+                cond = self.net.condition(sp, ns)
+            out = runtime.denoiser(self.net, cond)(x0, t)
         return x0 + out if self.hparams.residual else out
 
     # ------------------------------------------------------------------ training
