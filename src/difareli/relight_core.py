@@ -8,6 +8,7 @@ core (:mod:`difareli.relighting`), the training callbacks, jobs and benchmarks a
 
 from __future__ import annotations
 
+import inspect
 from typing import Any
 
 import torch
@@ -24,6 +25,11 @@ def _denoiser(model: DiffusionRelightable, cond: Any, runtime: Runtime | None):
     if runtime is None or forward is None:
         return model.denoiser(cond)
     return runtime.denoiser(forward, cond)
+
+
+def _takes_runtime(model: Relightable) -> bool:
+    # As diffusers asks a scheduler's step() whether it takes ``generator``: the argument is optional in the protocol.
+    return "runtime" in inspect.signature(model.relight_once).parameters
 
 
 def _condition(model: Relightable, inputs: Condition, runtime: Runtime | None):
@@ -54,9 +60,13 @@ def relight(model: Relightable, x0: Tensor, source: Condition, targets: Conditio
     n = next(v.shape[0] for v in targets if v is not None)
     if isinstance(model, OnePassRelightable):
         src = tuple(None if v is None else v.expand(n, *v.shape[1:]) for v in source)
-        out = model.relight_once(x0.expand(n, -1, -1, -1), model.condition(*src), model.condition(*targets),
-                                 runtime=runtime)
-        return out.float()
+        args = (x0.expand(n, -1, -1, -1), model.condition(*src), model.condition(*targets))
+        if runtime is None:
+            return model.relight_once(*args).float()
+        if _takes_runtime(model):  # its pass runs through runtime.denoiser (weights cast once, channels-last)
+            return model.relight_once(*args, runtime=runtime).float()
+        with runtime.autocast():  # a one-pass model written without the runtime argument
+            return model.relight_once(*args).float()
     if spec is None:
         raise ValueError(f"{type(model).__name__} is a diffusion model: relighting it needs a sampler spec")
     if inversion is None:

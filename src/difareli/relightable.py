@@ -37,7 +37,10 @@ class DiffusionRelightable(Relightable, Protocol):
 class OnePassRelightable(Relightable, Protocol):
     """A model that relights in one network pass (the single-shot student)."""
 
-    def relight_once(self, x0: Tensor, source: Any, target: Any, runtime: Any = None) -> Tensor: ...
+    def relight_once(self, x0: Tensor, source: Any, target: Any, runtime: Any = None) -> Tensor:
+        """The relit images; ``runtime`` is optional: a model whose ``relight_once`` does not take it is run under
+        the runtime's autocast instead (``relight_core``)."""
+        ...
 
 
 def model_inputs(model: Relightable) -> list[str]:
