@@ -349,7 +349,6 @@ def test_bench_samplers_checks_the_student_before_the_teacher_rows(synth_store, 
                                      config_name="bench_samplers"))
 
 
-
 def test_one_pass_relight_runs_through_the_runtime_denoiser(student_ckpt, synth_store):
     """relight_core hands the runtime to the student: fp32 equals the plain pass bit for bit, bf16 equals autocast
     on the original network bit for bit (the inference copy's contract, contiguous), and channels-last bf16
