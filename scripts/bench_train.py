@@ -5,8 +5,10 @@ A thin entry point of :func:`difareli.perf.train_throughput`: random SynthFaces-
 ``Trainer.fit``; a callback times the steps after the warm-up ones, synchronising the device at both ends. FLOPs
 of one training step (forward + backward of ``L_simple``, counted exactly with
 ``torch.utils.flop_counter.FlopCounterMode``; the AdamW update is not counted) give the achieved FLOP/s, reported
-against the device's nominal peak (``difareli.runtime.peak_flops``). Each configuration runs in a fresh
-subprocess so the peak memory (CPU resident set, or CUDA allocation) is its own.
+against the device's nominal peak (``difareli.runtime.peak_flops``) and against a large dense matmul measured in the
+same process (``gemm_GFLOPs``, :func:`difareli.perf.gemm_ceiling`: ``of_gemm`` is the step's share of it,
+``gemm_of_peak`` the matmul's share of the nominal peak, i.e. the most any network can reach here). Each
+configuration runs in a fresh subprocess so the peak memory (CPU resident set, or CUDA allocation) is its own.
 
     python scripts/bench_train.py                                   # CPU: tiny at 64 px, batch 16, fp32 and bf16
     python scripts/bench_train.py --device cuda                     # GPU: ffhq128 at 128 px, ffhq256 at 256 px
@@ -53,7 +55,7 @@ def main() -> None:
         if len(c.split(":")) not in (4, 5):
             sys.exit(f"--configs {c!r}: expected preset:resolution:batch:precision[:opts], e.g. tiny:64:16:bf16-mixed")
     cols = ["preset", "res", "batch", "precision", "opts", "params_M", "images_per_s", "s_per_step", "step_GFLOP",
-            "achieved_GFLOPs", "peak_GFLOPs", "utilisation", "peak_MiB"]
+            "achieved_GFLOPs", "peak_GFLOPs", "utilisation", "gemm_GFLOPs", "of_gemm", "gemm_of_peak", "peak_MiB"]
     print("| " + " | ".join(cols) + " |\n|" + "---|" * len(cols))
     rows = []
     for c in configs:

@@ -115,6 +115,24 @@ def test_time_calls_runs_warmup_untimed():
     assert t.best >= 0.01 and t.median >= t.best and "ms wall" in t.median_ms()
 
 
+def test_gemm_ceiling_is_2n3_over_the_fastest_timed_matmul(monkeypatch):
+    # A fake clock: the warm-up matmul "takes" 0.5 s, the timed ones 2, 1 and 3 s. The ceiling must skip the
+    # warm-up (else 2 n^3 / 0.5) and take the fastest timed one (else 2 n^3 / 2 for the mean).
+    durations = iter([0.5, 2.0, 1.0, 3.0])
+    clock = {"t": 0.0, "start": True}
+
+    def fake():
+        if not clock["start"]:
+            clock["t"] += next(durations)
+        clock["start"] = not clock["start"]
+        return clock["t"]
+
+    monkeypatch.setattr(perf, "time", SimpleNamespace(perf_counter=fake))  # perf's clock only
+    assert perf.gemm_ceiling("cpu", "fp32", n=32, repeats=3) == 2 * 32 ** 3 / 1.0
+    monkeypatch.undo()
+    assert perf.gemm_ceiling("cpu", "bf16", n=64, repeats=2) > 0
+
+
 def test_bench_train_script_reports_the_built_models_parameters():
     proc = subprocess.run([sys.executable, str(ROOT / "scripts" / "bench_train.py"), "--configs", "tiny:16:2:32-true",
                            "--steps", "1", "--warmup", "1", "--variant", "difareli", "--json", "/dev/stdout"],

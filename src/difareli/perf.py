@@ -202,6 +202,30 @@ def train_step_flops(module, batch: dict) -> int:
     return flops
 
 
+def gemm_ceiling(device: str | torch.device = "cpu", precision: str = "bf16", n: int = 2048, repeats: int = 5
+                 ) -> float:
+    """Measured FLOP/s of the fastest of ``repeats`` dense ``n x n`` matmuls (``2 n^3`` FLOPs each) at ``precision``
+    (``bf16`` or ``fp32``) on ``device``, after one warm-up: what this machine's BLAS / oneDNN reaches on the
+    friendliest shape, a ceiling for any network on it (the nominal peak counts instructions, not what runs)."""
+    from difareli.runtime import Runtime
+
+    dev = torch.device(device)
+    dtype = torch.bfloat16 if precision.startswith("bf16") else torch.float32
+    gen = torch.Generator().manual_seed(0)
+    a, b = (torch.randn(n, n, generator=gen).to(dev, dtype) for _ in range(2))
+    sync = Runtime(device=str(dev), precision="fp32").synchronize
+    best = float("inf")
+    for i in range(repeats + 1):
+        sync()
+        t0 = time.perf_counter()
+        torch.mm(a, b)
+        sync()
+        seconds = time.perf_counter() - t0
+        if i:  # the first is the warm-up (oneDNN's kernel selection, page faults)
+            best = min(best, seconds)
+    return 2.0 * n ** 3 / best
+
+
 def _step_timer(warmup: int, device: torch.device):
     import lightning as L
 
@@ -232,7 +256,8 @@ def train_throughput(preset: str, res: int, batch: int, precision: str, device: 
                      warmup: int = 2, variant: str = DEFAULT_VARIANT, opts: str = "") -> dict:
     """Train ``warmup + steps`` steps of random batches through a Lightning ``Trainer`` (the real
     ``training_step``) and time the last ``steps``: images/s, FLOPs per step, achieved FLOP/s against the device's
-    nominal peak (:func:`difareli.runtime.peak_flops`), peak memory of this process.
+    nominal peak (:func:`difareli.runtime.peak_flops`) and against :func:`gemm_ceiling` (a large matmul measured in
+    the same process: what any network reaches at best here), peak memory of this process.
 
     ``opts``: comma-separated ``cl`` (channels-last network and batches), ``compile`` (torch.compile the network),
     ``t<N>`` (N intra-op threads)."""
@@ -272,6 +297,7 @@ def train_throughput(preset: str, res: int, batch: int, precision: str, device: 
     flops = train_step_flops(counted.to(dev), {k: v.to(dev) for k, v in next(iter(loader)).items()})
     achieved = flops * steps / timer.seconds
     peak, peak_how = peak_flops(dev, "bf16" if "bf16" in precision else "fp32")
+    ceiling = gemm_ceiling(dev, "bf16" if "bf16" in precision else "fp32")
     return {"preset": preset, "res": res, "batch": batch, "precision": precision, "opts": opts or "-",
             "device": str(dev),
             "params_M": round(sum(p.numel() for p in module.parameters()) / 1e6, 2),
@@ -280,6 +306,8 @@ def train_throughput(preset: str, res: int, batch: int, precision: str, device: 
             "step_GFLOP": round(flops / 1e9, 2), "achieved_GFLOPs": round(achieved / 1e9, 2),
             "peak_GFLOPs": None if peak is None else round(peak / 1e9, 1),
             "utilisation": None if peak is None else round(achieved / peak, 4), "peak_source": peak_how,
+            "gemm_GFLOPs": round(ceiling / 1e9, 1), "of_gemm": round(achieved / ceiling, 4),
+            "gemm_of_peak": None if peak is None else round(ceiling / peak, 4),
             "peak_MiB": round(peak_mem, 1), "peak_kind": "cuda_allocated" if dev.type == "cuda" else "process_rss"}
 
 
