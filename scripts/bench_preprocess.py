@@ -8,7 +8,10 @@ astronaut and cameraman, matplotlib's Grace Hopper, and their mirror images, aft
 the mediapipe graphs and loads dlib), without store writes or previews. The baseline is the package as it was at
 git ``--baseline`` (default: the commit before issue 25), extracted with ``git archive`` into a temporary folder
 (nothing in the checkout changes). ``--workers n`` also times this tree's ``difareli-preprocess`` run with ``n``
-worker processes on the same photos (store writes included, previews off; wall-clock images/s). Time it under
+worker processes on the same photos (store writes included, previews off; wall-clock images/s). The rows "of
+which mediapipe graphs / identity network" are the wall time inside those third-party calls (part of the stages
+above them), and "networks alone" the images/s this tree would reach if everything else were free: the bound on
+what changing our own code can give. Time it under
 the shared lock: ``flock /tmp/difareli-timing.lock python ...``.
 """
 
@@ -41,8 +44,36 @@ def photos() -> list[np.ndarray]:
     return base + [np.ascontiguousarray(p[:, ::-1]) for p in base]
 
 
+#: Third-party network calls timed inside the stages (``networks_ms``): what no change to our code removes.
+NETWORKS = {"mediapipe graphs": ("mediapipe.python.solution_base", "SolutionBase", "process"),
+            "identity network": ("difareli.estimators.dlib_resnet", "DlibFaceResNet", "forward")}
+
+
+def clock_networks(seconds: dict[str, float]) -> None:
+    """Wrap each of :data:`NETWORKS` (where the importable package has it) so that its calls add their wall time to
+    ``seconds[name]``: mediapipe's graph runs (detection, FaceMesh, selfie segmentation) and the identity ResNet."""
+    import importlib
+
+    for name, (module, cls, method) in NETWORKS.items():
+        try:
+            owner = getattr(importlib.import_module(module), cls)
+        except (ImportError, AttributeError):
+            continue  # the baseline's descriptor is dlib's own, inside its identity stage
+        inner = getattr(owner, method)
+
+        def timed(*args, _inner=inner, _name=name, **kwargs):
+            t0 = time.perf_counter()
+            try:
+                return _inner(*args, **kwargs)
+            finally:
+                seconds[_name] = seconds.get(_name, 0.0) + time.perf_counter() - t0
+
+        setattr(owner, method, timed)
+
+
 def measure(sizes: list[int], repeats: int) -> list[dict]:
-    """Images/s and mean ms per stage of the importable ``difareli`` at each size."""
+    """Images/s, mean ms per stage and ms inside the third-party networks of the importable ``difareli`` at each
+    size."""
     from hydra import compose, initialize_config_dir
 
     from difareli.cli.preprocess import build_pipeline
@@ -55,6 +86,8 @@ def measure(sizes: list[int], repeats: int) -> list[dict]:
         pipe = build_pipeline(cfg)
         pipe.process(imgs[0])  # warm-up
         totals: dict[str, float] = {}
+        nets: dict[str, float] = {}
+        clock_networks(nets)
         n, t0 = 0, time.perf_counter()
         for _ in range(repeats):
             for img in imgs:
@@ -63,7 +96,8 @@ def measure(sizes: list[int], repeats: int) -> list[dict]:
                 n += 1
         dt = time.perf_counter() - t0
         out.append({"size": size, "images": n, "images_per_s": n / dt, "ms_per_image": 1000 * dt / n,
-                    "stages_ms": {k: 1000 * v / n for k, v in totals.items()}})
+                    "stages_ms": {k: 1000 * v / n for k, v in totals.items()},
+                    "networks_ms": {k: 1000 * v / n for k, v in nets.items()}})
     return out
 
 
@@ -112,19 +146,32 @@ def baseline_tree(ref: str, tmp: Path) -> Path | None:
     return tmp / "src"
 
 
+def fmt(v: float | None) -> str:
+    return "-" if v is None else f"{v:.1f}"
+
+
 def table(before: dict | None, after: dict) -> str:
+    """The side-by-side text table of one size: stages, total, the networks inside them, images/s, the bound."""
     stages = list(dict.fromkeys([*(before or {}).get("stages_ms", {}), *after["stages_ms"]]))
     lines = [f"size {after['size']} px, {after['images']} images per side",
              f"{'stage':<22}{'baseline ms':>13}{'this tree ms':>14}{'speed-up':>10}"]
     for s in [*stages, "total"]:
         b = (before["ms_per_image"] if s == "total" else before["stages_ms"].get(s)) if before else None
         a = after["ms_per_image"] if s == "total" else after["stages_ms"].get(s)
-        fmt = lambda v: "-" if v is None else f"{v:.1f}"
         up = f"{b / a:.1f}x" if b and a else "-"
         lines.append(f"{s:<22}{fmt(b):>13}{fmt(a):>14}{up:>10}")
+    for s in NETWORKS:  # inside the stages above, not added to the total
+        b, a = (before or {}).get("networks_ms", {}).get(s), after.get("networks_ms", {}).get(s)
+        if a is not None or b is not None:
+            lines.append(f"{'  ' + s:<22}{fmt(b):>13}{fmt(a):>14}  (within the stages)")
     ips_b = f"{before['images_per_s']:.2f}" if before else "-"
     up = f" ({after['images_per_s'] / before['images_per_s']:.1f}x)" if before else ""
     lines.append(f"{'images/s':<22}{ips_b:>13}{after['images_per_s']:>14.2f}{up}")
+    floor = sum(after.get("networks_ms", {}).values())
+    if floor:
+        ref = f"; the baseline's total / that = {before['ms_per_image'] / floor:.1f}x" if before else ""
+        lines.append(f"networks alone: {floor:.1f} ms per image, {1000 / floor:.1f} images/s with every other stage "
+                     f"free{ref}")
     return "\n".join(lines)
 
 

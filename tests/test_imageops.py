@@ -29,3 +29,18 @@ def test_luminance_is_rec709():
     assert LUMA.sum() == pytest.approx(1.0)
     rgb = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [0.5, 0.5, 0.5]])
     np.testing.assert_allclose(luminance(rgb), [0.2126, 0.7152, 0.0722, 0.5])
+
+
+def test_rgb2lab_u8_is_scikit_images_rgb2lab_bit_for_bit():
+    from skimage.color import rgb2lab
+
+    from difareli.imageops import rgb2lab_u8
+
+    rng = np.random.default_rng(0)
+    pixels = rng.integers(0, 256, (5000, 3), dtype=np.uint8)
+    grey = np.repeat(np.arange(256, dtype=np.uint8)[:, None], 3, axis=1)  # both sides of the 0.04045 knee
+    for rgb in (pixels, grey, pixels.reshape(50, 100, 3)):
+        np.testing.assert_array_equal(rgb2lab_u8(rgb), rgb2lab(rgb))
+    np.testing.assert_allclose(rgb2lab_u8(np.array([[255, 255, 255]], np.uint8)), [[100, 0, 0]], atol=1e-2)  # the matrix rows sum to D65 to 4 digits
+    with pytest.raises(ValueError, match="uint8 RGB"):
+        rgb2lab_u8(pixels.astype(np.float64))

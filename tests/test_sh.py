@@ -210,6 +210,19 @@ def test_fit_round_trip_and_noise(rng):
     assert np.linalg.norm(sh.fit(clean, normals, albedo, ridge=10.0)) < np.linalg.norm(light)
 
 
+def test_ridge_fit_with_one_albedo_per_channel_equals_the_per_pixel_path(rng):
+    # (3,) albedo takes the shared-Gram path; the same albedo repeated per pixel (N, 3) takes the channel loop.
+    normals = _fibonacci_sphere(300)
+    albedo = np.array([0.8, 0.55, 0.4])
+    y = albedo * sh.irradiance(rng.normal(size=(9, 3)), normals) + 0.01 * rng.normal(size=(300, 3))
+    w = rng.uniform(0.5, 1.5, 300)
+    loop = sh.fit(y, normals, np.tile(albedo, (300, 1)), weights=w, ridge=3.0)
+    np.testing.assert_allclose(sh.fit(y, normals, albedo, weights=w, ridge=3.0), loop, rtol=1e-10, atol=1e-12)
+    # A precomputed basis is the same fit.
+    np.testing.assert_array_equal(sh.fit(y, normals, albedo, ridge=3.0, basis=sh.sh_basis(normals)),
+                                  sh.fit(y, normals, albedo, ridge=3.0))
+
+
 def test_fit_rejects_degenerate_input(rng):
     light = rng.normal(size=(9, 3))
     few = _unit(rng.normal(size=(8, 3)))

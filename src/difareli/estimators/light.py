@@ -129,13 +129,14 @@ class SkinSHLight:
         basis = sh.sh_basis(n)  # (N, 9) once: sh.irradiance(light, n) is basis @ light
         keep = np.ones(len(y), dtype=bool)
         for _ in range(2):
-            light = sh.fit(y[keep], n[keep], albedo, ridge=self.ridge * keep.sum())
+            light = sh.fit(y[keep], n[keep], albedo, ridge=self.ridge * keep.sum(), basis=basis[keep])
             if grey:  # one light for the three channels, exactly
                 light = np.repeat(light[:, :1], 3, axis=1)
             irr = basis @ light
             res = (y - albedo * irr) @ LUMA
-            mad = 1.4826 * np.median(np.abs(res - np.median(res))) + 1e-6
-            new = np.abs(res - np.median(res)) < self.clip_mads * mad
+            dev = np.abs(res - np.median(res))
+            mad = 1.4826 * np.median(dev) + 1e-6
+            new = dev < self.clip_mads * mad
             if new.sum() < self.min_pixels or np.array_equal(new, keep):
                 break
             keep = new

@@ -249,7 +249,8 @@ class FaceMeshSelfieMasks:
         """The colour rules of the module docstring, in place on ``labels`` (neck by skin colour, hat by a colour
         unlike the hair beside the face)."""
         from scipy import ndimage
-        from skimage.color import rgb2lab
+
+        from difareli.imageops import rgb2lab_u8 as rgb2lab  # scikit-image's rgb2lab, bit for bit, for uint8
 
         skin = labels == PART_INDEX["skin"]
         if skin.sum() < 50:

@@ -68,6 +68,21 @@ class OrthoCamera:
         v, u = np.meshgrid(np.arange(H) + 0.5, np.arange(W) + 0.5, indexing="ij")
         return np.stack([u, v], axis=-1)
 
+    def pixel_rays_within(self, H: int, W: int, z_start: float, lo, hi) -> tuple[np.ndarray, np.ndarray]:
+        """The rows of :meth:`pixel_rays` whose origin's x, y lie in the box ``lo <= (x, y) <= hi``: their flat
+        pixel indices (ascending) and origins ``(M, 3)``, the same values, without building every pixel's ray.
+        A pixel's x depends on its column only and y on its row, so the box is a set of rows times columns."""
+        u, v = np.arange(W) + 0.5, np.arange(H) + 0.5
+        xs = (2.0 * u / W - 1.0) / self.scale - self.tx  # unproject's arithmetic, term for term
+        ys = (1.0 - 2.0 * v / H) / self.scale - self.ty
+        cols = np.flatnonzero((xs >= lo[0]) & (xs <= hi[0]))
+        rows = np.flatnonzero((ys >= lo[1]) & (ys <= hi[1]))
+        origins = np.empty((len(rows) * len(cols), 3))
+        origins[:, 0] = np.tile(xs[cols], len(rows))
+        origins[:, 1] = np.repeat(ys[rows], len(cols))
+        origins[:, 2] = z_start
+        return (rows[:, None] * W + cols[None, :]).ravel(), origins
+
     def pixel_rays(self, H: int, W: int, z_start: float) -> tuple[np.ndarray, np.ndarray]:
         """Primary rays through pixel centres, row-major: origins ``(H*W, 3)`` at ``z = z_start``, and
         directions ``(H*W, 3)``, all ``(0, 0, -1)``."""

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
-from .camera import OrthoCamera
+from .camera import RAY_DIRECTION, OrthoCamera
 
 #: Primary rays start this far (relative to the mesh scale) in front of the nearest vertex.
 _RAY_START_MARGIN = 0.05
@@ -200,20 +200,20 @@ def render_gbuffer(scene: Scene, cam: OrthoCamera, H: int, W: int, *, cull: bool
     if isinstance(cam, (np.ndarray, list, tuple)):
         cam = OrthoCamera.from_array(cam)
     z_start = scene.vertices[:, 2].max() + _RAY_START_MARGIN * scene.scale
-    origins, directions = cam.pixel_rays(H, W, z_start)
     if cull:
         margin = 2.0 / (cam.scale * W)  # one pixel in camera-space units
         lo, hi = scene.vertices[:, :2].min(0) - margin, scene.vertices[:, :2].max(0) + margin
-        rays = np.flatnonzero(np.all((origins[:, :2] >= lo) & (origins[:, :2] <= hi), axis=1))
-        tri_all = np.full(len(origins), -1, dtype=np.int64)
-        tri_all[rays] = scene.intersects_first(origins[rays], directions[rays])
+        rays, origins = cam.pixel_rays_within(H, W, z_start, lo, hi)
     else:
-        tri_all = scene.intersects_first(origins, directions)
-    hit_flat = tri_all >= 0
-    idx = np.flatnonzero(hit_flat)
-    tri = tri_all[idx]
+        origins, _ = cam.pixel_rays(H, W, z_start)
+        rays = np.arange(H * W)
+    first = scene.intersects_first(origins, np.broadcast_to(RAY_DIRECTION, origins.shape))
+    local = np.flatnonzero(first >= 0)
+    idx, tri = rays[local], first[local]  # hit pixels (flat, ascending) and their triangles
+    hit_flat = np.zeros(H * W, dtype=bool)
+    hit_flat[idx] = True
 
-    xy = origins[idx, :2]
+    xy = origins[local, :2]
     bary = _barycentric(scene, tri, xy)
     z = np.einsum("mk,mk->m", bary, scene._corner_z[tri])
 
