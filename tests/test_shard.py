@@ -192,9 +192,10 @@ def test_preprocess_shards_equal_the_unsharded_run(tmp_path):
                   shard=f"{i}/2").written for i in (0, 1)]
     assert counts == [2, 2]  # hash split of photo0..3: shard 0 owns photo1, photo2
     assert EncodingStore.open(tmp_path / "sharded").ids() == [f"photo{i}" for i in range(4)]
-    # Arrays byte-identical; meta.json too except the measured per-step timings.
+    # Arrays byte-identical; meta.json too except the measured per-step timings (rounded to 0.1 ms, so with this
+    # one-step pipeline they may also agree: an empty diff is a pass, not a sign of nothing compared).
     diff = _same_tree(tmp_path / "ref" / "records", tmp_path / "sharded" / "records")
-    assert diff and all(d.endswith("meta.json") for d in diff)
+    assert all(d.endswith("meta.json") for d in diff)
     for d in diff:
         a, b = (json.loads((tmp_path / r / "records" / d).read_text()) for r in ("ref", "sharded"))
         assert {**a, "seconds": None} == {**b, "seconds": None}
