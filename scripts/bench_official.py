@@ -39,8 +39,10 @@ ROOT = Path(__file__).resolve().parents[1]
 #: tiny-64: our ``tiny`` preset at 64 px in official terms (the official YAML keys, set on its config object).
 TINY64 = {"image_size": 64, "num_channels": 32, "channel_mult": "1,2,2", "num_res_blocks": 1,
           "attention_resolutions": "8", "num_heads": 2}
-MODES = {"fp32": {}, "bf16": {"precision": "bf16"}, "compile": {"compile": True},
-         "bf16+compile": {"precision": "bf16", "compile": True}, "auto": {"precision": "auto"}}
+# Each mode names its precision: the runtime's default is "auto" (bf16 where the hardware has it).
+MODES = {"fp32": {"precision": "fp32"}, "bf16": {"precision": "bf16"},
+         "compile": {"precision": "fp32", "compile": True}, "bf16+compile": {"precision": "bf16", "compile": True},
+         "auto": {"precision": "auto"}}
 
 
 def official_config(checkout: Path, which: str, steps: int, work: Path):

@@ -26,8 +26,10 @@ from difareli.runtime import Runtime
 from difareli.store import EncodingStore
 from difareli.targets import Targets
 
-MODES = {"fp32": {}, "bf16": {"precision": "bf16"}, "compile": {"compile": True},
-         "bf16+compile": {"precision": "bf16", "compile": True}, "cuda_graphs": {"cuda_graphs": True}}
+# Each mode names its precision: the runtime's default is "auto" (bf16 where the hardware has it).
+MODES = {"fp32": {"precision": "fp32"}, "bf16": {"precision": "bf16"},
+         "compile": {"precision": "fp32", "compile": True}, "bf16+compile": {"precision": "bf16", "compile": True},
+         "cuda_graphs": {"precision": "fp32", "cuda_graphs": True}}
 
 
 def main() -> None:

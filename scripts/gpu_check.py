@@ -31,7 +31,9 @@ from difareli.diffusion.relight import SamplerSpec  # noqa: E402
 from difareli.relight_core import invert_image, relight  # noqa: E402
 from difareli.runtime import Runtime, count_flops, peak_flops  # noqa: E402
 
-MODES = {"fp32": {}, "bf16": {"precision": "bf16"}, "cuda_graphs": {"precision": "bf16", "cuda_graphs": True},
+# Each mode names its precision: the runtime's default is "auto" (bf16 where the hardware has it).
+MODES = {"fp32": {"precision": "fp32"}, "bf16": {"precision": "bf16"},
+         "cuda_graphs": {"precision": "bf16", "cuda_graphs": True},
          "compile": {"precision": "bf16", "compile": True},
          "compile_graphs": {"precision": "bf16", "compile": True, "cuda_graphs": True}}
 STAGES = ("unet", "relight", "train")
