@@ -8,9 +8,9 @@ astronaut and cameraman, matplotlib's Grace Hopper, and their mirror images, aft
 the mediapipe graphs and loads dlib), without store writes or previews. The baseline is the package as it was at
 git ``--baseline`` (default: the commit before issue 25), extracted with ``git archive`` into a temporary folder
 (nothing in the checkout changes). ``--workers n`` also times this tree's ``difareli-preprocess`` run with ``n``
-worker processes on the same photos (store writes included, previews off; wall-clock images/s). The rows "of
-which mediapipe graphs / identity network" are the wall time inside those third-party calls (part of the stages
-above them), and "networks alone" the images/s this tree would reach if everything else were free: the bound on
+worker processes on the same photos (store writes included, previews off; wall-clock images/s). The rows
+"mediapipe graphs" and "identity network" are the wall time inside those third-party calls (part of the stages
+above them, hence "within the stages"), and "networks alone" the images/s this tree would reach if everything else were free: the bound on
 what changing our own code can give. Time it under
 the shared lock: ``flock /tmp/difareli-timing.lock python ...``.
 """

@@ -41,6 +41,7 @@ def test_rgb2lab_u8_is_scikit_images_rgb2lab_bit_for_bit():
     grey = np.repeat(np.arange(256, dtype=np.uint8)[:, None], 3, axis=1)  # both sides of the 0.04045 knee
     for rgb in (pixels, grey, pixels.reshape(50, 100, 3)):
         np.testing.assert_array_equal(rgb2lab_u8(rgb), rgb2lab(rgb))
-    np.testing.assert_allclose(rgb2lab_u8(np.array([[255, 255, 255]], np.uint8)), [[100, 0, 0]], atol=1e-2)  # the matrix rows sum to D65 to 4 digits
+    # White is L = 100, a = b = 0 up to the matrix's rounding (its rows sum to D65 to 4 digits).
+    np.testing.assert_allclose(rgb2lab_u8(np.array([[255, 255, 255]], np.uint8)), [[100, 0, 0]], atol=1e-2)
     with pytest.raises(ValueError, match="uint8 RGB"):
         rgb2lab_u8(pixels.astype(np.float64))
