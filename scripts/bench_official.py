@@ -8,15 +8,15 @@
 The official code is not shipped here: point ``--official`` at a checkout (its ``guided_diffusion`` and ``config``
 folders; it needs ``yacs``, as the official code does). The script builds the official UNet and Modulator with
 the official builder (``create_img_and_diffusion``) from the YAML, fills them with random weights (seeded; the
-zero-initialised output layers too, so eps is not trivially 0), converts them with ``difareli.official.convert``
+zero-initialised output layers too, so eps is not trivially 0), converts them with ``difareli.official.weights.convert``
 and loads the result with ``load_checkpoint`` (the normal way). Then:
 
 - eps parity: the official network and ours on the same inputs (batch 1 and 2), max |difference|;
 - one whole relight per mode (condition, DDIM inversion with the official per-channel means, mean-matching
   self-decode, decode under one target: 60 network passes at 20 steps) on the official respaced timesteps, so
   both compute the same thing: the official with its own ``ddim_reverse_sample_loop`` / ``ddim_sample_loop`` and
-  model-kwargs dict (deep-copied every step, as its loops do), ours with ``difareli.relighting.relight`` under a
-  :class:`~difareli.runtime.Runtime` per mode. Modes run interleaved in every round; the ratio ours / official is
+  model-kwargs dict (deep-copied every step, as its loops do), ours with ``difareli.relight.relighter.relight`` under a
+  :class:`~difareli.runtime.core.Runtime` per mode. Modes run interleaved in every round; the ratio ours / official is
   taken within each round and its median reported, with the relit image's difference from the official one.
 
 OpenMP waiting is made passive before torch loads (``--busy-wait`` keeps the environment's policy). Run timings
@@ -89,7 +89,7 @@ def inputs(r: int, selector: list[str], parts_order: list[str], seed: int):
     import torch
     import torch.nn.functional as F
 
-    from difareli.official import PARAM_WIDTHS
+    from difareli.official.weights import PARAM_WIDTHS
 
     g = torch.Generator().manual_seed(seed)
 
@@ -178,13 +178,13 @@ def trained_check(checkpoint: str, store_root: str, records: int, sampler: str, 
     import numpy as np
     import torch
 
-    from difareli import sh
+    from difareli.lighting import sh
     from difareli.diffusion.spec import SamplerSpec
     from difareli.lit import load_checkpoint
-    from difareli.relighting import Relighter
-    from difareli.runtime import Runtime
-    from difareli.store import EncodingStore
-    from difareli.targets import Targets
+    from difareli.relight.relighter import Relighter
+    from difareli.runtime.core import Runtime
+    from difareli.data.store import EncodingStore
+    from difareli.relight.targets import Targets
 
     store = EncodingStore.open(store_root)
     ids = (store.ids(split="test") or store.ids())[:records]
@@ -222,7 +222,7 @@ def main() -> int:
     args = p.parse_args()
     if args.trained:
         sys.path.insert(0, str(ROOT / "src"))
-        from difareli.processes import passive_openmp
+        from difareli.utils.processes import passive_openmp
 
         passive_openmp()
         return trained_check(args.trained, args.store, args.records, args.sampler, args.steps)
@@ -235,7 +235,7 @@ def main() -> int:
         return 2
     if not args.busy_wait:
         sys.path.insert(0, str(ROOT / "src"))
-        from difareli.processes import passive_openmp
+        from difareli.utils.processes import passive_openmp
 
         passive_openmp()  # before torch loads
     sys.path.insert(0, str(checkout))
@@ -247,11 +247,11 @@ def main() -> int:
     import torch
     from guided_diffusion.script_util import create_img_and_diffusion
 
-    from difareli import official
+    from difareli.official import weights as official
     from difareli.lit import load_checkpoint
-    from difareli.processes import openmp_wait_policy
-    from difareli.relight_core import relight
-    from difareli.runtime import Runtime
+    from difareli.utils.processes import openmp_wait_policy
+    from difareli.relight.core import relight
+    from difareli.runtime.core import Runtime
 
     torch.set_num_threads(args.threads)
     work = Path(tempfile.mkdtemp(prefix="bench_official_"))

@@ -2,7 +2,7 @@
 
 The mesh is a bumpy sphere (~10k triangles, non-convex so shadow rays do real work) plus a floating box
 occluder and a backdrop plane, in camera space. Prints the median wall and CPU time of ``--repeats`` runs of each
-stage after one warm-up (:func:`difareli.perf.time_calls`; CPU time is the steadier figure on a shared machine) and
+stage after one warm-up (:func:`difareli.perf.measure.time_calls`; CPU time is the steadier figure on a shared machine) and
 the ray backend (embree or pure Python), then a per-record estimate for SynthFaces-sized renders
 (``--record-res``, one scene build, one G-buffer, ``--shadows`` shadow passes, one shading reference).
 
@@ -17,7 +17,7 @@ import os
 import numpy as np
 import trimesh
 
-from difareli.perf import time_calls
+from difareli.perf.measure import time_calls
 from difareli.render import OrthoCamera, Scene, cast_shadow, cast_shadows, render_gbuffer, shading_reference
 
 

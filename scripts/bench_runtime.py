@@ -3,7 +3,7 @@
     python scripts/bench_runtime.py --checkpoint <ckpt> --store <store> [--sampler unipc --steps 20]
         [--modes fp32 bf16 compile] [--repeats 3] [--records 2]
 
-Each mode is a :class:`difareli.runtime.Runtime`; every relight goes through :class:`difareli.relighting.Relighter`
+Each mode is a :class:`difareli.runtime.core.Runtime`; every relight goes through :class:`difareli.relight.relighter.Relighter`
 (the record read, inversion + mean-matching self-decode + decode of one target, the inversion cache cleared each
 time), after one untimed warm-up per mode (compilation, allocation), modes interleaved within each repeat. Prints
 the median seconds and the largest pixel difference against fp32 (uint8 levels), so a faster mode that changes the
@@ -18,13 +18,13 @@ import statistics
 import numpy as np
 import torch
 
-from difareli import sh
+from difareli.lighting import sh
 from difareli.diffusion.spec import SamplerSpec
 from difareli.lit import load_checkpoint
-from difareli.relighting import Relighter
-from difareli.runtime import Runtime
-from difareli.store import EncodingStore
-from difareli.targets import Targets
+from difareli.relight.relighter import Relighter
+from difareli.runtime.core import Runtime
+from difareli.data.store import EncodingStore
+from difareli.relight.targets import Targets
 
 # Each mode names its precision: the runtime's default is "auto" (bf16 where the hardware has it).
 MODES = {"fp32": {"precision": "fp32"}, "bf16": {"precision": "bf16"},

@@ -1,12 +1,12 @@
 """Training throughput of the real ``DiffusionModule.training_step`` in a Lightning ``Trainer``.
 
-A thin entry point of :func:`difareli.perf.train_throughput`: random SynthFaces-shaped batches (the inputs of a
+A thin entry point of :func:`difareli.perf.measure.train_throughput`: random SynthFaces-shaped batches (the inputs of a
 ``conf/model`` variant, DiFaReli++ by default; widths from the encoding registry) go through a DataLoader into
 ``Trainer.fit``; a callback times the steps after the warm-up ones, synchronising the device at both ends. FLOPs
 of one training step (forward + backward of ``L_simple``, counted exactly with
 ``torch.utils.flop_counter.FlopCounterMode``; the AdamW update is not counted) give the achieved FLOP/s, reported
-against the device's nominal peak (``difareli.runtime.peak_flops``) and against a large dense matmul measured in the
-same process (``gemm_GFLOPs``, :func:`difareli.perf.gemm_ceiling`: ``of_gemm`` is the step's share of it,
+against the device's nominal peak (``difareli.hardware.peak_flops``) and against a large dense matmul measured in the
+same process (``gemm_GFLOPs``, :func:`difareli.perf.measure.gemm_ceiling`: ``of_gemm`` is the step's share of it,
 ``gemm_of_peak`` the matmul's share of the nominal peak, i.e. the most any network can reach here). Each
 configuration runs in a fresh subprocess so the peak memory (CPU resident set, or CUDA allocation) is its own.
 
@@ -24,7 +24,7 @@ import json
 import subprocess
 import sys
 
-from difareli.perf import DEFAULT_VARIANT, train_throughput
+from difareli.perf.measure import DEFAULT_VARIANT, train_throughput
 
 CPU_DEFAULT = ["tiny:64:16:32-true", "tiny:64:16:bf16-mixed"]
 GPU_DEFAULT = ["ffhq128:128:32:bf16-mixed", "ffhq128:128:32:32-true", "ffhq256:256:16:bf16-mixed"]
@@ -76,7 +76,7 @@ def main() -> None:
 
 def profile(configs: list[str], variant: str, steps: int, warmup: int) -> None:
     """One table: seconds per step and the share of each category, a column per config."""
-    from difareli.perf import profile_train_step
+    from difareli.perf.measure import profile_train_step
 
     cols = {}
     for c in configs:

@@ -5,7 +5,7 @@
 
 Writes ``gpu_check.json`` and ``gpu_check.md`` to ``$OUT`` when set, else to ``docs/perf/``. Networks are untrained
 (timing only: zero-initialised layers cost the same); the rotation's 60 target conditions are random. MFU is the
-achieved FLOP/s against the card's dense bf16 peak (``difareli.runtime.GPU_BF16_PEAK``), for every mode. Stages run
+achieved FLOP/s against the card's dense bf16 peak (``difareli.runtime.core.GPU_BF16_PEAK``), for every mode. Stages run
 in order of importance; the compile modes come last and are skipped (and listed) when the time budget runs out.
 Imports avoid hydra/omegaconf/kornia/trimesh/wandb (absent on GPU images): they are blocked below so CI proves it.
 """
@@ -26,10 +26,11 @@ for _m in ("hydra", "omegaconf", "kornia", "trimesh", "embreex", "rtree", "wandb
 
 import torch  # noqa: E402
 
-from difareli import perf  # noqa: E402
+from difareli.perf import measure as perf  # noqa: E402
 from difareli.diffusion.relight import SamplerSpec  # noqa: E402
-from difareli.relight_core import invert_image, relight  # noqa: E402
-from difareli.runtime import Runtime, count_flops, peak_flops  # noqa: E402
+from difareli.relight.core import invert_image, relight  # noqa: E402
+from difareli.hardware import peak_flops  # noqa: E402
+from difareli.runtime.core import Runtime, count_flops  # noqa: E402
 
 # Each mode names its precision: the runtime's default is "auto" (bf16 where the hardware has it).
 MODES = {"fp32": {"precision": "fp32"}, "bf16": {"precision": "bf16"},
@@ -206,7 +207,7 @@ def markdown(r: dict) -> str:
                          f"{row['decode_s']:.2f} | {row['seconds']:.2f} |")
     if r["train"]:
         t = r["train"]
-        lines += ["", "## Training (difareli.perf.train_throughput: Lightning Trainer, real training_step)", "",
+        lines += ["", "## Training (difareli.perf.measure.train_throughput: Lightning Trainer, real training_step)", "",
                   f"{t['preset']} at {t['res']} px, batch {t['batch']}, {t['precision']}: **{t['images_per_s']} "
                   f"images/s**, {t['step_GFLOP']} GFLOP/step (fwd+bwd), {t['achieved_GFLOPs']} GFLOP/s achieved, "
                   f"utilisation {t['utilisation']} of {t['peak_source']}; peak memory {t['peak_MiB']} MiB."]

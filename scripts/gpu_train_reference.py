@@ -69,7 +69,7 @@ def last_metrics(run_dir: Path) -> dict[str, float]:
 
 def step_flops(preset: str, res: int, batch: int, model: str, device: str) -> int:
     """FLOPs of one training step (forward + backward) of ``model`` at ``preset``/``res``/``batch``."""
-    from difareli import perf
+    from difareli.perf import measure as perf
 
     module = perf.build_model(model, preset, res).to(device)
     return perf.train_step_flops(module, perf.random_batch(module, batch, device))
@@ -102,8 +102,8 @@ def main() -> None:
     report["data"] = {"records": cfg["subjects"] * 4, "resolution": res, "written": getattr(gen, "written", None)}
     print(f"SynthFaces v2: {cfg['subjects'] * 4} records at {res} px in {report['stages']['data_s']} s")
 
-    from difareli import zoo
-    from difareli.runtime import peak_flops
+    from difareli.checkpoints import zoo
+    from difareli.hardware import peak_flops
 
     for model in models:
         run_dir = work / "runs" / model

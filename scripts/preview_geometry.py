@@ -12,7 +12,7 @@ import time
 import numpy as np
 from PIL import Image
 
-from difareli.encodings import NUM_MASK_PARTS
+from difareli.data.encodings import NUM_MASK_PARTS
 from difareli.synth.accessories import build_head, default_camera
 
 

@@ -22,9 +22,10 @@ import time
 from collections import Counter
 from pathlib import Path
 
-from difareli import tables, zoo
+from difareli.evaluation import tables
+from difareli.checkpoints import zoo
 from difareli.diffusion import DEFAULT_SAMPLER, PRESETS
-from difareli.fileio import write_text_atomic
+from difareli.utils.fileio import write_text_atomic
 from difareli.jobs.compare import compare_to_baselines
 from difareli.synth.command import synth_command
 

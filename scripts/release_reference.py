@@ -1,6 +1,6 @@
 """Release a trained run as a shipped reference: benchmark it against identity and the Lambertian ratio image on
 a store's test pairs (both protocols, fitted target lights: :func:`difareli.jobs.compare.compare_to_baselines`),
-then write the slim checkpoint and its model card into ``src/difareli/checkpoints/`` (``difareli.zoo``).
+then write the slim checkpoint and its model card into ``src/difareli/checkpoints/`` (``difareli.checkpoints.zoo``).
 
 The benchmark store should be one generated with a seed the model never trained on, and the sampler is the default
 one (``conf/sampler/default.yaml``) unless told otherwise, so that the card's rows are what
@@ -22,10 +22,10 @@ from pathlib import Path
 import torch
 from omegaconf import OmegaConf
 
-from difareli import zoo
+from difareli.checkpoints import zoo
 from difareli.diffusion import DEFAULT_SAMPLER, as_spec
 from difareli.jobs.compare import compare_to_baselines
-from difareli.lit.checkpoint import read_checkpoint
+from difareli.checkpoints.loading import read_checkpoint
 from difareli.synth.command import synth_command
 
 DATA = ("SynthFaces v2 (realism=full, inputs=estimated_light), 1000 subjects x 4 lights, 64 px, seed 0; trained on "

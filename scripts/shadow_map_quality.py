@@ -31,10 +31,11 @@ from pathlib import Path
 
 import numpy as np
 
-from difareli import derived, viz
-from difareli.metrics import binary_scores
-from difareli.store import EncodingStore
-from difareli.targets import target_shadow_map
+from difareli.data import derived
+from difareli.utils import viz
+from difareli.evaluation.metrics import binary_scores
+from difareli.data.store import EncodingStore
+from difareli.relight.targets import target_shadow_map
 
 #: The row of a map covering every mesh pixel: scored, not drawn in the figure.
 BASELINE = "whole face (baseline)"

@@ -83,7 +83,7 @@ def effects_preview(path: Path, subjects=(0, 1, 2, 3), light=1, res: int = 64, c
     from difareli.synth.config import SynthConfig
     from difareli.synth.generator import render_records
     from difareli.synth.preview import _upscale
-    from difareli.viz import grid, save_png
+    from difareli.utils.viz import grid, save_png
 
     variants = [("v1", {}), ("specular", {"specular": True}), ("subsurface", {"subsurface": True}),
                 ("ambient occlusion", {"ambient_occlusion": True}), ("multi-sun", {"multi_sun": True})]

@@ -16,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from difareli.encodings import known_normals
-from difareli.store import EncodingStore
+from difareli.data.encodings import known_normals
+from difareli.data.store import EncodingStore
 
 NAMES = ("image", "normal", "normal_gt", "face_mask", "face_mask_gt", "masks", "masks_gt", "shape", "shape_gt",
          "cam", "cam_gt", "light", "light_gt", "shadow", "shadow_gt", "identity")

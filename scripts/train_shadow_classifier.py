@@ -24,7 +24,7 @@ from difareli.estimators.geometry import FaceMeshGeometry
 from difareli.estimators.light import SkinSHLight
 from difareli.estimators.masks import FaceMeshSelfieMasks
 from difareli.estimators.shadow import DEFAULT_WEIGHTS, FEATURES, LABEL_C, LABEL_S, LogisticShadowClassifier, ShadowEstimator, features
-from difareli.store import EncodingStore
+from difareli.data.store import EncodingStore
 
 
 def record_features(image: np.ndarray, geometry, masks, light, shadow) -> np.ndarray | None:

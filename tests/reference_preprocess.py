@@ -1,20 +1,20 @@
 """The preprocessing estimators as they were before issue 25's speed-ups (commit cfd1140), kept verbatim where
-they changed, as references for tests/test_preprocess_speed.py. Slow on purpose: never use them elsewhere."""
+they changed, as references for tests/estimators/test_preprocess_speed.py. Slow on purpose: never use them elsewhere."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from difareli import sh
-from difareli.encodings import PART_INDEX
+from difareli.lighting import sh
+from difareli.data.encodings import PART_INDEX
 from difareli.estimators.bfm_fit import (FACEMESH_TO_IBUG68, JAW, BFMFit, BFMGeometry, _pose_step, _rodrigues,
                                          pose_from_rotation)
 from difareli.estimators.geometry import NUM_VERTICES, orient_toward_viewer, tessellation_triangles
 from difareli.estimators.light import SkinSHLight, light_direction
 from difareli.estimators.loading import BadInput
 from difareli.estimators.masks import _FACE_IDX, _FG_IDX, CHIN, FOREHEAD, FaceMeshSelfieMasks, face_part_polygons
-from difareli.face_model import N_EXP, N_ID, PIVOT, FaceModel, FaceParams
-from difareli.imageops import LUMA
+from difareli.render.face_model import N_EXP, N_ID, PIVOT, FaceModel, FaceParams
+from difareli.utils.imageops import LUMA
 from difareli.render import OrthoCamera, Scene, render_gbuffer
 
 

@@ -1,6 +1,7 @@
 """Where the package's Hydra configs live, and plain-YAML reads of them for callers without Hydra.
 
-The configs are package data (``difareli/conf``), found through Hydra's package search path
+The configs live at the top of the repository (``conf/``, the lightning-hydra-template layout) and are installed as
+the package ``difareli.conf`` (setup.py maps it), found through Hydra's package search path
 (``pkg://difareli.conf``), so every console script works wherever the package is installed. A ``conf/`` folder in
 the directory a command is run from is searched too (``hydra.searchpath`` in each primary config): a user's own
 groups and options (``conf/local/default.yaml`` for machine settings, ``conf/model/my_variant.yaml``) extend the
@@ -10,21 +11,22 @@ shipped ones without touching the installation.
 from __future__ import annotations
 
 import os
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
-#: The shipped config folder (a real folder: setuptools installs package data as files).
-CONFIG_DIR = Path(__file__).resolve().parent / "conf"
+#: The shipped config folder (a real folder: the checkout's conf/ in an editable install, package data in a wheel).
+CONFIG_DIR = Path(str(resources.files("difareli.conf")))
 #: What ``@hydra.main(config_path=...)`` is given.
 CONFIG_PATH = "pkg://difareli.conf"
 
 
 def train_precision() -> str:
     """``${difareli_precision:}`` in a trainer config: ``bf16-mixed`` where this CPU has native bf16 arithmetic
-    (``avx512_bf16`` / ``amx_bf16``, :func:`difareli.runtime.auto_precision`), else ``32-true``. Without it bf16 is
+    (``avx512_bf16`` / ``amx_bf16``, :func:`difareli.hardware.auto_precision`), else ``32-true``. Without it bf16 is
     emulated: on an AVX2-only EPYC one 3x3 convolution (16x64x64x64, forward + backward) took 29.4 s in bf16
     autocast against 0.91 s in fp32, and a bf16 recipe trained at 0.02 it/s."""
-    from difareli.runtime import auto_precision
+    from difareli.hardware import auto_precision
 
     return "bf16-mixed" if auto_precision("cpu") == "bf16" else "32-true"
 

@@ -210,16 +210,6 @@ def check_number(value: Any, key: str, *, allow_none: bool = True, limit: float 
     return x
 
 
-def check_sampler(cfg: Mapping[str, Any], key: str = "sampler") -> None:
-    """A sampler config: a registered ``name`` and an integer ``steps`` >= 1."""
-    from difareli.diffusion.samplers import SAMPLERS
-
-    if cfg.get("name") not in SAMPLERS:
-        raise UserError(f"{key}.name={cfg.get('name')!r} is not a sampler; choose from {sorted(SAMPLERS)} "
-                        f"(or pick a config: {key}=ddim|dpm_solver|dpm_solver_pp|unipc)")
-    check_int(cfg.get("steps"), f"{key}.steps", 1)
-
-
 def check_out_dir(path: Any, key: str = "out_dir") -> Path:
     """An output folder that is (or can be created as) a writable directory; checked before any work."""
     if path is None or str(path) == "":
@@ -272,7 +262,7 @@ def check_finite(array: Any, what: str, *, max_abs: float | None = None, fix: st
 def check_light(light: Any, what: str, max_abs: float = LIGHT_MAX_ABS) -> np.ndarray:
     """A finite 9x3 SH light of plausible magnitude (``|l| <= max_abs``), as float64."""
     a = check_finite(np.asarray(light, dtype=np.float64) if np.asarray(light).dtype.kind in "biuf" else light,
-                     what, max_abs=max_abs, fix="give a 9x3 SH light in DECA's basis (difareli.sh)")
+                     what, max_abs=max_abs, fix="give a 9x3 SH light in DECA's basis (difareli.lighting.sh)")
     return a.astype(np.float64)
 
 

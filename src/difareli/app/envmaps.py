@@ -12,7 +12,7 @@ from functools import cache
 
 import numpy as np
 
-from difareli import sh
+from difareli.lighting import sh
 
 H, W = 32, 64
 

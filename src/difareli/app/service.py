@@ -22,9 +22,10 @@ from typing import Any
 
 import numpy as np
 
-from difareli import encodings, sh
+from difareli.data import encodings
+from difareli.lighting import sh
 from difareli.diffusion.spec import DEFAULT_SAMPLER, PRESETS
-from difareli.encodings import SHADOW_C_HI, SHADOW_C_LO
+from difareli.data.encodings import SHADOW_C_HI, SHADOW_C_LO
 
 from .envmaps import ENVMAPS, envmap_light
 
@@ -100,9 +101,9 @@ class Service:
 
     # ------------------------------------------------------------------ models and stores
     def relighter(self, checkpoint: str | None, sampler: str = DEFAULT.name, steps: int = DEFAULT.steps):
-        """A cached :class:`~difareli.relighting.Relighter`; a one-pass student ignores the sampler."""
+        """A cached :class:`~difareli.relight.relighter.Relighter`; a one-pass student ignores the sampler."""
         from difareli.errors import check_int
-        from difareli.relighting import Relighter
+        from difareli.relight.relighter import Relighter
 
         if sampler not in SAMPLERS:
             raise RequestError(f"sampler={sampler!r}: not a sampler; use one of {', '.join(SAMPLERS)}")
@@ -113,7 +114,7 @@ class Service:
         return self._relighters[key]
 
     def open_store(self):
-        from difareli.store import EncodingStore
+        from difareli.data.store import EncodingStore
 
         if self.store is None:
             raise RequestError("no store: start the app with store=<encodings store> to pick records")
@@ -130,7 +131,7 @@ class Service:
         return (test + [r for r in st.ids() if r not in set(test)])[:limit]
 
     def info(self) -> dict:
-        from difareli import zoo
+        from difareli.checkpoints import zoo
 
         return {"checkpoint": self.checkpoint, "checkpoints": zoo.available(), "samplers": list(SAMPLERS),
                 "default_sampler": {"name": DEFAULT.name, "steps": DEFAULT.steps},
@@ -143,7 +144,7 @@ class Service:
     def upload(self, name: str, data: bytes, checkpoint: str | None = None) -> AppSource:
         """An uploaded photo, decoded with the CLI's checks and preprocessed once for ``checkpoint``'s model;
         a bad upload raises the CLI's UserError (``image=<name>: ...``)."""
-        from difareli.photo import prepare_photo, read_photo
+        from difareli.relight.photo import prepare_photo, read_photo
 
         name = Path(str(name or "upload")).name
         if len(data) > MAX_UPLOAD_BYTES:
@@ -212,7 +213,7 @@ class Service:
         """Relight a source (``request["id"]`` from :meth:`upload` / :meth:`record`) under the request's light and
         shadow strength with its checkpoint / sampler / steps; returns the images (data URLs), the seconds per
         stage and the reconstruction error (the source relit under its own light, against itself)."""
-        from difareli.targets import Targets
+        from difareli.relight.targets import Targets
 
         t_all = time.perf_counter()
         relighter = self.relighter(request.get("checkpoint"), request.get("sampler", DEFAULT.name),
@@ -273,7 +274,7 @@ def reconstruction_error(recon: np.ndarray, arrays: Mapping[str, np.ndarray]) ->
     """MSE and DSSIM of the self-relight against the input, on the face mask ([0, 1] units)."""
     import torch
 
-    from difareli.metrics import dssim, masked_mse
+    from difareli.evaluation.metrics import dssim, masked_mse
 
     to_t = lambda a: torch.from_numpy(np.asarray(a, np.float64) / 255.0).permute(2, 0, 1)[None]
     mask = np.array(arrays["face_mask"], bool) if "face_mask" in arrays else np.ones(recon.shape[:2], bool)

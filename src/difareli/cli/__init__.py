@@ -5,6 +5,6 @@ otherwise) before any command imports torch: on a shared few-core CPU, busy-wait
 1.75 s to 50 s (docs/scaling_out.md, "Two jobs on one machine").
 """
 
-from difareli.processes import passive_openmp
+from difareli.utils.processes import passive_openmp
 
 passive_openmp()

@@ -30,13 +30,16 @@ import numpy as np
 import yaml
 from omegaconf import DictConfig
 
-from difareli import errors, provenance, tables, viz
+from difareli import errors
+from difareli.data import provenance
+from difareli.evaluation import tables
+from difareli.utils import viz
 from difareli.cli import common
 from difareli.configs import CONFIG_DIR
-from difareli.fileio import folder_lock
+from difareli.utils.fileio import folder_lock
 
 EXPERIMENTS = CONFIG_DIR / "experiment"
-#: Each row's train/ and bench/ folder records the settings that made it (difareli.provenance).
+#: Each row's train/ and bench/ folder records the settings that made it (difareli.data.provenance).
 ROW_PROVENANCE = "ablate_row.json"
 
 
@@ -152,8 +155,8 @@ def figure(run_dirs: dict[str, Path], store_root: str, protocols: list[str], lim
     benchmarked pairs (the benchmark's selection for ``limit``), the ground truth."""
     import imageio.v3 as iio
 
-    from difareli.benchmark import load_pairs
-    from difareli.store import EncodingStore
+    from difareli.evaluation.benchmark import load_pairs
+    from difareli.data.store import EncodingStore
 
     store = EncodingStore.open(store_root)
     lines = []
@@ -206,7 +209,7 @@ def _run_rows(cfg: DictConfig, models: list[str], labels: dict[str, str], captio
 
 def _store_id(store: str) -> str | None:
     """The store's identity, or None while it is still to be generated (by the first row's training)."""
-    from difareli.store import EncodingStore
+    from difareli.data.store import EncodingStore
 
     return provenance.store_identity(EncodingStore.open(store)) if (Path(store) / "store.json").is_file() else None
 

@@ -32,7 +32,7 @@ def warm_up(svc) -> None:
     import numpy as np
 
     try:
-        from difareli.photo import pipeline_for
+        from difareli.relight.photo import pipeline_for
 
         rel = svc.relighter(None)
         size = int(rel.config.get("input_dims", {}).get("resolution", 64))

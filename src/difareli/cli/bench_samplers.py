@@ -12,11 +12,14 @@ import hydra
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from difareli import errors, perf, speed, zoo
+from difareli import errors
+from difareli.perf import measure as perf
+from difareli.perf import samplers as speed
+from difareli.checkpoints import zoo
 from difareli.cli import common
-from difareli.relightable import OnePassRelightable
-from difareli.runtime import Runtime
-from difareli.store import EncodingStore
+from difareli.relight.relightable import OnePassRelightable
+from difareli.runtime.core import Runtime
+from difareli.data.store import EncodingStore
 
 
 def run(cfg: DictConfig) -> dict:

@@ -1,5 +1,6 @@
-"""difareli-benchmark: one relighting method on a store's protocols (SynthFaces, or Multi-PIE from difareli-multipie)
--> relit images, per-image CSV, tables; scored under ``metrics.rule`` (paper | composite, difareli.metrics)."""
+"""difareli-benchmark: one relighting method on a store's protocols (SynthFaces, or Multi-PIE from difareli.diffusion.spec import check_sampler
+from difareli-multipie)
+-> relit images, per-image CSV, tables; scored under ``metrics.rule`` (paper | composite, difareli.evaluation.metrics)."""
 
 from __future__ import annotations
 
@@ -9,14 +10,16 @@ import hydra
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from difareli import errors, metrics, zoo
-from difareli import shard as sharding
-from difareli.baselines import build_method
-from difareli.light_fit import light_fit_from_config
-from difareli.benchmark import DEFAULT_MASK, BenchmarkResult, check_score_mask, rescore, run_benchmark
+from difareli import errors
+from difareli.evaluation import metrics
+from difareli.checkpoints import zoo
+from difareli.data import shard as sharding
+from difareli.evaluation.baselines import build_method
+from difareli.lighting.light_fit import light_fit_from_config
+from difareli.evaluation.benchmark import DEFAULT_MASK, BenchmarkResult, check_score_mask, rescore, run_benchmark
 from difareli.cli import common
 from difareli.lit import logging as lit_logging
-from difareli.store import EncodingStore
+from difareli.data.store import EncodingStore
 
 #: The config keys that define a benchmark job; shards of one job differ only by ``shard``.
 SHARD_JOB_KEYS = ("store", "method", "sampler", "protocols", "limit", "oracle_light", "oracle_shadow",
@@ -85,7 +88,7 @@ def validate(cfg: DictConfig) -> None:
     errors.check_int(cfg.num_threads, "num_threads", 1, allow_none=True)
     errors.check_out_dir(cfg.out_dir)
     if "checkpoint" in cfg.method:  # a trained model (the diffusion method): its sampler and file
-        errors.check_sampler(cfg.sampler)
+        check_sampler(cfg.sampler)
         zoo.resolve(cfg.method.get("checkpoint") or "", "method.checkpoint")
 
 

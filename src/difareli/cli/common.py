@@ -5,7 +5,9 @@ from __future__ import annotations
 
 from omegaconf import DictConfig, OmegaConf
 
-from difareli import errors, zoo
+from difareli.diffusion.spec import check_sampler
+from difareli import errors
+from difareli.checkpoints import zoo
 from difareli.configs import CONFIG_PATH, instantiate_group
 
 __all__ = ["CONFIG_PATH", "instantiate_group", "log_hyperparameters", "metric_value", "validate_relight"]
@@ -34,7 +36,7 @@ def validate_relight(cfg: DictConfig, *, frames: tuple[str, object, int], fps: t
     """The checks every relighting command (relight, video) makes before any work: sampler, checkpoint (a file
     or a shipped name), batch size, output folder, target shadow strength, and its frame count / rate / env map
     under the command's own keys (``(key, value[, minimum])``)."""
-    errors.check_sampler(cfg.sampler)
+    check_sampler(cfg.sampler)
     zoo.resolve(cfg.checkpoint, "checkpoint")
     errors.check_int(cfg.batch_size, "batch_size", 1)
     errors.check_out_dir(cfg.out_dir)

@@ -1,4 +1,4 @@
-"""difareli-demo: the README's main job: a shipped checkpoint relights unseen faces (see ``difareli.demo``)."""
+"""difareli-demo: the README's main job: a shipped checkpoint relights unseen faces (see ``difareli.jobs.demo``)."""
 
 from __future__ import annotations
 
@@ -8,9 +8,11 @@ import hydra
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from difareli import errors, zoo
+from difareli.diffusion.spec import check_sampler
+from difareli import errors
+from difareli.checkpoints import zoo
 from difareli.cli import common
-from difareli.demo import DemoResult, run_demo
+from difareli.jobs.demo import DemoResult, run_demo
 
 
 def run(cfg: DictConfig) -> DemoResult:
@@ -50,7 +52,7 @@ def card_benchmark(checkpoint: str) -> str | None:
 
 def validate(cfg: DictConfig) -> None:
     """Config values, checked before any work."""
-    errors.check_sampler(cfg.sampler)
+    check_sampler(cfg.sampler)
     zoo.resolve(cfg.checkpoint)
     for key, low in (("subjects", 10), ("resolution", 16), ("frames", 1), ("pairs", 1), ("rows", 1)):
         errors.check_int(cfg[key], key, low)

@@ -2,18 +2,18 @@
 
     difareli-import-checkpoint <ImgCond_ema_0.9999_<step>.pt | its folder> config=<official YAML> out=<name>.ckpt
         [encoder=<ImgEncoder_ema_0.9999_<step>.pt>] [step=<n>] [ema=0.9999|model]
-        [shape_parts=shape,exp,pose | store=<store from difareli.importers>] [verify=true|false]
+        [shape_parts=shape,exp,pose | store=<store from difareli.official.importers>] [verify=true|false]
 
 The official code (github.com/diffusion-face-relighting/difareli_code) saves the UNet and its Modulator as two
 plain state dicts; the Modulator file is found beside the UNet by name unless ``encoder=`` gives it. ``config=`` is
 the YAML the checkpoint was trained with (e.g. ``config/difareli/difareli_128.yaml``). ``shape_parts`` (or
 ``store=``, read from its ``shape_layout``) is the order of the DECA parts in the ``shape`` encoding of the
-stores the model will relight (``difareli.importers`` writes shape, exp, pose). ``verify`` (default on) reloads the
+stores the model will relight (``difareli.official.importers`` writes shape, exp, pose). ``verify`` (default on) reloads the
 written file the normal way and checks that its eps equals the converted network's exactly.
 Any CLI given an official file as ``checkpoint=`` stops with a message naming this command.
 """
 
-from difareli.processes import passive_openmp
+from difareli.utils.processes import passive_openmp
 
 passive_openmp()  # before torch loads: idle OpenMP threads sleep (docs/scaling_out.md)
 
@@ -59,7 +59,7 @@ def main(argv: list[str] | None = None) -> int:
     if not argv or argv[0] in ("-h", "--help"):
         print(__doc__)
         return 0
-    from difareli import official
+    from difareli.official import weights as official
     from difareli.errors import check_int
 
     opts = parse(argv)
@@ -80,7 +80,7 @@ def main(argv: list[str] | None = None) -> int:
           f"{dims['resolution']} px")
     if "max_abs_diff" in summary:
         print(f"  reloaded with load_checkpoint: max |eps difference| {summary['max_abs_diff']:.1e}")
-    print(f"  use it: difareli-relight checkpoint={summary['out']} store=<store from difareli.importers> ...")
+    print(f"  use it: difareli-relight checkpoint={summary['out']} store=<store from difareli.official.importers> ...")
     return 0
 
 

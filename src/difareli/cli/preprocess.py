@@ -29,10 +29,10 @@ DEFAULT_SIZE = 256
 
 def checkpoint_facts(checkpoint) -> tuple[int | None, list[str]]:
     """``(training resolution, inputs)`` of a checkpoint (a file or a shipped name), read without Lightning."""
-    from difareli import zoo
-    from difareli.checkpoint_format import upgrade_checkpoint
+    from difareli.checkpoints import zoo
+    from difareli.checkpoints.format import upgrade_checkpoint
     from difareli.errors import load_torch_file
-    from difareli.photo import training_resolution
+    from difareli.relight.photo import training_resolution
 
     ckpt = upgrade_checkpoint(load_torch_file(zoo.resolve(checkpoint, "checkpoint"), "checkpoint"))
     hp = ckpt.get("hyper_parameters")
@@ -55,7 +55,7 @@ def requested_encodings(cfg: DictConfig) -> list[str] | None:
     """``cfg.encodings``, else what relighting the chosen checkpoint or variant reads (``inputs.relight_reads`` of
     its spatial + non-spatial inputs: the image, the light, the inputs and what re-rendering them needs), else
     None (all)."""
-    from difareli.inputs import relight_reads
+    from difareli.data.inputs import relight_reads
 
     if cfg.get("encodings") is not None:
         return list(cfg.encodings)
@@ -97,7 +97,7 @@ def build_pipeline(cfg: DictConfig):
 @cli_entry("preprocess")
 def main(cfg: DictConfig) -> None:
     from difareli.estimators.batch import REPORT, run
-    from difareli.shard import parse as parse_shard
+    from difareli.data.shard import parse as parse_shard
 
     check_in_dir(cfg.in_dir)
     check_out_dir(cfg.out_dir)

@@ -13,7 +13,7 @@ def report(presets: list[str] | None = None) -> list[dict[str, Any]]:
     """Parameter counts per preset and variant (built on the meta device: no memory, no init time)."""
     import torch
 
-    from difareli.inputs import variant_widths
+    from difareli.data.inputs import variant_widths
     from difareli.nn.network import build_network
     from difareli.nn.presets import PRESETS
 

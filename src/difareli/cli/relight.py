@@ -16,13 +16,15 @@ import hydra
 import numpy as np
 from omegaconf import DictConfig
 
-from difareli import errors, photo, viz
+from difareli import errors
+from difareli.relight import photo
+from difareli.utils import viz
 from difareli.cli import common
-from difareli.composite import write_gif
-from difareli.relighting import Relighter, Source
-from difareli.store import EncodingStore
-from difareli.targets import Targets, rotation_targets, target_lights
-from difareli.video import rotation_video, write_video
+from difareli.relight.composite import write_gif
+from difareli.relight.relighter import Relighter, Source
+from difareli.data.store import EncodingStore
+from difareli.relight.targets import Targets, rotation_targets, target_lights
+from difareli.evaluation.video import rotation_video, write_video
 
 
 def read_source(cfg: DictConfig, relighter: Relighter, store: EncodingStore | None) -> Source:
@@ -33,7 +35,7 @@ def read_source(cfg: DictConfig, relighter: Relighter, store: EncodingStore | No
 
 def read_source_and_photo(cfg: DictConfig, relighter: Relighter, store: EncodingStore | None
                           ) -> tuple[Source, photo.PreparedPhoto | None]:
-    """:func:`read_source`, and for a photo the :class:`~difareli.photo.PreparedPhoto` (original, quad, masks)
+    """:func:`read_source`, and for a photo the :class:`~difareli.relight.photo.PreparedPhoto` (original, quad, masks)
     the composite needs."""
     trained = photo.training_resolution(relighter.config)
     if cfg.image is not None:
@@ -201,7 +203,7 @@ def validate(cfg: DictConfig) -> None:
     if cfg.photo_size is not None:
         errors.check_int(cfg.photo_size, "photo_size", 16)
     if cfg.image is not None:
-        from difareli.composite import MODES, part_mask
+        from difareli.relight.composite import MODES, part_mask
 
         c = cfg.composite
         if c.mode not in MODES:

@@ -7,10 +7,12 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from difareli import errors, zoo
+from difareli.diffusion.spec import check_sampler
+from difareli import errors
+from difareli.checkpoints import zoo
 from difareli.cli import common
-from difareli.fileio import write_json_atomic
-from difareli.store import EncodingStore
+from difareli.utils.fileio import write_json_atomic
+from difareli.data.store import EncodingStore
 
 
 def run(cfg: DictConfig):
@@ -18,7 +20,7 @@ def run(cfg: DictConfig):
     from difareli.jobs import shadow_maps
     from difareli.diffusion.relight import SamplerSpec
     from difareli.lit import load_checkpoint
-    from difareli.runtime import Runtime
+    from difareli.runtime.core import Runtime
 
     validate(cfg)
     store = EncodingStore.open(cfg.store, writable=True)
@@ -83,7 +85,7 @@ def c_range_given(cfg: DictConfig) -> tuple[float, float] | None:
 
 def validate(cfg: DictConfig) -> None:
     """Config values and input files, checked before any work."""
-    errors.check_sampler(cfg.sampler)
+    check_sampler(cfg.sampler)
     zoo.resolve(cfg.checkpoint, "checkpoint")  # a file or a shipped name, as in every other CLI
     if cfg.median != "auto":
         errors.check_int(cfg.median, "median", 1)
@@ -91,7 +93,7 @@ def validate(cfg: DictConfig) -> None:
             raise errors.UserError(f"median={cfg.median} is even; use an odd window or median=auto")
     if cfg.min_contrast is not None:
         errors.check_number(cfg.min_contrast, "min_contrast", allow_none=False)
-    from difareli.encodings import PART_INDEX
+    from difareli.data.encodings import PART_INDEX
 
     bad = [p for p in (cfg.zero_parts or []) if p not in PART_INDEX]
     if bad:

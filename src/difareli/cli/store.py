@@ -13,7 +13,7 @@ import argparse
 import sys
 
 from difareli.errors import check_int, cli_entry
-from difareli.store import EncodingStore
+from difareli.data.store import EncodingStore
 
 
 def verify(root: str, *, check_values: bool = True, limit: int | None = None) -> list[str]:

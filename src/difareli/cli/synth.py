@@ -9,7 +9,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from difareli.cli.common import CONFIG_PATH
 from difareli.errors import check_out_dir, cli_entry
-from difareli.shard import parse as parse_shard
+from difareli.data.shard import parse as parse_shard
 
 
 #: Integer keys and their smallest valid values, checked before any work starts.

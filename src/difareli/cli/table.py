@@ -11,8 +11,9 @@ from typing import Iterable
 import hydra
 from omegaconf import DictConfig, ListConfig
 
-from difareli import errors, tables
-from difareli import shard as sharding
+from difareli import errors
+from difareli.evaluation import tables
+from difareli.data import shard as sharding
 from difareli.cli import common
 
 
@@ -36,7 +37,7 @@ def expand_runs(patterns: Iterable[str]) -> list[Path]:
 
 def published_methods(value) -> list[str] | None | bool:
     """``published``: null/false (no rows), ``all``, ``ours`` (DiFaReli, DiFaReli++, DiFaReli++_ss) or a list."""
-    from difareli.multipie import published
+    from difareli.evaluation import published
 
     if value in (None, False, "", "none", "null"):
         return False
@@ -78,7 +79,7 @@ def run(cfg: DictConfig) -> tables.Table:
                               drop_bad_rows=bool(cfg.get("drop_bad_rows", False)))
     chosen = published_methods(cfg.get("published"))
     if chosen is not False:
-        from difareli.multipie import published
+        from difareli.evaluation import published
 
         check_multipie(dirs, table.rule)
         published.add_to(table, chosen)

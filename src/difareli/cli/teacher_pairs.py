@@ -5,18 +5,20 @@ from __future__ import annotations
 import hydra
 from omegaconf import DictConfig
 
-from difareli import errors, zoo
+from difareli.diffusion.spec import check_sampler
+from difareli import errors
+from difareli.checkpoints import zoo
 from difareli.cli import common
 
 
 def run(cfg: DictConfig) -> dict:
     """Generate (or resume) the pair store as configured; returns the counts and pairs/s."""
     from difareli.jobs.teacher_pairs import generate_teacher_pairs
-    from difareli.relightable import DiffusionRelightable
-    from difareli.relighting import Relighter
-    from difareli.store import EncodingStore
+    from difareli.relight.relightable import DiffusionRelightable
+    from difareli.relight.relighter import Relighter
+    from difareli.data.store import EncodingStore
 
-    errors.check_sampler(cfg.sampler)
+    check_sampler(cfg.sampler)
     zoo.resolve(cfg.checkpoint, "checkpoint")  # a file or a shipped name, as in every other CLI
     errors.check_int(cfg.batch_size, "batch_size", 1)
     errors.check_int(cfg.per_record, "per_record", 1)

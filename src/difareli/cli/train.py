@@ -9,16 +9,18 @@ import hydra
 import lightning as L
 from omegaconf import DictConfig
 
-from difareli import errors, zoo
+from difareli.diffusion.spec import check_sampler
+from difareli import errors
+from difareli.checkpoints import zoo
 from difareli.cli import common
-from difareli.lit.checkpoint import read_checkpoint
+from difareli.checkpoints.loading import read_checkpoint
 from difareli.lit import logging as lit_logging
 
 
 def train(cfg: DictConfig) -> dict[str, Any]:
     """Fit the configured model; returns the trainer, model, datamodule and the optimized metric."""
     if cfg.get("sample_grid"):
-        errors.check_sampler(cfg.sampler)
+        check_sampler(cfg.sampler)
     check_accelerator(cfg.trainer)
     L.seed_everything(cfg.seed, workers=True)
     datamodule = hydra.utils.instantiate(cfg.data)

@@ -1,5 +1,5 @@
 """difareli-video: relight a record under a rotating light (yaw, roll, or a rotated HDR environment map), beside
-its SynthFaces ground truth, and measure the sequence (difareli.video)."""
+its SynthFaces ground truth, and measure the sequence (difareli.evaluation.video)."""
 
 from __future__ import annotations
 
@@ -10,13 +10,15 @@ import hydra
 import numpy as np
 from omegaconf import DictConfig
 
-from difareli import errors, sh, viz
-from difareli import video as vid
+from difareli import errors
+from difareli.lighting import sh
+from difareli.utils import viz
+from difareli.evaluation import video as vid
 from difareli.cli import common
-from difareli.relighting import Relighter
-from difareli.encodings import shadow_logit
-from difareli.store import EncodingStore
-from difareli.targets import Targets, load_envmap, video_shadow
+from difareli.relight.relighter import Relighter
+from difareli.data.encodings import shadow_logit
+from difareli.data.store import EncodingStore
+from difareli.relight.targets import Targets, load_envmap, video_shadow
 
 _MEASURE = ("image", "light", "normal", "face_mask", "shadow_map", "shadow")
 
@@ -89,7 +91,7 @@ def run(cfg: DictConfig) -> dict[str, Path]:
         written["csv"] = vid.write_csv(report, out / "frames.csv", angles)
         written["figure"] = vid.plot_temporal(report, out / "temporal.png", f"{rid}: {what}")
         summary.update(report.summary(), shadow_rule=(f"cast shadow where luminance < {vid.SHADOW_RATIO} x "
-                                                      "albedo-proxy x target SH irradiance (difareli/video.py)"))
+                                                      "albedo-proxy x target SH irradiance (difareli/evaluation/video.py)"))
         print("GT rows: top = ground truth, bottom = relit.  " + ", ".join(
             f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in report.summary().items()))
     tmp = out / "summary.json.tmp"

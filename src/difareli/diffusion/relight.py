@@ -8,7 +8,7 @@ Three passes per image, all sampler-agnostic:
 3. the decode under one or many target conditions, adding ``mu_t`` after each step.
 
 Passes 1-2 run once per image; any number of targets can then be decoded, in one batch. These functions work
-on denoisers; :mod:`difareli.relighting` runs them for models (conditions, runtime, records).
+on denoisers; :mod:`difareli.relight.relighter` runs them for models (conditions, runtime, records).
 """
 
 from __future__ import annotations

@@ -176,7 +176,7 @@ def unipc(denoiser: Denoiser, x: torch.Tensor, timesteps, schedule: DiffusionSch
     which hold for either sign of h; an ascending grid is a decreasing-lambda grid, so the same formulas
     with ``h < 0`` (``hh = -h > 0``) invert, each corrector reusing the network evaluation at the next point
     exactly as in generation. Their orders carry over: UniP-2 + UniC measures order ~3 both ways
-    (``tests/test_samplers_exactness.py``). Steps from the clean end get no corrector (h is infinite there).
+    (``tests/diffusion/test_samplers_exactness.py``). Steps from the clean end get no corrector (h is infinite there).
     Caveat measured there: in inversion bh2's B(h) = e^|h| - 1 grows with the step, so on grids with huge
     lambda steps near the data (uniform-in-t, ending at t = 0, n <= 20) bh2 inversion is unstable; the
     default clean-ended grids take those steps with DDIM and stay accurate.

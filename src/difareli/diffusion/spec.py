@@ -23,6 +23,7 @@ from typing import Any, Callable, Literal, Mapping
 
 import torch
 
+from difareli.errors import UserError, check_int
 from difareli.diffusion.samplers import SAMPLERS
 from difareli.diffusion.schedule import GRID_KINDS, DiffusionSchedule
 
@@ -225,3 +226,11 @@ def as_spec(sampler: "SamplerSpec | str | Mapping[str, Any]", **overrides) -> Sa
     if isinstance(sampler, str):
         return SamplerSpec.preset(sampler, **overrides)
     return SamplerSpec.from_config({**dict(sampler), **overrides})
+
+
+def check_sampler(cfg: Mapping[str, Any], key: str = "sampler") -> None:
+    """A sampler config: a registered ``name`` and an integer ``steps`` >= 1 (the CLIs' one sampler check)."""
+    if cfg.get("name") not in SAMPLERS:
+        raise UserError(f"{key}.name={cfg.get('name')!r} is not a sampler; choose from {sorted(SAMPLERS)} "
+                        f"(or pick a config: {key}={'|'.join(PRESETS)})")
+    check_int(cfg.get("steps"), f"{key}.steps", 1)

@@ -3,7 +3,7 @@ in this process or in ``workers`` processes.
 
 The estimators in worker processes (``difareli-preprocess workers=n``): each worker builds the same pipeline
 once (``Pipeline.config``) and processes whole images, one at a time, with one BLAS thread; results come back in
-input order and the parent writes the store. Workers die with their parent (:func:`difareli.processes.die_with_parent`).
+input order and the parent writes the store. Workers die with their parent (:func:`difareli.utils.processes.die_with_parent`).
 
 Processes, not threads: mediapipe's graphs and dlib are not thread-safe, and numpy releases the GIL only in
 parts of the work. ``spawn``: a fork would copy a parent's loaded mediapipe/torch thread pools.
@@ -20,8 +20,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from difareli.fileio import write_json_atomic
-from difareli.store import EncodingStore
+from difareli.utils.fileio import write_json_atomic
+from difareli.data.store import EncodingStore
 
 from .loading import BadInput, list_inputs, load_image, record_ids
 from .pipeline import PREVIEWS, REPORT, Pipeline
@@ -31,7 +31,7 @@ _PIPELINE = None
 
 def _init(parent_pid: int, config: Mapping) -> None:
     global _PIPELINE
-    from difareli.processes import die_with_parent
+    from difareli.utils.processes import die_with_parent
 
     die_with_parent(parent_pid)
     _PIPELINE = Pipeline.from_config(config["estimators"], config["encodings"], **config["kwargs"])
@@ -114,12 +114,12 @@ def run(pipeline: Pipeline, in_dir: str, out_dir: str, *, overwrite: bool = Fals
         durable: bool = False, progress: bool = True, shard: str | None = None, workers: int = 1) -> RunSummary:
     """Process every file of ``in_dir`` (or the single file) into the store at ``out_dir``; never raises
     for a bad image: each gets a report entry and nothing is written for it. ``shard="i/n"`` processes only
-    the records of that shard (``difareli.shard``; shards may run concurrently into one store) and writes
+    the records of that shard (``difareli.data.shard``; shards may run concurrently into one store) and writes
     its report as ``preprocess_report.shard-i-of-n.json``. ``workers > 1`` runs the estimators in that many
     processes (:mod:`.workers`, images in order); this process writes the store."""
     from tqdm import tqdm
 
-    from difareli import shard as sharding
+    from difareli.data import shard as sharding
 
     out = Path(out_dir)
     spec = sharding.parse(shard)

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from difareli.render import OrthoCamera, Scene, render_gbuffer
-from difareli.face_model import N_EXP, N_ID, PIVOT, SHAPE_DIM, FaceModel, FaceParams, pose_points
+from difareli.render.face_model import N_EXP, N_ID, PIVOT, SHAPE_DIM, FaceModel, FaceParams, pose_points
 
 from .align import landmarks_to_crop
 from .geometry import NUM_VERTICES, FaceMeshGeometry, orient_toward_viewer, tessellation_triangles
@@ -39,7 +39,7 @@ __all__ = ["FACEMESH_TO_IBUG68", "SHAPE_DIM", "BFMFit", "BFMGeometry", "facemesh
 
 #: FaceMesh vertex(es) of each iBUG-68 landmark (0-based iBUG order; pairs are averaged). Correspondences
 #: from Peizhi Yan, "Mediapipe_2_Dlib_Landmarks" (github.com/PeizhiYan/Mediapipe_2_Dlib_Landmarks,
-#: mediapipe2dlib/mp2dlib.py, 2024); checked on the astronaut photo (tests/test_bfm_fit.py).
+#: mediapipe2dlib/mp2dlib.py, 2024); checked on the astronaut photo (tests/estimators/test_bfm_fit.py).
 FACEMESH_TO_IBUG68 = (
     (127,), (234,), (93,), (132, 58), (58, 172), (136,), (150,), (176,), (152,),        # jaw 0-8
     (400,), (379,), (365,), (397, 288), (361,), (323,), (454,), (356,),                # jaw 9-16
@@ -226,7 +226,7 @@ class BFMGeometry(FaceMeshGeometry):
         ``"alignment"``: the alignment pass's landmarks mapped into the crop, which saves that second FaceMesh
         pass (~5 ms per image) but moves them: by a mean 0.4-0.8 px at 256 px on the astronaut and Grace Hopper
         (about what a 0.35 px shift of the crop does to the second pass), 1.5 px on the cameraman (yaw 50 deg) and
-        5 px on his mirror image (tests/test_preprocess_speed.py); hence not the default."""
+        5 px on his mirror image (tests/estimators/test_preprocess_speed.py); hence not the default."""
         if self.landmark_source == "alignment" and ctx.get("alignment_landmarks") is not None:
             return landmarks_to_crop(ctx["alignment_landmarks"], ctx["quad"], ctx["image"].shape[0]), []
         return super().landmarks(ctx)

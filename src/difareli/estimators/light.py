@@ -29,9 +29,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from difareli import sh
-from difareli.albedo import synthfaces_mean_skin_albedo
-from difareli.imageops import LUMA
+from difareli.lighting import sh
+from difareli.lighting.albedo import synthfaces_mean_skin_albedo
+from difareli.utils.imageops import LUMA
 
 from .loading import BadInput
 
@@ -85,7 +85,7 @@ def describe_light(light: np.ndarray) -> str:
 
 class SkinSHLight:
     """Estimator: ``light`` (9x3) fitted on a photo's skin, and the shading reference ``shading`` (how it differs
-    from a record's :class:`difareli.light_fit.LightFit`: see that module)."""
+    from a record's :class:`difareli.lighting.light_fit.LightFit`: see that module)."""
 
     provides = ("light", "shading", "fit_pixels", "albedo_prior")
     requires = ("image", "gbuffer", "skin")

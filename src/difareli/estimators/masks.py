@@ -20,7 +20,7 @@ import functools
 
 import numpy as np
 
-from difareli.encodings import FACE_PARTS, FOREGROUND_PARTS, PART_INDEX
+from difareli.data.encodings import FACE_PARTS, FOREGROUND_PARTS, PART_INDEX
 
 # Lip contours (FACEMESH_LIPS is four chains; tests check these against it), corners first and last.
 LIPS_OUTER_UPPER = (61, 185, 40, 39, 37, 0, 267, 269, 270, 409, 291)
@@ -250,7 +250,7 @@ class FaceMeshSelfieMasks:
         unlike the hair beside the face)."""
         from scipy import ndimage
 
-        from difareli.imageops import rgb2lab_u8 as rgb2lab  # scikit-image's rgb2lab, bit for bit, for uint8
+        from difareli.utils.imageops import rgb2lab_u8 as rgb2lab  # scikit-image's rgb2lab, bit for bit, for uint8
 
         skin = labels == PART_INDEX["skin"]
         if skin.sum() < 50:

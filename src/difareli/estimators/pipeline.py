@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from difareli.encodings import ENCODINGS
+from difareli.data.encodings import ENCODINGS
 
 from .quiet import native_logs
 
@@ -147,7 +147,7 @@ class Pipeline:
     def _process(self, rgb: np.ndarray) -> tuple[dict[str, np.ndarray], dict, dict]:
         t0 = time.perf_counter()
         aligned = self.aligner(rgb)
-        # The quad unrounded: compositing warps the relit crop back through it (difareli.composite).
+        # The quad unrounded: compositing warps the relit crop back through it (difareli.relight.composite).
         ctx: dict[str, Any] = {"image": aligned["image"], "quad": aligned["quad"], "notes": list(aligned["notes"])}
         # The alignment pass's FaceMesh landmarks (original pixels), for estimators that can reuse them.
         ctx["alignment_landmarks"] = aligned.get("landmarks")

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from difareli.encodings import NUM_MASK_PARTS
+from difareli.data.encodings import NUM_MASK_PARTS
 
 #: One colour per MASK_PARTS entry (background black, skin tan, hair brown, ...).
 PALETTE = np.array([

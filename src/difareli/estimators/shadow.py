@@ -20,9 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
-from difareli import sh
-from difareli.encodings import normalise_c
-from difareli.imageops import LUMA
+from difareli.lighting import sh
+from difareli.data.encodings import normalise_c
+from difareli.utils.imageops import LUMA
 from difareli.render import cast_shadow
 
 LABEL_S = 0.02

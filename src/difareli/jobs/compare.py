@@ -3,8 +3,8 @@ SynthFaces store's test pairs of both protocols, and the facts a model card stat
 
 The one home of this comparison for ``difareli-demo``, ``scripts/release_reference.py`` (the shipped references'
 model cards) and ``scripts/gpu_train_reference.py``: every method runs through
-:func:`difareli.benchmark.run_benchmark` with one shared light estimator, so the three rows see the same fitted
-target lights, and the rows merge into one :class:`~difareli.tables.Table`.
+:func:`difareli.evaluation.benchmark.run_benchmark` with one shared light estimator, so the three rows see the same fitted
+target lights, and the rows merge into one :class:`~difareli.evaluation.tables.Table`.
 """
 
 from __future__ import annotations
@@ -16,9 +16,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from difareli import tables
-from difareli.benchmark import BenchmarkResult
-from difareli.store import EncodingStore
+from difareli.evaluation import tables
+from difareli.evaluation.benchmark import BenchmarkResult
+from difareli.data.store import EncodingStore
 
 #: Both evaluation protocols: (i) relit toward the same subject's other light, (ii) toward another subject's light.
 PROTOCOLS = ("same_subject", "different_subject")
@@ -64,11 +64,11 @@ def compare_to_baselines(store: EncodingStore | str | Path, checkpoint: Any, sam
 
     Target lights are fitted to the light-source images and the target c is what a user has (the benchmark's
     defaults), unless ``oracle_light`` / ``oracle_shadow``; the card facts say which. Each method's run is written
-    under ``out_dir/<method name>`` (resumable, as :func:`~difareli.benchmark.run_benchmark` is); ``reuse``: a
+    under ``out_dir/<method name>`` (resumable, as :func:`~difareli.evaluation.benchmark.run_benchmark` is); ``reuse``: a
     method's finished run there with the same settings is read back instead of relit again."""
-    from difareli.baselines import DiffusionMethod, Identity, LambertianRatio
-    from difareli.benchmark import finished_run, run_benchmark
-    from difareli.light_fit import LightFit
+    from difareli.evaluation.baselines import DiffusionMethod, Identity, LambertianRatio
+    from difareli.evaluation.benchmark import finished_run, run_benchmark
+    from difareli.lighting.light_fit import LightFit
 
     start = time.perf_counter()
     store = store if isinstance(store, EncodingStore) else EncodingStore.open(store)

@@ -22,10 +22,10 @@ maps; ``min_contrast=0`` writes them anyway.
 Inputs are checked before any relight: a threshold outside (0, 1), a split the store does not have, and a store
 without a train split (the c range must come from the split the DiFaReli was trained on: ``split=``, or
 ``c_range=[c_min, c_max]``; a SynthFaces v3 store's recorded range is used, and said so, where it has one) are
-refused. The store is locked for the run (:func:`difareli.fileio.folder_lock`): a second writer is refused.
+refused. The store is locked for the run (:func:`difareli.utils.fileio.folder_lock`): a second writer is refused.
 
 The raw differences are kept as the derived version ``shadow_map@diffraw-<hash>`` (resumable: a killed run
-redoes only records without it), the maps as ``shadow_map@<version>`` (:mod:`difareli.derived`), both with their
+redoes only records without it), the maps as ``shadow_map@<version>`` (:mod:`difareli.data.derived`), both with their
 provenance (checkpoint, sampler, c range, threshold rule and value, median size) in the store header.
 """
 
@@ -39,14 +39,17 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from difareli import derived, encodings, errors, imageops
+from difareli import errors
+from difareli.data import derived
+from difareli.data import encodings
+from difareli.utils import imageops
 from difareli.diffusion.relight import Inversion
-from difareli.fileio import folder_lock
-from difareli.imageops import median_mask
-from difareli.inputs import condition_tensors, image_to_tensor, read_record, relight_reads
-from difareli.relightable import OnePassRelightable, model_inputs
-from difareli.relight_core import invert_image, relight
-from difareli.targets import retarget
+from difareli.utils.fileio import folder_lock
+from difareli.utils.imageops import median_mask
+from difareli.data.inputs import condition_tensors, image_to_tensor, read_record, relight_reads
+from difareli.relight.relightable import OnePassRelightable, model_inputs
+from difareli.relight.core import invert_image, relight
+from difareli.relight.targets import retarget
 
 #: The authors' recipe: threshold on the grey-level difference, median size at 256 px, parts zeroed.
 RECIPE_THRESHOLD = 0.05

@@ -1,6 +1,6 @@
 """Teacher pairs for the single-shot student (``difareli-teacher-pairs``): the teacher relights every training
 record toward another record's light, in batches through the relighting core, and each pair is written atomically
-into a pair store (an :class:`~difareli.store.EncodingStore`) that :class:`difareli.pairs.TeacherPairs` reads;
+into a pair store (an :class:`~difareli.data.store.EncodingStore`) that :class:`difareli.lit.pairs.TeacherPairs` reads;
 a rerun skips the pairs already there.
 """
 
@@ -14,16 +14,16 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from difareli import encodings as enc
-from difareli import viz
-from difareli import provenance
+from difareli.data import encodings as enc
+from difareli.utils import viz
+from difareli.data import provenance
 from difareli.errors import UserError, check_record
-from difareli.fileio import folder_lock
-from difareli.inputs import condition_tensors, image_to_tensor
-from difareli.pairs import LIGHT_FROM_KEY, SOURCE_KEY, target_arrays
-from difareli.relight_core import relight
-from difareli.provenance import model_identity, store_identity
-from difareli.store import EncodingStore
+from difareli.utils.fileio import folder_lock
+from difareli.data.inputs import condition_tensors, image_to_tensor
+from difareli.lit.pairs import LIGHT_FROM_KEY, SOURCE_KEY, target_arrays
+from difareli.relight.core import relight
+from difareli.data.provenance import model_identity, store_identity
+from difareli.data.store import EncodingStore
 
 
 def pair_id(source: str, k: int) -> str:
@@ -49,7 +49,7 @@ def generate_teacher_pairs(relighter, store: EncodingStore, out: str | Path, *, 
                            per_record: int = 1, limit: int | None = None, batch_size: int = 8, seed: int = 0,
                            progress: bool = True, stop_after: int | None = None) -> dict[str, Any]:
     """Relight every ``split`` record of ``store`` toward another random record's light with the teacher in
-    ``relighter`` (a :class:`~difareli.relighting.Relighter`), ``batch_size`` images per batched relight;
+    ``relighter`` (a :class:`~difareli.relight.relighter.Relighter`), ``batch_size`` images per batched relight;
     write each pair atomically into the pair store at ``out`` and skip pairs already there (resume).
 
     ``out`` is locked for the run, and its ``provenance.json`` ties it to the source store and the teacher's

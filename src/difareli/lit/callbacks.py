@@ -8,8 +8,8 @@ from typing import Any, Mapping, Sequence
 import lightning as L
 import torch
 
-from difareli import viz
-from difareli.relightable import DiffusionRelightable, OnePassRelightable
+from difareli.utils import viz
+from difareli.relight.relightable import DiffusionRelightable, OnePassRelightable
 from difareli.diffusion.spec import SamplerSpec, as_spec
 from difareli.lit.logging import log_image
 

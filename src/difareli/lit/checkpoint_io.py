@@ -2,7 +2,7 @@
 
 Lightning's default writer goes through an fsspec transaction whose temporary file lives in the system temporary
 folder; when the run folder is on another filesystem the commit is a copy, so a kill during it leaves a torn
-``last.ckpt``. This one writes beside the target, fsyncs, and renames (:func:`difareli.fileio.torch_save_atomic`):
+``last.ckpt``. This one writes beside the target, fsyncs, and renames (:func:`difareli.utils.fileio.torch_save_atomic`):
 a kill at any moment leaves the previous checkpoint loadable, and a full disk names the checkpoint.
 """
 
@@ -14,7 +14,7 @@ from typing import Any
 from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.plugins.io import TorchCheckpointIO
 
-from difareli.fileio import torch_save_atomic
+from difareli.utils.fileio import torch_save_atomic
 
 
 class AtomicCheckpointIO(TorchCheckpointIO):

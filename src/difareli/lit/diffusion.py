@@ -18,7 +18,7 @@ import lightning as L
 import torch
 import torch.nn.functional as F
 
-from difareli.checkpoint_format import stamp, upgrade_checkpoint
+from difareli.checkpoints.format import stamp, upgrade_checkpoint
 from difareli.diffusion.schedule import DiffusionSchedule
 from difareli.nn import build_network
 
@@ -206,7 +206,7 @@ class DiffusionModule(RelightingModule):
     def _nonspatial_widths(self, dim: int) -> list[int]:
         """Each non-spatial encoding's width (cross-attention makes tokens per encoding), at the producers'
         dimensions; one block of ``dim`` when a store's dimensions differ (e.g. another identity length)."""
-        from difareli import encodings
+        from difareli.data import encodings
 
         dims = {"H": 1, "W": 1, **encodings.PRODUCER_DIMS}
         widths = [encodings.channels(n, dims) for n in self.nonspatial_inputs]

@@ -74,7 +74,7 @@ def log_text(target: Target, key: str, text: str, step: int | None = None) -> No
 
 
 def log_table(target: Target, key: str, table, step: int | None = None, digits: int = 4) -> None:
-    """Log a :class:`difareli.tables.Table` (benchmark summary): a real table where the logger has one
+    """Log a :class:`difareli.evaluation.tables.Table` (benchmark summary): a real table where the logger has one
     (wandb), its Markdown rendering elsewhere (TensorBoard)."""
     loggers, step = _loggers_and_step(target, step)
     if not loggers:

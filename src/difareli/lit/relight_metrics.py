@@ -4,7 +4,7 @@
 (the target light fitted to the same subject's image under the target light, and to another subject's of the same
 light group, as difareli-benchmark does on the test split) with a few-step sampler (one network pass for a
 one-pass student), and logs ``val/<metric>/<protocol>`` (``val/dssim/same``, ``val/lpips/different``, ...) under
-the metric rule (``paper`` by default) through the torchmetrics Metrics of :mod:`difareli.metrics`, plus an
+the metric rule (``paper`` by default) through the torchmetrics Metrics of :mod:`difareli.evaluation.metrics`, plus an
 input | relit | ground truth grid, to every configured logger. It runs at the start of a validation (after the EMA
 callback has swapped its average in) once ``every_n_steps`` have passed since its last run (null: every
 validation), and prints what one evaluation cost against the training wall time since the previous one.
@@ -26,11 +26,12 @@ import lightning as L
 import numpy as np
 import torch
 
-from difareli import metrics, viz
+from difareli.evaluation import metrics
+from difareli.utils import viz
 from difareli.diffusion.spec import SamplerSpec, as_spec
-from difareli.inputs import condition_tensors, image_to_tensor, read_record, relight_reads
+from difareli.data.inputs import condition_tensors, image_to_tensor, read_record, relight_reads
 from difareli.lit.logging import log_image
-from difareli.relightable import OnePassRelightable, Relightable, model_inputs
+from difareli.relight.relightable import OnePassRelightable, Relightable, model_inputs
 
 PROTOCOLS = {"same_subject": "same", "different_subject": "different"}
 
@@ -38,7 +39,7 @@ PROTOCOLS = {"same_subject": "same", "different_subject": "different"}
 def validation_pairs(store, split: str, n: int) -> list[dict[str, str]]:
     """``n`` sources of ``split`` (evenly spread), each with a target record and the light source of both
     protocols: ``{"source", "target", "same", "different"}`` (record ids); [] without SynthFaces light groups."""
-    from difareli.synth.splits import protocol_pairs
+    from difareli.data.protocols import protocol_pairs
 
     meta = store.store_meta
     group, lights = meta.get("light_group_size"), meta.get("lights")
@@ -64,7 +65,7 @@ class RelightMetrics(L.Callback):
     """Log ``val/{dssim,mse,lpips}/{same,different}`` and a relight grid during fit (see the module docstring).
 
     ``sampler``/``steps``: a preset name, a sampler config or a spec (diffusion models only); ``rule``: the metric
-    rule (``paper`` | ``composite``); ``precision``: the relights' :class:`~difareli.runtime.Runtime` precision
+    rule (``paper`` | ``composite``); ``precision``: the relights' :class:`~difareli.runtime.core.Runtime` precision
     (``auto``, as every relighting command: bf16 where the hardware has it natively; ``fp32`` | ``bf16``).
     """
 
@@ -107,8 +108,8 @@ class RelightMetrics(L.Callback):
 
     def _prepare(self, store, model, pair: Mapping[str, str]) -> dict[str, Any]:
         """The source's condition, both protocols' target conditions, the ground truth and its mask."""
-        from difareli.light_fit import LightFit
-        from difareli.targets import retarget, target_shadow_of
+        from difareli.lighting.light_fit import LightFit
+        from difareli.relight.targets import retarget, target_shadow_of
 
         names = relight_reads(model_inputs(model))
         arrays = read_record(store, pair["source"], names)
@@ -137,8 +138,8 @@ class RelightMetrics(L.Callback):
     @torch.no_grad()
     def evaluate(self, trainer: L.Trainer, pl_module) -> dict[str, float]:
         """Relight the prepared pairs with ``pl_module``'s current weights; log and return the metrics."""
-        from difareli.relight_core import relight
-        from difareli.runtime import Runtime
+        from difareli.relight.core import relight
+        from difareli.runtime.core import Runtime
 
         since = time.perf_counter() - (self._clock or time.perf_counter())
         t0 = time.perf_counter()

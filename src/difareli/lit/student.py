@@ -5,7 +5,7 @@ the source's spatial inputs and the target's light-dependent ones (shading refer
 paper's 8 channels, plus the masks where the variant declares them); AdaGN takes the source's non-spatial inputs
 (plus the target's light-dependent non-spatial ones, e.g. c' for a DiFaReli-style variant). The time embedding
 sees a constant ``timestep``. Trained with L2 (optionally + LPIPS) on pairs served by the DataModule's pair
-sampler (``data.pairs``). Implements :class:`~difareli.relightable.OnePassRelightable`, so every relighting CLI,
+sampler (``data.pairs``). Implements :class:`~difareli.relight.relightable.OnePassRelightable`, so every relighting CLI,
 the benchmark and the speed tables take its checkpoint unchanged.
 """
 
@@ -17,7 +17,7 @@ from typing import Any
 import torch
 import torch.nn.functional as F
 
-from difareli import encodings as enc
+from difareli.data import encodings as enc
 from difareli.errors import UserError
 from difareli.lit.diffusion import DEFAULT_OPTIMIZER, RelightingModule, factory_config
 from difareli.nn import build_network
@@ -101,7 +101,7 @@ class StudentModule(RelightingModule):
 
     def relight_once(self, x0: torch.Tensor, source, target, runtime=None) -> torch.Tensor:
         """The relit image [B, 3, H, W] of ``x0`` in [-1, 1] from the source and target conditions. With a
-        :class:`~difareli.runtime.Runtime` the pass runs as its denoiser does (autocast, the inference copy with
+        :class:`~difareli.runtime.core.Runtime` the pass runs as its denoiser does (autocast, the inference copy with
         weights cast once, channels-last, compile), as a diffusion model's passes do; float32 out."""
         (s_sp, s_ns), (t_sp, t_ns) = source, target
         sp = torch.cat([s_sp, t_sp[:, self._sp_dep]], 1) if s_sp is not None and self.net.spatial is not None else None
@@ -134,7 +134,7 @@ class StudentModule(RelightingModule):
         out["loss"] = out["l2"]
         if self.hparams.lpips_weight > 0:
             if self._lpips is None:
-                from difareli.lpips import get_lpips
+                from difareli.nn.lpips import get_lpips
 
                 self._lpips = [get_lpips("alex", str(pred.device))]  # a list: not a submodule, not in checkpoints
             out["lpips"] = self._lpips[0](pred.float().clamp(-1, 1), batch["target_image"].float()).mean()

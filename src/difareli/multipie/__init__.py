@@ -4,7 +4,7 @@
 - :mod:`~difareli.multipie.protocols`: the authors' JSON pair lists, or both protocols drawn from a seed;
 - :mod:`~difareli.multipie.build`: preprocessing into an encodings store with a ``protocols.json``
   (``difareli-multipie root=<copy> out_dir=<store>``), which ``difareli-benchmark`` runs on unchanged;
-- :mod:`~difareli.multipie.published`: the paper's Table I figures, for ``difareli-table published=...``.
+- :mod:`~difareli.evaluation.published`: the paper's Table I figures, for ``difareli-table published=...``.
 
 docs/evaluation.md describes the protocols, the metric rule and the commands.
 """

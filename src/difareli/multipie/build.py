@@ -19,8 +19,8 @@ from typing import Any, Callable, Iterable, Sequence
 from difareli.errors import UserError
 from difareli.multipie import layout, protocols
 from difareli.multipie.layout import Image
-from difareli.store import EncodingStore
-from difareli.synth.splits import PROTOCOLS_FILE
+from difareli.data.store import EncodingStore
+from difareli.data.protocols import PROTOCOLS_FILE
 
 REPORT = "multipie_report.json"
 #: why an image was skipped -> the word used in its line and in the counts

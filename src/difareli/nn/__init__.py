@@ -6,7 +6,7 @@ Names are imported lazily (PEP 562) so that importing one component does not bui
 
 from __future__ import annotations
 
-from difareli.lazy import lazy_attributes
+from difareli.utils.lazy import lazy_attributes
 
 _HOMES = {
     "SPATIAL_COMPONENTS": "conditioning",

@@ -6,7 +6,7 @@ must import on machines without trimesh/embree (a bare GPU image).
 
 from __future__ import annotations
 
-from difareli.lazy import lazy_attributes
+from difareli.utils.lazy import lazy_attributes
 
 _NAMES = {
     "camera": ("OrthoCamera",),

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import sh
+from difareli.lighting import sh
 from .raycast import GBuffer
 
 

@@ -28,8 +28,8 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
-from difareli.encodings import PART_INDEX
-from difareli.face_model import PIVOT, FaceModel, FaceParams, pose_points
+from difareli.data.encodings import PART_INDEX
+from difareli.render.face_model import PIVOT, FaceModel, FaceParams, pose_points
 
 SKULL_CENTRE = np.array([0.0, 0.05, 0.0])
 SKULL_RADII = np.array([0.52, 0.75, 0.68, 0.6, 0.9])  # x, y top, z front, z back, y bottom

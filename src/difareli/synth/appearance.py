@@ -13,8 +13,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from difareli.albedo import MONK_SCALE, SKIN_ALBEDO_SCALE
-from difareli.encodings import PART_INDEX
+from difareli.lighting.albedo import MONK_SCALE, SKIN_ALBEDO_SCALE
+from difareli.data.encodings import PART_INDEX
 
 HAIR_COLOURS = {  # base colour, sampling weight
     "black": ([0.05, 0.04, 0.035], 0.30), "dark_brown": ([0.16, 0.10, 0.06], 0.25),

@@ -17,8 +17,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from difareli import derived
-from difareli.encodings import C_RANGE_KEY, normalise_c, shadow_logit, store_c_range
+from difareli.data import derived
+from difareli.data.encodings import C_RANGE_KEY, normalise_c, shadow_logit, store_c_range
 
 
 def train_c_range(store, quantile: float, split: str = "train") -> dict:

@@ -13,7 +13,7 @@ from typing import Any
 
 import yaml
 
-from difareli.store import EncodingStore
+from difareli.data.store import EncodingStore
 from difareli.synth.effects import REALISM_PRESETS
 from difareli.synth.config import auto_estimation_resolution
 

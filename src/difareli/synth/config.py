@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
 
-from difareli.encodings import SHADOW_C_HI, SHADOW_C_LO, SHADOW_S_MIN
+from difareli.data.encodings import SHADOW_C_HI, SHADOW_C_LO, SHADOW_S_MIN
 from difareli.synth import effects as fx_mod
 
 ENCODINGS = ("image", "light", "shape", "cam", "identity", "shadow", "background", "masks", "shadow_map",

@@ -24,7 +24,7 @@ from typing import Mapping
 
 import numpy as np
 
-from difareli.encodings import PART_INDEX
+from difareli.data.encodings import PART_INDEX
 
 #: The realism presets: ``lambertian`` is SynthFaces v1 (bit-identical images for the same seed).
 REALISM_PRESETS: dict[str, dict[str, bool]] = {

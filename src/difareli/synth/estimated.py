@@ -11,7 +11,7 @@ face surface, FaceMesh outlines + selfie segmentation for ``masks``/``face_mask`
   BFM geometry estimator upsamples anything below 192 px for FaceMesh itself). The estimated surface is then
   rendered at the stored resolution through the estimated camera (``cam`` is in NDC, so no resampling of normals
   or depth is needed) and the part labels are resampled by the mode of each block.
-- ``light``: :class:`difareli.light_fit.LightFit` on the stored (estimated) arrays, the fit ``difareli-benchmark``
+- ``light``: :class:`difareli.lighting.light_fit.LightFit` on the stored (estimated) arrays, the fit ``difareli-benchmark``
   makes on that record; ``shading`` its shading reference on the estimated normals; ``shadow``/``shadow_map``:
   :class:`difareli.estimators.shadow.ShadowEstimator` on the estimated surface. The map is stored binary until
   the store's c range is known (``synth/c_norm.py`` scales it once the store is complete).
@@ -25,8 +25,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from difareli import sh
-from difareli.encodings import FACE_PARTS, FOREGROUND_PARTS, NUM_MASK_PARTS, PART_INDEX
+from difareli.lighting import sh
+from difareli.data.encodings import FACE_PARTS, FOREGROUND_PARTS, NUM_MASK_PARTS, PART_INDEX
 
 _SHADOW = None
 _PIPELINES: dict[int, object] = {}
@@ -76,7 +76,7 @@ def pipeline(size: int):
     """The preprocess pipeline (default estimators, frame-keeping aligner) at ``size`` px, once per process."""
     if size not in _PIPELINES:
         from difareli.estimators.pipeline import Pipeline
-        from difareli.photo import default_estimators
+        from difareli.relight.photo import default_estimators
 
         est = dict(default_estimators(size))
         est["align"] = {"_target_": f"{__name__}.FrameAligner", "size": size}
@@ -105,7 +105,7 @@ def estimate_light_and_shadow(arrays: dict, region: np.ndarray, gbuffer, scene) 
     """``light`` (LightFit on the stored ``image``/``normal``/``face_mask``/``masks``), ``shading`` on ``region``,
     ``shadow``/``shadow_map`` (the classifier on ``gbuffer``/``scene``, map = cast * fixed-range normalised c) and
     meta. Raises ValueError when the light fit has too few usable skin pixels."""
-    from difareli.light_fit import LightFit
+    from difareli.lighting.light_fit import LightFit
 
     fit = LightFit()
     light = fit({k: arrays[k] for k in LightFit.ENCODINGS}).astype(np.float32)

@@ -13,12 +13,12 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from difareli.fileio import RESUME, on_full_disk
-from difareli.processes import die_with_parent
+from difareli.utils.fileio import RESUME, on_full_disk
+from difareli.utils.processes import die_with_parent
 from difareli.render import cast_shadows
-from difareli.shard import select as shard_select
-from difareli.store import EncodingStore
-from difareli.synth import splits as sp
+from difareli.data.shard import select as shard_select
+from difareli.data.store import EncodingStore
+from difareli.data import protocols as sp
 from difareli.synth.blas import single_thread_blas
 from difareli.synth.config import IDENTITY_DIM, ConfigError, SynthConfig
 from difareli.synth.lights import add_suns, extra_sun_rng, light_rng, sample_light
@@ -73,7 +73,7 @@ def _open_store(out_dir: str, cfg: SynthConfig, durable: bool) -> EncodingStore:
 
 
 def _shape_dim() -> int:
-    from difareli.face_model import SHAPE_DIM
+    from difareli.render.face_model import SHAPE_DIM
 
     return int(SHAPE_DIM)
 
@@ -106,7 +106,7 @@ def generate(out_dir: str, subjects: int, lights: int, resolution: int, seed: in
     ``options`` are the other :class:`SynthConfig` fields (``light_group_size``, ``splits``, ...).
     ``workers > 1`` renders subjects in a process pool; results do not depend on it.
     ``durable`` fsyncs every file (atomicity against a killed run does not need it: records are renamed
-    into place whole either way). ``shard="i/n"`` renders only the subjects of that shard (``difareli.shard``);
+    into place whole either way). ``shard="i/n"`` renders only the subjects of that shard (``difareli.data.shard``);
     shards may run concurrently into one ``out_dir``. A full disk is one line naming the file (records already
     written are whole: rerun to resume), with no partial record or scratch file left.
     """

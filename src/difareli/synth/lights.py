@@ -17,7 +17,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from difareli import sh
+from difareli.lighting import sh
 
 #: Categories and their sampling weights (see :func:`sample_light`).
 CATEGORIES: dict[str, float] = {

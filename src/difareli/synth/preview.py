@@ -11,9 +11,9 @@ from pathlib import Path
 
 import numpy as np
 
-from difareli.store import EncodingStore
-from difareli.synth import splits as sp
-from difareli.viz import grid, save_png
+from difareli.data.store import EncodingStore
+from difareli.data import protocols as sp
+from difareli.utils.viz import grid, save_png
 
 
 def _upscale(img: np.ndarray, cell: int) -> np.ndarray:

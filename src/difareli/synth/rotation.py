@@ -24,9 +24,9 @@ from typing import Sequence
 
 import numpy as np
 
-from difareli import sh
-from difareli.store import EncodingStore
-from difareli.synth import splits as sp
+from difareli.lighting import sh
+from difareli.data.store import EncodingStore
+from difareli.data import protocols as sp
 from difareli.synth.config import SynthConfig
 from difareli.synth.subject import build_subject, shade
 from difareli.synth.blas import single_thread_blas

@@ -46,9 +46,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from difareli import sh
-from difareli.encodings import FACE_PARTS, FOREGROUND_PARTS, PART_INDEX, normalise_c
-from difareli.imageops import LUMA
+from difareli.lighting import sh
+from difareli.data.encodings import FACE_PARTS, FOREGROUND_PARTS, PART_INDEX, normalise_c
+from difareli.utils.imageops import LUMA
 from difareli.render import OrthoCamera, Scene, cast_shadows, render_gbuffer
 from difareli.synth import effects as fx_mod
 from difareli.synth.appearance import albedo_image, sample_appearance, sample_background
@@ -82,7 +82,7 @@ class Subject:
 def build_subject(k: int, cfg: SynthConfig) -> Subject:
     """Sample and render subject ``k`` (geometry, appearance, camera); deterministic in ``(cfg.seed, k)``."""
     from difareli.synth.accessories import build_head, default_camera, sample_accessories
-    from difareli.face_model import FaceModel
+    from difareli.render.face_model import FaceModel
 
     rng = np.random.default_rng([cfg.seed, k])
     params = FaceModel.load().sample_params(rng)

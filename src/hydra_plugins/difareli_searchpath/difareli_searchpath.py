@@ -18,5 +18,8 @@ class DifareliSearchPathPlugin(SearchPathPlugin):
         if not any(e.path == "pkg://difareli.conf" for e in search_path.get_path()):
             return
         user = Path(os.environ.get("DIFARELI_CONFIG_DIR") or "conf").resolve()
-        if user.is_dir():
+        from difareli.configs import CONFIG_DIR
+
+        # In the checkout (an editable install) ./conf is the shipped folder itself: searching it twice adds nothing.
+        if user.is_dir() and user != CONFIG_DIR.resolve():
             search_path.append(provider="difareli-user", path=f"file://{user}")

@@ -1,0 +1,1 @@
+"""Checkpoints: the keys difareli writes, the shipped zoo (weights beside this file), loading."""

@@ -1,0 +1,79 @@
+"""Loading trained models from checkpoints, for notebooks and CLIs: only the package and the file.
+
+A checkpoint records the module class that wrote it and its format (:mod:`difareli.checkpoints.format`, which
+also translates older formats); :func:`load_checkpoint` imports that class (only from the ``difareli.``
+namespace) and builds it from the plain hyperparameters.
+"""
+
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import torch
+
+from difareli.checkpoints import zoo
+from difareli.errors import load_torch_file
+from difareli.checkpoints.format import MODULE_KEY, upgrade_checkpoint
+
+#: Modules a checkpoint may name: the package's own namespace only (a checkpoint is data, not code).
+ALLOWED_PREFIX = "difareli."
+
+
+@dataclass
+class LoadedCheckpoint:
+    """A model ready for inference plus what it was trained with."""
+
+    model: L.LightningModule
+    config: dict[str, Any]
+    stats: dict[str, torch.Tensor]
+    global_step: int
+
+
+def module_class(path: str) -> type[L.LightningModule]:
+    """Import the LightningModule class named ``package.module.Class`` (``difareli.`` namespace only)."""
+    if not isinstance(path, str) or not path.startswith(ALLOWED_PREFIX) or "." not in path[len(ALLOWED_PREFIX):]:
+        raise ValueError(f"checkpoint names module class {path!r}; only classes under {ALLOWED_PREFIX!r} load")
+    module, _, name = path.rpartition(".")
+    try:
+        cls = getattr(importlib.import_module(module), name, None)
+    except ImportError as e:
+        raise ValueError(f"checkpoint names module class {path!r}, which this difareli version does not have "
+                         f"({e}); it was written by another version of difareli: load it with that version") from None
+    if not (isinstance(cls, type) and issubclass(cls, L.LightningModule)):
+        raise ValueError(f"checkpoint names {path!r}, which is not a LightningModule class of this package")
+    return cls
+
+
+def read_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:
+    """The checkpoint dict (``path``: a file or a shipped name such as ``difareli_pp-synth64``) (``torch.load(weights_only=True)``), translated to the current format."""
+    path = zoo.resolve(path)  # a file, or the name of a shipped checkpoint (difareli.checkpoints.zoo)
+    ckpt = load_torch_file(path, "checkpoint", map_location)  # torch.load(weights_only=True), errors name the file
+    if "hyper_parameters" not in ckpt or "state_dict" not in ckpt:
+        from difareli.checkpoints.format import refuse_official
+
+        refuse_official(ckpt, path)  # the authors' ImgCond/ImgEncoder .pt: a message naming the import command
+        raise ValueError(f"{path} is not a difareli Lightning checkpoint (no hyper_parameters/state_dict)")
+    return upgrade_checkpoint(ckpt)
+
+
+def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> LoadedCheckpoint:
+    """Load a checkpoint with ``torch.load(weights_only=True)`` into the module class it records.
+
+    The weights are the EMA weights when training used the EMA callback (Lightning stores the average in
+    ``state_dict``); the config is the model's plain hyperparameters; stats are the non-spatial
+    normalisation statistics of the training split (as tensors).
+    """
+    ckpt = read_checkpoint(path, map_location)
+    config = dict(ckpt["hyper_parameters"])
+    config.pop("compile", None)  # inference never compiles implicitly
+    model = module_class(ckpt[MODULE_KEY])(**config)
+    model.load_state_dict(ckpt["state_dict"])
+    model.eval().requires_grad_(False)
+    model.to(map_location)
+    raw = config.get("nonspatial_stats") or {}
+    stats = {k: torch.as_tensor(v, dtype=torch.float32) for k, v in raw.items()}
+    return LoadedCheckpoint(model=model, config=config, stats=stats, global_step=int(ckpt.get("global_step", 0)))

@@ -1,0 +1,112 @@
+"""Reference checkpoints shipped with the package, loadable by name (``checkpoint=difareli_pp-synth64``).
+
+Each one is ``src/difareli/checkpoints/<name>.ckpt`` (a slim Lightning checkpoint: the EMA weights, the plain
+hyperparameters, the module class; no optimizer state) beside its model card ``<name>.md``. :func:`export`
+writes both from a training run; :func:`resolve` turns a name or a path into a file, and every loader
+(``lit.load_checkpoint``, the CLIs, the notebooks) goes through it.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from difareli.checkpoints.format import SLIM_KEYS
+from difareli.errors import UserError, check_file, load_torch_file
+from difareli.utils.fileio import torch_save_atomic, write_text_atomic
+
+#: Where the shipped checkpoints and their model cards live (package data).
+SHIPPED_DIR = Path(__file__).resolve().parent  # the weights ship beside this module
+
+
+def available() -> list[str]:
+    """Names of the shipped checkpoints."""
+    return sorted(p.stem for p in SHIPPED_DIR.glob("*.ckpt"))
+
+
+def resolve(checkpoint: str | Path, key: str = "checkpoint") -> Path:
+    """The file of a checkpoint given as a path or as a shipped name (a file of that name wins); a missing one is
+    a FileNotFoundError naming the input and the shipped names."""
+    path = Path(str(checkpoint)).expanduser()
+    if path.is_file():
+        return check_file(path, key)
+    if "/" not in str(checkpoint) and (SHIPPED_DIR / f"{checkpoint}.ckpt").is_file():
+        return SHIPPED_DIR / f"{checkpoint}.ckpt"
+    try:
+        return check_file(path, key)
+    except FileNotFoundError as e:
+        raise FileNotFoundError(f"{e} (<run>/checkpoints/last.ckpt), or the name of a shipped checkpoint: "
+                                f"{', '.join(available()) or 'none shipped'}") from None
+
+
+def suite() -> str | None:
+    """The reference suite (every shipped model beside identity and the Lambertian ratio image on a store of an
+    unseen seed, written by ``scripts/reference_suite.py --ship``), or None when it is not shipped."""
+    path = SHIPPED_DIR / "suite.md"
+    return path.read_text() if path.is_file() else None
+
+
+def card(name: str) -> str:
+    """The model card (Markdown) of a shipped checkpoint."""
+    path = SHIPPED_DIR / f"{name}.md"
+    if not path.is_file():
+        raise UserError(f"no model card for {name!r}; shipped: {available()}")
+    return path.read_text()
+
+
+def slim(ckpt: Mapping[str, Any], dtype: torch.dtype | None = None) -> dict[str, Any]:
+    """A Lightning checkpoint reduced to what inference needs; ``dtype`` (e.g. bf16) casts floating weights."""
+    out = {k: ckpt[k] for k in SLIM_KEYS if k in ckpt}
+    state = {}
+    for key, value in ckpt["state_dict"].items():
+        if key.startswith("_orig_mod.") or ".n_averaged" in key:
+            continue
+        state[key] = value.to(dtype) if dtype is not None and value.is_floating_point() else value
+    out["state_dict"] = state
+    return out
+
+
+def export(run_checkpoint: str | Path, name: str, facts: Mapping[str, Any], *, out_dir: str | Path | None = None,
+           dtype: torch.dtype | None = None) -> tuple[Path, Path]:
+    """Write ``<name>.ckpt`` (slim, loads with ``weights_only=True``) and its model card ``<name>.md``.
+
+    ``facts`` fill the card: data, seed, preset, steps, wall time and hardware, precision, benchmark rows
+    (Markdown), anything else as ``key: value`` lines. Written atomically (temporary file, then rename).
+    """
+    out = Path(out_dir) if out_dir is not None else SHIPPED_DIR
+    out.mkdir(parents=True, exist_ok=True)
+    ckpt = load_torch_file(Path(run_checkpoint), "checkpoint")
+    small = slim(ckpt, dtype)
+    small["model_card"] = {k: v for k, v in facts.items() if isinstance(v, (str, int, float, bool))}
+    target = torch_save_atomic(small, out / f"{name}.ckpt")
+    md = write_text_atomic(out / f"{name}.md", model_card(name, small, facts))
+    return target, md
+
+
+def model_card(name: str, ckpt: Mapping[str, Any], facts: Mapping[str, Any]) -> str:
+    """The Markdown model card of a slim checkpoint."""
+    hp = ckpt["hyper_parameters"]
+    n_params = sum(v.numel() for v in ckpt["state_dict"].values())
+    lines = [f"# {name}", "", facts.get("summary", ""), "",
+             f"Load: `difareli.lit.load_checkpoint(\"{name}\")`, or `checkpoint={name}` in any CLI.", "",
+             "| field | value |", "|---|---|",
+             f"| model | {hp.get('name')} ({ckpt.get('difareli_module')}) |",
+             f"| preset | {hp.get('preset')}, {n_params / 1e6:.2f} M parameters |",
+             f"| spatial inputs | {', '.join(hp.get('spatial_inputs') or []) or '-'} |",
+             f"| non-spatial inputs | {', '.join(hp.get('nonspatial_inputs') or []) or '-'} |",
+             f"| steps | {facts.get('steps') or ckpt.get('global_step')} |"]  # a fine-tune states its start
+    for key in ("data", "seed", "batch_size", "optimizer", "precision", "hardware", "wall_time", "weights",
+                "sampler"):
+        if key in facts:
+            lines.append(f"| {key.replace('_', ' ')} | {facts[key]} |")
+    lines += ["", "## Benchmark", "", str(facts.get("benchmark", "(not measured)")), "",
+              "## Intended use", "", str(facts.get("intended_use", "")), "",
+              "## Licence of the training data", "", str(facts.get("licence", "")), ""]
+    if facts.get("notes"):
+        lines += ["## Notes", "", str(facts["notes"]), ""]
+    lines += ["## Training config", "", "```json", json.dumps(hp, indent=1, sort_keys=True, default=str), "```", ""]
+    return "\n".join(lines)

@@ -1,0 +1,1 @@
+"""Data: the encoding registry, the store, derived encodings, shards, provenance, protocols, inputs."""

@@ -1,0 +1,1 @@
+"""Measuring relights: metrics, tables, the benchmark and its baselines, measured videos."""

@@ -1,0 +1,439 @@
+"""Benchmark a relighting method on the protocols of SPEC 11 (the paper's Tables I/II/IV): a SynthFaces store, or a
+Multi-PIE store made by ``difareli-multipie`` from a user's copy (the same ``protocols.json``).
+
+For each pair of ``protocols.json`` (written with the store by ``synth.splits``): relight ``source`` under the
+light estimated from ``light_source`` (protocol (i) ``same_subject``: the same person under the target light;
+(ii) ``different_subject``: another person under that very light) and score the result against ``target``
+on the target's ``face_mask`` (``score_mask``: another mask key of the store, e.g. ``face_mask_gt``, the
+renderer's exact face region that SynthFaces v3 stores beside its estimated ``face_mask``). The light is fitted from the light-source image (:class:`baselines.LightFit`)
+as a user would get it, with the shadow strength c a user has (``targets.target_shadow_of``: the estimated c of
+a v2 ``inputs=estimated`` store, else the training split's median shadowed c); ``oracle_light`` takes the exact
+light and c instead (``light_gt``/``shadow_gt`` in SynthFaces v2 stores, whose ``light``/``shadow`` are estimated),
+``oracle_shadow`` the exact c alone. ``summary.md`` and ``provenance.json`` state which inputs were used, the
+metric rule (``rule``: :data:`difareli.evaluation.metrics.RULES`, default ``paper``, the authors' evaluator) and the data set.
+Scores go through the torchmetrics ``Metric`` s of :func:`difareli.evaluation.metrics.relight_metrics`. A store without exact
+lights (``"exact_lights": false`` in ``protocols.json``: Multi-PIE) gets no light-estimation errors and no oracle.
+
+Outputs in the run dir: ``relit/<protocol>/<pair id>.png``, ``metrics_per_image.csv`` (tables.py schema),
+``summary.{md,csv,tex}``, ``light_estimation.csv`` and ``comparison_<protocol>.png`` (input | light source |
+relit | ground truth for the first pairs). Every file is written atomically (a full disk is one line naming it,
+nothing half-written; rows already scored are kept and a rerun resumes from them).
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import io
+import json
+import sys
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+from difareli import errors
+from difareli.evaluation import metrics
+from difareli.evaluation import tables
+from difareli.utils import viz
+from difareli.relight.targets import target_shadow_of
+from difareli.data import shard as sharding
+from difareli.data import provenance
+from difareli.evaluation.baselines import Method, exact_light_name, irradiance_error
+from difareli.lighting.light_fit import LightFit
+from difareli.data import encodings
+from difareli.utils.fileio import RESUME, append_text, atomic_path, folder_lock, on_full_disk, write_json_atomic, \
+    write_text_atomic
+from difareli.data.store import EncodingStore
+from difareli.data.protocols import PROTOCOLS_FILE
+
+#: protocols.json key -> the ``protocol`` column of the per-image CSV (tables.PROTOCOL_LABELS).
+PROTOCOLS = {"same_subject": "same", "different_subject": "different"}
+LIGHT_CSV = "light_estimation.csv"
+#: Rows scored so far, appended one by one: a killed run resumes from them (removed when the run completes).
+PARTIAL_CSV = ".metrics_per_image.partial.csv"
+#: What scored a run's rows (difareli.data.provenance): a resumed run must match it.
+SETTINGS = "benchmark_settings.json"
+#: The mask every pair is scored on unless ``score_mask`` names another one.
+DEFAULT_MASK = "face_mask"
+
+
+def check_score_mask(store: EncodingStore, key: str | None) -> str:
+    """``key`` (None: :data:`DEFAULT_MASK`) if the store has it as a mask (a bool HxW encoding), else a UserError
+    naming the masks it has."""
+    key = DEFAULT_MASK if key is None else str(key)
+    have = [n for n in store.encodings if n in encodings.ENCODINGS and encodings.get(n).dtype == "bool"
+            and tuple(encodings.get(n).shape) == ("H", "W")]
+    if key not in have:
+        what = f"has {key} but it is not a mask (a bool HxW encoding)" if store.available(key) else \
+            f"has no {key}"
+        raise errors.UserError(f"score_mask={key}: store {store.root} {what}; give one of its masks: "
+                               f"{', '.join(have)} (default score_mask={DEFAULT_MASK})")
+    return key
+
+
+def _scored_so_far(out_dir: Path, method: str, rule: str) -> dict[tuple[str, str], tables.Record]:
+    """Rows of an interrupted run of ``method`` under ``rule`` in ``out_dir`` by (protocol, pair id); a cut last
+    row is dropped."""
+    path = out_dir / PARTIAL_CSV
+    if not path.is_file():
+        return {}
+    try:
+        rows, _ = tables.read_records_checked(path, drop_bad_rows=True)
+    except errors.UserError:
+        return {}
+    return {(r.protocol, r.record_id): r for r in rows if r.method == method and r.rule == rule}
+
+
+def _read_png(path: Path) -> np.ndarray:
+    import imageio.v3 as iio
+
+    return np.asarray(iio.imread(path))[..., :3]
+
+
+def _append_row(out_dir: Path, r: tables.Record) -> None:
+    """Append one scored row (whole or not at all: a full disk leaves the rows before it intact)."""
+    path = out_dir / PARTIAL_CSV
+    buf = io.StringIO()
+    w = csv.writer(buf)
+    if not path.is_file() or path.stat().st_size == 0:
+        w.writerow((*tables.COLUMNS, "rule", "status"))
+    w.writerow(tables.record_row(r))
+    append_text(path, buf.getvalue())
+
+
+@dataclass(frozen=True)
+class Pair:
+    """One protocol pair: relight ``source`` with the light of ``light_source``; ground truth ``target``."""
+
+    protocol: str
+    source: str
+    light_source: str
+    target: str
+
+    @property
+    def id(self) -> str:
+        # (source, light source) is unique within a protocol; the target follows from them.
+        return f"{self.source}__{self.light_source}"
+
+
+def protocols_doc(store: EncodingStore) -> dict:
+    """The store's ``protocols.json`` (written by difareli-synth or difareli-multipie)."""
+    path = Path(store.root) / PROTOCOLS_FILE
+    if not path.is_file():
+        raise FileNotFoundError(f"{path} missing: benchmarks need a store with evaluation pairs (difareli-synth "
+                                "or difareli-multipie writes it)")
+    return json.loads(path.read_text())
+
+
+def load_pairs(store: EncodingStore, protocols: Sequence[str], limit: int | None = None) -> dict[str, list[Pair]]:
+    """The pairs of each protocol from the store's ``protocols.json``; ``limit`` keeps at most that many,
+    evenly spaced over the list (so a small run still covers several subjects and lights)."""
+    path = Path(store.root) / PROTOCOLS_FILE
+    doc = protocols_doc(store)
+    out: dict[str, list[Pair]] = {}
+    for p in protocols:
+        if p not in PROTOCOLS:
+            raise ValueError(f"unknown protocol {p!r}; choose from {list(PROTOCOLS)}")
+        rows = doc.get(p, [])
+        if not rows:
+            raise ValueError(f"{path} has no pairs for protocol {p!r} (a test split with light groups of >= 2 "
+                             "subjects is needed for different_subject)")
+        if limit is not None and 0 < limit < len(rows):
+            rows = [rows[i] for i in np.unique(np.linspace(0, len(rows) - 1, int(limit)).round().astype(int))]
+        out[p] = [Pair(p, r["source"], r["light_source"], r["target"]) for r in rows]
+    return out
+
+
+def _to_tensor(img: np.ndarray) -> torch.Tensor:
+    """uint8 HxWx3 -> float64 1x3xHxW in [0, 1]."""
+    return torch.from_numpy(np.asarray(img, dtype=np.float64) / 255.0).permute(2, 0, 1)[None]
+
+
+def score(pred: np.ndarray, target: np.ndarray, face_mask: np.ndarray, rule: str | None = None,
+          scorer=None) -> dict[str, float]:
+    """DSSIM / MSE / LPIPS of one uint8 image against the ground truth on the mask under ``rule``; through
+    ``scorer`` (a :func:`metrics.relight_metrics` collection, which also accumulates the score) when given."""
+    scorer = scorer if scorer is not None else metrics.relight_metrics(rule)
+    scorer.update(_to_tensor(pred), _to_tensor(target), torch.from_numpy(np.array(face_mask, dtype=bool))[None])
+    return {k: float(m.last[0]) for k, m in scorer.items()}
+
+
+class Lights:
+    """Target (and source) lights per record, estimated once each; errors against the stored light."""
+
+    def __init__(self, store: EncodingStore, estimator: LightFit | None):
+        self.store, self.estimator = store, estimator
+        self.shadow_note = ""
+        self._cache: dict[str, np.ndarray] = {}
+
+    def get(self, record_id: str) -> np.ndarray:
+        if self.estimator is None:
+            name = exact_light_name(self.store)
+            return np.asarray(self.store.read(record_id, [name])[name], dtype=np.float64)
+        if record_id not in self._cache:
+            self._cache[record_id] = self.estimator.from_store(self.store, record_id)
+        return self._cache[record_id]
+
+    def shadow(self, record_id: str, oracle: bool = False) -> float | None:
+        """The cast-shadow strength c' a user has for the target given by ``record_id``'s image, or the exact
+        one (``oracle``, or oracle lights); :func:`targets.target_shadow_of` states the policy."""
+        c, self.shadow_note = target_shadow_of(self.store, record_id, oracle=oracle or self.estimator is None)
+        return c
+
+    def error(self, estimate: np.ndarray, truth_id: str, on_id: str) -> tuple[float, float]:
+        """:func:`irradiance_error` of ``estimate`` vs ``truth_id``'s light on ``on_id``'s face normals."""
+        a = self.store.read(on_id, ["normal", "face_mask"])
+        n = np.asarray(a["normal"], dtype=np.float64)
+        mask = np.asarray(a["face_mask"], dtype=bool) & (np.linalg.norm(n, axis=-1) > 0.5)
+        name = exact_light_name(self.store)
+        truth = np.asarray(self.store.read(truth_id, [name])[name], dtype=np.float64)
+        return irradiance_error(estimate, truth, n, mask)
+
+
+@dataclass
+class BenchmarkResult:
+    records: list[tables.Record]
+    #: which inputs were estimated and which were oracle (stated in summary.md and provenance.json)
+    provenance: dict[str, str] = field(default_factory=dict)
+    light_errors: list[dict] = field(default_factory=list)
+    paths: dict[str, Path] = field(default_factory=dict)
+    #: protocol -> metric -> (mean, SE, n) of the pairs scored in this run, from the torchmetrics Metrics
+    metric_stats: dict[str, dict[str, tuple[float, float, int]]] = field(default_factory=dict)
+
+    @property
+    def table(self) -> tables.Table:
+        return tables.summarize(self.records)
+
+    def light_summary(self) -> str:
+        """Markdown table of the light-estimation errors (mean ± SE per protocol and light)."""
+        if not self.light_errors:
+            return ""
+        lines = ["| protocol | light | n | rel. irradiance error | after best gain |", "|---|---|---:|---:|---:|"]
+        keys = list(dict.fromkeys((e["protocol"], e["light"]) for e in self.light_errors))
+        for p, which in keys:
+            rows = [e for e in self.light_errors if e["protocol"] == p and e["light"] == which]
+            rel = tables.mean_se(r["rel_error"] for r in rows)
+            free = tables.mean_se(r["rel_error_gain_free"] for r in rows)
+            lines.append(f"| {tables.PROTOCOL_LABELS.get(p, p)} | {which} | {rel.n} | {_pm(rel)} | {_pm(free)} |")
+        return "\n".join(lines) + "\n"
+
+
+def _pm(s: tables.Stat) -> str:
+    return f"{s.mean:.4f} ± {s.se:.4f}" if math.isfinite(s.se) else f"{s.mean:.4f}"
+
+
+def run_benchmark(store: EncodingStore, method: Method, protocols: Sequence[str], out_dir: str | Path, *,
+                  limit: int | None = None, oracle_light: bool = False, oracle_shadow: bool = False, estimator: LightFit | None = None,
+                  grid_pairs: int = 4, save_images: bool = True, progress: bool = True,
+                  shard: str | None = None, rule: str | None = None, score_mask: str | None = None) -> BenchmarkResult:
+    """Relight and score every pair of ``protocols`` under the metric ``rule`` (None: ``paper``) on the target's
+    ``score_mask`` (None: ``face_mask``); write the run's outputs into ``out_dir``.
+
+    ``shard="i/n"`` scores only that shard's pairs (by pair id, after ``limit``): the n shards' per-image
+    CSVs together hold exactly the unsharded run's rows (``difareli-table`` merges them).
+
+    ``out_dir`` is locked for the run, and :data:`SETTINGS` records what scores its rows (the method and its
+    model's weights, sampler and precision, the store, protocols, limit, oracles, rule, score mask, shard): a
+    resumed run with other settings is refused, naming what differs, instead of keeping another checkpoint's rows."""
+    out_dir = Path(out_dir)
+    rule = metrics.check_rule(rule)
+    score_mask = check_score_mask(store, score_mask)
+    with folder_lock(out_dir, "benchmark"), on_full_disk(out_dir, scratch=[out_dir], fix=RESUME):
+        settings = run_settings(store, method, protocols, limit=limit, oracle_light=oracle_light,
+                                oracle_shadow=oracle_shadow, rule=rule, shard=shard, score_mask=score_mask)
+        recorded = _recorded(out_dir)
+        if score_mask == DEFAULT_MASK and recorded and "score_mask" not in recorded:
+            settings.pop("score_mask")  # rows of a run from before the option: scored on face_mask, resumable
+        provenance.ensure(out_dir, settings, "benchmark rows", name=SETTINGS,
+                          has_results=(out_dir / PARTIAL_CSV).is_file() or (out_dir / tables.PER_IMAGE_CSV).is_file())
+        return _run(store, method, protocols, out_dir, limit=limit, oracle_light=oracle_light,
+                    oracle_shadow=oracle_shadow, estimator=estimator, grid_pairs=grid_pairs, save_images=save_images,
+                    progress=progress, shard=shard, rule=rule, score_mask=score_mask)
+
+
+def finished_run(store: EncodingStore, method: Method, protocols: Sequence[str], out_dir: str | Path, *,
+                 limit: int | None = None, oracle_light: bool = False, oracle_shadow: bool = False,
+                 rule: str | None = None, score_mask: str | None = None) -> BenchmarkResult | None:
+    """The completed run in ``out_dir`` when it was made with exactly these settings (its scored rows and what it
+    states about its inputs), else None: what a whole suite rerun reuses instead of relighting again. A killed run
+    (rows still partial) is not finished: :func:`run_benchmark` resumes it."""
+    out_dir = Path(out_dir)
+    if not (out_dir / tables.PER_IMAGE_CSV).is_file() or (out_dir / PARTIAL_CSV).is_file():
+        return None
+    want = run_settings(store, method, protocols, limit=limit, oracle_light=oracle_light,
+                        oracle_shadow=oracle_shadow, rule=metrics.check_rule(rule), shard=None,
+                        score_mask=check_score_mask(store, score_mask))
+    if provenance.differences(_recorded(out_dir), provenance.plain(want)):
+        return None
+    try:
+        stated = json.loads((out_dir / provenance.PROVENANCE).read_text())
+    except (OSError, ValueError):
+        return None
+    return BenchmarkResult(records=tables.read_records(out_dir / tables.PER_IMAGE_CSV), provenance=stated)
+
+
+def _recorded(out_dir: Path) -> dict:
+    """The settings recorded in ``out_dir`` ({} if none; an unreadable file is left to provenance.ensure)."""
+    try:
+        have = json.loads((out_dir / SETTINGS).read_text())
+    except (OSError, ValueError):
+        return {}
+    return have if isinstance(have, dict) else {}
+
+
+def run_settings(store: EncodingStore, method: Method, protocols: Sequence[str], *, limit: int | None,
+                 oracle_light: bool, oracle_shadow: bool, rule: str, shard: str | None,
+                 score_mask: str = DEFAULT_MASK) -> dict[str, Any]:
+    """What decides a benchmark run's rows (compared when a run resumes into the same folder)."""
+    relighter = getattr(method, "relighter", None)
+    model = getattr(relighter, "model", None)
+    return {"method": method.name, "model": provenance.model_identity(model) if model is not None else None,
+            "sampler": relighter.spec.to_config() if getattr(relighter, "spec", None) is not None else None,
+            "precision": relighter.runtime.precision if relighter is not None else None,
+            "store": provenance.store_identity(store), "versions": dict(getattr(store, "versions", {}) or {}),
+            "protocols": list(protocols), "limit": limit, "oracle_light": bool(oracle_light),
+            "oracle_shadow": bool(oracle_shadow), "rule": rule, "score_mask": score_mask, "shard": shard}
+
+
+def _run(store: EncodingStore, method: Method, protocols: Sequence[str], out_dir: Path, *, limit: int | None,
+         oracle_light: bool, oracle_shadow: bool, estimator: LightFit | None, grid_pairs: int, save_images: bool,
+         progress: bool, shard: str | None, rule: str, score_mask: str = DEFAULT_MASK) -> BenchmarkResult:
+    doc = protocols_doc(store)
+    exact = bool(doc.get("exact_lights", True))
+    if oracle_light and not exact:
+        raise errors.UserError(f"oracle_light=true but {store.root} holds no exact lights (a "
+                               f"{doc.get('dataset', 'photo')} store); drop oracle_light")
+    estimator = estimator or LightFit()
+    lights = Lights(store, None if oracle_light else estimator)
+    # Methods that fit their source light (the Lambertian baseline) are scored on it too (unless lights are oracle).
+    source_fit = method.needs_light_fit and getattr(method, "estimator", None) is not None
+    result = BenchmarkResult(records=[], provenance={
+        "target light": "exact (oracle_light)" if oracle_light else "fitted to the light-source image (LightFit)",
+        "target maps": getattr(method, "target_maps", "none (the method reads no light-dependent map)"),
+        "data set": str(doc.get("dataset", "synthfaces")), "metrics rule": rule, "score mask": score_mask})
+    done = _scored_so_far(out_dir, method.name, rule)
+    for proto, pairs in load_pairs(store, protocols, limit).items():
+        pairs = sharding.select(pairs, shard, key=lambda p: p.id)
+        short = PROTOCOLS[proto]
+        grid_rows = []
+        scorer = metrics.relight_metrics(rule)  # this run's scores of the protocol (rows resumed are not in it)
+        for pair in tqdm(pairs, desc=f"{method.name} {proto}", disable=not progress):
+            light = lights.get(pair.target if oracle_light else pair.light_source)
+            shadow = lights.shadow(pair.target if oracle_light or oracle_shadow else pair.light_source,
+                                   oracle=oracle_shadow)
+            result.provenance.setdefault("target c", lights.shadow_note)
+            if not oracle_light and exact:
+                rel, free = lights.error(light, pair.target, pair.target)
+                result.light_errors.append({"protocol": short, "record_id": pair.id, "light": "target",
+                                            "from": pair.light_source, "rel_error": rel, "rel_error_gain_free": free})
+            if source_fit and exact:
+                rel, free = lights.error(method.estimator.from_store(store, pair.source), pair.source, pair.source)
+                result.light_errors.append({"protocol": short, "record_id": pair.id, "light": "source",
+                                            "from": pair.source, "rel_error": rel, "rel_error_gain_free": free})
+            gt = store.read(pair.target, ["image", score_mask])
+            png = out_dir / "relit" / proto / f"{pair.id}.png"
+            prev = done.get((short, pair.id))
+            if prev is not None and (len(grid_rows) >= grid_pairs or prev.status != "ok" or png.is_file()):
+                result.records.append(prev)  # scored before the run was killed: not redone
+                if len(grid_rows) < grid_pairs and prev.status == "ok":
+                    src, lsrc = (store.read(r, ["image"])["image"] for r in (pair.source, pair.light_source))
+                    grid_rows.append([np.asarray(src), np.asarray(lsrc), _read_png(png), np.asarray(gt["image"])])
+                continue
+            start = time.perf_counter()
+            try:  # a non-finite input or result is a failed row, reported as failed, never a score
+                errors.check_record(store.read(pair.source), pair.source, store.root)
+                errors.check_light(light, f"target light of pair {pair.id}")
+                errors.check_number(shadow, f"target shadow of pair {pair.id}")
+                relit = errors.check_output(method.relight(store, pair.source, light, shadow, target_id=pair.target),
+                                            f"{method.name} relight of pair {pair.id}")
+                seconds = time.perf_counter() - start
+                if relit.shape != gt["image"].shape or relit.dtype != np.uint8:
+                    raise ValueError(f"{method.name} returned {relit.dtype} {relit.shape}; expected uint8 "
+                                     f"{gt['image'].shape}")
+                s = score(relit, gt["image"], gt[score_mask], rule, scorer)
+                errors.check_finite(list(s.values()), f"scores of pair {pair.id} (is its {score_mask} empty?)")
+            except errors.UserError as e:
+                print(f"FAILED {proto} {pair.id}: {e}", file=sys.stderr)
+                rec = tables.Record(method.name, short, pair.id, math.nan, math.nan, math.nan,
+                                    time.perf_counter() - start, status="failed", rule=rule)
+                result.records.append(rec)
+                _append_row(out_dir, rec)
+                continue
+            rec = tables.Record(method.name, short, pair.id, s["dssim"], s["mse"], s["lpips"], seconds, rule=rule)
+            result.records.append(rec)
+            if save_images:
+                viz.save_png(relit, png)
+            _append_row(out_dir, rec)  # after the image: a resumed run finds both
+            if len(grid_rows) < grid_pairs:
+                src, lsrc = (store.read(r, ["image"])["image"] for r in (pair.source, pair.light_source))
+                grid_rows.append([np.asarray(src), np.asarray(lsrc), relit, np.asarray(gt["image"])])
+        result.metric_stats[short] = {k: m.stat() for k, m in scorer.items()}
+        if grid_rows:
+            result.paths[f"comparison_{proto}"] = viz.save_png(viz.grid(grid_rows), out_dir / f"comparison_{proto}.png")
+    result.paths.update(write_outputs(result, out_dir, caption=f"{method.name} on {Path(store.root).name}"
+                                      + ("" if score_mask == DEFAULT_MASK else f", scored on {score_mask}")))
+    (out_dir / PARTIAL_CSV).unlink(missing_ok=True)
+    return result
+
+
+def rescore(store: EncodingStore, run_dir: str | Path, out_dir: str | Path, rule: str | None = None,
+            score_mask: str | None = None) -> BenchmarkResult:
+    """Score the relit PNGs a finished run saved (``relit/<protocol>/<pair id>.png``) again under ``rule`` on
+    ``score_mask``, into ``out_dir``: the same images, another metric rule or mask (seconds and failed rows are
+    kept from the run)."""
+    run_dir, rule = Path(run_dir), metrics.check_rule(rule)
+    score_mask = check_score_mask(store, score_mask)
+    rows = tables.read_records(run_dir / tables.PER_IMAGE_CSV)
+    pairs = {(PROTOCOLS[p.protocol], p.id): p for v in load_pairs(store, list(PROTOCOLS)).values() for p in v}
+    prov = run_dir / "provenance.json"
+    result = BenchmarkResult(records=[], provenance={**(json.loads(prov.read_text()) if prov.is_file() else {}),
+                                                     "metrics rule": rule, "score mask": score_mask,
+                                                     "rescored from": str(run_dir)})
+    scorers = {short: metrics.relight_metrics(rule) for short in PROTOCOLS.values()}
+    for r in rows:
+        if r.status != "ok":
+            result.records.append(dataclasses.replace(r, rule=rule))
+            continue
+        pair = pairs.get((r.protocol, r.record_id))
+        png = run_dir / "relit" / (pair.protocol if pair else "?") / f"{r.record_id}.png"
+        if pair is None or not png.is_file():
+            raise errors.UserError(f"rescore={run_dir}: no relit image {png} for {r.protocol} pair {r.record_id} "
+                                   "(was the run made with save_images=true on this store?); rerun the benchmark")
+        gt = store.read(pair.target, ["image", score_mask])
+        s = score(_read_png(png), gt["image"], gt[score_mask], rule, scorers[r.protocol])
+        result.records.append(dataclasses.replace(r, dssim=s["dssim"], mse=s["mse"], lpips=s["lpips"], rule=rule))
+    result.metric_stats = {p: {k: m.stat() for k, m in sc.items()} for p, sc in scorers.items()}
+    with on_full_disk(out_dir, scratch=[out_dir]):
+        result.paths.update(write_outputs(result, Path(out_dir), caption=f"{run_dir.name} rescored ({rule})"))
+    return result
+
+
+def write_outputs(result: BenchmarkResult, out_dir: Path, caption: str | None = None) -> dict[str, Path]:
+    """Per-image CSV, summary tables (Markdown with the light-estimation errors, CSV, LaTeX), light CSV; each
+    written atomically (a full disk is one line naming the file and leaves the previous one whole)."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    table = result.table
+    paths = {"per_image": out_dir / tables.PER_IMAGE_CSV}
+    with atomic_path(paths["per_image"]) as tmp:
+        tables.write_records(tmp, result.records)
+    md = table.to_markdown()
+    if result.provenance:  # every table says which inputs were estimated and which were oracle (and the mask)
+        md = "Inputs: " + "; ".join(f"{k}: {v}" for k, v in result.provenance.items()) + "\n\n" + md
+        paths["provenance"] = write_json_atomic(out_dir / "provenance.json", result.provenance)
+    if result.light_errors:
+        md += "\nLight estimation (relative irradiance error on the ground truth's face normals):\n\n"
+        md += result.light_summary()
+    paths["summary_md"] = write_text_atomic(out_dir / "summary.md", md)
+    paths["summary_csv"] = write_text_atomic(out_dir / "summary.csv", table.to_csv())
+    paths["summary_tex"] = write_text_atomic(out_dir / "summary.tex", table.to_latex(caption=caption))
+    if result.light_errors:
+        cols = ["protocol", "record_id", "light", "from", "rel_error", "rel_error_gain_free"]
+        lines = [",".join(cols)] + [",".join(str(e[c]) for c in cols) for e in result.light_errors]
+        paths["light_csv"] = write_text_atomic(out_dir / LIGHT_CSV, "\n".join(lines) + "\n")
+    return paths

@@ -1,0 +1,191 @@
+"""The DataModule: serves exactly the encodings a model variant declares, from an encodings store.
+
+A variant names its spatial inputs (fed to the Modulator, or concatenated) and its non-spatial inputs (fed to
+AdaGN). Only those encodings and the image are read from disk; nothing else is loaded or kept. Non-spatial
+inputs are returned raw; their normalisation statistics are computed on the training split and stored in the
+model (and so in the checkpoint).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import lightning as L
+import numpy as np
+from torch.utils.data import DataLoader, Dataset
+
+from difareli.data import encodings as enc
+from difareli.errors import UserError, check_record
+from difareli.data.inputs import MissingEncodingError, image_to_tensor, input_dims, prepare_nonspatial, prepare_spatial
+from difareli.data.store import EncodingStore
+
+
+class EncodingsDataset(Dataset):
+    """Records of a store, each as ``image``, ``spatial``, ``nonspatial`` tensors and its ``record_id``."""
+
+    def __init__(self, store: EncodingStore, ids: Sequence[str], spatial: Sequence[str], nonspatial: Sequence[str]):
+        self.store, self.ids = store, list(ids)
+        self.spatial, self.nonspatial = list(spatial), list(nonspatial)
+        self.names = ["image", *self.spatial, *self.nonspatial]
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    def __getitem__(self, i: int) -> dict[str, Any]:
+        rid = self.ids[i]
+        arrays = check_record(self.store.read(rid, self.names), rid, self.store.root)  # NaN would poison training
+        return {
+            "image": image_to_tensor(arrays["image"]),
+            "spatial": prepare_spatial(self.spatial, arrays),
+            "nonspatial": prepare_nonspatial(self.nonspatial, arrays),
+            "record_id": rid,
+        }
+
+
+class EncodingsDataModule(L.LightningDataModule):
+    """Train/val loaders over an encodings store, restricted to the encodings a variant declares.
+
+    If ``root`` holds no store and ``synth`` is given, SynthFaces is generated there first
+    (``synth`` = keyword arguments of :func:`difareli.synth.generator.generate`).
+    """
+
+    def __init__(
+        self,
+        root: str,
+        spatial: Sequence[str] = (),
+        nonspatial: Sequence[str] = (),
+        resolution: int | None = None,
+        batch_size: int = 32,
+        num_workers: int = 0,
+        synth: Mapping[str, Any] | None = None,
+        train_split: str = "train",
+        val_split: str = "val",
+        allow_split_fallback: bool = False,
+        pairs: str | None = None,
+        teacher_pairs: str | None = None,
+        gt_light: str = "subject",
+        gt_identity: bool = False,
+        versions: Mapping[str, str | None] | None = None,
+    ):
+        super().__init__()
+        self.root = Path(root)
+        self.spatial, self.nonspatial = list(spatial), list(nonspatial)
+        for name in [*self.spatial, *self.nonspatial]:
+            e = enc.get(name)  # unknown names fail here, naming the valid ones
+            if name != "image" and e.spatial != (name in self.spatial):
+                kind = "spatial" if e.spatial else "non-spatial"
+                raise ValueError(f"encoding {name!r} is {kind}; list it under the model's {kind} inputs")
+        self.resolution, self.batch_size, self.num_workers = resolution, batch_size, num_workers
+        self.synth = dict(synth) if synth else None
+        self.train_split, self.val_split = train_split, val_split
+        self.allow_split_fallback = bool(allow_split_fallback)
+        # The student's pair sampler (difareli.lit.pairs.PAIR_SAMPLERS: teacher | gt | mix | identity); None: records.
+        self.pairs, self.teacher_pairs, self.gt_light, self.gt_identity = pairs, teacher_pairs, gt_light, gt_identity
+        #: derived encoding versions read in place of their base (``{"shadow_map": "diff-1a2b"}``; difareli.data.derived)
+        self.versions = {k: v for k, v in dict(versions or {}).items() if v is not None}
+        self.store: EncodingStore | None = None
+        self.train_set = self.val_set = None
+
+    @property
+    def required(self) -> list[str]:
+        """Every encoding this module reads: the image plus the variant's declared inputs."""
+        return ["image", *self.spatial, *self.nonspatial]
+
+    def prepare_data(self) -> None:
+        if (self.root / "store.json").exists():
+            return
+        if self.synth is None:
+            raise FileNotFoundError(
+                f"no encodings store at {self.root} (no store.json): run `difareli-synth out_dir={self.root}` or "
+                "`difareli-preprocess`, or point data.root at an existing store"
+            )
+        from difareli.synth.generator import generate  # only needed when the data set is missing
+
+        generate(out_dir=str(self.root), resolution=self.resolution, **self.synth)
+
+    def _open(self) -> EncodingStore:
+        if self.store is None:
+            self.prepare_data()
+            self.store = EncodingStore.open(self.root).use_versions(self.versions)
+            missing = [n for n in self.required if not self.store.available(n)]
+            if missing:
+                raise MissingEncodingError(
+                    f"the model needs encoding(s) {missing} but the data set at {self.root} has only "
+                    f"{list(self.store.encodings)}; re-create it with an estimator/generator that writes them, "
+                    "or pick a model variant that does not consume them"
+                )
+            res = self.store.dims.get("H")
+            if self.resolution is not None and res != self.resolution:
+                raise ValueError(
+                    f"data.resolution={self.resolution} but the store at {self.root} holds {res}x{res} images; "
+                    f"set data.resolution={res} or point data.root at a {self.resolution}px store"
+                )
+        return self.store
+
+    def input_dims(self) -> dict[str, int]:
+        """Sizes the network needs: spatial channels, non-spatial vector length, image resolution."""
+        store = self._open()
+        return input_dims(self.spatial, self.nonspatial, store.dims, int(store.dims["H"]))
+
+    def _split_ids(self) -> tuple[list[str], list[str]]:
+        store = self._open()
+        train, val = store.ids(split=self.train_split), store.ids(split=self.val_split)
+        if not train:  # a store without split metadata: hold out every 20th record, deterministically
+            if not self.allow_split_fallback:
+                found = sorted({str(m.get("split")) for m in store.index.values()})
+                raise UserError(f"store {self.root} has no records in split {self.train_split!r} (splits: {found}); "
+                                "set +data.train_split=<split>, or data.allow_split_fallback=true to train on all "
+                                "records, holding out every 20th")
+            ids = store.ids()
+            val = ids[::20]
+            held = set(val)
+            train = [i for i in ids if i not in held]
+        return train, val or train[:1]
+
+    def setup(self, stage: str | None = None) -> None:
+        if self.train_set is not None:
+            return
+        store = self._open()
+        train, val = self._split_ids()
+        if self.pairs:
+            from difareli.lit.pairs import pair_dataset
+
+            teacher = EncodingStore.open(self.teacher_pairs) if self.teacher_pairs else None
+            self.train_set = pair_dataset(self.pairs, store, train, self.spatial, self.nonspatial, teacher,
+                                          self.gt_light, self.gt_identity)
+            # Validation: ground truth where the store has it (SynthFaces), else the training pairs' kind.
+            kind = "gt" if self.pairs in ("teacher", "mix") and store.meta(val[0]).get("subject") else self.pairs
+            self.val_set = pair_dataset(kind, store, val, self.spatial, self.nonspatial, teacher, self.gt_light)
+            return
+        self.train_set = EncodingsDataset(store, train, self.spatial, self.nonspatial)
+        self.val_set = EncodingsDataset(store, val, self.spatial, self.nonspatial)
+
+    def nonspatial_stats(self) -> tuple[np.ndarray, np.ndarray]:
+        """Per-feature mean and std of the non-spatial vector over the training split (std floored at 1e-6)."""
+        self.setup()
+        store = self._open()
+        if not self.nonspatial:
+            return np.zeros(0, np.float32), np.ones(0, np.float32)
+        vecs = np.stack([prepare_nonspatial(self.nonspatial, store.read(r, self.nonspatial)).numpy()
+                         for r in self.train_set.ids])
+        bad = [r for r, v in zip(self.train_set.ids, vecs) if not np.isfinite(v).all()]
+        if bad:  # found before the first step: the statistics (and every weight after them) would be NaN
+            raise UserError(f"{len(bad)} training record(s) of store {self.root} have non-finite {self.nonspatial} "
+                            f"values: {bad[:10]}; regenerate or remove them (difareli-store verify {self.root})")
+        mean, std = vecs.mean(0), vecs.std(0)
+        # Constant features (e.g. a fixed camera) would divide by ~0: leave them unscaled instead.
+        std = np.where(std < 1e-6, 1.0, std)
+        return mean.astype(np.float32), std.astype(np.float32)
+
+    def _loader(self, ds: Dataset, shuffle: bool) -> DataLoader:
+        return DataLoader(ds, batch_size=self.batch_size, shuffle=shuffle, num_workers=self.num_workers,
+                          persistent_workers=self.num_workers > 0, drop_last=shuffle and len(ds) > self.batch_size)
+
+    def train_dataloader(self) -> DataLoader:
+        self.setup()
+        return self._loader(self.train_set, shuffle=True)
+
+    def val_dataloader(self) -> DataLoader:
+        self.setup()
+        return self._loader(self.val_set, shuffle=False)

@@ -1,0 +1,1 @@
+"""The authors' released code's artefacts: their checkpoints (weights) and preprocessed layouts."""

@@ -1,0 +1,1 @@
+"""Performance measurement: untrained models for timing, the sampler speed/quality benchmark."""

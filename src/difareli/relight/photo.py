@@ -1,0 +1,145 @@
+"""A face photo to the encodings a model reads, in memory (``difareli-relight image=photo.jpg``, the demo, the app),
+and the relit crops back into the whole photo (:func:`PreparedPhoto.compositor`, :mod:`difareli.relight.composite`).
+
+The same estimators as ``difareli-preprocess`` (``conf/preprocess/``), planned for exactly the encodings the
+model needs (plus the part masks the composite blends with); nothing is written to disk. Pipelines are built once
+per process and crop size (:func:`pipeline_for`): building one and its first image load mediapipe and dlib (s).
+
+:func:`training_resolution` reads the resolution a checkpoint was trained at (``hyper_parameters.input_dims``):
+a photo is aligned at it unless told otherwise, and an input at another resolution is named in a warning
+(:func:`resolution_warning`). A grey photo (:func:`is_grey`) gets a grey light and comes back grey
+(:func:`grey_like`): it has no colour for the model to keep.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from difareli.errors import UserError
+from difareli.estimators.light import describe_light, is_grey, light_direction  # noqa: F401 (re-exported)
+
+#: The default estimators (``conf/preprocess.yaml``'s choices) as plain config, for callers without Hydra.
+DEFAULT_ESTIMATORS = {"align": "mediapipe", "geometry": "bfm", "masks": "facemesh_selfie", "light": "skin_sh",
+                      "identity": "dlib", "shadow": "logreg"}
+EXTRAS_FIX = "install the photo estimators: DIFARELI_PREPROCESS=1 bash scripts/install.sh"
+PHOTO_FIX = "use a photo with one clearly visible face"
+_PIPELINES: dict[Any, Any] = {}
+
+
+def training_resolution(config: Mapping[str, Any] | None) -> int | None:
+    """The image size (px) a checkpoint was trained at, from its hyperparameters (``input_dims.resolution``, which
+    difareli-train takes from the DataModule), or None where it records none."""
+    dims = dict((config or {}).get("input_dims") or {})
+    res = dims.get("resolution")
+    return int(res) if res else None
+
+
+def resolution_warning(checkpoint: Any, trained: int | None, what: str, size: int, fix: str) -> str | None:
+    """One line when ``what`` (``size`` px) differs from the checkpoint's training resolution, else None."""
+    if trained is None or int(size) == int(trained):
+        return None
+    return (f"warning: checkpoint={checkpoint} was trained at {trained} px, {what} is {size} px: the model runs "
+            f"outside its training resolution (slower, grainy results); {fix}")
+
+
+def grey_like(images: np.ndarray) -> np.ndarray:
+    """uint8 images (..., 3) as their Rec. 709 luminance in all three channels (a grey photo's relights)."""
+    from difareli.utils.imageops import LUMA
+
+    a = np.asarray(images)
+    y = np.clip(np.round(a.astype(np.float64) @ np.asarray(LUMA, np.float64)), 0, 255).astype(np.uint8)
+    return np.repeat(y[..., None], 3, axis=-1)
+
+
+def default_estimators(size: int) -> dict[str, Any]:
+    """The ``estimators`` block of ``conf/preprocess.yaml`` at crop ``size``, read from the package's conf/."""
+    from difareli.configs import read_yaml
+
+    out = {}
+    for role, choice in DEFAULT_ESTIMATORS.items():
+        cfg = read_yaml(f"preprocess/{role}", choice)
+        out[role] = {k: (size if v == "${size}" else v) for k, v in cfg.items()}
+    return out
+
+
+def pipeline_for(encodings: Sequence[str], size: int, estimators: Mapping[str, Any] | None = None):
+    """A :class:`~difareli.estimators.pipeline.Pipeline` for ``encodings`` at ``size`` px, built once per process
+    (the default estimators only: a caller's own block builds a new one)."""
+    from difareli.estimators.pipeline import Pipeline
+
+    names = tuple(dict.fromkeys(["image", *encodings]))
+    key = (names, int(size))
+    if estimators is not None:
+        return Pipeline.from_config(estimators, names)
+    if key not in _PIPELINES:
+        _PIPELINES[key] = Pipeline.from_config(default_estimators(size), names)
+    return _PIPELINES[key]
+
+
+@dataclass
+class PreparedPhoto:
+    """One photo, preprocessed once: the decoded original, the encodings of its aligned crop, the alignment quad
+    (photo coordinates) and the estimators' meta (seconds per stage, notes)."""
+
+    rgb: np.ndarray
+    arrays: dict[str, np.ndarray]
+    quad: np.ndarray
+    meta: dict = field(default_factory=dict)
+    seconds: float = 0.0
+
+    def compositor(self, mode: str = "ratio", feather: float = 0.03, parts: Sequence[str] | None = None):
+        """A :class:`difareli.relight.composite.Compositor` putting relit crops of this photo back into it."""
+        from difareli.relight.composite import DEFAULT_PARTS, Compositor
+
+        return Compositor(self.rgb, np.asarray(self.arrays["image"]), np.asarray(self.arrays["masks"]), self.quad,
+                          mode=mode, feather=float(feather), parts=tuple(parts or DEFAULT_PARTS))
+
+
+def prepare_photo(rgb: np.ndarray, encodings: Sequence[str], *, size: int,
+                  estimators: Mapping[str, Any] | None = None, what: str = "photo",
+                  composite: bool = True) -> PreparedPhoto:
+    """Preprocess one decoded RGB photo (uint8 HxWx3) for ``encodings`` at ``size`` px; ``composite`` adds the
+    part masks the composite blends with. Errors: a UserError naming ``what`` (no face...), or an ImportError
+    naming the install command."""
+    from difareli.estimators.loading import BadInput
+
+    rgb = np.ascontiguousarray(np.asarray(rgb)[..., :3])
+    names = [*encodings, *(["masks"] if composite else [])]
+    start = time.perf_counter()
+    try:
+        arrays, meta, ctx = pipeline_for(names, size, estimators).process(rgb)
+    except ImportError as e:
+        raise ImportError(f"relighting a photo needs the estimators' packages ({e}); {EXTRAS_FIX}") from e
+    except BadInput as e:
+        raise UserError(f"{what}: {e}; {PHOTO_FIX}") from None
+    meta["notes"] = list(ctx["notes"])
+    return PreparedPhoto(rgb, {k: np.asarray(v) for k, v in arrays.items()}, np.asarray(ctx["quad"], np.float64),
+                         meta, time.perf_counter() - start)
+
+
+def preprocess_photo(rgb: np.ndarray, encodings: Sequence[str], *, size: int,
+                     estimators: Mapping[str, Any] | None = None, what: str = "photo") -> dict[str, np.ndarray]:
+    """The ``encodings`` of one decoded RGB photo (uint8 HxWx3), aligned to ``size`` px."""
+    prepared = prepare_photo(rgb, encodings, size=size, estimators=estimators, what=what, composite=False)
+    return prepared.arrays
+
+
+def read_photo(path: str | Path, key: str = "image", name: str | None = None) -> np.ndarray:
+    """Decode a photo file to uint8 RGB (the preprocess loader's checks), or a UserError naming ``key`` and the
+    file (``name``: how to name it instead of its path, e.g. an uploaded file's name)."""
+    from difareli.errors import check_file
+    from difareli.estimators.loading import BadInput, load_image
+
+    p = check_file(path, key)
+    try:
+        rgb, _ = load_image(p)
+    except BadInput as e:
+        why = str(e).replace(str(p), name) if name else str(e)  # a temporary path means nothing to the user
+        raise UserError(f"{key}={name or p}: {why}; give a JPEG/PNG face photo") from None
+    return rgb

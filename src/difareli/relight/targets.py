@@ -1,0 +1,296 @@
+"""Target lighting as a user gives it, and the target encodings it implies (SPEC 5.2, 5.4, 12).
+
+A target light comes from a 9x3 SH file, another record's light, a yaw/roll rotation of the input's own
+light, or an equirectangular HDR environment map. Retargeting re-renders what depends on the light: the
+shading reference (from the stored normals), the light itself (for variants that take it as a vector),
+DiFaReli's shadow scalar c', and DiFaReli++'s shadow map, ray-marched on the stored depth toward the target's
+dominant direction (the input's own map is used for inversion only).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Mapping
+
+import numpy as np
+
+from difareli.lighting import sh
+from difareli.render.camera import OrthoCamera
+from difareli.render.screen_shadow import march_shadows
+from difareli.data import encodings
+from difareli.data.encodings import normalise_c
+from difareli.errors import TARGET_LIGHT_MAX_ABS, UserError, check_finite, check_light, check_number
+
+
+@dataclass(frozen=True)
+class Targets:
+    """N target lights (N, 9, 3) and their shadow logits c' (``None``: the model's own rule), checked once."""
+
+    lights: np.ndarray
+    shadows: tuple[float | None, ...]
+
+    @classmethod
+    def of(cls, lights, shadows=None, what: str = "target") -> "Targets":
+        """Lights (one 9x3 or a sequence/array of them) and optional shadows, checked finite and in range."""
+        arr = np.asarray(lights, dtype=np.float64)
+        arr = arr[None] if arr.ndim == 2 else arr
+        if arr.ndim != 3 or arr.shape[1:] != (9, 3) or len(arr) == 0:
+            raise ValueError(f"{what}: expected one or more 9x3 SH lights, got shape {arr.shape}")
+        checked = np.stack([check_light(l, f"{what} light {i}", TARGET_LIGHT_MAX_ABS) for i, l in enumerate(arr)])
+        cs = [None] * len(checked) if shadows is None else list(shadows)
+        if len(cs) != len(checked):
+            raise ValueError(f"{what}: {len(checked)} target lights but {len(cs)} shadow values")
+        cs = [check_number(c, f"{what} shadow strength {i}") for i, c in enumerate(cs)]
+        return cls(checked, tuple(None if c is None else float(c) for c in cs))
+
+    def __len__(self) -> int:
+        return len(self.lights)
+
+    def __getitem__(self, i):
+        """``(light, c)`` for an index; a :class:`Targets` for a slice."""
+        if isinstance(i, slice):
+            return list(zip(self.lights[i], self.shadows[i]))
+        return self.lights[i], self.shadows[i]
+
+
+def load_sh_file(path: str | Path) -> np.ndarray:
+    """A 9x3 SH light from ``.npy`` (9x3 or 27) or a text file of 27 numbers (row-major 9x3)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"target light file {path} does not exist")
+    try:
+        arr = np.load(path, allow_pickle=False) if path.suffix == ".npy" else np.loadtxt(path, dtype=np.float64)
+        arr = np.asarray(arr, dtype=np.float64).reshape(-1)
+    except (ValueError, TypeError, EOFError, OSError) as e:
+        raise UserError(f"target light file {path} is not 27 numbers ({(str(e).splitlines() or [type(e).__name__])[0][:120]}); give a "
+                        ".npy 9x3 array or a text file of 27 numbers") from None
+    if arr.size != 27:
+        raise UserError(f"target light file {path} holds {arr.size} numbers; a 9x3 SH light needs 27 "
+                        "(row-major, DECA basis order)")
+    return check_light(arr.reshape(9, 3), f"target light file {path}")
+
+
+def load_envmap(path: str | Path) -> np.ndarray:
+    """An equirectangular HDR radiance map HxWx3 (``.npy``, or ``.hdr``/``.exr`` through imageio)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"environment map {path} does not exist")
+    if path.suffix == ".npy":
+        try:
+            env = np.load(path, allow_pickle=False)
+        except (ValueError, EOFError, OSError) as e:
+            raise UserError(f"environment map {path} is not a readable .npy array ({str(e)[:120]}); save it "
+                            "as a float HxWx3 .npy") from None
+    else:
+        import imageio.v3 as iio
+
+        try:
+            env = iio.imread(path)
+        except Exception as e:  # imageio raises plugin-specific errors
+            raise ValueError(f"cannot read environment map {path} ({e}); save it as a float HxWx3 .npy") from e
+    if np.asarray(env).dtype.kind not in "biuf":
+        raise UserError(f"environment map {path} holds {np.asarray(env).dtype} values, not numbers")
+    env = check_finite(np.asarray(env, dtype=np.float64), f"environment map {path}", max_abs=1e30,
+                       fix="save finite radiance values")
+    if env.ndim != 3 or env.shape[2] < 3 or env.shape[1] != 2 * env.shape[0]:
+        raise ValueError(f"environment map {path} has shape {env.shape}; expected equirectangular HxWx3 with W = 2H")
+    return env[..., :3]
+
+
+def target_lights(source_light: np.ndarray, *, light: str | None = None, other_light: np.ndarray | None = None,
+                  yaw: float | None = None, roll: float | None = None, envmap: str | None = None) -> np.ndarray:
+    """Resolve exactly one target specification into a (9, 3) light."""
+    given = {k: v for k, v in dict(light=light, record=other_light, yaw=yaw, roll=roll, envmap=envmap).items()
+             if v is not None}
+    if len(given) != 1:
+        raise ValueError(f"give exactly one target (target.light, target.record, target.yaw, target.roll, "
+                         f"target.envmap); got {sorted(given) or 'none'}")
+    if light is not None:
+        return load_sh_file(light)
+    if other_light is not None:
+        return check_light(other_light, "target.record's light")
+    src = check_light(source_light, "the source record's light")
+    if yaw is not None:
+        return sh.yaw(src, check_number(yaw, "target.yaw", allow_none=False))
+    if roll is not None:
+        return sh.roll(src, check_number(roll, "target.roll", allow_none=False))
+    return check_light(sh.project_envmap(load_envmap(envmap)), f"the SH projection of environment map {envmap}")
+
+
+def rotation_lights(source_light: np.ndarray, axis: str, frames: int = 60) -> np.ndarray:
+    """``frames`` lights rotating the input's own light 360 degrees about ``axis`` (yaw | roll), (N, 9, 3)."""
+    angles = np.linspace(0.0, 360.0, frames, endpoint=False)
+    if axis == "yaw":
+        return sh.yaw(source_light, angles)
+    if axis == "roll":
+        return sh.roll(source_light, angles)
+    raise ValueError(f"rotation axis must be 'yaw' or 'roll', got {axis!r}")
+
+
+def rotation_targets(source: Mapping[str, np.ndarray], axis: str, frames: int, *, store=None,
+                     given: float | None = None) -> tuple[Targets, str]:
+    """The targets of a 360-degree rotation video of a source's own light, and a sentence saying where their
+    shadow strength c' came from: ``given``; else, for a store record, :func:`video_shadow` (the input's own c
+    when shadowed, else the training split's typical shadowed c); else the input's own c (a photo)."""
+    own = encodings.shadow_logit(source)
+    if store is not None and own is not None:
+        c, why = video_shadow(store, own, given)
+    else:
+        c = given if given is not None else own
+        why = f"target c' = {c} ({'given' if given is not None else 'the input own c'})"
+    lights = rotation_lights(source["light"], axis, frames)
+    return Targets.of(lights, [c] * len(lights), f"rotation about {axis}"), why
+
+
+#: Where :func:`retarget_many` puts the cast shadows it ray-marched for all its targets at once (keyed by the
+#: light direction's bytes), so each target's ``shadow_map`` re-render reads its map instead of marching again.
+CASTS_KEY = "_cast_shadows"
+
+
+def cast_shadows(arrays: Mapping[str, np.ndarray], lights) -> np.ndarray:
+    """Binary cast-shadow maps (N, H, W) toward each light's dominant direction, ray-marched on the stored depth
+    in one batched march; a point turned away from the light (known normal, n.d <= 0) is in attached, not cast,
+    shadow."""
+    depth = np.asarray(arrays["depth"], dtype=np.float64)
+    normal = np.asarray(arrays["normal"], dtype=np.float64)
+    cam = OrthoCamera(*np.asarray(arrays["cam"], dtype=np.float64).tolist())
+    dirs = np.stack([sh.dominant_direction(light) for light in lights])
+    cast = march_shadows(depth, depth != 0, cam, dirs)
+    known = encodings.known_normals(normal)
+    return cast & ~(known[None] & (np.einsum("hwc,nc->nhw", normal, dirs) <= 0))
+
+
+def target_shadow_map(arrays: Mapping[str, np.ndarray], light: np.ndarray, c: float, c_range=None) -> np.ndarray:
+    """Binary cast-shadow map toward ``light``'s dominant direction, ray-marched on the stored depth, times
+    the normalised shadow strength ``c`` (the ``shadow_map`` encoding's definition). ``c_range``: the store's
+    c range (``encodings.store_c_range``), else the one the arrays carry under ``encodings.C_RANGE_KEY``
+    (SynthFaces v3 readers put it there), else the fixed range."""
+    marched = arrays.get(CASTS_KEY, {}).get(sh.dominant_direction(light).tobytes())
+    cast = marched if marched is not None else cast_shadows(arrays, [light])[0]
+    c_range = c_range if c_range is not None else encodings.store_c_range(arrays)
+    return (cast * normalise_c(c, c_range)).astype(np.float32)
+
+
+def render_shading(arrays: Mapping[str, np.ndarray], light: np.ndarray, shadow: float | None = None) -> np.ndarray:
+    """The shading reference under ``light`` from the stored normals (the ``shading`` encoding's re-render)."""
+    normal = np.asarray(arrays["normal"], dtype=np.float64)
+    mask = encodings.known_normals(normal)
+    return sh.shading_reference(light, normal, mask=mask).astype(np.float32)
+
+
+def render_light(arrays: Mapping[str, np.ndarray], light: np.ndarray, shadow: float | None = None) -> np.ndarray:
+    """The target light itself (variants that take the light as a vector)."""
+    return np.asarray(light, dtype=np.float32)
+
+
+def render_shadow(arrays: Mapping[str, np.ndarray], light: np.ndarray, shadow: float | None = None) -> np.ndarray:
+    """DiFaReli's shadow scalar c': the target's when given, else the input's own."""
+    if shadow is None:
+        return np.asarray(arrays["shadow"], dtype=np.float32)
+    return np.array([shadow], dtype=np.float32)
+
+
+def render_shadow_map(arrays: Mapping[str, np.ndarray], light: np.ndarray, shadow: float | None = None) -> np.ndarray:
+    """DiFaReli++'s shadow map toward ``light`` with strength ``shadow`` (a logit c')."""
+    if shadow is None:
+        raise ValueError("a target shadow map needs a shadow strength: give target.shadow or a 'shadow' encoding")
+    return target_shadow_map(arrays, light, shadow)
+
+
+def retarget(arrays: Mapping[str, np.ndarray], names: list[str], light: np.ndarray,
+             shadow: float | None = None) -> dict[str, np.ndarray]:
+    """The encodings ``names`` under a target ``light`` (and shadow strength ``shadow``, a logit c'),
+    re-rendering only those the encoding registry marks light-dependent; the rest are the input's own.
+    Without ``shadow`` the input's own c (its ``shadow`` encoding, when stored) is kept."""
+    if shadow is None and "shadow" in arrays:
+        shadow = encodings.shadow_logit(arrays)
+    out = {}
+    for n in names:
+        e = encodings.get(n)
+        out[n] = e.render(arrays, light, shadow) if e.light_dependent else arrays[n]
+    return out
+
+
+def retarget_many(arrays: Mapping[str, np.ndarray], names: list[str], pairs) -> list[dict[str, np.ndarray]]:
+    """:func:`retarget` for each ``(light, shadow)`` of ``pairs``; the cast shadows of all their lights are
+    ray-marched first in one batched march (a video's 60 frames: one march, not 60)."""
+    pairs = list(pairs)
+    marched = [n for n in names if encodings.get(n).light_dependent and "depth" in encodings.get(n).needs]
+    if marched and len(pairs) > 1 and "depth" in arrays:
+        lights = [np.asarray(light, dtype=np.float64) for light, _ in pairs]
+        keys = [sh.dominant_direction(light).tobytes() for light in lights]
+        arrays = {**arrays, CASTS_KEY: dict(zip(keys, cast_shadows(arrays, lights)))}
+    return [retarget(arrays, names, light, shadow) for light, shadow in pairs]
+
+
+# ------------------------------------------------------------------------------------------ target c policy
+#: A record counts as shadowed when its cast shadows remove at least this share of the light (c >= logit of it).
+SHADOWED_SHARE = 0.01
+_TYPICAL_C: dict[tuple[str, str], float | None] = {}
+
+
+def is_shadowed(c: float) -> bool:
+    """Whether a shadow logit ``c`` means a visible cast shadow (share >= ``SHADOWED_SHARE``)."""
+    return c >= math.log(SHADOWED_SHARE / (1 - SHADOWED_SHARE))
+
+
+def typical_shadowed_c(shadows) -> float | None:
+    """The median c of the records whose cast shadows remove at least ``SHADOWED_SHARE`` of the light."""
+    c = np.asarray(shadows, dtype=np.float64).reshape(-1)
+    shadowed = c[np.isfinite(c) & (c >= math.log(SHADOWED_SHARE / (1 - SHADOWED_SHARE)))]
+    return float(np.median(shadowed)) if shadowed.size else None
+
+
+def split_typical_c(store, split: str = "train") -> float | None:
+    """:func:`typical_shadowed_c` of the stored ``shadow`` of ``split``'s records (cached per store)."""
+    key = (str(store.root), split)
+    if key not in _TYPICAL_C:
+        ids = store.ids(split=split) if store.available("shadow") else []
+        _TYPICAL_C[key] = typical_shadowed_c([store.read(r, ["shadow"])["shadow"][0] for r in ids]) if ids else None
+    return _TYPICAL_C[key]
+
+
+def stored_shadow_is_estimate(store) -> bool:
+    """Whether a store's ``shadow`` is what a user has (an estimator's c): photo stores and SynthFaces
+    ``inputs=estimated`` (v3) or ``estimated_light`` (v2); a SynthFaces ``inputs=exact`` store holds the exact c
+    there (an oracle)."""
+    meta = store.store_meta
+    return meta.get("generator") != "synthfaces" or meta.get("inputs") in ("estimated", "estimated_light")
+
+
+def target_shadow_of(store, record_id: str, *, oracle: bool = False, split: str = "train") -> tuple[float | None, str]:
+    """``(c', how)``: the shadow strength a user has for a target given by ``record_id``'s image.
+
+    ``oracle``: the exact c (``shadow_gt``, else ``shadow``). Otherwise the stored ``shadow`` when it is an
+    estimate (:func:`stored_shadow_is_estimate`), else the stated policy: ``split``'s median shadowed c."""
+    if not store.available("shadow"):
+        return None, "no target c (the store has no 'shadow' encoding)"
+    if oracle:
+        name = "shadow_gt" if store.available("shadow_gt") else "shadow"
+        return encodings.shadow_logit(store.read(record_id, [name]), name), "exact c (oracle)"
+    if stored_shadow_is_estimate(store):
+        return (encodings.shadow_logit(store.read(record_id, ["shadow"])),
+                "c estimated from the target image (stored 'shadow': the shadow classifier)")
+    c = split_typical_c(store, split)
+    if c is None:
+        raise UserError(f"store {store.root} holds only exact shadow c and its {split} split has no shadowed record to "
+                        "take a typical c from; use an inputs=estimated store or set oracle_shadow=true")
+    return c, f"c = {c:.3f}, the {split} split's median shadowed c (the store holds only exact c)"
+
+
+def video_shadow(store, record_c: float | None, given: float | None, split: str = "train") -> tuple[float, str]:
+    """The shadow strength c' for every frame of a video and a sentence saying where it came from: ``given``;
+    else the input's own c when it is shadowed; else the median shadowed c of ``split`` (the training split)."""
+    if given is not None:
+        return float(given), f"target c' = {float(given):.3f} (given: target.shadow)"
+    if record_c is not None and is_shadowed(record_c):
+        return record_c, f"target c' = {record_c:.3f} (the input's own c: it has a cast shadow)"
+    c = split_typical_c(store, split)
+    own = "no 'shadow' encoding" if record_c is None else f"c = {record_c:.2f}"
+    if c is None:
+        raise UserError(f"the input has no cast shadow ({own}) and the {split} split of {store.root} has no shadowed "
+                        "record to take a typical c from; give target.shadow=<logit c'>")
+    return c, (f"target c' = {c:.3f} (the input has no cast shadow, {own}: median c of the {split} split's "
+               f"shadowed records, share >= {SHADOWED_SHARE})")

@@ -1,0 +1,1 @@
+"""One runtime: device, precision, compile, CUDA graphs, memory format; the inference copy."""

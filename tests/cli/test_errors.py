@@ -1,0 +1,257 @@
+"""Issue 15: one error style for every CLI, config values checked before any work, checkpoints named."""
+
+from __future__ import annotations
+
+import os
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from difareli.diffusion.spec import check_sampler
+from difareli import errors
+from difareli.errors import UserError
+
+from tests.helpers import compose_train
+
+
+# ------------------------------------------------------------------------------------------ cli_entry
+def _run_task(fn, monkeypatch, capsys, debug=False):
+    monkeypatch.delenv("DIFARELI_DEBUG", raising=False)
+    monkeypatch.delenv("HYDRA_FULL_ERROR", raising=False)
+    if debug:
+        monkeypatch.setenv("DIFARELI_DEBUG", "1")
+    with pytest.raises(SystemExit) as e:
+        errors.cli_entry("demo")(fn)()
+    return e.value.code, capsys.readouterr().err
+
+
+def test_user_error_is_one_line_exit_2(monkeypatch, capsys):
+    def task():
+        raise UserError("limit=0 is invalid: must be an integer >= 1")
+
+    code, err = _run_task(task, monkeypatch, capsys)
+    assert code == 2 and err == "difareli-demo: limit=0 is invalid: must be an integer >= 1\n"
+
+
+def test_internal_error_keeps_traceback_and_debug_shows_user_ones(monkeypatch, capsys):
+    def broadcast():
+        return np.zeros(3) + np.zeros(4)  # a ValueError from numpy: a bug, not a user error
+
+    monkeypatch.delenv("DIFARELI_DEBUG", raising=False)
+    with pytest.raises(ValueError, match="broadcast"):
+        errors.cli_entry("demo")(broadcast)()
+    monkeypatch.setenv("DIFARELI_DEBUG", "1")
+    with pytest.raises(UserError):
+        errors.cli_entry("demo")(lambda: errors.check_int(0, "limit"))()
+
+
+def test_explicit_project_raises_and_os_errors_are_user_errors(monkeypatch, capsys):
+    from difareli.data.store import EncodingStore
+
+    code, err = _run_task(lambda: EncodingStore.open("/nonexistent/store"), monkeypatch, capsys)
+    assert code == 2 and err.startswith("difareli-demo: no encoding store at /nonexistent/store")
+    code, err = _run_task(lambda: open("/nonexistent/x/y.txt"), monkeypatch, capsys)
+    assert code == 2 and "/nonexistent/x/y.txt: No such file or directory" in err
+
+
+def test_sigterm_stops_cleanly(monkeypatch, capsys):
+    import signal
+
+    def task():
+        os.kill(os.getpid(), signal.SIGTERM)
+        raise AssertionError("not reached")
+
+    old = signal.getsignal(signal.SIGTERM)
+    try:
+        code, err = _run_task(task, monkeypatch, capsys)
+    finally:
+        signal.signal(signal.SIGTERM, old)
+    assert code == 143 and "stopped (SIGTERM)" in err
+
+
+# ------------------------------------------------------------------------------------------ values
+@pytest.mark.parametrize("value", [2.7, 0, -3, True, "5", None])
+def test_check_int_rejects(value):
+    with pytest.raises(UserError, match=r"^sampler.steps="):
+        errors.check_int(value, "sampler.steps", 1)
+
+
+def test_check_int_and_number_accept():
+    assert errors.check_int(3, "k") == 3 and errors.check_int(None, "limit", allow_none=True) is None
+    assert errors.check_number("2.5", "target.yaw") == 2.5
+    for bad in ("nan", float("inf"), 1e300, "abc"):
+        with pytest.raises(UserError, match="target.yaw"):
+            errors.check_number(bad, "target.yaw")
+
+
+def test_check_sampler_names_valid_ones():
+    with pytest.raises(UserError, match=r"sampler.name='euler' is not a sampler; choose from \['ddim'"):
+        check_sampler({"name": "euler", "steps": 10})
+    with pytest.raises(UserError, match="sampler.steps=2.7"):
+        check_sampler({"name": "ddim", "steps": 2.7})
+
+
+def test_check_out_dir(tmp_path, monkeypatch):
+    f = tmp_path / "file"
+    f.write_text("x")
+    with pytest.raises(UserError, match="out_dir=.*file is a file"):
+        errors.check_out_dir(f)
+    with pytest.raises(UserError, match="which is a file"):
+        errors.check_out_dir(f / "sub")
+    assert errors.check_out_dir(tmp_path / "new" / "deeper") == tmp_path / "new" / "deeper"
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    # root ignores permission bits, so simulate what a non-root user sees
+    monkeypatch.setattr(errors.os, "access", lambda p, mode: str(p) != str(ro))
+    with pytest.raises(UserError, match="is not writable"):
+        errors.check_out_dir(ro / "run")
+
+
+def test_check_finite_names_input_and_index():
+    a = np.zeros((9, 3))
+    a[4, 1] = np.nan
+    with pytest.raises(errors.NonFiniteError, match=r"target light: 1 of 27 values are NaN or Inf \(first at index \(4, 1\)\)"):
+        errors.check_finite(a, "target light")
+    with pytest.raises(errors.NonFiniteError, match="magnitude 1e\\+300 exceeds"):
+        errors.check_light(np.full((9, 3), 1e300), "light file x")
+    assert errors.check_light(np.ones((9, 3), np.float32), "l").dtype == np.float64
+
+
+# ------------------------------------------------------------------------------------------ checkpoints
+@pytest.fixture
+def real_ckpt(tmp_path):
+    path = tmp_path / "good.ckpt"
+    torch.save({"state_dict": {"w": torch.arange(1000.0)}, "hyper_parameters": {"preset": "tiny"}}, path)
+    return path
+
+
+def test_corrupt_checkpoints_name_the_file(real_ckpt, tmp_path):
+    data = real_ckpt.read_bytes()
+    cases = {"random.ckpt": np.random.default_rng(0).bytes(5000), "truncated.ckpt": data[: len(data) // 2],
+             "text.ckpt": b"hello\n", "empty.ckpt": b""}
+    for name, blob in cases.items():
+        (tmp_path / name).write_bytes(blob)
+        with pytest.raises(UserError) as e:
+            errors.load_torch_file(tmp_path / name)
+        msg = str(e.value)
+        assert msg.startswith(f"checkpoint {tmp_path / name} ({len(blob)} bytes) is not a readable PyTorch file")
+        assert "weights_only=False" not in msg and "\n" not in msg
+    assert torch.equal(errors.load_torch_file(real_ckpt)["state_dict"]["w"], torch.arange(1000.0))
+
+
+def test_load_checkpoint_uses_the_check(tmp_path):
+    from difareli.lit import load_checkpoint
+
+    bad = tmp_path / "last.ckpt"
+    bad.write_bytes(b"\x00" * 100)
+    with pytest.raises(UserError, match=f"checkpoint {bad} \\(100 bytes\\)"):
+        load_checkpoint(bad)
+
+
+def _module(model: str, nonspatial_dim: int):
+    from difareli.lit import DiffusionModule
+
+    spatial = ["shading", "background"] if model == "difareli" else ["shading", "shadow_map", "masks"]
+    ns = ["shape", "cam", "identity", "shadow"] if model == "difareli" else ["shape", "cam", "identity"]
+    return DiffusionModule(name=model, preset="tiny", spatial_inputs=spatial, nonspatial_inputs=ns,
+                           input_dims={"spatial_channels": 6 if model == "difareli" else 18,
+                                       "nonspatial_dim": nonspatial_dim, "resolution": 32})
+
+
+def test_check_resume_lists_differing_hyperparameters(tmp_path):
+    saved = _module("difareli_pp", 20)
+    path = tmp_path / "pp.ckpt"
+    torch.save({"state_dict": saved.state_dict(), "hyper_parameters": dict(saved.hparams)}, path)
+    errors.check_resume(path, _module("difareli_pp", 20))  # same config: no error
+    with pytest.raises(UserError) as e:
+        errors.check_resume(path, _module("difareli", 21))
+    msg = str(e.value)
+    assert msg.count("\n") == 1 and "tensors differ" in msg
+    assert "name: checkpoint 'difareli_pp', config 'difareli'" in msg
+    assert "spatial_inputs: checkpoint ['shading', 'shadow_map', 'masks'], config ['shading', 'background']" in msg
+
+
+# ------------------------------------------------------------------------------------------ CLIs, in process
+def test_relight_validates_before_any_work(tmp_path):
+    from difareli.cli.relight import validate
+
+    ckpt = tmp_path / "c.ckpt"
+    ckpt.write_bytes(b"x")
+    base = [f"checkpoint={ckpt}", f"store={tmp_path}", "target.yaw=30"]
+    cases = {"sampler.steps=2.7": "sampler.steps=2.7 is invalid: must be an integer >= 1",
+             "sampler.name=euler": "sampler.name='euler' is not a sampler",
+             "video.frames=0": "video.frames=0 is invalid",
+             "target.shadow=nan": "target.shadow=nan is invalid: must be a finite number",
+             f"out_dir={ckpt}": "is a file, not a folder",
+             f"target.light={tmp_path}/none.npy": "target.light=.* does not exist; give the path of an existing file"}
+    for override, want in cases.items():
+        cfg = compose_train(tmp_path / "run", [*base, override], config_name="relight")
+        kind = FileNotFoundError if "target.light" in override else UserError  # a user error either way
+        with pytest.raises(kind, match=want.replace("(", r"\(").replace(")", r"\)")):
+            validate(cfg)
+
+
+def test_benchmark_limit_and_out_dir_checked_first(tmp_path):
+    from difareli.cli.benchmark import run
+
+    f = tmp_path / "afile"
+    f.write_text("keep")
+    for override, want in {"limit=0": "limit=0 is invalid", "limit=-3": "limit=-3 is invalid",
+                           f"out_dir={f}": "is a file"}.items():
+        cfg = compose_train(tmp_path / "run", [f"store={tmp_path}/missing", override], config_name="benchmark")
+        with pytest.raises(UserError, match=want):
+            run(cfg)  # fails before opening the (missing) store
+    assert f.read_text() == "keep"
+
+
+def test_train_refuses_test_only_store_and_nonfinite_records(synth_store, tmp_path):
+    import shutil
+
+    from difareli.lit.datamodule import EncodingsDataModule
+    from difareli.data.store import EncodingStore
+
+    root = tmp_path / "store"
+    shutil.copytree(synth_store, root)
+    store = EncodingStore.open(root)
+    for rid in store.ids():  # relabel every record as test
+        p = root / "records" / rid / "meta.json"
+        p.write_text(p.read_text().replace('"train"', '"test"').replace('"val"', '"test"'))
+    dm = EncodingsDataModule(str(root), ["shading"], ["shape", "cam"])
+    with pytest.raises(UserError, match=r"has no records in split 'train' \(splits: \['test'\]\).*allow_split_fallback"):
+        dm.setup()
+    ok = EncodingsDataModule(str(root), ["shading"], ["shape", "cam"], allow_split_fallback=True)
+    ok.setup()
+    assert len(ok.train_set) + len(ok.val_set) == len(store)
+    # one NaN shape value in one training record: named, before any step
+    rid = ok.train_set.ids[3]
+    shape = np.load(root / "records" / rid / "shape.npy")
+    shape[5] = np.nan
+    np.save(root / "records" / rid / "shape.npy", shape)
+    bad = EncodingsDataModule(str(root), ["shading"], ["shape", "cam"], allow_split_fallback=True)
+    with pytest.raises(UserError, match=f"1 training record\\(s\\) .* non-finite \\['shape', 'cam'\\] values: \\['{rid}'\\]"):
+        bad.nonspatial_stats()
+    with pytest.raises(UserError, match=f"record '{rid}', encoding 'shape' in store {root}: 1 of"):
+        bad.train_set[3]
+
+
+def test_store_cli_verify(synth_store, tmp_path, capsys):
+    import shutil
+
+    from difareli.cli.store import main
+
+    assert main(["verify", str(synth_store)]) == 0
+    assert "16 record(s), headers and values checked: healthy" in capsys.readouterr().err
+    root = tmp_path / "s"
+    shutil.copytree(synth_store, root)
+    light = root / "records" / "s00001_l1" / "light.npy"
+    a = np.load(light)
+    a[0, 0] = np.inf
+    np.save(light, a)
+    assert main(["verify", str(root)]) == 1
+    out = capsys.readouterr()
+    assert "s00001_l1: " in out.out and "'light'" in out.out and "NaN or Inf" in out.out
+    with pytest.raises(SystemExit) as e:
+        main(["verify", str(tmp_path / "none")])
+    assert e.value.code == 2 and "difareli-store: no encoding store at" in capsys.readouterr().err

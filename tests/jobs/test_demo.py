@@ -1,0 +1,108 @@
+"""difareli-demo (the README's main job) at toy size, and relighting a photo (difareli-relight image=...)."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+
+from difareli.checkpoints import zoo
+
+from tests.helpers import compose_train
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+HAS_ESTIMATORS = all(importlib.util.find_spec(m) for m in ("mediapipe", "dlib"))
+
+
+def test_demo_writes_grid_video_and_table(tiny_checkpoint, tmp_path):
+    from difareli.cli.demo import run
+
+    ckpt = tiny_checkpoint("difareli_pp")  # 32 px
+    cfg = compose_train(tmp_path, [f"checkpoint={ckpt}", "resolution=32", "subjects=10", "frames=4", "pairs=2",
+                                   "rows=1", "photo=false", "progress=false", "sampler.steps=3",
+                                   "runtime.device=cpu"], config_name="demo")
+    res = run(cfg)
+    grid = iio.imread(res.paths["comparison"])
+    assert grid.shape == (96 + 4, 3 * 98 + 2, 3)  # one row, zoomed x3: input | relit | ground truth
+    frames = iio.imread(res.paths["video"])
+    assert frames.shape[0] == 4 and np.ptp(frames.astype(int), axis=0).max() > 0  # the light moves
+    methods = res.table.methods
+    assert methods[:2] == ["identity", "lambertian"] and methods[2].startswith("difareli_pp/unipc-3")
+    assert set(res.table.protocols) == {"same", "different"}
+    for m in methods:
+        for p in res.table.protocols:
+            assert res.table.cells[(m, p)]["dssim"].n == 2
+    assert (tmp_path / "benchmark.md").read_text().startswith("|")
+    assert any("shadow strength" in n for n in res.notes)
+
+
+def test_demo_refuses_an_unknown_checkpoint_name(tmp_path):
+    from difareli.cli.demo import run
+
+    cfg = compose_train(tmp_path, ["checkpoint=not-a-model"], config_name="demo")
+    with pytest.raises(FileNotFoundError, match="shipped checkpoint"):
+        run(cfg)
+
+
+def test_relight_image_without_estimators_says_how_to_install(tiny_checkpoint, tmp_path, monkeypatch):
+    import builtins
+
+    from difareli.cli.relight import run
+    from skimage import data
+
+    photo = tmp_path / "astronaut.png"
+    iio.imwrite(photo, data.astronaut())
+    real_import = builtins.__import__
+
+    def no_mediapipe(name, *args, **kwargs):
+        if name.split(".")[0] == "mediapipe":
+            raise ImportError("No module named 'mediapipe'")
+        return real_import(name, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "__import__", no_mediapipe)
+    cfg = compose_train(tmp_path, [f"checkpoint={tiny_checkpoint('difareli_pp')}", f"image={photo}",
+                                   "target.yaw=45", "progress=false", "runtime.device=cpu"], config_name="relight")
+    with pytest.raises(ImportError, match="DIFARELI_PREPROCESS=1 bash scripts/install.sh"):
+        run(cfg)
+
+
+def test_relight_needs_exactly_one_source(tiny_checkpoint, synth_store, tmp_path):
+    from difareli.cli.relight import run
+
+    ckpt = tiny_checkpoint("difareli_pp")
+    for extra in ([], [f"store={synth_store}", f"image={tmp_path / 'x.jpg'}"]):
+        cfg = compose_train(tmp_path, [f"checkpoint={ckpt}", "target.yaw=45", *extra], config_name="relight")
+        with pytest.raises(ValueError, match="either store="):
+            run(cfg)
+
+
+@pytest.mark.skipif(not HAS_ESTIMATORS, reason="photo estimators not installed (DIFARELI_PREPROCESS=1)")
+@pytest.mark.skipif(not zoo.available(), reason="no shipped checkpoint")
+def test_relight_a_photo_in_one_command(tmp_path):
+    from difareli.cli.relight import run
+    from skimage import data
+
+    photo = tmp_path / "astronaut.jpg"
+    iio.imwrite(photo, data.astronaut())
+    name = "difareli_pp-synth64" if "difareli_pp-synth64" in zoo.available() else zoo.available()[0]
+    cfg = compose_train(tmp_path, [f"checkpoint={name}", f"image={photo}", "target.yaw=45", "sampler=unipc",
+                                   "sampler.steps=10", "progress=false", "runtime.device=cpu"],
+                        config_name="relight")
+    written = run(cfg)
+    relit = iio.imread(written["image"])
+    comparison = iio.imread(written["comparison"])
+    assert relit.shape == (64, 64, 3) and comparison.shape == (68, 2 * 66 + 2, 3)
+    src = comparison[2:66, 2:66].astype(float)
+    assert src.std() > 10  # the aligned face crop, not a blank
+    assert np.abs(relit.astype(float) - src).mean() > 1.0  # the light changed the image
+
+
+def test_the_demo_labels_its_live_table_and_prints_the_cards():
+    """The demo's few pairs cannot rank methods: it says so and prints the card's measured table (issue 27)."""
+    from difareli.cli.demo import card_benchmark
+
+    card = card_benchmark("difareli_pp-synth64")
+    assert card is not None and "100 test pairs per protocol" in card and "| identity |" in card

@@ -1,0 +1,128 @@
+"""The relight-metrics callback: its validation pairs, what a training run logs, and parity of its numbers with
+difareli-benchmark's scoring of the same relights (diffusion model and one-pass student)."""
+
+import csv
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from difareli.lit.relight_metrics import RelightMetrics, validation_pairs
+from difareli.data.store import EncodingStore
+
+from tests.helpers import compose_train
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+def test_validation_pairs_follow_the_protocols(synth_store):
+    store = EncodingStore.open(synth_store)
+    pairs = validation_pairs(store, "val", 3)
+    assert 0 < len(pairs) <= 3
+    val = set(store.ids(split="val"))
+    for p in pairs:
+        src, tgt, other = (store.meta(p[k]) for k in ("source", "target", "different"))
+        assert {p["source"], p["target"], p["different"]} <= val and p["same"] == p["target"]
+        assert src["subject"] == tgt["subject"] != other["subject"] and src["light_index"] != tgt["light_index"]
+        assert other["light_index"] == tgt["light_index"] and other["light_group"] == tgt["light_group"]
+    assert validation_pairs(store, "val", 3) == pairs  # fixed
+    assert validation_pairs(store, "nope", 3) == []
+
+
+def test_due_every_n_steps():
+    cb = RelightMetrics(every_n_steps=300)
+    tr = SimpleNamespace(sanity_checking=False, global_step=100)
+    assert not cb._due(tr)  # nothing prepared (no fit: e.g. trainer.validate)
+    cb.cases = [{}]
+    assert cb._due(tr)
+    cb._last_step = 100
+    for step, due in ((300, False), (400, True)):
+        tr.global_step = step
+        assert cb._due(tr) is due
+    assert not cb._due(SimpleNamespace(sanity_checking=True, global_step=900))
+    with pytest.raises(ValueError, match="unknown sampler preset"):
+        RelightMetrics(sampler="nope")
+    with pytest.raises(ValueError, match="every_n_steps=0 must be null or an int >= 1"):
+        RelightMetrics(every_n_steps=0)
+
+
+def _train(out: Path, synth_store, *extra):
+    from difareli.cli.train import train
+
+    cfg = compose_train(out, [
+        f"data.root={synth_store}", "data.resolution=32", "data.synth=null", "data.num_workers=0", "data.batch_size=4",
+        "model.preset=tiny", "trainer=cpu", "trainer.max_steps=4", "trainer.val_check_interval=2",
+        "trainer.limit_val_batches=1", "sample_grid=false", "logger=csv", "callbacks.ema.decay=0.9",
+        "callbacks.relight_metrics.pairs=2", "callbacks.relight_metrics.steps=3", *extra])
+    return train(cfg)
+
+
+def _logged(out: Path) -> list[dict]:
+    path = next(out.rglob("metrics.csv"))
+    return [r for r in csv.DictReader(path.open()) if r.get("val/dssim/same")]
+
+
+def _independent(ckpt, store, pairs, sampler):
+    """What difareli-benchmark computes for the same pairs: its diffusion Method relights (uint8, one target per
+    call), its LightFit and target c, benchmark.score."""
+    from difareli.evaluation.baselines import DiffusionMethod
+    from difareli.evaluation.benchmark import score
+    from difareli.lighting.light_fit import LightFit
+    from difareli.relight.targets import target_shadow_of
+
+    method = DiffusionMethod(str(ckpt), sampler, runtime={"device": "cpu", "precision": "fp32"})
+    fit, out = LightFit(), {"same": [], "different": []}
+    for p in pairs:
+        gt = store.read(p["target"], ["image", "face_mask"])
+        for k in ("same", "different"):
+            relit = method.relight(store, p["source"], fit.from_store(store, p[k]), target_shadow_of(store, p[k])[0])
+            out[k].append(score(relit, gt["image"], gt["face_mask"]))
+    return {f"val/{m}/{k}": float(np.mean([s[m] for s in v])) for k, v in out.items()
+            for m in ("dssim", "mse", "lpips")}
+
+
+def _check_parity(run, synth_store, ckpt, sampler):
+    from difareli.lit import load_checkpoint
+
+    cb = next(c for c in run["trainer"].callbacks if isinstance(c, RelightMetrics))
+    assert [h["step"] for h in cb.history] == [2, 4] and cb.history[-1]["seconds"] > 0
+    store = EncodingStore.open(synth_store)
+    pairs = [c["pair"] for c in cb.cases]
+    # The final weights (the EMA average copied in at train end), scored by the callback and independently.
+    model = load_checkpoint(ckpt).model.eval()
+    # Both sides in fp32: the same computation to float rounding (bf16 rounds batch 2 and batch 1 differently).
+    fresh = RelightMetrics(pairs=2, sampler=sampler["name"], steps=sampler.get("steps"), precision="fp32")
+    fresh.cases = [fresh._prepare(store, model, p) for p in pairs]
+    trainer = SimpleNamespace(global_step=99, is_global_zero=True, default_root_dir=str(ckpt.parent), loggers=[],
+                              sanity_checking=False)
+    with pytest.warns(UserWarning, match="self.log"):
+        ours = fresh.evaluate(trainer, model)
+    ref = _independent(ckpt, store, pairs, sampler)
+    assert set(ours) == set(ref) and len(ours) == 6
+    for k in ours:
+        # decoded in one batch of 2 here, one target per call there: float32 rounding may move a pixel a level
+        assert ours[k] == pytest.approx(ref[k], rel=1e-4, abs=1e-7), k
+    return cb
+
+
+def test_training_logs_relight_metrics_and_grid_and_they_match_the_benchmark(synth_store, tmp_path, capsys):
+    run = _train(tmp_path, synth_store)
+    rows = _logged(tmp_path)
+    assert [int(r["step"]) for r in rows] == [1, 3]  # Lightning logs a validation at the last step's index
+    for r in rows:
+        for k in ("dssim", "mse", "lpips"):
+            for p in ("same", "different"):
+                assert 0 < float(r[f"val/{k}/{p}"]) < 1
+    assert sorted(p.name for p in (tmp_path / "grids").glob("relight_metrics_step*.png")) == [
+        "relight_metrics_step0000002.png", "relight_metrics_step0000004.png"]
+    out = capsys.readouterr().out
+    assert "relight metrics at step 2: 4 relights (unipc-3, rule paper) in " in out and "% of the " in out
+    _check_parity(run, synth_store, tmp_path / "checkpoints" / "last.ckpt", {"name": "unipc", "steps": 3})
+
+
+def test_student_runs_one_pass(synth_store, tmp_path, capsys):
+    run = _train(tmp_path, synth_store, "model=student", "data.pairs=gt")
+    assert _logged(tmp_path)
+    assert "4 relights (one pass, rule paper)" in capsys.readouterr().out
+    _check_parity(run, synth_store, tmp_path / "checkpoints" / "last.ckpt", {"name": "unipc", "steps": 3})

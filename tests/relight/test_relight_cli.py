@@ -1,0 +1,122 @@
+"""difareli-relight through the real Hydra config: relit image, comparison with ground truth, rotation videos,
+and clear errors for bad inputs."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+
+from difareli.lighting import sh
+from difareli.cli.relight import run
+from difareli.relight.relighter import Relighter
+from difareli.data.store import EncodingStore
+from difareli.relight.targets import Targets
+
+from tests.helpers import compose_train
+from .test_relight import depth_store  # noqa: F401 (fixture)
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+CELL = 32 + 2  # a 32 px image plus the grid's 2 px padding
+
+
+def compose(out: Path, overrides: list[str]):
+    return compose_train(out, [*overrides, "progress=false", "runtime.device=cpu"], config_name="relight")
+
+
+@pytest.fixture(scope="module")
+def ckpt(tiny_checkpoint) -> Path:
+    return tiny_checkpoint("difareli_pp")
+
+
+def test_yaw_target_writes_relit_and_comparison(ckpt, depth_store, tmp_path):
+    cfg = compose(tmp_path, [f"checkpoint={ckpt}", f"store={depth_store}", "target.yaw=60", "sampler=unipc",
+                             "sampler.steps=20"])
+    written = run(cfg)
+    relit, comparison = iio.imread(written["image"]), iio.imread(written["comparison"])
+    assert written["image"] == tmp_path / "relit.png" and relit.shape == (32, 32, 3)
+    assert comparison.shape == (CELL + 2, 2 * CELL + 2, 3)  # input | relit (no ground truth for a rotation)
+    store = EncodingStore.open(depth_store)
+    rid = store.ids(split="test")[0]  # record=null: the first test record
+    np.testing.assert_array_equal(comparison[2:34, 2:34], store.read(rid, ["image"])["image"])
+    np.testing.assert_array_equal(comparison[2:34, 2 + CELL:34 + CELL], relit)
+    # The same relight through the API: UniPC-20 under the input's light rotated 60 degrees about +y.
+    r = Relighter(cfg.checkpoint, cfg.sampler, device="cpu")
+    own = np.asarray(store.read(rid, ["light"])["light"])
+    np.testing.assert_array_equal(r.relight(r.source(store, rid), Targets.of([sh.yaw(own, 60.0)]))[0], relit)
+
+
+@pytest.mark.parametrize("target,gt", [("s00006_l1", True), ("s00000_l1", False)])
+def test_target_record_shows_ground_truth_for_same_subject(target, gt, ckpt, depth_store, tmp_path):
+    cfg = compose(tmp_path, [f"checkpoint={ckpt}", f"store={depth_store}", "record=s00006_l0",
+                             f"target.record={target}", "sampler.steps=5"])
+    comparison = iio.imread(run(cfg)["comparison"])
+    assert comparison.shape == (CELL + 2, (3 if gt else 2) * CELL + 2, 3)
+    if gt:
+        truth = EncodingStore.open(depth_store).read(target, ["image"])["image"]
+        np.testing.assert_array_equal(comparison[2:34, 2 + 2 * CELL:34 + 2 * CELL], truth)
+
+
+def test_rotation_video_gif_and_contact_sheet(ckpt, depth_store, tmp_path):
+    cfg = compose(tmp_path, [f"checkpoint={ckpt}", f"store={depth_store}", "video.axis=yaw", "video.frames=12",
+                             "sampler.steps=5"])
+    written = run(cfg)
+    assert set(written) == {"video", "sheet"} and written["video"].suffix == ".gif"
+    frames = iio.imread(written["video"], index=None)
+    assert frames.shape[0] == 12 and frames.shape[1:3] == (32, 32)
+    assert len({f.tobytes() for f in frames}) > 1  # the light moves
+    sheet = iio.imread(written["sheet"])
+    assert sheet.shape == (2 * CELL + 2, 10 * CELL + 2, 3)  # 10 frames per row: 10 + 2
+
+
+def test_two_targets_is_an_error(ckpt, depth_store, tmp_path):
+    cfg = compose(tmp_path, [f"checkpoint={ckpt}", f"store={depth_store}", "target.yaw=60", "target.roll=30"])
+    with pytest.raises(ValueError, match="exactly one target") as e:
+        run(cfg)
+    assert "roll" in str(e.value) and "yaw" in str(e.value)
+    assert not (tmp_path / "relit.png").exists()
+
+
+def test_no_target_is_an_error(ckpt, depth_store, tmp_path):
+    cfg = compose(tmp_path, [f"checkpoint={ckpt}", f"store={depth_store}"])
+    with pytest.raises(ValueError, match="give a target") as e:
+        run(cfg)
+    assert "video.axis" in str(e.value)
+
+
+def test_missing_files_are_named(ckpt, depth_store, tmp_path):
+    missing = tmp_path / "nope" / "last.ckpt"
+    with pytest.raises(FileNotFoundError, match=str(missing)):
+        run(compose(tmp_path, [f"checkpoint={missing}", f"store={depth_store}", "target.yaw=60"]))
+    light = tmp_path / "light.npy"
+    with pytest.raises(FileNotFoundError, match=str(light)):
+        run(compose(tmp_path, [f"checkpoint={ckpt}", f"store={depth_store}", f"target.light={light}"]))
+    with pytest.raises(FileNotFoundError, match=str(tmp_path / "no_store")):
+        run(compose(tmp_path, [f"checkpoint={ckpt}", f"store={tmp_path / 'no_store'}", "target.yaw=60"]))
+
+
+def test_missing_depth_names_encoding_and_store(ckpt, synth_store, tmp_path):
+    # DiFaReli++'s target shadow maps are ray-marched on the depth: a store without it fails up front.
+    src = EncodingStore.open(synth_store)
+    keep = [n for n in src.encodings if n != "depth"]
+    dst = EncodingStore.create(tmp_path / "nodepth", src.dims, keep, src.store_meta)
+    dst.write("s00006_l0", {k: np.asarray(v) for k, v in src.read("s00006_l0", keep).items()}, src.meta("s00006_l0"))
+    with pytest.raises(KeyError, match="depth") as e:
+        run(compose(tmp_path, [f"checkpoint={ckpt}", f"store={dst.root}", "target.yaw=60"]))
+    assert str(dst.root) in str(e.value)
+
+
+@pytest.mark.slow
+def test_console_script(ckpt, depth_store, tmp_path):
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    exe = Path(sys.executable).with_name("difareli-relight")
+    subprocess.run([str(exe), f"checkpoint={ckpt}", f"store={depth_store}", "target.yaw=60", "sampler=unipc",
+                    "sampler.steps=5", "progress=false", f"hydra.run.dir={tmp_path}"], check=True, env=env,
+                   cwd=tmp_path)
+    assert iio.imread(tmp_path / "relit.png").shape == (32, 32, 3)

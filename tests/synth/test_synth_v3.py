@@ -1,0 +1,162 @@
+"""SynthFaces v3 (issue 23): the visibly-shadowed ground truth, the store's own c range, v2 stores kept apart,
+and (slow, needs the photo estimators) every input estimated from the rendered image."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from difareli.data import encodings
+from difareli.utils.imageops import LUMA
+from difareli.data.store import EncodingStore
+from difareli.synth import generator as gen
+from difareli.synth import config as synth_config
+from difareli.synth import subject as synth_subject
+from difareli.synth.c_norm import finalise
+from difareli.synth.estimated import mode_downsample
+
+
+def test_visible_fraction_in_closed_form():
+    """A flat patch facing the key sun: ambient E_a, key sun E_k (cast on the left half), fill E_f (cast on the top
+    rows). The share removed is E_k / (E_a + E_k + E_f) under the key's shadow, E_f / (...) under the fill's."""
+    hit = np.ones((4, 4), bool)
+    hit[3, 3] = False
+    e_a, e_k, e_f = np.full((4, 4, 3), 0.2), np.full((4, 4, 3), 0.6), np.full((4, 4, 3), 0.1)
+    key = np.zeros((4, 4), bool)
+    key[:, :2] = True
+    fill = np.zeros((4, 4), bool)
+    fill[0, :] = True
+    frac, vis = synth_subject.visible_shadow(e_a + e_k + e_f, [e_k, e_f], [key & hit, fill & hit], key & hit, hit, 0.25)
+    y = lambda e: float(e[0, 0] @ LUMA)  # noqa: E731
+    total = y(e_a) + y(e_k) + y(e_f)
+    np.testing.assert_allclose(frac[1, 0], y(e_k) / total, rtol=1e-6)           # key only: 0.667
+    np.testing.assert_allclose(frac[0, 3], y(e_f) / total, rtol=1e-6)           # fill only: 0.111, not visible
+    np.testing.assert_allclose(frac[0, 0], (y(e_k) + y(e_f)) / total, rtol=1e-6)
+    assert frac[2, 3] == 0 and frac[3, 3] == 0                                  # unshadowed; off the mesh
+    want = key.copy()
+    want[3, 3] = False
+    np.testing.assert_array_equal(vis, want)  # the weak fill's shadow is not "visibly shadowed"
+    _, vis_low = synth_subject.visible_shadow(e_a + e_k + e_f, [e_k, e_f], [key, fill], np.zeros_like(key), hit, 0.1)
+    assert vis_low[0, 3] and not vis_low[2, 3]  # a lower threshold admits it; the key mask is not needed for it
+
+
+def test_every_store_records_the_visible_shadow(synth_store):
+    s = EncodingStore.open(synth_store)
+    assert s.store_meta["synthfaces_version"] == 3 and s.store_meta["shadow_visible"] == 0.25
+    for rid in s.ids()[:6]:
+        a = s.read(rid, ["shadow_fraction_gt", "shadow_visible_gt", "shadow_map_gt", "depth"])
+        frac, vis = np.asarray(a["shadow_fraction_gt"]), np.asarray(a["shadow_visible_gt"])
+        assert ((frac > 0.25) <= vis).all() and (vis <= (np.asarray(a["depth"]) != 0)).all()
+        assert ((np.asarray(a["shadow_map_gt"]) > 0) <= (frac > 0)).all()  # every cast pixel loses some light
+
+
+def test_normalise_c_ranges_and_target_maps_use_the_records_range():
+    np.testing.assert_allclose(encodings.normalise_c([-5.0, -3.0, 0.0], (-4.0, -2.0)), [0.0, 0.5, 1.0])
+    np.testing.assert_allclose(encodings.normalise_c(encodings.SHADOW_C_HI), 1.0)  # the fixed range
+    with pytest.raises(ValueError, match="empty"):
+        encodings.normalise_c(0.0, (1.0, 1.0))
+    assert encodings.store_c_range({}) is None
+    assert encodings.store_c_range({encodings.C_RANGE_KEY: {"lo": -4, "hi": -2}}) == (-4.0, -2.0)
+    assert encodings.store_c_range({encodings.C_RANGE_KEY: np.array([-4.0, -2.0])}) == (-4.0, -2.0)
+
+
+def test_finalise_scales_maps_by_the_train_split_range(synth_store, tmp_path):
+    from difareli.relight.targets import target_shadow_map
+
+    shutil.copytree(synth_store, tmp_path / "s")
+    store = EncodingStore.open(tmp_path / "s", writable=True, durable=False)
+    before = {r: store.read(r, ["shadow", "shadow_gt", "shadow_map", "shadow_visible_gt"]) for r in store.ids()}
+    before = {r: {k: np.array(v) for k, v in a.items()} for r, a in before.items()}
+    rng = finalise(store, 0.0)
+    train = [float(before[r]["shadow"][0]) for r in store.ids(split="train")]
+    assert (rng["lo"], rng["hi"]) == pytest.approx((min(train), max(train)), abs=1e-6)  # the authors' min / max
+    assert rng["state"] == "final" and json.loads((tmp_path / "s" / "store.json").read_text())["meta"][
+        encodings.C_RANGE_KEY]["state"] == "final"
+    c_range = (rng["lo"], rng["hi"])
+    for r, a in before.items():
+        got = store.read(r, ["shadow_map", "shadow_map_gt"])
+        np.testing.assert_allclose(got["shadow_map"], (a["shadow_map"] > 0) * encodings.normalise_c(
+            a["shadow"][0], c_range), atol=1e-6)
+        np.testing.assert_allclose(got["shadow_map_gt"], a["shadow_visible_gt"] * encodings.normalise_c(
+            a["shadow_gt"][0], c_range), atol=1e-6)
+    # Killed while scaling: a rerun gives the same maps (idempotent).
+    first = {r: np.array(store.read(r, ["shadow_map"])["shadow_map"]) for r in store.ids()}
+    store.store_meta[encodings.C_RANGE_KEY] = {**rng, "state": "scaling"}
+    finalise(store, 0.0)
+    for r in store.ids():
+        np.testing.assert_array_equal(store.read(r, ["shadow_map"])["shadow_map"], first[r])
+    # Target maps of this store's records use its range: the readers (inputs.read_record, behind Relighter.source,
+    # the student's pairs and the training relight metrics) give it with the record.
+    from difareli.data.inputs import read_record
+
+    rid = store.ids()[0]
+    a = read_record(store, rid, ["depth", "normal", "cam"])
+    np.testing.assert_array_equal(a[encodings.C_RANGE_KEY], c_range)
+    light = np.asarray(store.read(rid, ["light"])["light"])
+    mid = (c_range[0] + c_range[1]) / 2
+    fixed = target_shadow_map({k: a[k] for k in ("depth", "normal", "cam")}, light, mid)
+    mine = target_shadow_map(a, light, mid)
+    np.testing.assert_array_equal(mine > 0, fixed > 0)
+    if (mine > 0).any():
+        np.testing.assert_allclose(mine[mine > 0], 0.5, atol=1e-6)
+
+
+def test_v2_stores_open_and_refuse_a_v3_resume(synth_store, tmp_path):
+    shutil.copytree(synth_store, tmp_path / "v2")
+    header_path = tmp_path / "v2" / "store.json"
+    header = json.loads(header_path.read_text())
+    header["meta"].pop("synthfaces_version")
+    header_path.write_text(json.dumps(header))
+    assert len(EncodingStore.open(tmp_path / "v2").ids()) == 16  # reads as before
+    with pytest.raises(synth_config.ConfigError, match=r"SynthFaces v2 store.*difareli-synth out_dir=<new dir> subjects=8"):
+        gen.generate(str(tmp_path / "v2"), 8, 2, 32, seed=0)
+
+
+def test_config_checks_and_the_resolved_estimation_resolution():
+    cfg = synth_config.SynthConfig(subjects=1, lights=1, resolution=64, inputs="estimated")
+    assert cfg.estimation_resolution == 128 and "normal_gt" in cfg.encodings
+    assert synth_config.SynthConfig(subjects=1, lights=1, resolution=256).estimation_resolution == 256
+    assert "normal_gt" not in synth_config.SynthConfig(subjects=1, lights=1, resolution=64, inputs="estimated_light").encodings
+    for bad in ({"estimation_resolution": 96}, {"inputs": "guessed"}, {"shadow_visible": 1.5}):
+        with pytest.raises(synth_config.ConfigError):
+            synth_config.SynthConfig(subjects=1, lights=1, resolution=64, **bad)
+
+
+def test_mode_downsample_keeps_the_majority_label():
+    big = np.zeros((8, 8), np.uint8)
+    big[:4, :4] = 3
+    big[0, 0] = 5  # a minority pixel in the block
+    small = mode_downsample(big, 2)
+    np.testing.assert_array_equal(small, [[3, 0], [0, 0]])
+    assert mode_downsample(big, 8) is big
+
+
+@pytest.mark.slow
+def test_v3_store_estimates_every_input(tmp_path):
+    pytest.importorskip("mediapipe")
+    pytest.importorskip("face_recognition")
+    rep = gen.generate(str(tmp_path / "v3"), 2, 2, 64, seed=0, realism="full", inputs="estimated")
+    store = EncodingStore.open(tmp_path / "v3")
+    assert rep.written == 4 and store.store_meta[encodings.C_RANGE_KEY]["state"] == "final"
+    for rid in store.ids():
+        a = store.read(rid)
+        assert "inputs_fallback" not in store.meta(rid)
+        for name in ("normal", "masks", "shape", "cam", "identity"):
+            assert not np.array_equal(a[name], a[f"{name}_gt"]), name  # estimated, not the renderer's
+        n, g = np.asarray(a["normal"]), np.asarray(a["normal_gt"])
+        both = (np.linalg.norm(n, axis=-1) > 0.5) & (np.linalg.norm(g, axis=-1) > 0.5)
+        assert both.sum() > 300 and np.degrees(np.arccos(np.clip((n * g)[both].sum(-1), -1, 1))).mean() < 25
+        fm, fg = np.asarray(a["face_mask"]), np.asarray(a["face_mask_gt"])
+        assert (fm & fg).sum() / (fm | fg).sum() > 0.5
+
+
+def test_missing_estimators_stop_before_any_work(tmp_path, monkeypatch):
+    import difareli.synth.estimated as est
+
+    monkeypatch.setattr(est, "missing_estimators", lambda: "inputs=estimated needs the photo estimators; " + est.FIX)
+    with pytest.raises(synth_config.ConfigError, match="DIFARELI_PREPROCESS=1 bash scripts/install.sh"):
+        gen.generate(str(tmp_path / "s"), 1, 1, 32, inputs="estimated")
+    assert not (tmp_path / "s").exists()
