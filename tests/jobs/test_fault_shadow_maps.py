@@ -60,7 +60,7 @@ def test_a_threshold_outside_0_1_is_refused_naming_the_range_and_the_default(sto
     assert code == 2
     assert err.startswith(f"difareli-shadow-maps: threshold={value} is out of range: it cuts the grey-level "
                           "difference in [0, 1] and must lie strictly between 0 and 1")
-    assert "threshold=0.05 (the default) or threshold=otsu" in err and len(err.strip().splitlines()) == 1
+    assert "threshold=relative (the default), the recipe's 0.05, or otsu" in err and len(err.strip().splitlines()) == 1
     with pytest.raises(UserError, match=r"threshold=-1 is out of range"):  # the library refuses it too
         sm.compute(Crafted(), store, None, provenance=PROV, threshold=-1, progress=False)
     assert _snapshot(store.root) == before and not (tmp_path / "run" / "shadow_maps.json").exists()

@@ -301,19 +301,76 @@ def test_fixed_threshold_map_on_a_crafted_difference():
     np.testing.assert_allclose(out, want * (2.0 / 3.0), atol=1e-7)  # (-2 - -4) / (-1 - -4)
 
 
-def test_recipe_defaults_and_a_weak_difareli_is_refused_with_its_contrast(store):
+def test_defaults_and_a_weak_difareli_is_refused_with_its_contrast(store):
     class Weak(Crafted):
         def relight_once(self, x0, source, target):
             return 0.5 + 0.01 * (super().relight_once(x0, source, target) - 0.5)  # 1% of the response
 
-    with pytest.raises(UserError, match=r"barely changes the image with c.*99th percentile.* is 0\.0"):
+    with pytest.raises(UserError, match=r"too little spatial contrast.*darker than the rest.*min_contrast=0\.01"):
         sm.compute(Weak(), store, None, provenance={"checkpoint": "weak"}, progress=False)
     rep = sm.compute(Weak(), store, None, provenance={"checkpoint": "weak"}, min_contrast=0, progress=False)
     prov = EncodingStore.open(store.root).derived[rep.name]
-    assert prov["threshold"] == 0.05 and prov["median"] == 1 and prov["zero_parts"] == list(sm.ZERO_PARTS)
-    assert prov["contrast_p99"] < 0.01 and prov["c_norm_range"] == "fixed"  # a pre-v3 store: the fixed range
+    assert prov["threshold"] == pytest.approx(0.5 * prov["response_p99"], rel=0.02) and prov["centre"] == "median"
+    assert prov["median"] == 1 and prov["zero_parts"] == list(sm.ZERO_PARTS)
+    assert prov["contrast"] < 0.01 and prov["c_norm_range"] == "fixed"  # a pre-v3 store: the fixed range
+    recipe = sm.compute(Weak(), store, None, provenance={"checkpoint": "weak"}, centre="none", threshold=0.05,
+                        min_contrast=0, progress=False)  # the authors' recipe: nothing clears 0.05, an empty map
+    assert EncodingStore.open(store.root).derived[recipe.name]["threshold"] == 0.05
     for r in store.ids():
-        assert not (store.read(r, [rep.name])[rep.name] > 0).any()  # nothing clears 0.05: empty, not noise
+        assert not (store.read(r, [recipe.name])[recipe.name] > 0).any()
+
+
+class Brightening(Crafted):
+    """What a DiFaReli trained on SynthFaces does: raising c darkens the shadow (the square) and brightens the
+    rest of the face a little (issue 41: +0.062 inside shadows, -0.021 elsewhere on the shipped one)."""
+
+    def relight_once(self, x0, source, target):
+        out = super().relight_once(x0, source, target)
+        return out + 0.3 * torch.sigmoid(target)[:, :, None, None] * (1 - self.pattern)
+
+
+def test_a_real_response_with_a_global_brightening_is_kept_and_mapped(store):
+    """The sign-balance rule refused this response as noise (the lit skin brightens past the cut as often as the
+    shadow darkens); centring by the face median and judging by spatial contrast keep it, and the map is the
+    square the model darkens."""
+    rep = sm.compute(Brightening(), store, None, provenance={"checkpoint": "bright"}, median=3, zero_parts=(),
+                     progress=False)
+    prov = EncodingStore.open(store.root).derived[rep.name]
+    c_min, c_max = rep.c_min, rep.c_max
+    sig = lambda c: 1 / (1 + np.exp(-c))  # noqa: E731
+    # The square darkens by 0.4 ds / 2 relative to the rest, which brightens by 0.3 ds / 2 (luminance in [0, 1]).
+    ds = sig(c_max) - sig(c_min)
+    assert prov["contrast"] == pytest.approx((0.4 + 0.3) * ds / 2, rel=1e-3)
+    assert prov["coherence"] > 0.7
+    square = np.zeros((32, 32), bool)
+    square[ROWS, COLS] = True
+    for r in store.ids():
+        m = store.read(r, [rep.name])[rep.name] > 0
+        assert (m & ~square).sum() == 0 and (m & square).sum() >= 0.8 * square.sum()
+
+
+def test_centring_removes_a_global_shift_and_the_judge_measures_contrast_and_coherence():
+    from difareli.jobs import shadow_response as sr
+
+    face = np.zeros((20, 20), bool)
+    face[2:18, 2:18] = True
+    blob = np.zeros_like(face)
+    blob[5:10, 5:10] = True
+    d = 0.03 + 0.08 * blob  # a global shift plus a blob 0.08 darker
+    c = sr.centred(d, face, "median")
+    np.testing.assert_allclose(c[face & ~blob], 0.0, atol=1e-12)
+    resp = sr.measure([c], [face], "relative", 0.5)
+    assert resp.threshold == pytest.approx(0.04) and resp.contrast == pytest.approx(0.08)
+    assert resp.coherence == pytest.approx(21 / 25) and resp.candidates == pytest.approx(25 / 256)  # corners lost
+    speckle = np.zeros_like(face)
+    speckle[3:17:3, 3:17:3] = True  # isolated pixels: no 3x3 median keeps any
+    sp = sr.measure([0.08 * speckle.astype(float)], [face], 0.04)
+    assert sp.coherence == 0.0 and sp.contrast == pytest.approx(0.08)
+    with pytest.raises(UserError, match=r"speckle.*0% of them coherent"):
+        sr.judge(sp, None, None, step=7)
+    sr.judge(resp, None, None, step=7)  # passes
+    with pytest.raises(UserError, match="centre='middle'"):
+        sr.check_centre("middle")
 
 
 def test_records_split_selects_a_split_and_names_an_empty_one(store):
@@ -336,11 +393,11 @@ def test_a_difareli_whose_response_to_c_is_noise_is_refused(store):
             noise = 0.2 * (torch.rand(x0.shape[0], 1, *x0.shape[-2:], generator=g) - 0.5)
             return (0.5 + noise).expand(-1, 3, -1, -1)
 
-    with pytest.raises(UserError, match=r"response to c is noise.*darken by more than 0\.05.*brighten"):
+    with pytest.raises(UserError, match=r"speckle, not a shadow.*coherent.*min_coherence=0\.5"):
         sm.compute(Noisy(), store, None, provenance={"checkpoint": "noisy"}, progress=False)
     rep = sm.compute(Noisy(), store, None, provenance={"checkpoint": "noisy"}, min_contrast=0, progress=False)
     prov = EncodingStore.open(store.root).derived[rep.name]
-    assert prov["brightened"] >= 0.5 * prov["darkened"] > 0
+    assert prov["coherence"] < 0.5 and prov["contrast"] > 0
 
 
 class _Noisy(Crafted):
@@ -361,7 +418,7 @@ def test_a_refused_difareli_is_refused_before_the_rest_of_the_store(store):
     n = len(store.ids())
     assert n > 4
     _Noisy.calls = 0
-    with pytest.raises(UserError, match=rf"response to c is noise.*measured on the first 4 of {n} records"):
+    with pytest.raises(UserError, match=rf"speckle, not a shadow.*measured on the first 4 of {n} records"):
         sm.compute(_Noisy(), store, None, provenance={"checkpoint": "noisy"}, batch_size=2, check_after=4,
                    progress=False)
     assert _Noisy.calls == 2 * 4  # two decodes (c_min, c_max) of 4 records, not of the whole store

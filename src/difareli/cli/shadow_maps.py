@@ -30,28 +30,34 @@ def run(cfg: DictConfig):
     runtime = Runtime.from_config(cfg.runtime)
     ckpt = load_checkpoint(cfg.checkpoint, runtime.torch_device)
     spec = SamplerSpec.from_config(cfg.sampler)
-    provenance = {"checkpoint": str(Path(cfg.checkpoint).resolve()), "global_step": ckpt.global_step,
+    from difareli.data.provenance import model_identity
+
+    # The weights by content: retrained weights at the same path make another version (never "relit 0").
+    provenance = {"checkpoint": str(Path(cfg.checkpoint).resolve()), "weights": model_identity(ckpt.model),
+                  "global_step": ckpt.global_step,
                   "sampler": OmegaConf.to_container(cfg.sampler, resolve=True), "precision": runtime.precision}
     threshold = shadow_maps.check_threshold(cfg.threshold)
     rep = shadow_maps.compute(ckpt.model.to(runtime.torch_device), store, spec, provenance=provenance,
                               ids=ids, split=cfg.split, c_range=given,
                               c_quantile=float(cfg.c_quantile),
-                              threshold=threshold, median=cfg.median if cfg.median == "auto" else int(cfg.median),
+                              threshold=threshold, relative=float(cfg.relative), centre=cfg.centre,
+                              median=cfg.median if cfg.median == "auto" else int(cfg.median),
                               zero_parts=list(cfg.zero_parts or []),
                               min_contrast=None if cfg.min_contrast is None else float(cfg.min_contrast),
+                              min_coherence=None if cfg.min_coherence is None else float(cfg.min_coherence),
                               batch_size=int(cfg.batch_size), check_after=int(cfg.check_after),
                               version=cfg.version, runtime=runtime, mean_matching=bool(cfg.mean_matching),
                               device=runtime.torch_device, progress=bool(cfg.progress))
     version = rep.name.split("@", 1)[1]
     summary = {"name": rep.name, "raw": rep.raw, "c_min": rep.c_min, "c_max": rep.c_max, "threshold": rep.threshold,
                "threshold_rule": store.derived[rep.name]["threshold_rule"], "median": store.derived[rep.name]["median"],
-               "contrast_p99": store.derived[rep.name]["contrast_p99"],
+               "contrast": store.derived[rep.name]["contrast"], "coherence": store.derived[rep.name]["coherence"],
                "relit_records": rep.relit, "written": rep.written, "seconds": round(rep.seconds, 3),
                "images_per_second": round(rep.images_per_second, 3), "c_source": rep.c_source}
     write_json_atomic(Path(cfg.out_dir) / "shadow_maps.json", summary)
     print(f"c range ({rep.c_source}): [{rep.c_min:.3f}, {rep.c_max:.3f}]; threshold {rep.threshold:.5f} "
-          f"({summary['threshold_rule']}); median {summary['median']}; contrast (p99 of the differences) "
-          f"{summary['contrast_p99']:.4f}")
+          f"({summary['threshold_rule']}); median {summary['median']}; candidates {summary['contrast']:.4f} darker "
+          f"than the rest of the face, {summary['coherence']:.0%} coherent")
     print(f"relit {rep.relit} record(s) at 2 shadow strengths in {rep.seconds:.1f} s "
           f"({rep.images_per_second:.2f} images/s); wrote {rep.written} map(s) as {rep.name}")
     print(f"train on them: data.versions={{shadow_map: {version}}}   (relight/video: versions={{shadow_map: {version}}})")
@@ -91,8 +97,16 @@ def validate(cfg: DictConfig) -> None:
         errors.check_int(cfg.median, "median", 1)
         if int(cfg.median) % 2 == 0:
             raise errors.UserError(f"median={cfg.median} is even; use an odd window or median=auto")
-    if cfg.min_contrast is not None:
-        errors.check_number(cfg.min_contrast, "min_contrast", allow_none=False)
+    for key in ("min_contrast", "min_coherence"):
+        if cfg.get(key) is not None:
+            errors.check_number(cfg[key], key, allow_none=False)
+    errors.check_number(cfg.relative, "relative", allow_none=False)
+    if not 0.0 < float(cfg.relative) < 1.0:
+        raise errors.UserError(f"relative={cfg.relative} is out of range: the cut is this share of the response's 99th "
+                               "percentile, strictly between 0 and 1 (e.g. 0.5)")
+    from difareli.jobs.shadow_response import check_centre
+
+    check_centre(cfg.centre)
     from difareli.data.encodings import PART_INDEX
 
     bad = [p for p in (cfg.zero_parts or []) if p not in PART_INDEX]
@@ -104,7 +118,7 @@ def validate(cfg: DictConfig) -> None:
     errors.check_number(cfg.c_quantile, "c_quantile", allow_none=False)
     from difareli.jobs.shadow_maps import check_threshold
 
-    check_threshold(cfg.threshold)  # otsu, or a number strictly between 0 and 1
+    check_threshold(cfg.threshold)  # relative, otsu, or a number strictly between 0 and 1
     c_range_given(cfg)
 
 

@@ -6,18 +6,17 @@ both targets decoded in one batch). The **difference** is ``Y(relit at c_min) - 
 luminance, images in [0, 1]): positive where the stronger shadow darkened the face. Then, by the authors' recipe
 (XezXey/guided-diffusion ``experiment_scripts/TPAMI/cast_shadows/gen_smooth_sdiff/``; issue 23):
 
-1. **a fixed threshold** in grey-level units (default 0.05, theirs); ``threshold=otsu`` takes Otsu's cut over every
-   difference value on the face of every record instead, and refuses a histogram without two separated modes;
-2. a **median filter** of the binary map, ``median=auto`` = theirs (5x5 at 256 px) scaled to the resolution;
-3. the eyes, brows and mouth **zeroed** with the stored part masks, times the stored ``face_mask`` (``zero_parts``;
-   pixels off the mesh, ``depth == 0``, are 0 too);
-4. times the record's **normalised c**: ``encodings.normalise_c`` over the store's c range (a SynthFaces v3 store's
-   train split range, ``synth/c_norm.py``; the fixed range in older stores), as everywhere else in the store.
+Then (:mod:`difareli.jobs.shadow_response`): each record's difference is **centred** (its face median subtracted:
+raising c also brightens the lit skin, a global change that is not a shadow), cut at a threshold **relative** to
+the response (``relative`` x its 99th percentile; a number is the authors' fixed cut, 0.05 theirs; ``otsu``),
+median-filtered, restricted to the mesh and the face less the eyes, brows and mouth, and scaled by the record's
+normalised c. ``centre=none threshold=0.05`` is the authors' recipe (XezXey/guided-diffusion
+``experiment_scripts/TPAMI/cast_shadows/gen_smooth_sdiff/``).
 
-A DiFaReli whose relights barely change with c is refused with the measured contrast (the 99th percentile of the
-differences on the face, against ``min_contrast``, default the threshold), and so is one whose response is noise
-(it brightens at least half as many face pixels past the threshold as it darkens), instead of being turned into
-maps; ``min_contrast=0`` writes them anyway.
+A DiFaReli is judged by the spatial contrast of its response (how much darker its candidate shadow pixels get
+than the rest of the face) and its coherence (candidates that survive a 3x3 median), measured once ``check_after``
+records are relit and again over all of them; a weak or speckled response is refused naming both numbers
+(``min_contrast=0`` writes the maps anyway).
 
 Inputs are checked before any relight: a threshold outside (0, 1), a split the store does not have, and a store
 without a train split (the c range must come from the split the DiFaReli was trained on: ``split=``, or
@@ -26,7 +25,8 @@ refused. The store is locked for the run (:func:`difareli.utils.fileio.folder_lo
 
 The raw differences are kept as the derived version ``shadow_map@diffraw-<hash>`` (resumable: a killed run
 redoes only records without it), the maps as ``shadow_map@<version>`` (:mod:`difareli.data.derived`), both with their
-provenance (checkpoint, sampler, c range, threshold rule and value, median size) in the store header.
+provenance (the weights' content identity, sampler, c range, centring, threshold rule and value, median size) in
+the store header: retrained weights at the same path are another version.
 """
 
 from __future__ import annotations
@@ -42,64 +42,19 @@ from tqdm.auto import tqdm
 from difareli import errors
 from difareli.data import derived
 from difareli.data import encodings
-from difareli.utils import imageops
 from difareli.diffusion.relight import Inversion
 from difareli.utils.fileio import folder_lock
-from difareli.utils.imageops import median_mask
 from difareli.data.inputs import condition_tensors, image_to_tensor, read_record, relight_reads
 from difareli.relight.relightable import OnePassRelightable, model_inputs
 from difareli.relight.core import invert_image, relight
 from difareli.relight.targets import retarget
+from difareli.jobs.shadow_response import (RECIPE_THRESHOLD, RELATIVE, Response, centred, check_centre,  # noqa: F401
+                                           check_threshold, check_two_modes, finish_map, judge, luminance, measure,
+                                           median_size, otsu_threshold)
 
-#: The authors' recipe: threshold on the grey-level difference, median size at 256 px, parts zeroed.
-RECIPE_THRESHOLD = 0.05
-RECIPE_MEDIAN_256 = 5
-#: Records relit before the DiFaReli's response to c is first checked (about 2 x 64 x 2,000 face pixels: the shares
-#: of darkened and brightened pixels are then known to well under a percent).
+#: Records relit before the DiFaReli's response to c is first judged (about 64 x 2,000 face pixels).
 CHECK_AFTER = 64
 ZERO_PARTS = ("l_eye", "r_eye", "l_brow", "r_brow", "mouth")
-
-
-def median_size(median, resolution: int) -> int:
-    """``median`` as an odd window: ``"auto"`` is the recipe's 5 px at 256 scaled to ``resolution`` (1 at 64)."""
-    if median != "auto":
-        return int(median)
-    return max(1, 2 * int(round((RECIPE_MEDIAN_256 * resolution / 256 - 1) / 2)) + 1)
-
-
-def check_two_modes(values: np.ndarray, threshold: float, bins: int = 256, valley: float = 0.5) -> None:
-    """Refuse an Otsu cut on a histogram without two separated modes: the emptiest (5-bin smoothed) bin between
-    the peaks on either side of ``threshold`` must hold at most ``valley`` of the lower peak."""
-    v = np.asarray(values, dtype=np.float64).reshape(-1)
-    hist, edges = np.histogram(v, bins=bins)
-    h = np.convolve(hist, np.ones(5) / 5, mode="same")
-    k = int(np.clip(np.searchsorted(edges, threshold) - 1, 1, bins - 2))
-    lo, hi = int(np.argmax(h[:k])), k + int(np.argmax(h[k:]))
-    dip = float(h[lo:hi + 1].min()) if hi > lo else float(h[k])
-    lower = float(min(h[lo], h[hi]))
-    if lower <= 0 or dip > valley * lower:
-        raise errors.UserError(
-            f"the differences have one mode, not two: Otsu's cut {threshold:.4f} lies where the histogram still holds "
-            f"{dip / max(lower, 1e-12):.0%} of its lower peak (peaks at {edges[lo]:.4f} and {edges[hi]:.4f}), so it "
-            f"would mark noise; use the recipe's fixed threshold (threshold={RECIPE_THRESHOLD}) or a DiFaReli trained longer")
-
-
-def check_threshold(threshold) -> str | float:
-    """``threshold`` as ``"otsu"`` or a float in (0, 1): the grey-level differences lie in [-1, 1] and a shadow
-    darkens, so a cut <= 0 marks nearly every pixel (and >= 1 none)."""
-    if threshold == "otsu":
-        return "otsu"
-    try:
-        t = float(threshold)
-    except (TypeError, ValueError):
-        t = float("nan")
-    if not 0.0 < t < 1.0:  # NaN included
-        raise errors.UserError(f"threshold={threshold!r} is out of range: it cuts the grey-level difference in [0, 1] "
-                               f"and must lie strictly between 0 and 1 (<= 0 marks almost every pixel); use the "
-                               f"recipe's threshold={RECIPE_THRESHOLD} (the default) or threshold=otsu")
-    return t
-
-
 #: ``split=all``: the c range over every record of the store (said so in the provenance and the summary).
 ALL = "all"
 
@@ -175,39 +130,6 @@ def c_range_of(store, split: str = "train", quantile: float = 0.01, given=None) 
     return lo, hi, f"{what}, quantiles {quantile:g} and {1 - quantile:g}"
 
 
-def otsu_threshold(values: np.ndarray, bins: int = 256) -> float:
-    """Otsu's threshold of ``values``: the bin edge maximising the between-class variance (values > t: class 1);
-    the middle of the maximising edges when several tie (empty bins between two modes)."""
-    v = np.asarray(values, dtype=np.float64).reshape(-1)
-    v = v[np.isfinite(v)]
-    if v.size == 0 or v.max() == v.min():
-        raise ValueError("Otsu's threshold needs at least two distinct finite values")
-    hist, edges = np.histogram(v, bins=bins)
-    p = hist / hist.sum()
-    centres = (edges[:-1] + edges[1:]) / 2
-    w0 = np.cumsum(p)[:-1]                       # class 0 = bins 0..k, threshold at edges[k + 1]
-    m = np.cumsum(p * centres)
-    mu0 = m[:-1] / np.maximum(w0, 1e-300)
-    mu1 = (m[-1] - m[:-1]) / np.maximum(1 - w0, 1e-300)
-    between = w0 * (1 - w0) * (mu0 - mu1) ** 2
-    # Empty bins between the modes make a plateau of equal maxima: take its middle, not its first edge.
-    best = np.flatnonzero(between >= between.max() * (1 - 1e-9))
-    return float((edges[1 + best[0]] + edges[1 + best[-1]]) / 2)
-
-
-def finish_map(diff: np.ndarray, threshold: float, median: int, c: float, hit: np.ndarray | None = None,
-               keep: np.ndarray | None = None, c_range=None) -> np.ndarray:
-    """Threshold, median-filter, restrict to the mesh and to ``keep`` (the face less the zeroed parts) and scale by
-    ``normalise_c(c, c_range)`` -> float32 HxW."""
-    binary = np.asarray(diff) > threshold
-    if median > 1:
-        binary = median_mask(binary, int(median))
-    for m in (hit, keep):
-        if m is not None:
-            binary &= np.asarray(m, bool)
-    return (binary * encodings.normalise_c(c, c_range)).astype(np.float32)
-
-
 def keep_mask(store, rid: str, zero_parts: Sequence[str]) -> np.ndarray | None:
     """The stored ``face_mask`` less ``zero_parts`` of the stored ``masks`` (None: nothing to restrict by)."""
     if not zero_parts or not store.available("face_mask"):
@@ -217,12 +139,6 @@ def keep_mask(store, rid: str, zero_parts: Sequence[str]) -> np.ndarray | None:
     if "masks" in a:
         keep &= ~np.isin(np.asarray(a["masks"]), [encodings.PART_INDEX[p] for p in zero_parts])
     return keep
-
-
-def luminance(x: torch.Tensor) -> np.ndarray:
-    """[B, 3, H, W] in [-1, 1] -> [B, H, W] Rec. 709 luminance in [0, 1] (float64)."""
-    img = ((x.float().clamp(-1, 1) + 1) / 2).cpu().numpy().astype(np.float64)
-    return imageops.luminance(np.moveaxis(img, 1, -1))
 
 
 @torch.no_grad()
@@ -270,77 +186,45 @@ class ShadowMapReport:
 
 
 def compute(model, store, spec, *, provenance: Mapping[str, Any], ids: Sequence[str] | None = None,
-            split: str = "train", c_quantile: float = 0.01, threshold: str | float = RECIPE_THRESHOLD,
-            median: int | str = "auto", zero_parts: Sequence[str] = ZERO_PARTS, min_contrast: float | None = None,
+            split: str = "train", c_quantile: float = 0.01, threshold: str | float = "relative",
+            relative: float = RELATIVE, centre: str = "median", median: int | str = "auto",
+            zero_parts: Sequence[str] = ZERO_PARTS, min_contrast: float | None = None,
+            min_coherence: float | None = None,
             batch_size: int = 8, version: str | None = None, runtime=None, mean_matching: bool = True,
             device="cpu", progress: bool = True, c_range=None, check_after: int = CHECK_AFTER) -> ShadowMapReport:
     """The whole difference pipeline over ``ids`` (default: every record); writes two derived versions.
-    ``min_contrast`` None: the threshold (Otsu: none). ``c_range``: ``(c_min, c_max)`` to relight at instead of
+    ``min_contrast`` / ``min_coherence`` None: the judge's defaults. ``c_range``: ``(c_min, c_max)`` to relight at instead of
     ``split``'s. The DiFaReli's response is checked once ``check_after`` records are relit (0: only at the end), so
     a model that will be refused is refused in minutes, not after the whole store. The store is locked for the
     run: a second concurrent writer is refused, naming this one."""
     if "shadow" not in model_inputs(model):
         raise errors.UserError(f"the difference method relights at two shadow strengths c, but this model consumes "
                                f"{model_inputs(model)} (no 'shadow'); give a DiFaReli checkpoint (model=difareli)")
-    threshold = check_threshold(threshold)
+    threshold, centre = check_threshold(threshold), check_centre(centre)
     with folder_lock(store.root, "shadow-maps"):
         return _compute(model, store, spec, provenance=provenance, ids=ids, split=split, c_quantile=c_quantile,
-                        threshold=threshold, median=median, zero_parts=zero_parts, min_contrast=min_contrast,
+                        threshold=threshold, relative=float(relative), centre=centre, median=median,
+                        zero_parts=zero_parts, min_contrast=min_contrast, min_coherence=min_coherence,
                         batch_size=batch_size, version=version, runtime=runtime, mean_matching=mean_matching,
                         device=device, progress=progress, given=c_range, check_after=check_after)
 
 
-def _face_values(store, raw: str, ids: Sequence[str], zero_parts: Sequence[str]):
-    """The raw differences of ``ids``, their mesh and kept-part masks, and every value on a face, concatenated."""
+def _face_values(store, raw: str, ids: Sequence[str], zero_parts: Sequence[str], centre: str):
+    """The centred differences of ``ids``, their mesh and kept-part masks, and their face masks (mesh and kept)."""
     hits = {r: (np.asarray(store.read(r, ["depth"])["depth"]) != 0) if store.available("depth") else None for r in ids}
-    diffs = {r: np.asarray(store.read(r, [raw])[raw], dtype=np.float64) for r in ids}
     keeps = {r: keep_mask(store, r, zero_parts) for r in ids}
-
-    def on_face(r, d):
-        m = np.ones(d.shape, bool)
+    faces, diffs = {}, {}
+    for r in ids:
+        d = np.asarray(store.read(r, [raw])[raw], dtype=np.float64)
+        f = np.ones(d.shape, bool)
         for x in (hits[r], keeps[r]):
-            m = m if x is None else m & x
-        return d[m].reshape(-1)
-
-    values = np.concatenate([on_face(r, d) for r, d in diffs.items()]) if ids else np.zeros(0)
-    return diffs, hits, keeps, values
+            f = f if x is None else f & x
+        faces[r], diffs[r] = f, centred(d, f, centre)
+    return diffs, hits, keeps, faces
 
 
-def check_response(values: np.ndarray, threshold, min_contrast: float | None, step, scope: str = ""):
-    """The threshold and its rule, the contrast (99th percentile) and the darkened / brightened shares of the face
-    differences ``values``; refuses a DiFaReli whose response to c is too weak or is noise. ``scope`` ends the
-    refusal (e.g. which records it was measured on)."""
-    contrast = float(np.quantile(values, 0.99)) if values.size else 0.0
-    if threshold == "otsu":
-        thr, rule = otsu_threshold(values), "otsu over every difference value on the face of every record"
-        check_two_modes(values, thr)
-        if thr <= 0:  # a shadow darkens: a non-positive cut would call pixels that brightened with c shadow
-            raise errors.UserError(
-                f"Otsu's threshold of the differences is {thr:.4f} <= 0: this model does not darken the face as c "
-                f"grows (step {step}){scope}; train the DiFaReli longer or give threshold=<number>")
-    else:
-        thr, rule = float(threshold), "fixed (the authors' recipe: 0.05)" if float(threshold) == RECIPE_THRESHOLD \
-            else "given"
-    need = (thr if threshold != "otsu" else 0.0) if min_contrast is None else float(min_contrast)
-    if contrast < need:
-        raise errors.UserError(
-            f"this DiFaReli barely changes the image with c (step {step}): the 99th "
-            f"percentile of Y(c_min) - Y(c_max) on the face is {contrast:.4f}, below {need:.4f}{scope}; train it "
-            "longer, or set min_contrast=0 to write the maps anyway")
-    # A shadow only darkens: a response to c that brightens about as many pixels past the threshold as it darkens
-    # is sampling noise between the two decodes, not a shadow.
-    cut = thr if threshold != "otsu" else float(np.quantile(np.abs(values), 0.99)) if values.size else 0.0
-    dark, bright = (float((values > cut).mean()), float((values < -cut).mean())) if values.size else (0.0, 0.0)
-    if need > 0 and dark > 0 and bright >= 0.5 * dark:
-        raise errors.UserError(
-            f"this DiFaReli's response to c is noise (step {step}): on the face "
-            f"{dark:.1%} of the pixels darken by more than {cut:.4f} from c_min to c_max, and {bright:.1%} brighten by "
-            f"as much (a shadow only darkens){scope}; train it longer, or set min_contrast=0 to write the maps anyway")
-    return thr, rule, contrast, dark, bright
-
-
-def _compute(model, store, spec, *, provenance, ids, split, c_quantile, threshold, median, zero_parts, min_contrast,
-             batch_size, version, runtime, mean_matching, device, progress, given, check_after) -> ShadowMapReport:
+def _compute(model, store, spec, *, provenance, ids, split, c_quantile, threshold, relative, centre, median, zero_parts,
+             min_contrast, min_coherence, batch_size, version, runtime, mean_matching, device, progress, given, check_after) -> ShadowMapReport:
     ids = list(ids) if ids is not None else store.ids()
     c_min, c_max, source = c_range_of(store, split, c_quantile, given)
     median = median_size(median, int(store.dims["H"]))
@@ -354,8 +238,9 @@ def _compute(model, store, spec, *, provenance, ids, split, c_quantile, threshol
                           {**prov, "stage": "raw difference"})
     # The global threshold depends on which records it is taken over: another record set is another version.
     chosen = "all" if set(ids) == set(store.ids()) else derived.content_version("ids", {"ids": sorted(ids)}, 12)
-    version = version or derived.content_version("diff", {**prov, "threshold": threshold, "median": int(median),
-                                                          "records": chosen})
+    rule = {"threshold": threshold, "relative": relative if threshold == "relative" else None, "centre": centre,
+            "median": int(median), "records": chosen}
+    version = version or derived.content_version("diff", {**prov, **rule})
     todo = derived.missing(store, raw, ids)
     needed = relight_reads(model_inputs(model))
     start = time.perf_counter()
@@ -367,9 +252,10 @@ def _compute(model, store, spec, *, provenance, ids, split, c_quantile, threshol
             early = False
             rest = set(todo[i:])
             done = [r for r in ids if r not in rest]
-            check_response(_face_values(store, raw, done, zero_parts)[3], threshold, min_contrast, step,
-                           f" (measured on the first {len(done)} of {len(ids)} records, before relighting the rest; "
-                           f"their raw differences are kept in {raw}, which a rerun resumes)")
+            d, _, _, f = _face_values(store, raw, done, zero_parts, centre)
+            judge(measure(list(d.values()), list(f.values()), threshold, relative), min_contrast, min_coherence, step,
+                  f" (measured on the first {len(done)} of {len(ids)} records, before relighting the rest; "
+                  f"their raw differences are kept in {raw}, which a rerun resumes)")
         chunk = todo[i:i + batch_size]
         recs = [read_record(store, r, needed) for r in chunk]  # with the store's c range: its target maps
         for rid, d in zip(chunk, relight_pairs(model, recs, c_min, c_max, spec, runtime=runtime,
@@ -379,11 +265,13 @@ def _compute(model, store, spec, *, provenance, ids, split, c_quantile, threshol
         bar.set_postfix(img_s=f"{2 * (i + len(chunk)) / max(time.perf_counter() - start, 1e-9):.2f}")
     bar.close()
     seconds = time.perf_counter() - start
-    diffs, hits, keeps, values = _face_values(store, raw, ids, zero_parts)
-    thr, rule, contrast, dark, bright = check_response(values, threshold, min_contrast, step)
-    final = {**prov, "threshold": thr, "threshold_rule": rule, "median": int(median), "raw": raw, "records": chosen,
-             "n_records": len(ids), "zero_parts": list(zero_parts), "contrast_p99": round(contrast, 6),
-             "darkened": round(dark, 6), "brightened": round(bright, 6),
+    diffs, hits, keeps, faces = _face_values(store, raw, ids, zero_parts, centre)
+    resp = measure(list(diffs.values()), list(faces.values()), threshold, relative)
+    judge(resp, min_contrast, min_coherence, step)
+    thr = resp.threshold
+    final = {**prov, **rule, "threshold": thr, "threshold_rule": resp.rule, "raw": raw, "n_records": len(ids),
+             "zero_parts": list(zero_parts), "response_p99": round(resp.p99, 6), "contrast": round(resp.contrast, 6),
+             "coherence": round(resp.coherence, 4), "candidates": round(resp.candidates, 4),
              "c_norm_range": list(norm_range) if norm_range else "fixed"}
     try:
         name = derived.declare(store, "shadow_map", version, final)
