@@ -1,4 +1,6 @@
-"""difareli-shadow-maps: difference-method shadow maps from a trained DiFaReli, written as a derived store version."""
+"""difareli-shadow-maps: shadow maps written as a derived store version: the difference method from a trained
+DiFaReli (``method=difference``), or the relight's own maker (``method=march``) / the exact visible shadows
+(``method=visible``) for training a DiFaReli++ on maps of the kind it is tested with."""
 
 from __future__ import annotations
 
@@ -25,6 +27,8 @@ def run(cfg: DictConfig):
     validate(cfg)
     store = EncodingStore.open(cfg.store, writable=True)
     ids = record_ids(cfg, store)  # the splits named, checked before the checkpoint is loaded
+    if cfg.method != "difference":
+        return run_maker(cfg, store, ids)
     given = c_range_given(cfg)
     shadow_maps.c_source(store, cfg.split, given)
     runtime = Runtime.from_config(cfg.runtime)
@@ -64,6 +68,21 @@ def run(cfg: DictConfig):
     return rep
 
 
+def run_maker(cfg: DictConfig, store, ids):
+    """``method=march|visible``: no model; every record's map from its own encodings."""
+    from difareli.jobs import derived_maps
+
+    version = None if cfg.version in (None, "difference") else cfg.version
+    rep = derived_maps.compute(store, method=cfg.method, light=cfg.light, version=version, ids=ids,
+                               progress=bool(cfg.progress))
+    write_json_atomic(Path(cfg.out_dir) / "shadow_maps.json", {"name": rep.name, "written": rep.written,
+                                                               "records": rep.records, **rep.provenance})
+    print(f"wrote {rep.written} map(s) ({rep.records - rep.written} already there) as {rep.name} in "
+          f"{rep.seconds:.1f} s: {cfg.method} toward the {cfg.light} light")
+    print(f"train on them: data.versions={{shadow_map: {rep.name.split('@', 1)[1]}}}")
+    return rep
+
+
 def record_ids(cfg: DictConfig, store) -> list[str] | None:
     """``records`` if given, else ``records_split``'s records, else None (every record)."""
     if cfg.records is not None:
@@ -91,6 +110,15 @@ def c_range_given(cfg: DictConfig) -> tuple[float, float] | None:
 
 def validate(cfg: DictConfig) -> None:
     """Config values and input files, checked before any work."""
+    if cfg.method not in ("difference", "march", "visible"):
+        raise errors.UserError(f"method={cfg.method!r}: choose difference (needs checkpoint=<a DiFaReli>), march (the "
+                               "relight's own maker) or visible (SynthFaces v3's exact visible shadows)")
+    errors.check_out_dir(cfg.out_dir)
+    if cfg.method != "difference":
+        return
+    if cfg.checkpoint is None:
+        raise errors.UserError("method=difference relights with a DiFaReli: give checkpoint=<its .ckpt or a shipped "
+                               "name, e.g. difareli-synth64>, or method=march for maps without a model")
     check_sampler(cfg.sampler)
     zoo.resolve(cfg.checkpoint, "checkpoint")  # a file or a shipped name, as in every other CLI
     if cfg.median != "auto":
@@ -114,7 +142,6 @@ def validate(cfg: DictConfig) -> None:
         raise errors.UserError(f"zero_parts={list(cfg.zero_parts)}: unknown parts {bad}; use names of {list(PART_INDEX)}")
     errors.check_int(cfg.batch_size, "batch_size", 1)
     errors.check_int(cfg.check_after, "check_after", 0)
-    errors.check_out_dir(cfg.out_dir)
     errors.check_number(cfg.c_quantile, "c_quantile", allow_none=False)
     from difareli.jobs.shadow_maps import check_threshold
 

@@ -38,8 +38,10 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         check_resume_variant(ckpt_path or init_from, ckpt, cfg.model, "init_from" if init_from else "ckpt_path")
     # The network's input sizes and the non-spatial statistics come from the data set (the training split),
     # or, when resuming, from the checkpoint: a resumed run keeps the normalisation it was trained with.
+    # The maker of the shadow maps it trains on is recorded, so a relight can say when its target maps differ.
+    maps = datamodule.shadow_map_maker() if "shadow_map" in list(cfg.model.get("spatial_inputs") or []) else None
     model = hydra.utils.instantiate(cfg.model, input_dims=datamodule.input_dims(),
-                                    nonspatial_stats=nonspatial_stats(datamodule, ckpt))
+                                    nonspatial_stats=nonspatial_stats(datamodule, ckpt), training_maps=maps)
     trainer = hydra.utils.instantiate(
         cfg.trainer,
         callbacks=common.instantiate_group(cfg.get("callbacks")),

@@ -123,6 +123,20 @@ class EncodingsDataModule(L.LightningDataModule):
                 )
         return self.store
 
+    def shadow_map_maker(self) -> dict:
+        """What made the ``shadow_map`` this module reads: a derived version's method and maker (its provenance),
+        else SynthFaces' mesh rays (toward the fitted or the exact light, as its header says), else
+        ``{"name": "store"}`` (not known)."""
+        store = self._open()
+        version = self.versions.get("shadow_map")
+        if version:
+            prov = dict(store.derived.get(f"shadow_map@{version}", {}))
+            return dict(prov.get("maker") or {"name": prov.get("method", "difference"), "version": version})
+        meta = store.store_meta
+        if meta.get("generator") == "synthfaces":  # SynthFaces' own maps: mesh rays (the header says toward what)
+            return {"name": "mesh", "light": "exact" if meta.get("inputs") == "exact" else "fitted"}
+        return {"name": "store"}
+
     def input_dims(self) -> dict[str, int]:
         """Sizes the network needs: spatial channels, non-spatial vector length, image resolution."""
         store = self._open()

@@ -118,6 +118,11 @@ class RelightingModule(L.LightningModule):
 
     # ------------------------------------------------------------------ relighting interface
     @property
+    def training_maps(self) -> dict | None:
+        """What made the shadow maps this model trained on (None: not recorded, or it reads none)."""
+        return self.hparams.get("training_maps")
+
+    @property
     def consumes(self) -> list[str]:
         """The encodings a condition is made of (spatial, then non-spatial)."""
         return list(dict.fromkeys(self.spatial_inputs + self.nonspatial_inputs))
@@ -176,6 +181,7 @@ class DiffusionModule(RelightingModule):
         nonspatial_stats: Mapping[str, Sequence[float]] | None = None,
         compile: bool = False,
         loss: Mapping[str, Any] | None = None,
+        training_maps: Mapping[str, Any] | None = None,
     ):
         super().__init__()
         dims, spatial = self._inputs(input_dims, spatial_inputs, nonspatial_inputs, spatial)
@@ -192,6 +198,8 @@ class DiffusionModule(RelightingModule):
             "scheduler": factory_config(scheduler, "scheduler"), "schedule": dict(schedule or {}),
             "nonspatial_stats": {"mean": mean.tolist(), "std": std.tolist()}, "compile": bool(compile),
             "loss": loss_config(loss),
+            # What made the shadow maps it trained on (relight.targets.check_maker compares a relight's).
+            "training_maps": dict(training_maps) if training_maps else None,
         })
         self._optimizer, self._scheduler = optimizer, scheduler
         # Attention resolutions are feature-map sizes at the data resolution unless overridden.

@@ -59,6 +59,7 @@ class StudentModule(RelightingModule):
         timestep: int = 0,
         lpips_weight: float = 0.0,
         compile: bool = False,
+        training_maps: Mapping[str, Any] | None = None,
     ):
         super().__init__()
         dims, spatial = self._inputs(input_dims, spatial_inputs, nonspatial_inputs, spatial)
@@ -75,6 +76,8 @@ class StudentModule(RelightingModule):
             "scheduler": factory_config(scheduler, "scheduler"),
             "nonspatial_stats": {"mean": mean.tolist(), "std": std.tolist()}, "residual": bool(residual),
             "timestep": int(timestep), "lpips_weight": float(lpips_weight), "compile": bool(compile),
+            # What made the shadow maps it trained on (relight.targets.check_maker compares a relight's).
+            "training_maps": dict(training_maps) if training_maps else None,
         })
         self._optimizer, self._scheduler = optimizer, scheduler
         # Light-dependent channels only depend on H, W (shading 3, shadow map 1, light 27, c 1).

@@ -29,7 +29,7 @@ from difareli.relight.core import invert_image, relight  # noqa: F401 (callers i
 from difareli.relight.relightable import OnePassRelightable, Relightable, model_inputs
 from difareli.runtime.core import Runtime
 from difareli.data.store import EncodingStore
-from difareli.relight.targets import Targets, retarget_many
+from difareli.relight.targets import Targets, check_maker, retarget_many
 
 
 def needed_encodings(model: Relightable) -> list[str]:
@@ -74,6 +74,10 @@ class Relighter:
                                                   else SamplerSpec.from_config(sampler))
         self.mean_matching, self.batch_size, self.progress = mean_matching, batch_size, progress
         self._inversions: dict[Any, Inversion] = {}
+        # A model trained on shadow maps of another maker than this relight's target maps: said once, naming both.
+        other = check_maker(getattr(self.model, "training_maps", None)) if "shadow_map" in self.model_inputs else None
+        if other:
+            warnings.warn(other, RuntimeWarning, stacklevel=2)
 
     def describe(self) -> str:
         """How this relighter relights, for console lines: the sampler (or one pass) and the runtime."""

@@ -149,6 +149,39 @@ def rotation_targets(source: Mapping[str, np.ndarray], axis: str, frames: int, *
 CASTS_KEY = "_cast_shadows"
 
 
+def shadow_maker() -> dict:
+    """The one shadow-map maker, described: what made a relight's target maps (and the training maps of
+    ``difareli-shadow-maps method=march``): the depth-map march toward the light's dominant direction, with the
+    march's settings (its defaults, read from its signature, so a change of them is a change of maker). A store
+    records it beside maps it made, a checkpoint the maker of the maps it trained on; a relight warns when the two
+    differ (:func:`check_maker`)."""
+    import inspect
+
+    params = inspect.signature(march_shadows).parameters
+    settings = {k: v.default for k, v in params.items() if v.default is not inspect.Parameter.empty and k != "normal"}
+    return {"name": "march", "toward": "dominant direction", "attached": "n.d <= 0 is not cast", **settings}
+
+
+def check_maker(trained_on: Mapping | None, what: str = "this model") -> str | None:
+    """A warning (one sentence naming both) when ``trained_on`` (the maker of a model's training maps, as a
+    checkpoint records it) differs from the maker of a relight's target maps; None when they agree or the
+    checkpoint does not say (older checkpoints)."""
+    if not trained_on:
+        return None
+    now = shadow_maker()
+    if dict(trained_on) == now:
+        return None
+    differs = sorted(k for k in set(now) | set(trained_on) if now.get(k) != trained_on.get(k))
+    how = "" if trained_on.get("name") != now["name"] else f" (they differ in {', '.join(differs)})"
+    return (f"{what} trained on shadow maps made by {_describe(trained_on)}, but this relight's target maps are made "
+            f"by {_describe(now)}{how}: it may not follow them; retrain on `difareli-shadow-maps method=march` maps")
+
+
+def _describe(maker: Mapping) -> str:
+    rest = ", ".join(f"{k}={v}" for k, v in maker.items() if k not in ("name", "toward", "attached"))
+    return f"{maker.get('name', '?')}" + (f" ({rest})" if rest else "")
+
+
 def cast_shadows(arrays: Mapping[str, np.ndarray], lights) -> np.ndarray:
     """Binary cast-shadow maps (N, H, W) toward each light's dominant direction, ray-marched on the stored depth
     in one batched march; a point turned away from the light (known normal, n.d <= 0) is in attached, not cast,
