@@ -117,7 +117,7 @@ def test_api_errors_are_one_line(record_app):
     status, out = _post(url, "/api/source", {"kind": "record", "id": "no-such-record"})
     assert status == 400 and out["error"].startswith("record=no-such-record: not in the store")
     status, out = _post(url, "/api/relight", {"id": "record-x", "checkpoint": "missing.ckpt"})
-    assert status == 400 and out["error"].startswith("checkpoint=missing.ckpt does not exist")
+    assert status == 400 and out["error"].startswith("checkpoint='missing.ckpt' is not one this app serves")
     status, out = _post(url, "/api/relight", {"id": "nope"})
     assert status == 400 and "unknown" in out["error"] and "\n" not in out["error"]
 

@@ -1,19 +1,27 @@
 """The app's local web server: the standard library's ``ThreadingHTTPServer``, one page (``static/index.html``) and
 a JSON API over :class:`~difareli.app.service.Service`. Nothing is fetched from outside; it listens on
-localhost by default.
+127.0.0.1 by default.
 
     GET  /              the page
-    GET  /api/info      checkpoints, samplers, HDR maps, store records
+    GET  /api/info      checkpoints, samplers, HDR maps, store records, cache sizes
     POST /api/source    {"kind": "upload", "name", "data": <data URL>} | {"kind": "record", "id"}; "checkpoint"
     POST /api/relight   {"id", "checkpoint", "sampler", "steps", "light": {...}, "shadow": 0..1}
 
-Bad input (an upload that is not an image, too small, without a face; an unknown checkpoint) is answered 400 with
-``{"error": <the CLI's one-line message>}``; anything else 500 with its type and message (traceback on stderr).
+No request is trusted (:mod:`difareli.app.checks`): a Host that is not the app's address is refused 403 (DNS
+rebinding), so is a POST whose Origin is another site; a POST must be ``application/json`` with a valid
+Content-Length; every field is checked. Bad input is answered 4xx with ``{"error": <one line naming the field>}``
+(an upload's error is the CLI's own message); anything else 500 with its type and message (traceback on stderr).
+A client that closes its connection while its relight waits or runs cancels it (the lock is given back).
+
+Why the standard library: a framework would add a dependency for little; the checks here are the ones a local
+JSON API needs (a WSGI/ASGI framework does not check Host or Origin by default either).
 """
 
 from __future__ import annotations
 
 import json
+import select
+import socket
 import sys
 import threading
 import traceback
@@ -21,9 +29,9 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
 from typing import Any
 
-from .service import RequestError, Service, decode_upload
-
-MAX_BODY = 48 * 2 ** 20
+from . import checks
+from .checks import MAX_BODY, Guard, RequestError  # noqa: F401 (MAX_BODY re-exported)
+from .service import Service
 
 
 def error_message(exc: BaseException) -> str | None:
@@ -39,26 +47,54 @@ def page() -> bytes:
     return resources.files("difareli.app").joinpath("static/index.html").read_bytes()
 
 
+def client_gone(sock: socket.socket) -> bool:
+    """Whether the peer closed ``sock`` (readable with nothing to read); bytes waiting mean it is still there."""
+    try:
+        readable, _, _ = select.select([sock], [], [], 0)
+        if not readable:
+            return False
+        return sock.recv(1, socket.MSG_PEEK | socket.MSG_DONTWAIT) == b""
+    except BlockingIOError:
+        return False
+    except (OSError, ValueError):  # reset, or closed on our side
+        return True
+
+
 class Handler(BaseHTTPRequestHandler):
     service: Service  # set on the subclass made by make_server
+    guard: Guard
     quiet = True
+    timeout = 120  # seconds a client may take to send its request (a stalled body must not hold a thread)
 
     def log_message(self, fmt: str, *args: Any) -> None:  # the default logs every request to stderr
         if not self.quiet:
             super().log_message(fmt, *args)
 
     def _send(self, status: int, body: bytes, ctype: str) -> None:
-        self.send_response(status)
-        self.send_header("Content-Type", ctype)
-        self.send_header("Content-Length", str(len(body)))
-        self.send_header("Cache-Control", "no-store")
-        self.end_headers()
-        self.wfile.write(body)
+        try:
+            self.send_response(status)
+            self.send_header("Content-Type", ctype)
+            self.send_header("Content-Length", str(len(body)))
+            self.send_header("Cache-Control", "no-store")
+            self.send_header("X-Content-Type-Options", "nosniff")
+            self.send_header("X-Frame-Options", "DENY")
+            self.end_headers()
+            self.wfile.write(body)
+        except (BrokenPipeError, ConnectionResetError):  # the client left: nobody to answer
+            self.close_connection = True
 
     def _json(self, status: int, obj: Any) -> None:
         self._send(status, json.dumps(obj).encode(), "application/json")
 
+    def _refuse(self, e: RequestError) -> None:
+        self.close_connection = True  # an unread or bad body must not be parsed as the next request
+        self._json(e.status, {"error": str(e)})
+
     def do_GET(self) -> None:
+        try:
+            self.guard.check(self.headers, state_changing=False)
+        except RequestError as e:
+            return self._refuse(e)
         if self.path in ("/", "/index.html"):
             self._send(200, page(), "text/html; charset=utf-8")
         elif self.path == "/api/info":
@@ -66,43 +102,30 @@ class Handler(BaseHTTPRequestHandler):
         elif self.path == "/healthz":
             self._json(200, {"ok": True})
         else:
-            self._json(404, {"error": f"{self.path}: no such page"})
+            self._json(404, {"error": f"{self.path[:200]}: no such page"})
 
     def do_POST(self) -> None:
-        length = int(self.headers.get("Content-Length") or 0)
-        if length > MAX_BODY:
-            self._json(413, {"error": f"request of {length >> 20} MiB is over the {MAX_BODY >> 20} MiB limit"})
-            return
+        routes = {"/api/source": self.service.source_request, "/api/relight": self.service.relight}
         try:
-            body = json.loads(self.rfile.read(length) or b"{}")
-        except ValueError as e:
-            self._json(400, {"error": f"the request is not JSON ({e})"})
-            return
-        routes = {"/api/source": self._source, "/api/relight": self._relight}
-        if self.path not in routes:
-            self._json(404, {"error": f"{self.path}: no such endpoint"})
-            return
-        self._guarded(lambda: routes[self.path](body))
+            self.guard.check(self.headers, state_changing=True)
+            if self.path not in routes:
+                raise RequestError(f"{self.path[:200]}: no such endpoint", 404)
+            body = checks.parse_body(self.rfile.read(checks.body_length(self.headers)))
+        except RequestError as e:
+            return self._refuse(e)
 
-    def _source(self, body: dict) -> dict:
-        svc = self.service
-        with svc.lock:
-            if body.get("kind") == "record":
-                s = svc.record(str(body.get("id")), body.get("checkpoint"))
-            elif body.get("kind") == "upload":
-                s = svc.upload(str(body.get("name") or "upload"), decode_upload(str(body.get("data") or "")),
-                               body.get("checkpoint"))
-            else:
-                raise RequestError("source kind must be 'upload' or 'record'")
-            return svc.describe(s)
+        def run() -> dict:
+            with self.service.session(lambda: client_gone(self.connection)):
+                return routes[self.path](body)
 
-    def _relight(self, body: dict) -> dict:
-        with self.service.lock:
-            return self.service.relight(body)
+        self._guarded(run)
 
     def _guarded(self, fn) -> None:
         try:
             out = fn()
+        except RequestError as e:
+            self._json(e.status, {"error": str(e).splitlines()[0]})
+            return
         except Exception as e:  # noqa: BLE001 - every failure becomes a JSON answer the page can show
             msg = error_message(e)
             if msg is None:
@@ -114,11 +137,15 @@ class Handler(BaseHTTPRequestHandler):
         self._json(200, out)
 
 
-def make_server(service: Service, host: str = "127.0.0.1", port: int = 8765, quiet: bool = True) -> ThreadingHTTPServer:
-    """A server for ``service`` bound to ``host:port`` (port 0: any free port; ``server.server_port`` says which)."""
+def make_server(service: Service | None, host: str = "127.0.0.1", port: int = 8765, quiet: bool = True,
+                allowed_hosts: tuple[str, ...] = ()) -> ThreadingHTTPServer:
+    """A server for ``service`` bound to ``host:port`` (port 0: any free port; ``server.server_port`` says which);
+    ``allowed_hosts``: further names the Host header may carry. A port in use is an OSError (bind). ``service``
+    may be None and set later (``server.RequestHandlerClass.service``): the CLI binds before loading a model."""
     handler = type("BoundHandler", (Handler,), {"service": service, "quiet": quiet})
     server = ThreadingHTTPServer((host, port), handler)
     server.daemon_threads = True
+    handler.guard = Guard(host, server.server_port, allowed_hosts)
     return server
 
 

@@ -2,20 +2,25 @@
 target lights (a direction on the sphere, an HDR map and a rotation), relights with their seconds and the model's
 reconstruction error.
 
-Everything expensive is cached: relighters per (checkpoint, sampler, steps), prepared photos per (content,
-encodings, size), inversions per source inside each relighter; one lock runs one relight at a time (the CPU is
-the limit, and the estimators are not thread-safe).
+Everything expensive is cached in bounded LRU caches (sizes on :class:`Service`, ``cache`` in ``conf/app.yaml``):
+relighters per (checkpoint, sampler, steps), sources (an upload keeps its full-size photo) and the inversions
+inside each relighter. A request is checked whole (fields, source id, checkpoint) before a relighter is built.
+Checkpoints come only from the shipped zoo and the files / folders the app was started with; any other path is
+refused in words that do not depend on whether it exists. One lock runs one relight at a time (the CPU is the
+limit, and the estimators are not thread-safe); a client that leaves gives it back (:mod:`difareli.app.cache`).
 """
 
 from __future__ import annotations
 
 import base64
 import hashlib
+import os
 import tempfile
 import threading
 import time
 import warnings
-from collections.abc import Mapping
+from contextlib import contextmanager
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -27,16 +32,17 @@ from difareli.lighting import sh
 from difareli.diffusion.spec import DEFAULT_SAMPLER, PRESETS
 from difareli.data.encodings import SHADOW_C_HI, SHADOW_C_LO
 
+from . import checks
+from .cache import LRU, CancelScope, attach
+from .checks import RequestError
 from .envmaps import ENVMAPS, envmap_light
 
 SAMPLERS = ("unipc", "ddim", "dpm_solver", "dpm_solver_pp")
 #: What the page starts with and a request without sampler / steps gets: the default preset, the cards' sampler.
 DEFAULT = PRESETS[DEFAULT_SAMPLER]
 MAX_UPLOAD_BYTES = 32 * 2 ** 20
-
-
-class RequestError(ValueError):
-    """A request the page should not have sent (missing field, unknown id): one line, HTTP 400."""
+MAX_ROTATION = 360.0
+RELIGHT_FIELDS = ("id", "checkpoint", "sampler", "steps", "light", "shadow")
 
 
 def png_data_url(image: np.ndarray) -> str:
@@ -64,8 +70,9 @@ def light_toward(light: np.ndarray, direction) -> np.ndarray:
     """The source's own ``light`` turned so that its dominant direction is ``direction`` (camera space: x right,
     y up, z toward the viewer): the same ambient, colour and strength the model saw, from a new side."""
     d = np.asarray(direction, np.float64)
-    if d.shape != (3,) or not np.isfinite(d).all() or not np.linalg.norm(d) > 0:
-        raise RequestError(f"light direction {direction!r} is not a non-zero 3-vector")
+    if d.shape != (3,) or not np.isfinite(d).all() or not np.abs(d).max() > 0:
+        raise RequestError(f"light.direction={np.asarray(direction).tolist()!r} is not a finite non-zero 3-vector")
+    d = d / np.abs(d).max()  # the norm of 1e154-sized components overflows to inf (and turned the light a half turn)
     return sh.rotate(light, rotation_between(sh.dominant_direction(light), d))
 
 
@@ -83,34 +90,76 @@ class AppSource:
     prepared: Any | None
     preprocess_s: float
     checkpoint: str
+    reads: tuple[str, ...] = ()
+    notes: tuple[str, ...] = ()  # what reading the photo changed (an alpha channel composited, ...)
 
 
 @dataclass
 class Service:
-    """The app's state: configuration, caches and the lock (module doc)."""
+    """The app's state: configuration, bounded caches, the allowed checkpoints and the lock (module doc)."""
 
     checkpoint: str = "difareli_pp-synth64"
     store: str | None = None
     runtime: Mapping[str, Any] | None = None
     composite: Mapping[str, Any] = field(default_factory=lambda: {"mode": "ratio", "feather": 0.03})
+    checkpoints: Sequence[str] = ()  # further checkpoint files / folders a request may name (given at start-up)
+    max_relighters: int = 3  # each holds a model: (checkpoint, sampler, steps) beyond this evicts the oldest
+    max_sources: int = 8  # an upload holds its full-size photo
+    max_inversions: int = 8  # per relighter
     lock: threading.Lock = field(default_factory=threading.Lock)
-    _relighters: dict = field(default_factory=dict)
-    _sources: dict = field(default_factory=dict)
-    _store: Any = None
-    _errors: dict = field(default_factory=dict)
+    cancel: CancelScope = field(default_factory=CancelScope)
+    built: int = 0  # relighters built so far (a cache that works keeps this small)
+
+    def __post_init__(self) -> None:
+        self._relighters, self._sources = LRU(self.max_relighters), LRU(self.max_sources)
+        self._errors = LRU(4 * self.max_sources)
+        self._store: Any = None
+        self._roots = [os.path.realpath(os.path.expanduser(str(c))) for c in (self.checkpoint, *self.checkpoints)
+                       if not _zoo_name(str(c))]
 
     # ------------------------------------------------------------------ models and stores
-    def relighter(self, checkpoint: str | None, sampler: str = DEFAULT.name, steps: int = DEFAULT.steps):
-        """A cached :class:`~difareli.relight.relighter.Relighter`; a one-pass student ignores the sampler."""
-        from difareli.errors import check_int
+    def allowed_checkpoint(self, value: str | None) -> str:
+        """``value`` if a request may use it (a shipped name, a start-up file or a file under a start-up folder),
+        else a RequestError whose words depend on the string alone, never on whether such a file exists."""
+        if value is None or value == "" or value == self.checkpoint:
+            return self.checkpoint
+        if _zoo_name(value):
+            return value
+        try:
+            real = os.path.realpath(os.path.expanduser(value))
+        except (ValueError, OSError):  # an embedded NUL byte, a name too long
+            real = None
+        if real is not None and any(real == r or real.startswith(r.rstrip(os.sep) + os.sep) for r in self._roots):
+            return value
+        served = ", ".join(self.served_checkpoints()[:6])
+        raise RequestError(f"checkpoint={value[:200]!r} is not one this app serves; pick a listed one ({served}) or "
+                           "restart the app with checkpoints=[<file or folder>]")
+
+    def served_checkpoints(self, limit: int = 200) -> list[str]:
+        """The checkpoints the page may offer: shipped names, start-up files, ``*.ckpt`` under start-up folders."""
+        from difareli.checkpoints import zoo
+
+        out = [self.checkpoint, *zoo.available()]
+        for c in self.checkpoints:
+            p = Path(str(c)).expanduser()
+            out += sorted(str(f) for f in p.rglob("*.ckpt"))[:limit] if p.is_dir() else [str(c)]
+        return list(dict.fromkeys(out))[:limit]
+
+    def relighter(self, checkpoint: str | None = None, sampler: str = DEFAULT.name, steps: int = DEFAULT.steps):
+        """A cached :class:`~difareli.relight.relighter.Relighter` of an allowed checkpoint; a one-pass student
+        ignores the sampler."""
         from difareli.relight.relighter import Relighter
 
-        if sampler not in SAMPLERS:
-            raise RequestError(f"sampler={sampler!r}: not a sampler; use one of {', '.join(SAMPLERS)}")
-        steps = check_int(steps, "steps", 1)
-        key = (checkpoint or self.checkpoint, sampler, steps)
+        ckpt = self.allowed_checkpoint(checkpoint)
+        checks.choice({"sampler": sampler}, "sampler", SAMPLERS)
+        steps = checks.number({"steps": steps}, "steps", 1, checks.MAX_STEPS, integer=True)
+        key = (ckpt, sampler, steps)
         if key not in self._relighters:
-            self._relighters[key] = Relighter(key[0], {"name": sampler, "steps": steps}, runtime=self.runtime)
+            rel = Relighter(ckpt, {"name": sampler, "steps": steps}, runtime=self.runtime)
+            rel._inversions = LRU(self.max_inversions)  # its own dict keeps every source's inversion for ever
+            attach(rel.model, self.cancel)
+            self.built += 1
+            self._relighters[key] = rel
         return self._relighters[key]
 
     def open_store(self):
@@ -131,56 +180,103 @@ class Service:
         return (test + [r for r in st.ids() if r not in set(test)])[:limit]
 
     def info(self) -> dict:
-        from difareli.checkpoints import zoo
+        return {"checkpoint": self.checkpoint, "checkpoints": self.served_checkpoints(), "samplers": list(SAMPLERS),
+                "default_sampler": {"name": DEFAULT.name, "steps": DEFAULT.steps}, "envmaps": list(ENVMAPS),
+                "records": self.records(), "store": self.store,
+                "cache": {"relighters": self.max_relighters, "sources": self.max_sources,
+                          "inversions": self.max_inversions}}
 
-        return {"checkpoint": self.checkpoint, "checkpoints": zoo.available(), "samplers": list(SAMPLERS),
-                "default_sampler": {"name": DEFAULT.name, "steps": DEFAULT.steps},
-                "envmaps": list(ENVMAPS), "records": self.records(), "store": self.store}
+    @contextmanager
+    def session(self, gone: Callable[[], bool] | None = None):
+        """Hold the one lock for a request; ``gone`` (has the client left?) cancels the wait and the relight."""
+        self.cancel.acquire(self.lock, gone)
+        self.cancel.check = gone
+        try:
+            yield self
+        finally:
+            self.cancel.check = None
+            self.lock.release()
 
     # ------------------------------------------------------------------ sources
-    def _face_mask_reads(self, relighter) -> list[str]:
-        return list(dict.fromkeys([*relighter.needed_encodings(), "face_mask"]))
+    def _face_mask_reads(self, relighter) -> tuple[str, ...]:
+        return tuple(dict.fromkeys([*relighter.needed_encodings(), "face_mask"]))
+
+    def source_request(self, body: Mapping[str, Any]) -> dict:
+        """``POST /api/source``: every field checked, then :meth:`upload` or :meth:`record`, described."""
+        kind = checks.choice(body, "kind", ("upload", "record"))
+        ckpt = checks.text(body, "checkpoint", default=None)
+        if kind == "record":
+            checks.only(body, ("kind", "id", "checkpoint"))
+            return self.describe(self.record(checks.text(body, "id", limit=256), ckpt))
+        checks.only(body, ("kind", "name", "data", "checkpoint"))
+        data = decode_upload(checks.text(body, "data", limit=checks.MAX_BODY))
+        return self.describe(self.upload(checks.text(body, "name", limit=255, default="upload"), data, ckpt))
 
     def upload(self, name: str, data: bytes, checkpoint: str | None = None) -> AppSource:
         """An uploaded photo, decoded with the CLI's checks and preprocessed once for ``checkpoint``'s model;
         a bad upload raises the CLI's UserError (``image=<name>: ...``)."""
         from difareli.relight.photo import prepare_photo, read_photo
 
-        name = Path(str(name or "upload")).name
+        name = Path(str(name or "upload")).name or "upload"
         if len(data) > MAX_UPLOAD_BYTES:
             raise RequestError(f"image={name}: {len(data) / 2 ** 20:.0f} MiB is over the {MAX_UPLOAD_BYTES >> 20} MiB "
                                "upload limit; give a smaller photo")
-        relighter = self.relighter(checkpoint)
+        ckpt = self.allowed_checkpoint(checkpoint)
+        relighter = self.relighter(ckpt)
         size = int(relighter.config.get("input_dims", {}).get("resolution", 64))
         names = self._face_mask_reads(relighter)
         sid = f"photo-{hashlib.sha1(data).hexdigest()[:16]}-{size}"
-        key = (sid, tuple(names))
-        if key not in self._sources:
-            with tempfile.TemporaryDirectory() as tmp:
-                path = Path(tmp) / name
-                path.write_bytes(data)
-                rgb = read_photo(path, "image", name=name)
-            prepared = prepare_photo(rgb, names, size=size, what=f"image={name}")
-            source = relighter.source_from_arrays(prepared.arrays, f"image={name}", key=("app", sid))
-            self._sources[key] = AppSource(sid, source, prepared, prepared.seconds, checkpoint or self.checkpoint)
-            self._sources[sid] = self._sources[key]
-            return self._sources[key]
-        return AppSource(**{**self._sources[key].__dict__, "preprocess_s": 0.0})
+        cached = self._sources.get(sid)
+        if cached is not None and (cached.reads, cached.checkpoint) == (names, ckpt):
+            return AppSource(**{**cached.__dict__, "preprocess_s": 0.0})
+        with tempfile.TemporaryDirectory() as tmp, warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            path = Path(tmp) / name
+            path.write_bytes(data)
+            rgb = read_photo(path, "image", name=name)
+        prepared = prepare_photo(rgb, names, size=size, what=f"image={name}")
+        source = self._fits(relighter, prepared.arrays, f"image={name}", ckpt, key=("app", sid))
+        notes = tuple(str(w.message) for w in caught if issubclass(w.category, UserWarning))
+        self._sources[sid] = AppSource(sid, source, prepared, prepared.seconds, ckpt, names, notes)
+        return self._sources[sid]
 
     def record(self, rid: str, checkpoint: str | None = None) -> AppSource:
         """A store record as a source (its face mask read too, for the reconstruction error)."""
         st = self.open_store()
         if not st.has(rid):
             raise RequestError(f"record={rid}: not in the store {st.root}; pick one of the listed records")
-        relighter = self.relighter(checkpoint)
-        src = relighter.source(st, rid)
+        ckpt = self.allowed_checkpoint(checkpoint)
+        relighter = self.relighter(ckpt)
+        try:
+            src = relighter.source(st, rid)
+        except KeyError as e:  # the store lacks an encoding this model reads
+            raise RequestError(f"checkpoint={ckpt}: {str(e).strip(chr(34) + chr(39))}") from None
         arrays = dict(src.arrays)
         if "face_mask" not in arrays and st.available("face_mask"):
             arrays["face_mask"] = np.asarray(st.read(rid, ["face_mask"])["face_mask"])
-        src = relighter.source_from_arrays(arrays, src.what, key=src.key)
-        out = AppSource(f"record-{rid}", src, None, 0.0, checkpoint or self.checkpoint)
+        out = AppSource(f"record-{rid}", self._fits(relighter, arrays, src.what, ckpt, src.key), None, 0.0, ckpt)
         self._sources[out.id] = out
         return out
+
+    def _fits(self, relighter, arrays: Mapping[str, np.ndarray], what: str, ckpt: str, key: Any = None):
+        """The relighter's Source of ``arrays`` once their encodings have the sizes the network was built for (an
+        imported official checkpoint beside a store of another layout would fail deep inside on a tensor size)."""
+        from difareli.data.inputs import condition_tensors
+
+        source = relighter.source_from_arrays(arrays, what, key=key)
+        dims, model = dict(relighter.config.get("input_dims") or {}), relighter.model
+        try:
+            sp, ns = condition_tensors(model, [source.arrays], "cpu")
+        except (ValueError, RuntimeError, KeyError) as e:
+            raise RequestError(f"checkpoint={ckpt}: {what} does not fit the model "
+                               f"({str(e).splitlines()[0][:160]})") from None
+        for dim, t, names in (("spatial_channels", sp, model.spatial_inputs), ("nonspatial_dim", ns,
+                                                                                model.nonspatial_inputs)):
+            if t is not None and dims.get(dim) is not None and int(dims[dim]) != int(t.shape[1]):
+                raise RequestError(f"checkpoint={ckpt} reads {dims[dim]} {dim.replace('_', ' ')} from {list(names)}, "
+                                   f"{what} gives {int(t.shape[1])}; relight sources written for this model (an "
+                                   "imported official checkpoint: a store from difareli.official.importers)")
+        return source
 
     def describe(self, s: AppSource) -> dict:
         """What the page shows of a source: the aligned crop, its light's direction and shadow strength."""
@@ -188,45 +284,54 @@ class Service:
         c = encodings.shadow_logit(arrays)
         out = {"id": s.id, "what": s.source.what, "crop": png_data_url(np.asarray(arrays["image"])),
                "preprocess_s": round(s.preprocess_s, 3), "direction": sh.dominant_direction(arrays["light"]).tolist(),
-               "shadow": None if c is None else float(encodings.normalise_c(c))}
+               "shadow": None if c is None else float(encodings.normalise_c(c)), "warnings": list(s.notes)}
         if s.prepared is not None:
             out.update(width=int(s.prepared.rgb.shape[1]), height=int(s.prepared.rgb.shape[0]),
                        stages={k: round(v, 3) for k, v in s.prepared.meta.get("seconds", {}).items()})
         return out
 
     # ------------------------------------------------------------------ relighting
-    def target_light(self, arrays: Mapping[str, np.ndarray], light: Mapping[str, Any]) -> np.ndarray:
+    def target_light(self, arrays: Mapping[str, np.ndarray], light: Any) -> np.ndarray:
         """The target light a request describes: ``{"kind": "direction", "direction": [x, y, z]}`` or
-        ``{"kind": "envmap", "name": ..., "rotation": degrees}``."""
-        kind = (light or {}).get("kind", "direction")
+        ``{"kind": "envmap", "name": ..., "rotation": degrees}``, every field checked (400 naming it)."""
+        if not isinstance(light, Mapping):
+            raise RequestError(f"light={type(light).__name__} is invalid: must be an object {{\"kind\": \"direction\", "
+                               "\"direction\": [x, y, z]} or {\"kind\": \"envmap\", \"name\": ..., \"rotation\": deg}")
+        kind = checks.choice(light, "kind", ("direction", "envmap"), default="direction", where="light.")
         own = np.asarray(arrays["light"], np.float64)
         if kind == "direction":
-            return light_toward(own, light.get("direction", [0.0, 0.0, 1.0]))
-        if kind == "envmap":
-            name = light.get("name")
-            if name not in ENVMAPS:
-                raise RequestError(f"envmap={name!r}: not a map; use one of {', '.join(ENVMAPS)}")
-            return sh.yaw(envmap_light(name, own), float(light.get("rotation", 0.0)))
-        raise RequestError(f"light kind {kind!r}: use 'direction' or 'envmap'")
+            checks.only(light, ("kind", "direction"), "light.")
+            return light_toward(own, checks.direction(light.get("direction", [0.0, 0.0, 1.0])))
+        checks.only(light, ("kind", "name", "rotation"), "light.")
+        name = checks.choice(light, "name", ENVMAPS, where="light.")
+        rotation = checks.number(light, "rotation", -MAX_ROTATION, MAX_ROTATION, default=0.0, where="light.")
+        return sh.yaw(envmap_light(name, own), float(rotation))
 
     def relight(self, request: Mapping[str, Any]) -> dict:
         """Relight a source (``request["id"]`` from :meth:`upload` / :meth:`record`) under the request's light and
         shadow strength with its checkpoint / sampler / steps; returns the images (data URLs), the seconds per
-        stage and the reconstruction error (the source relit under its own light, against itself)."""
+        stage and the reconstruction error (the source relit under its own light, against itself). The whole
+        request is checked, and its source found, before any relighter is built."""
         from difareli.relight.targets import Targets
 
         t_all = time.perf_counter()
-        relighter = self.relighter(request.get("checkpoint"), request.get("sampler", DEFAULT.name),
-                                   request.get("steps", DEFAULT.steps))
-        s = self._sources.get(request.get("id"))
+        checks.only(request, RELIGHT_FIELDS)
+        sid = checks.text(request, "id", limit=256)
+        ckpt = self.allowed_checkpoint(checks.text(request, "checkpoint", default=None))
+        sampler = checks.choice(request, "sampler", SAMPLERS, default=DEFAULT.name)
+        steps = checks.number(request, "steps", 1, checks.MAX_STEPS, default=DEFAULT.steps, integer=True)
+        strength = checks.number(request, "shadow", 0.0, 1.0, default=None)
+        s = self._sources.get(sid)
         if s is None:
-            raise RequestError(f"source {request.get('id')!r} is unknown (the app restarted?); upload the photo again")
-        if (request.get("checkpoint") or self.checkpoint) != s.checkpoint:  # another model may read more
-            s = (self.upload_again(s, request.get("checkpoint")) if s.prepared is not None
-                 else self.record(s.id.removeprefix("record-"), request.get("checkpoint")))
+            raise RequestError(f"source {sid[:80]!r} is unknown (the app restarted or forgot it: it keeps the last "
+                               f"{self.max_sources}); upload the photo again")
+        light = self.target_light(s.source.arrays, request.get("light") or {})
+        relighter = self.relighter(ckpt, sampler, steps)
+        if ckpt != s.checkpoint:  # another model may read more
+            s = (self.upload_again(s, ckpt) if s.prepared is not None else self.record(s.id.removeprefix("record-"),
+                                                                                         ckpt))
+            light = self.target_light(s.source.arrays, request.get("light") or {})
         arrays = s.source.arrays
-        light = self.target_light(arrays, request.get("light") or {})
-        strength = request.get("shadow")
         c = shadow_logit(float(strength)) if strength is not None else encodings.shadow_logit(arrays)
         own_c = encodings.shadow_logit(arrays)
         seconds = {}
@@ -268,6 +373,13 @@ class Service:
         data = iio.imwrite("<bytes>", s.prepared.rgb, extension=".png")
         name = s.source.what.removeprefix("image=")
         return self.upload(Path(name).with_suffix(".png").name, data, checkpoint)
+
+
+def _zoo_name(value: str) -> bool:
+    """A shipped checkpoint's name (no path)."""
+    from difareli.checkpoints import zoo
+
+    return "/" not in value and os.sep not in value and value in zoo.available()
 
 
 def reconstruction_error(recon: np.ndarray, arrays: Mapping[str, np.ndarray]) -> dict:

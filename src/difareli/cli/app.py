@@ -2,7 +2,10 @@
 sphere (or picks an HDR map and a rotation), sets the shadow strength and the sampler, and sees the relit photo
 with the seconds it took and the model's reconstruction error (``difareli.app``).
 
-    difareli-app [checkpoint=difareli_pp-synth64] [store=<store>] [port=8765]
+    difareli-app [checkpoint=difareli_pp-synth64] [store=<store>] [port=8765] [checkpoints=[<file or folder>]]
+
+It binds its port first (a port in use is one line, before the model loads), serves 127.0.0.1 unless told
+otherwise, and lets a request name only the shipped checkpoints and those given here.
 """
 
 from __future__ import annotations
@@ -14,15 +17,25 @@ from difareli import errors
 from difareli.cli.common import CONFIG_PATH
 
 
+def _list(value) -> list[str]:
+    if value is None:
+        return []
+    return [str(v) for v in value] if OmegaConf.is_list(value) or isinstance(value, (list, tuple)) else [str(value)]
+
+
 def build_service(cfg: DictConfig):
     """The app's :class:`~difareli.app.service.Service` from the config, with the default model loaded."""
     from difareli.app.service import Service
 
     if cfg.store is not None:
         errors.check_file(f"{cfg.store}/store.json", "store")
+    cache = cfg.get("cache") or {}
+    sizes = {f"max_{k}": errors.check_int(cache.get(k, d), f"cache.{k}", 1)
+             for k, d in (("relighters", 3), ("sources", 8), ("inversions", 8))}
     svc = Service(checkpoint=str(cfg.checkpoint), store=None if cfg.store is None else str(cfg.store),
                   runtime=OmegaConf.to_container(cfg.runtime, resolve=True),
-                  composite=OmegaConf.to_container(cfg.composite, resolve=True))
+                  composite=OmegaConf.to_container(cfg.composite, resolve=True),
+                  checkpoints=tuple(_list(cfg.get("checkpoints"))), **sizes)
     svc.relighter(None)  # a bad checkpoint stops here, with the CLI's message
     return svc
 
@@ -44,18 +57,33 @@ def warm_up(svc) -> None:
         print(f"photo uploads need the estimators ({e}); DIFARELI_PREPROCESS=1 bash scripts/install.sh")
 
 
+def bind(cfg: DictConfig):
+    """The server bound to ``host:port`` without a service yet; a port in use (or a host not on this machine) is
+    a UserError before anything slow happens."""
+    from difareli.app.server import make_server
+
+    port = errors.check_int(cfg.port, "port", 0)
+    if port > 65535:
+        raise errors.UserError(f"port={port} is invalid: must be 0..65535; e.g. port=8765")
+    try:
+        return make_server(None, str(cfg.host), port, allowed_hosts=tuple(_list(cfg.get("allowed_hosts"))))
+    except OSError as e:
+        raise errors.UserError(f"port={port}: cannot listen on {cfg.host}:{port} ({e.strerror or e}); stop the "
+                               "program using it or give another port, e.g. port=0 (any free port)") from None
+
+
 @hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name="app")
 @errors.cli_entry("app")
 def main(cfg: DictConfig) -> None:
-    from difareli.app.server import make_server
-
-    errors.check_int(cfg.port, "port", 0)
-    svc = build_service(cfg)
-    if cfg.warm:
-        warm_up(svc)
-    server = make_server(svc, str(cfg.host), int(cfg.port))
-    print(f"difareli-app: open http://{cfg.host}:{server.server_port}/ (Ctrl-C stops)", flush=True)
+    server = bind(cfg)
     try:
+        svc = build_service(cfg)
+        if cfg.warm:
+            warm_up(svc)
+        server.RequestHandlerClass.service = svc
+        if str(cfg.host) not in ("127.0.0.1", "localhost", "::1"):
+            print(f"difareli-app: warning: host={cfg.host} serves other machines too", flush=True)
+        print(f"difareli-app: open http://{cfg.host}:{server.server_port}/ (Ctrl-C stops)", flush=True)
         server.serve_forever()
     except KeyboardInterrupt:  # Ctrl-C or SIGTERM: nothing to resume, just stop
         print("difareli-app: stopped")

@@ -73,11 +73,15 @@ def main(argv: list[str] | None = None) -> int:
                                          step=step, ema=opts.get("ema", "0.9999"), shape_parts=parts,
                                          verify=_bool(opts.get("verify", "true"), "verify"))
     dims = summary["input_dims"]
+    for line in summary.get("warnings", []):
+        print(f"difareli-import-checkpoint: {line}", file=sys.stderr)
     print(f"difareli-import-checkpoint: {summary['unet']} + {summary['modulator']} (step {summary['step']}) -> "
           f"{summary['out']}: {summary['parameters']:,} parameters")
     print(f"  spatial inputs {summary['spatial_inputs']} ({dims['spatial_channels']} channels), non-spatial "
           f"{summary['nonspatial_inputs']} ({dims['nonspatial_dim']} values; shape = {summary['shape_parts']}), "
           f"{dims['resolution']} px")
+    print("  from config (the tensors cannot show these; check them against the run's YAML): "
+          + ", ".join(summary.get("config_notes", [])))
     if "max_abs_diff" in summary:
         print(f"  reloaded with load_checkpoint: max |eps difference| {summary['max_abs_diff']:.1e}")
     print(f"  use it: difareli-relight checkpoint={summary['out']} store=<store from difareli.official.importers> ...")

@@ -16,7 +16,7 @@ from omegaconf import DictConfig, ListConfig
 from difareli.cli.common import CONFIG_PATH
 from difareli.errors import check_int, check_out_dir, cli_entry
 from difareli.multipie import layout, protocols
-from difareli.multipie.build import BuildReport, build
+from difareli.multipie.build import BuildReport, build, check_root
 
 
 def pair_files(value) -> list[str] | None:
@@ -31,7 +31,8 @@ def run(cfg: DictConfig, pipeline=None) -> BuildReport:
     check_out_dir(cfg.out_dir)
     for key in ("same_subject", "different_subject"):
         check_int(cfg[key], key, 0)
-    layout.data_dir(cfg.root)  # a wrong root or pair list fails before the estimators load
+    check_root(cfg.out_dir, layout.data_dir(cfg.root))  # a wrong root, store or pair list fails before the
+    # estimators load
     if pair_files(cfg.pairs):
         protocols.read_lists(pair_files(cfg.pairs))
     if pipeline is None:

@@ -4,7 +4,9 @@
 recording, preprocesses the images the pairs use (or all found, ``images="all"``) with the photo estimators of
 difareli-preprocess, and writes the pairs whose three images all made it. An image that is missing, unreadable
 or in which the estimators find no face is named in one line and skipped; the pairs it belongs to are dropped
-and counted. A rerun into the same store resumes (records that exist are kept).
+and counted. A rerun into the same store resumes (records that exist are kept); the store records the copy it
+was built from (``multipie_root`` in its header), and a rerun from another copy is refused (:func:`check_root`),
+since its kept records would silently mix the two copies.
 """
 
 from __future__ import annotations
@@ -79,6 +81,24 @@ def _process(pipeline, store: EncodingStore, img: Image, path: Path) -> tuple[st
     return None
 
 
+def check_root(out_dir: str | Path, data: Path) -> None:
+    """Refuse to resume the store at ``out_dir`` from another Multi-PIE copy than the one it was built from (its
+    records would be kept while the report names the new copy)."""
+    header = Path(out_dir) / "store.json"
+    if not header.is_file():
+        return
+    try:
+        meta = (json.loads(header.read_text()).get("meta") or {})
+    except (OSError, ValueError):
+        return  # not a readable store: EncodingStore.create says so
+    was = meta.get("multipie_root")
+    now = os.path.realpath(data)
+    if was != now:
+        first = f"was built from the Multi-PIE copy at {was}" if was else "records no Multi-PIE copy it was built from"
+        raise UserError(f"out_dir={out_dir} {first}, not root={now}: a rerun would keep its records; give a new "
+                        f"out_dir, or delete {out_dir} to rebuild it from {now}")
+
+
 def build(root: str | Path, out_dir: str | Path, pipeline, pairs: Sequence[str | Path] | None = None, *,
           seed: int = 0, same_subject: int = 862, different_subject: int = 200,
           recordings: Iterable[str] = (layout.NEUTRAL_RECORDING,), illuminations: Iterable[str] = layout.ILLUMINATIONS,
@@ -90,6 +110,7 @@ def build(root: str | Path, out_dir: str | Path, pipeline, pairs: Sequence[str |
     if images not in ("used", "all"):
         raise UserError(f"images={images!r} is not 'used' (the images the pairs use) or 'all' (every image found)")
     data = layout.data_dir(root)
+    check_root(out_dir, data)
     recordings, illuminations = [f"{int(r):02d}" for r in recordings], [f"{int(i):02d}" for i in illuminations]
     report = BuildReport(Path(out_dir))
     if pairs:
@@ -116,7 +137,7 @@ def build(root: str | Path, out_dir: str | Path, pipeline, pairs: Sequence[str |
         log(line)
     store = EncodingStore.create(out_dir, pipeline.dims(), pipeline.encodings,
                                  {"source": "difareli-multipie", "dataset": "multipie", "size": int(pipeline.size),
-                                  "gamma": "none"}, durable=False)
+                                  "gamma": "none", "multipie_root": os.path.realpath(data)}, durable=False)
     t0 = time.perf_counter()
     bad: set[Image] = {Image.parse(Path(p).name) for k, p, _ in report.skipped}
     for img, path in tqdm(found, desc="multipie", unit="img", disable=not progress):

@@ -88,6 +88,9 @@ def read_lists(paths: Iterable[str | Path]) -> list[Triple]:
                 gt = Image.parse(e["gt"]) if e.get("gt") else src.under(dst.illumination)
             except ValueError as err:
                 raise UserError(f"pairs={path}: {key}: {err}") from None
+            if src == dst:  # relit under its own light: the "ground truth" is the input, the score meaningless
+                raise UserError(f"pairs={path}: {key}: src and dst are the same image {src.stem}; a pair takes the "
+                                "light of another image: fix the list (dst another illumination or subject)")
             if gt.subject != src.subject:
                 raise UserError(f"pairs={path}: {key}: gt {gt.stem} shows subject {gt.subject}, the source "
                                 f"{src.stem} subject {src.subject}; the ground truth must show the input's person")

@@ -396,10 +396,13 @@ def import_checkpoint(official: str | Path, config: str | Path, out: str | Path,
     with ``verify``, check that ``load_checkpoint(out)`` predicts exactly the eps of the converted network."""
     from difareli.errors import check_out_dir
 
+    from difareli.official import safety
+
     cfg = read_config(config)
     out = Path(str(out))
     check_out_dir(out.parent if str(out.parent) else ".", "out")
     unet_file, mod_file, got = find_files(official, cfg, encoder, step, ema)
+    safety.check_out(out, {"official": unet_file, "encoder": mod_file, "config": cfg.path})  # before any write
     parts = list(shape_parts or STORE_SHAPE_PARTS)
     unet_sd, mod_sd = _load(unet_file, "official"), _load(mod_file, "encoder")
     if is_official(unet_sd) != "unet" or is_official(mod_sd) != "modulator":
@@ -408,6 +411,8 @@ def import_checkpoint(official: str | Path, config: str | Path, out: str | Path,
     if is_official(unet_sd) != "unet" or is_official(mod_sd) != "modulator":
         raise UserError(f"official={unet_file} and encoder={mod_file} are not one UNet ({cfg.unet_name}) and one "
                         f"Modulator ({cfg.encoder_name}) state dict; give the two files of one training step")
+    safety.check_finite(unet_sd, unet_file)
+    safety.check_finite(mod_sd, mod_file)
     ckpt, module = convert(unet_sd, mod_sd, cfg, shape_parts=parts, step=got,
                            files={"unet": str(unet_file), "modulator": str(mod_file)})
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -415,9 +420,12 @@ def import_checkpoint(official: str | Path, config: str | Path, out: str | Path,
     summary = {"out": str(out), "unet": str(unet_file), "modulator": str(mod_file), "step": got,
                "parameters": sum(v.numel() for v in ckpt["state_dict"].values()),
                "spatial_inputs": module.spatial_inputs, "nonspatial_inputs": module.nonspatial_inputs,
-               "shape_parts": parts, "input_dims": ckpt["hyper_parameters"]["input_dims"]}
+               "shape_parts": parts, "input_dims": ckpt["hyper_parameters"]["input_dims"],
+               "config_notes": safety.config_notes(cfg.cfg, DEFAULTS),
+               "warnings": [w for w in [safety.step_warning(unet_file, mod_file)] if w]}
     if verify:
         summary["max_abs_diff"] = verify_loaded(module, out)
+        safety.check_verified(summary["max_abs_diff"], out)
     return summary
 
 

@@ -132,14 +132,37 @@ def preprocess_photo(rgb: np.ndarray, encodings: Sequence[str], *, size: int,
 
 def read_photo(path: str | Path, key: str = "image", name: str | None = None) -> np.ndarray:
     """Decode a photo file to uint8 RGB (the preprocess loader's checks), or a UserError naming ``key`` and the
-    file (``name``: how to name it instead of its path, e.g. an uploaded file's name)."""
+    file (``name``: how to name it instead of its path, e.g. an uploaded file's name). A folder or a special file
+    (``/dev/zero``, a FIFO) is named as what it is, an animation (several frames) is refused, and an alpha channel
+    composited over grey is said in a UserWarning."""
+    import os
+    import stat
+    import warnings
+
     from difareli.errors import check_file
     from difareli.estimators.loading import BadInput, load_image
 
+    shown = name or str(path)
+    try:
+        mode = os.stat(str(path)).st_mode
+    except OSError:
+        mode = None  # missing or unreachable: check_file says which
+    if mode is not None and not stat.S_ISREG(mode):
+        kind = ("a folder" if stat.S_ISDIR(mode) else "a character device" if stat.S_ISCHR(mode) else
+                "a block device" if stat.S_ISBLK(mode) else "a FIFO (named pipe)" if stat.S_ISFIFO(mode) else
+                "a socket" if stat.S_ISSOCK(mode) else "not a regular file")
+        raise UserError(f"{key}={shown} is {kind}, not an image file; give a JPEG/PNG face photo")
     p = check_file(path, key)
     try:
-        rgb, _ = load_image(p)
+        rgb, notes = load_image(p)
     except BadInput as e:
         why = str(e).replace(str(p), name) if name else str(e)  # a temporary path means nothing to the user
-        raise UserError(f"{key}={name or p}: {why}; give a JPEG/PNG face photo") from None
+        raise UserError(f"{key}={shown}: {why}; give a JPEG/PNG face photo") from None
+    for note in notes:
+        if "frames: used the first" in note:  # which frame is the face is a guess: ask for a still
+            raise UserError(f"{key}={shown} is an animation ({note.split(':')[0]}); give one still photo (save the "
+                            "frame you want as PNG)")
+        if note.startswith("alpha channel"):
+            warnings.warn(f"{key}={shown}: its {note} (transparent parts become grey); give an opaque photo to "
+                          "choose the background", UserWarning, stacklevel=2)
     return rgb

@@ -1,0 +1,77 @@
+"""Bounded caches for the app (a server that keeps everything it was asked for grows without bound) and the
+cancel check that lets an abandoned relight give the app's lock back."""
+
+from __future__ import annotations
+
+import threading
+from collections import OrderedDict
+from collections.abc import Callable
+from typing import Any
+
+from .checks import RequestError
+
+
+class LRU(OrderedDict):
+    """A dict keeping at most ``size`` entries: reading or writing one makes it the newest, a write beyond
+    ``size`` drops the oldest. Usable wherever a plain dict cache is (``in``, ``[]``, assignment)."""
+
+    def __init__(self, size: int):
+        super().__init__()
+        if int(size) < 1:
+            raise ValueError(f"cache size {size!r} must be >= 1")
+        self.size = int(size)
+
+    def __getitem__(self, key: Any) -> Any:
+        value = super().__getitem__(key)
+        self.move_to_end(key)
+        return value
+
+    def get(self, key: Any, default: Any = None) -> Any:
+        return self[key] if key in self else default
+
+    def __setitem__(self, key: Any, value: Any) -> None:
+        super().__setitem__(key, value)
+        self.move_to_end(key)
+        while len(self) > self.size:
+            self.popitem(last=False)
+
+
+class Cancelled(RequestError):
+    """The client gave up (closed its connection) while its request waited or ran."""
+
+    def __init__(self, what: str = "the request"):
+        super().__init__(f"{what} was cancelled: the client closed the connection", 499)
+
+
+class CancelScope:
+    """The current request's "has the client gone?" check, read between network passes (a forward pre-hook on
+    the denoising network, so once per sampler step) and while waiting for the lock. Only the request holding
+    the lock sets it, so one slot is enough."""
+
+    def __init__(self) -> None:
+        self.check: Callable[[], bool] | None = None
+        self.cancelled = 0  # how many requests were cancelled (tests, logs)
+
+    def hook(self, module: Any, args: Any) -> None:
+        """``nn.Module.register_forward_pre_hook`` callback: stop the pass if the client has gone."""
+        check = self.check
+        if check is not None and check():
+            self.cancelled += 1
+            raise Cancelled("the relight")
+
+    def acquire(self, lock: threading.Lock, gone: Callable[[], bool] | None, poll: float = 0.2) -> None:
+        """Take ``lock``, giving up (:class:`Cancelled`) when the waiting client goes."""
+        while not lock.acquire(timeout=poll):
+            if gone is not None and gone():
+                self.cancelled += 1
+                raise Cancelled()
+
+
+def attach(model: Any, scope: CancelScope) -> None:
+    """Hook ``scope`` onto the network a sampler calls once per step (``model.net``; the model itself for a
+    module without one). Inference copies made by the runtime are deep copies, which keep the hook."""
+    import torch
+
+    net = getattr(model, "net", model)
+    if isinstance(net, torch.nn.Module):
+        net.register_forward_pre_hook(scope.hook)
