@@ -1,4 +1,4 @@
-"""One shadow-map maker (issue 41): difareli-shadow-maps method=march writes each record's training map with the
+"""One shadow-map maker (issue 41): difareli-shadow-maps maker=march writes each record's training map with the
 very function a relight makes its target maps with, records that maker, and a relight of a model trained on
 another maker's maps says so, naming both."""
 
@@ -55,7 +55,7 @@ def test_visible_maps_are_the_exact_visible_shadows_times_c(store):
 
 
 def test_a_store_without_what_a_maker_reads_is_refused_by_name(store):
-    with pytest.raises(UserError, match=r"method='mesh' is not a map maker here"):
+    with pytest.raises(UserError, match=r"maker='mesh' is not a map maker here"):
         derived_maps.compute(store, method="mesh", progress=False)
     with pytest.raises(UserError, match=r"light='sun'"):
         derived_maps.compute(store, method="march", light="sun", progress=False)

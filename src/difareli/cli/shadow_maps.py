@@ -1,6 +1,6 @@
 """difareli-shadow-maps: shadow maps written as a derived store version: the difference method from a trained
-DiFaReli (``method=difference``), or the relight's own maker (``method=march``) / the exact visible shadows
-(``method=visible``) for training a DiFaReli++ on maps of the kind it is tested with."""
+DiFaReli (``maker=difference``), or the relight's own maker (``maker=march``) / the exact visible shadows
+(``maker=visible``) for training a DiFaReli++ on maps of the kind it is tested with."""
 
 from __future__ import annotations
 
@@ -27,7 +27,7 @@ def run(cfg: DictConfig):
     validate(cfg)
     store = EncodingStore.open(cfg.store, writable=True)
     ids = record_ids(cfg, store)  # the splits named, checked before the checkpoint is loaded
-    if cfg.method != "difference":
+    if cfg.maker != "difference":
         return run_maker(cfg, store, ids)
     given = c_range_given(cfg)
     shadow_maps.c_source(store, cfg.split, given)
@@ -69,16 +69,16 @@ def run(cfg: DictConfig):
 
 
 def run_maker(cfg: DictConfig, store, ids):
-    """``method=march|visible``: no model; every record's map from its own encodings."""
+    """``maker=march|visible``: no model; every record's map from its own encodings."""
     from difareli.jobs import derived_maps
 
     version = None if cfg.version in (None, "difference") else cfg.version
-    rep = derived_maps.compute(store, method=cfg.method, light=cfg.light, version=version, ids=ids,
+    rep = derived_maps.compute(store, method=cfg.maker, light=cfg.light, version=version, ids=ids,
                                progress=bool(cfg.progress))
     write_json_atomic(Path(cfg.out_dir) / "shadow_maps.json", {"name": rep.name, "written": rep.written,
                                                                "records": rep.records, **rep.provenance})
     print(f"wrote {rep.written} map(s) ({rep.records - rep.written} already there) as {rep.name} in "
-          f"{rep.seconds:.1f} s: {cfg.method} toward the {cfg.light} light")
+          f"{rep.seconds:.1f} s: {cfg.maker} toward the {cfg.light} light")
     print(f"train on them: data.versions={{shadow_map: {rep.name.split('@', 1)[1]}}}")
     return rep
 
@@ -110,15 +110,15 @@ def c_range_given(cfg: DictConfig) -> tuple[float, float] | None:
 
 def validate(cfg: DictConfig) -> None:
     """Config values and input files, checked before any work."""
-    if cfg.method not in ("difference", "march", "visible"):
-        raise errors.UserError(f"method={cfg.method!r}: choose difference (needs checkpoint=<a DiFaReli>), march (the "
+    if cfg.maker not in ("difference", "march", "visible"):
+        raise errors.UserError(f"maker={cfg.maker!r}: choose difference (needs checkpoint=<a DiFaReli>), march (the "
                                "relight's own maker) or visible (SynthFaces v3's exact visible shadows)")
     errors.check_out_dir(cfg.out_dir)
-    if cfg.method != "difference":
+    if cfg.maker != "difference":
         return
     if cfg.checkpoint is None:
-        raise errors.UserError("method=difference relights with a DiFaReli: give checkpoint=<its .ckpt or a shipped "
-                               "name, e.g. difareli-synth64>, or method=march for maps without a model")
+        raise errors.UserError("maker=difference relights with a DiFaReli: give checkpoint=<its .ckpt or a shipped "
+                               "name, e.g. difareli-synth64>, or maker=march for maps without a model")
     check_sampler(cfg.sampler)
     zoo.resolve(cfg.checkpoint, "checkpoint")  # a file or a shipped name, as in every other CLI
     if cfg.median != "auto":

@@ -4,13 +4,13 @@ A relight's target map is made by one maker (:func:`difareli.relight.targets.sha
 toward the target light's dominant direction, times the normalised c). A DiFaReli++ trained on maps made another
 way (SynthFaces' mesh rays toward a fitted light: IoU 0.31 with the march for the same record and light) is tested
 out of its training distribution, and one trained on maps that disagree with its images learns to ignore them.
-``difareli-shadow-maps method=march`` writes every record's map with that same maker:
+``difareli-shadow-maps maker=march`` writes every record's map with that same maker:
 
 - ``light=exact`` (default): toward the record's exact light (``light_gt``) with its exact c (``shadow_gt``), where
   the store has them (SynthFaces v2/v3), so the map agrees with the image it is paired with;
 - ``light=fitted``: toward the stored (fitted) light with the stored c, as a user's photo would have them.
 
-``method=visible`` writes the exact upper bound instead: SynthFaces v3's visibly-shadowed mask
+``maker=visible`` writes the exact upper bound instead: SynthFaces v3's visibly-shadowed mask
 (``shadow_visible_gt``) times the normalised exact c (the maps a model cannot get at test time: can this network
 learn cast shadows at all?). Either way the version's provenance names the maker and its settings, resumable and
 locked like every derived version.
@@ -54,7 +54,7 @@ def _names(method: str, light: str) -> tuple[str, str]:
 def check(store, method: str, light: str) -> None:
     """The method, the light and the encodings they read, checked before any work."""
     if method not in METHODS:
-        raise errors.UserError(f"method={method!r} is not a map maker here; choose {', '.join(METHODS)} (or "
+        raise errors.UserError(f"maker={method!r} is not a map maker here; choose {', '.join(METHODS)} (or "
                                "difference, which needs checkpoint=<a DiFaReli>)")
     if light not in LIGHTS:
         raise errors.UserError(f"light={light!r}: choose exact (the record's light_gt and shadow_gt) or fitted")
@@ -63,7 +63,7 @@ def check(store, method: str, light: str) -> None:
     gone = [n for n in needs if not store.available(n)]
     if gone:
         hint = "a SynthFaces v3 store (difareli-synth)" if method == "visible" else "light=fitted, or a SynthFaces store"
-        raise errors.UserError(f"method={method} light={light} reads {needs}, but store {store.root} has no "
+        raise errors.UserError(f"maker={method} light={light} reads {needs}, but store {store.root} has no "
                                f"{', '.join(gone)}; use {hint}")
 
 

@@ -151,7 +151,7 @@ CASTS_KEY = "_cast_shadows"
 
 def shadow_maker() -> dict:
     """The one shadow-map maker, described: what made a relight's target maps (and the training maps of
-    ``difareli-shadow-maps method=march``): the depth-map march toward the light's dominant direction, with the
+    ``difareli-shadow-maps maker=march``): the depth-map march toward the light's dominant direction, with the
     march's settings (its defaults, read from its signature, so a change of them is a change of maker). A store
     records it beside maps it made, a checkpoint the maker of the maps it trained on; a relight warns when the two
     differ (:func:`check_maker`)."""
@@ -174,7 +174,7 @@ def check_maker(trained_on: Mapping | None, what: str = "this model") -> str | N
     differs = sorted(k for k in set(now) | set(trained_on) if now.get(k) != trained_on.get(k))
     how = "" if trained_on.get("name") != now["name"] else f" (they differ in {', '.join(differs)})"
     return (f"{what} trained on shadow maps made by {_describe(trained_on)}, but this relight's target maps are made "
-            f"by {_describe(now)}{how}: it may not follow them; retrain on `difareli-shadow-maps method=march` maps")
+            f"by {_describe(now)}{how}: it may not follow them; retrain on `difareli-shadow-maps maker=march` maps")
 
 
 def _describe(maker: Mapping) -> str:
