@@ -7,6 +7,10 @@ on average for
   (``targets.target_shadow_map``), and toward the exact light (``light_gt``, where stored: an oracle light),
 - ``mesh``: the store's own ``shadow_map`` (SynthFaces ``inputs=estimated``: mesh rays toward the fitted light, on
   the estimated surface in v3; in an ``inputs=exact`` store it is the ground truth itself, flagged),
+- ``ray-marched on the exact depth toward the exact key sun`` (SynthFaces v3 stores): the same march
+  (``targets.target_shadow_map``, stored normals applied after it as ``targets.cast_shadows`` does) on the exact
+  depth toward the key sun's direction from the record's header (empty without a sun, as the upper bound): what
+  the screen-space march itself loses against mesh ray casting, with no light or geometry estimation error,
 - ``key sun, exact mesh (upper bound)`` (SynthFaces v3 stores): the subject re-built and its exact mesh ray cast
   toward the exact key-sun direction; equal to the GT on single-sun records, whose score is printed apart,
 - ``whole face (baseline)``: every mesh pixel (the exact mesh where ``depth_gt`` is stored), the score of a map
@@ -35,11 +39,13 @@ from difareli.data import derived
 from difareli.utils import viz
 from difareli.evaluation.metrics import binary_scores
 from difareli.data.store import EncodingStore
+from difareli.lighting import sh
 from difareli.relight.targets import target_shadow_map
 
 #: The row of a map covering every mesh pixel: scored, not drawn in the figure.
 BASELINE = "whole face (baseline)"
 UPPER = "key sun, exact mesh (upper bound)"
+KEY_MARCH = "ray-marched on the exact depth toward the exact key sun"
 
 
 class KeySun:
@@ -68,6 +74,16 @@ class KeySun:
         if not np.any(np.asarray(m["sun_rgb"]) > 0):
             return np.zeros_like(sub.gbuffer.hit), single
         return cast_shadow(sub.scene, sub.gbuffer, np.asarray(m["sun_dir"])) & sub.gbuffer.hit, single
+
+
+def key_sun_march(g: dict, meta: dict) -> np.ndarray:
+    """The march on the geometry ``g`` (depth, normal, cam) toward a record's key sun (``sun_dir`` in its header),
+    as the relighting targets make it (``target_shadow_map``: a directional light's dominant direction is its
+    own); an empty map without a sun, as :class:`KeySun`."""
+    if not np.any(np.asarray(meta["sun_rgb"]) > 0):
+        return np.zeros(np.shape(g["depth"]), bool)
+    light = sh.directional_light(np.asarray(meta["sun_dir"], dtype=np.float64), 1.0)
+    return target_shadow_map(g, light, 0.0, (-10.0, 10.0)) > 0
 
 
 def parse_versions(specs: list[str]) -> dict[str, str]:
@@ -108,6 +124,8 @@ def maps_of(store: EncodingStore, rid: str, versions: dict[str, str], light_name
             target_shadow_map(g, a["light_gt"], 0.0, (-10.0, 10.0)) > 0
     out["mesh"] = a["shadow_map"] > 0
     if key_sun is not None:
+        g = {k: a[f"{k}_gt"] for k in ("depth", "normal", "cam")} if exact_geo else a
+        out[KEY_MARCH] = key_sun_march(g, store.meta(rid))
         out[UPPER], _ = key_sun(rid)
     out[BASELINE] = a[mesh] != 0  # every mesh pixel: the IoU a map earns by covering all
     return out
