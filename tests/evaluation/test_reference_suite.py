@@ -18,7 +18,7 @@ from difareli.diffusion import DEFAULT_SAMPLER, PRESETS
 
 from tests.helpers import CONF
 
-ROOT = CONF.parents[2]
+ROOT = CONF.parent  # conf/ sits at the top of the repository
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 

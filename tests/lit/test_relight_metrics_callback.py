@@ -94,13 +94,22 @@ def _check_parity(run, synth_store, ckpt, sampler):
     # Both sides in fp32: the same computation to float rounding (bf16 rounds batch 2 and batch 1 differently).
     fresh = RelightMetrics(pairs=2, sampler=sampler["name"], steps=sampler.get("steps"), precision="fp32")
     fresh.cases = [fresh._prepare(store, model, p) for p in pairs]
+    from difareli.evaluation.extras import PairExtras
+
+    fresh.scorer = PairExtras(store)  # what on_fit_start makes (extras=true, the default)
+    assert {"val/light_angle/same", "val/light_rel_error/different"} <= set(cb.history[-1])  # logged in training
     trainer = SimpleNamespace(global_step=99, is_global_zero=True, default_root_dir=str(ckpt.parent), loggers=[],
                               sanity_checking=False)
     with pytest.warns(UserWarning, match="self.log"):
         ours = fresh.evaluate(trainer, model)
     ref = _independent(ckpt, store, pairs, sampler)
-    assert set(ours) == set(ref) and len(ours) == 6
-    for k in ours:
+    base = {k: v for k, v in ours.items() if k.split("/")[1] in ("dssim", "mse", "lpips")}
+    assert set(base) == set(ref) and len(base) == 6
+    # the extra metrics of the same relights (difareli.evaluation.extras): what the benchmark writes beside them
+    extra = {k.split("/")[1] for k in ours} - {"dssim", "mse", "lpips"}
+    assert {"light_angle", "light_rel_error"} <= extra and all(0 <= ours[f"val/light_angle/{p}"] <= 180
+                                                               for p in ("same", "different"))
+    for k in base:
         # decoded in one batch of 2 here, one target per call there: float32 rounding may move a pixel a level
         assert ours[k] == pytest.approx(ref[k], rel=1e-4, abs=1e-7), k
     return cb

@@ -2,7 +2,9 @@
 
 A checkpoint records the module class that wrote it and its format (:mod:`difareli.checkpoints.format`, which
 also translates older formats); :func:`load_checkpoint` imports that class (only from the ``difareli.``
-namespace) and builds it from the plain hyperparameters.
+namespace) and builds it from the plain hyperparameters. A checkpoint is a ``.ckpt`` file (``torch.load`` with
+``weights_only=True``), a weights folder written by ``difareli-export`` (``model.safetensors`` + ``config.json``,
+:mod:`difareli.checkpoints.export`: no pickle at all), or a shipped name (its folder when it has one).
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import lightning as L
 import torch
 
 from difareli.checkpoints import zoo
+from difareli.checkpoints.export import is_folder, read_folder
 from difareli.errors import load_torch_file
 from difareli.checkpoints.format import MODULE_KEY, upgrade_checkpoint
 
@@ -49,8 +52,12 @@ def module_class(path: str) -> type[L.LightningModule]:
 
 
 def read_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:
-    """The checkpoint dict (``path``: a file or a shipped name such as ``difareli_pp-synth64``) (``torch.load(weights_only=True)``), translated to the current format."""
-    path = zoo.resolve(path)  # a file, or the name of a shipped checkpoint (difareli.checkpoints.zoo)
+    """The checkpoint dict, translated to the current format, of ``path``: a .ckpt file (``torch.load(weights_only=
+    True)``), a weights folder (safetensors + JSON, no pickle) or a shipped name such as ``difareli_pp-synth64``
+    (its weights folder when shipped, else its .ckpt)."""
+    path = zoo.resolve(path, prefer_folder=True)  # a file, a folder, or a shipped name (difareli.checkpoints.zoo)
+    if is_folder(path):
+        return upgrade_checkpoint(read_folder(path, map_location))
     ckpt = load_torch_file(path, "checkpoint", map_location)  # torch.load(weights_only=True), errors name the file
     if "hyper_parameters" not in ckpt or "state_dict" not in ckpt:
         from difareli.checkpoints.format import refuse_official

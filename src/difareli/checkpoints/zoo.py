@@ -1,9 +1,11 @@
 """Reference checkpoints shipped with the package, loadable by name (``checkpoint=difareli_pp-synth64``).
 
 Each one is ``src/difareli/checkpoints/<name>.ckpt`` (a slim Lightning checkpoint: the EMA weights, the plain
-hyperparameters, the module class; no optimizer state) beside its model card ``<name>.md``. :func:`export`
-writes both from a training run; :func:`resolve` turns a name or a path into a file, and every loader
-(``lit.load_checkpoint``, the CLIs, the notebooks) goes through it.
+hyperparameters, the module class; no optimizer state; kept for resuming training and ``init_from``) beside its model
+card ``<name>.md`` and its weights folder ``<name>/`` (``model.safetensors``, ``config.json``, ``README.md``, written
+by ``difareli-export``: loads with no pickle). :func:`export` writes the .ckpt and card from a training run;
+:func:`resolve` turns a name or a path into a file or folder, and every loader (``lit.load_checkpoint``, the CLIs,
+the notebooks) goes through it: ``load_checkpoint`` reads a shipped name from its folder.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ from typing import Any
 
 import torch
 
+from difareli.checkpoints.export import is_folder
 from difareli.checkpoints.format import SLIM_KEYS
 from difareli.errors import UserError, check_file, load_torch_file
 from difareli.utils.fileio import torch_save_atomic, write_text_atomic
@@ -25,21 +28,31 @@ SHIPPED_DIR = Path(__file__).resolve().parent  # the weights ship beside this mo
 
 def available() -> list[str]:
     """Names of the shipped checkpoints."""
-    return sorted(p.stem for p in SHIPPED_DIR.glob("*.ckpt"))
+    return sorted({p.stem for p in SHIPPED_DIR.glob("*.ckpt")} | {p.name for p in SHIPPED_DIR.iterdir() if is_folder(p)})
 
 
-def resolve(checkpoint: str | Path, key: str = "checkpoint") -> Path:
-    """The file of a checkpoint given as a path or as a shipped name (a file of that name wins); a missing one is
-    a FileNotFoundError naming the input and the shipped names."""
+def resolve(checkpoint: str | Path, key: str = "checkpoint", prefer_folder: bool = False) -> Path:
+    """The file or weights folder of a checkpoint given as a path or as a shipped name (a path of that name wins);
+    a shipped name is its ``.ckpt`` (what a caller that ``torch.load`` s the file needs) or, with ``prefer_folder``
+    (``load_checkpoint``), its weights folder when it has one. A missing one is a FileNotFoundError naming the
+    input and the shipped names."""
     path = Path(str(checkpoint)).expanduser()
     if path.is_file():
         return check_file(path, key)
-    if "/" not in str(checkpoint) and (SHIPPED_DIR / f"{checkpoint}.ckpt").is_file():
+    if is_folder(path):
+        return path
+    shipped = "/" not in str(checkpoint) and str(checkpoint) not in ("", ".", "..")
+    if shipped and prefer_folder and is_folder(SHIPPED_DIR / str(checkpoint)):
+        return SHIPPED_DIR / str(checkpoint)
+    if shipped and (SHIPPED_DIR / f"{checkpoint}.ckpt").is_file():
         return SHIPPED_DIR / f"{checkpoint}.ckpt"
+    if shipped and is_folder(SHIPPED_DIR / str(checkpoint)):
+        return SHIPPED_DIR / str(checkpoint)
     try:
         return check_file(path, key)
     except FileNotFoundError as e:
-        raise FileNotFoundError(f"{e} (<run>/checkpoints/last.ckpt), or the name of a shipped checkpoint: "
+        raise FileNotFoundError(f"{e} (<run>/checkpoints/last.ckpt, or a weights folder of difareli-export), or "
+                                f"the name of a shipped checkpoint: "
                                 f"{', '.join(available()) or 'none shipped'}") from None
 
 

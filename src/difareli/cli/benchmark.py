@@ -16,7 +16,8 @@ from difareli.checkpoints import zoo
 from difareli.data import shard as sharding
 from difareli.evaluation.baselines import build_method
 from difareli.lighting.light_fit import light_fit_from_config
-from difareli.evaluation.benchmark import DEFAULT_MASK, BenchmarkResult, check_score_mask, rescore, run_benchmark
+from difareli.evaluation.benchmark import DEFAULT_MASK, BenchmarkResult, check_score_mask, run_benchmark
+from difareli.evaluation.rescore import rescore
 from difareli.cli import common
 from difareli.lit import logging as lit_logging
 from difareli.data.store import EncodingStore
@@ -32,7 +33,8 @@ def run(cfg: DictConfig) -> BenchmarkResult:
     rule = metric_rule(cfg)
     if cfg.get("rescore"):  # the saved relit images of a finished run, scored again under `rule`
         store = EncodingStore.open(cfg.store).use_versions(cfg.get("versions"))
-        result = rescore(store, cfg.rescore, cfg.out_dir, rule, score_mask=cfg.get("score_mask"))
+        result = rescore(store, cfg.rescore, cfg.out_dir, rule, score_mask=cfg.get("score_mask"),
+                         estimator=light_fit_from_config(OmegaConf.to_container(cfg.light_fit, resolve=True)))
         print(result.paths["summary_md"].read_text())
         return result
     try:

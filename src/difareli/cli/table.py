@@ -1,5 +1,7 @@
 """difareli-table: merge benchmark run dirs into one table (rows = methods, column groups = protocols); on Multi-PIE
-runs, ``published=all|ours|[names]`` adds the paper's Table I rows, labelled as published figures."""
+runs, ``published=all|ours|[names]`` adds the paper's Table I rows, labelled as published figures. ``paired`` adds the
+paired comparisons of every two methods scored on the same pairs (``difareli.evaluation.paired``: mean difference,
+bootstrap CI, Wilcoxon p) and ``strata=`` breaks every table down by light category or target shadow share."""
 
 from __future__ import annotations
 
@@ -12,7 +14,7 @@ import hydra
 from omegaconf import DictConfig, ListConfig
 
 from difareli import errors
-from difareli.evaluation import tables
+from difareli.evaluation import paired, tables
 from difareli.data import shard as sharding
 from difareli.cli import common
 
@@ -36,20 +38,25 @@ def expand_runs(patterns: Iterable[str]) -> list[Path]:
 
 
 def published_methods(value) -> list[str] | None | bool:
-    """``published``: null/false (no rows), ``all``, ``ours`` (DiFaReli, DiFaReli++, DiFaReli++_ss) or a list."""
+    """``published``: null/false (no rows), ``all``, ``ours`` (DiFaReli, DiFaReli++, DiFaReli++_ss) or a list of
+    names; anything else (``published=0``, a number) is a UserError saying what it accepts."""
     from difareli.evaluation import published
 
-    if value in (None, False, "", "none", "null"):
+    accepts = (f"published= accepts null or false (no published rows), all, ours, or a list of names from "
+               f"{list(published.FIGURES)}")
+    # `is`, not ==: 0 == False and 1 == True would read published=0 as "none" and published=1 as "all".
+    if value is None or value is False or value in ("", "none", "null", "false"):
         return False
-    if value in (True, "all"):
+    if value is True or value == "all":
         return None
     if value == "ours":
         return list(published.OURS)
-    names = [str(v) for v in value] if isinstance(value, ListConfig) else [str(value)]
+    if not isinstance(value, (str, ListConfig, list)):
+        raise errors.UserError(f"published={value!r}: {accepts}")
+    names = [str(v) for v in value] if isinstance(value, (ListConfig, list)) else [str(value)]
     unknown = sorted(set(names) - set(published.FIGURES))
     if unknown:
-        raise errors.UserError(f"published={value}: no published Multi-PIE figures for {unknown}; use all, ours or "
-                               f"names from {list(published.FIGURES)}")
+        raise errors.UserError(f"published={value}: no published Multi-PIE figures for {unknown}; {accepts}")
     return names
 
 
@@ -75,8 +82,10 @@ def run(cfg: DictConfig) -> tables.Table:
     runs = [cfg.runs] if isinstance(cfg.runs, str) else list(cfg.runs)
     dirs = expand_runs(runs)
     sharding.check_complete(dirs)  # sharded benchmark runs: every shard of each job exactly once
-    table = tables.merge_runs(dirs, methods=list(cfg.methods) if cfg.methods else None,
-                              drop_bad_rows=bool(cfg.get("drop_bad_rows", False)))
+    strata, bins, mode = check_strata(cfg)
+    table, records = tables.merge_runs(dirs, methods=list(cfg.methods) if cfg.methods else None,
+                                       drop_bad_rows=bool(cfg.get("drop_bad_rows", False)), strata=strata,
+                                       bins=bins, with_records=True)
     chosen = published_methods(cfg.get("published"))
     if chosen is not False:
         from difareli.evaluation import published
@@ -91,8 +100,38 @@ def run(cfg: DictConfig) -> tables.Table:
     (out / "table.tex").write_text(table.to_latex(digits=int(cfg.digits), caption=cfg.caption))
     print(f"{len(dirs)} run(s): " + ", ".join(str(d) for d in dirs) + "\n")
     print(md)
-    print(f"written: {out / 'table.md'}, table.csv, table.tex")
+    written = f"written: {out / 'table.md'}, table.csv, table.tex"
+    if mode != "off":
+        n_boot, seed = int(cfg.get("n_boot", paired.N_BOOT)), int(cfg.get("seed", 0))
+        rows, notes = paired.compare(records, table.metrics, n_boot=n_boot, seed=seed, strict=mode == "strict",
+                                     methods=table.methods)
+        pmd = paired.to_markdown(rows, notes, n_boot, seed)
+        (out / "paired.md").write_text(pmd)
+        (out / "paired.csv").write_text(paired.to_csv(rows))
+        print("Paired comparisons\n\n" + pmd)
+        written += ", paired.md, paired.csv"
+    print(written)
     return table
+
+
+def check_strata(cfg: DictConfig) -> tuple[str | None, list[float], str]:
+    """(``strata``, ``strata_bins``, paired mode ``auto|strict|off``) from the config, checked."""
+    strata = cfg.get("strata")
+    if strata is not None and strata not in paired.STRATA:
+        raise errors.UserError(f"strata={strata!r}: give null or one of {', '.join(paired.STRATA)}")
+    bins = cfg.get("strata_bins") or list(paired.SHADOW_BINS)
+    try:
+        bins = [float(b) for b in bins]
+    except (TypeError, ValueError):
+        raise errors.UserError(f"strata_bins={bins!r}: give a list of increasing numbers, e.g. "
+                               f"{list(paired.SHADOW_BINS)}") from None
+    mode = cfg.get("paired", "auto")
+    mode = {True: "strict", False: "off", None: "off"}.get(mode, mode) if isinstance(mode, (bool, type(None))) else mode
+    if mode not in ("auto", "strict", "off"):
+        raise errors.UserError(f"paired={mode!r}: give auto (compare the methods scored on the same pairs, name the "
+                               "others), strict (refuse mismatched pair sets) or off")
+    errors.check_int(cfg.get("n_boot", paired.N_BOOT), "n_boot", 100)
+    return strata, bins, mode
 
 
 @hydra.main(version_base="1.3", config_path=common.CONFIG_PATH, config_name="table")

@@ -14,6 +14,11 @@ metric rule (``rule``: :data:`difareli.evaluation.metrics.RULES`, default ``pape
 Scores go through the torchmetrics ``Metric`` s of :func:`difareli.evaluation.metrics.relight_metrics`. A store without exact
 lights (``"exact_lights": false`` in ``protocols.json``: Multi-PIE) gets no light-estimation errors and no oracle.
 
+Beyond DSSIM / MSE / LPIPS (issue 43, :mod:`difareli.evaluation.extras`), each row carries the identity cosines of
+the relit face (vs the input, vs the ground truth), the lighting error of the relit image against the target light
+and the shadow adherence to the target's cast shadow, where the store and the installed extras allow them (an absent
+column is one line in ``summary.md`` saying why), and the strata ``difareli-table strata=`` groups by.
+
 Outputs in the run dir: ``relit/<protocol>/<pair id>.png``, ``metrics_per_image.csv`` (tables.py schema),
 ``summary.{md,csv,tex}``, ``light_estimation.csv`` and ``comparison_<protocol>.png`` (input | light source |
 relit | ground truth for the first pairs). Every file is written atomically (a full disk is one line naming it,
@@ -23,7 +28,6 @@ nothing half-written; rows already scored are kept and a rerun resumes from them
 from __future__ import annotations
 
 import csv
-import dataclasses
 import io
 import json
 import sys
@@ -40,6 +44,7 @@ from tqdm.auto import tqdm
 from difareli import errors
 from difareli.evaluation import metrics
 from difareli.evaluation import tables
+from difareli.evaluation.extras import PairExtras
 from difareli.utils import viz
 from difareli.relight.targets import target_shadow_of
 from difareli.data import shard as sharding
@@ -96,14 +101,15 @@ def _read_png(path: Path) -> np.ndarray:
     return np.asarray(iio.imread(path))[..., :3]
 
 
-def _append_row(out_dir: Path, r: tables.Record) -> None:
-    """Append one scored row (whole or not at all: a full disk leaves the rows before it intact)."""
+def _append_row(out_dir: Path, r: tables.Record, extra: Sequence[str] = ()) -> None:
+    """Append one scored row with the run's ``extra`` columns (whole or not at all: a full disk leaves the rows
+    before it intact)."""
     path = out_dir / PARTIAL_CSV
     buf = io.StringIO()
     w = csv.writer(buf)
     if not path.is_file() or path.stat().st_size == 0:
-        w.writerow((*tables.COLUMNS, "rule", "status"))
-    w.writerow(tables.record_row(r))
+        w.writerow(tables.header(extra))
+    w.writerow(tables.record_row(r, extra=extra))
     append_text(path, buf.getvalue())
 
 
@@ -205,10 +211,14 @@ class BenchmarkResult:
     paths: dict[str, Path] = field(default_factory=dict)
     #: protocol -> metric -> (mean, SE, n) of the pairs scored in this run, from the torchmetrics Metrics
     metric_stats: dict[str, dict[str, tuple[float, float, int]]] = field(default_factory=dict)
+    #: lines under the table: why an extra metric column is absent
+    notes: list[str] = field(default_factory=list)
 
     @property
     def table(self) -> tables.Table:
-        return tables.summarize(self.records)
+        table = tables.summarize(self.records)
+        table.remarks = list(self.notes)
+        return table
 
     def light_summary(self) -> str:
         """Markdown table of the light-estimation errors (mean ± SE per protocol and light)."""
@@ -317,6 +327,10 @@ def _run(store: EncodingStore, method: Method, protocols: Sequence[str], out_dir
         "target light": "exact (oracle_light)" if oracle_light else "fitted to the light-source image (LightFit)",
         "target maps": getattr(method, "target_maps", "none (the method reads no light-dependent map)"),
         "data set": str(doc.get("dataset", "synthfaces")), "metrics rule": rule, "score mask": score_mask})
+    extras = PairExtras(store, score_mask, fit=estimator)
+    columns = [*extras.metrics(), *extras.strata()]
+    result.provenance.update({**extras.provenance(), "store": f"{store.root} ({provenance.store_identity(store)})"})
+    result.notes = list(extras.notes)
     done = _scored_so_far(out_dir, method.name, rule)
     for proto, pairs in load_pairs(store, protocols, limit).items():
         pairs = sharding.select(pairs, shard, key=lambda p: p.id)
@@ -360,16 +374,19 @@ def _run(store: EncodingStore, method: Method, protocols: Sequence[str], out_dir
                 errors.check_finite(list(s.values()), f"scores of pair {pair.id} (is its {score_mask} empty?)")
             except errors.UserError as e:
                 print(f"FAILED {proto} {pair.id}: {e}", file=sys.stderr)
+                ex, info = extras.empty(pair.target)
                 rec = tables.Record(method.name, short, pair.id, math.nan, math.nan, math.nan,
-                                    time.perf_counter() - start, status="failed", rule=rule)
+                                    time.perf_counter() - start, status="failed", rule=rule, extra=ex, info=info)
                 result.records.append(rec)
-                _append_row(out_dir, rec)
+                _append_row(out_dir, rec, columns)
                 continue
-            rec = tables.Record(method.name, short, pair.id, s["dssim"], s["mse"], s["lpips"], seconds, rule=rule)
+            ex, info = extras(relit, pair.source, pair.target, light)
+            rec = tables.Record(method.name, short, pair.id, s["dssim"], s["mse"], s["lpips"], seconds, rule=rule,
+                                extra=ex, info=info)
             result.records.append(rec)
             if save_images:
                 viz.save_png(relit, png)
-            _append_row(out_dir, rec)  # after the image: a resumed run finds both
+            _append_row(out_dir, rec, columns)  # after the image: a resumed run finds both
             if len(grid_rows) < grid_pairs:
                 src, lsrc = (store.read(r, ["image"])["image"] for r in (pair.source, pair.light_source))
                 grid_rows.append([np.asarray(src), np.asarray(lsrc), relit, np.asarray(gt["image"])])
@@ -379,38 +396,6 @@ def _run(store: EncodingStore, method: Method, protocols: Sequence[str], out_dir
     result.paths.update(write_outputs(result, out_dir, caption=f"{method.name} on {Path(store.root).name}"
                                       + ("" if score_mask == DEFAULT_MASK else f", scored on {score_mask}")))
     (out_dir / PARTIAL_CSV).unlink(missing_ok=True)
-    return result
-
-
-def rescore(store: EncodingStore, run_dir: str | Path, out_dir: str | Path, rule: str | None = None,
-            score_mask: str | None = None) -> BenchmarkResult:
-    """Score the relit PNGs a finished run saved (``relit/<protocol>/<pair id>.png``) again under ``rule`` on
-    ``score_mask``, into ``out_dir``: the same images, another metric rule or mask (seconds and failed rows are
-    kept from the run)."""
-    run_dir, rule = Path(run_dir), metrics.check_rule(rule)
-    score_mask = check_score_mask(store, score_mask)
-    rows = tables.read_records(run_dir / tables.PER_IMAGE_CSV)
-    pairs = {(PROTOCOLS[p.protocol], p.id): p for v in load_pairs(store, list(PROTOCOLS)).values() for p in v}
-    prov = run_dir / "provenance.json"
-    result = BenchmarkResult(records=[], provenance={**(json.loads(prov.read_text()) if prov.is_file() else {}),
-                                                     "metrics rule": rule, "score mask": score_mask,
-                                                     "rescored from": str(run_dir)})
-    scorers = {short: metrics.relight_metrics(rule) for short in PROTOCOLS.values()}
-    for r in rows:
-        if r.status != "ok":
-            result.records.append(dataclasses.replace(r, rule=rule))
-            continue
-        pair = pairs.get((r.protocol, r.record_id))
-        png = run_dir / "relit" / (pair.protocol if pair else "?") / f"{r.record_id}.png"
-        if pair is None or not png.is_file():
-            raise errors.UserError(f"rescore={run_dir}: no relit image {png} for {r.protocol} pair {r.record_id} "
-                                   "(was the run made with save_images=true on this store?); rerun the benchmark")
-        gt = store.read(pair.target, ["image", score_mask])
-        s = score(_read_png(png), gt["image"], gt[score_mask], rule, scorers[r.protocol])
-        result.records.append(dataclasses.replace(r, dssim=s["dssim"], mse=s["mse"], lpips=s["lpips"], rule=rule))
-    result.metric_stats = {p: {k: m.stat() for k, m in sc.items()} for p, sc in scorers.items()}
-    with on_full_disk(out_dir, scratch=[out_dir]):
-        result.paths.update(write_outputs(result, Path(out_dir), caption=f"{run_dir.name} rescored ({rule})"))
     return result
 
 

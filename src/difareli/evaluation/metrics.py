@@ -219,6 +219,33 @@ class MaskedLPIPS(_MaskedImageMetric):
         return lpips(pred, target, mask, self.data_range, self.rule)
 
 
+class FiniteMean(Metric):
+    """Mean (and SE) over images of a per-image score computed elsewhere (the identity cosine, the lighting error,
+    shadow adherence: :mod:`difareli.evaluation.extras`); NaN scores (undefined for that image) are counted in
+    ``skipped``, never averaged. Summed states, so exact under DDP."""
+
+    is_differentiable = False
+    full_state_update = False
+    stat = _MaskedImageMetric.stat
+    compute = _MaskedImageMetric.compute
+
+    def __init__(self, **kwargs):
+        super().__init__(**kwargs)
+        for name in ("total", "total_sq"):
+            self.add_state(name, torch.tensor(0.0, dtype=torch.float64), dist_reduce_fx="sum")
+        for name in ("count", "skipped"):
+            self.add_state(name, torch.tensor(0, dtype=torch.long), dist_reduce_fx="sum")
+
+    def update(self, values) -> None:
+        """Add per-image scores (a number or a sequence of them)."""
+        v = torch.as_tensor(values, dtype=torch.float64, device=self.total.device).reshape(-1)
+        ok = torch.isfinite(v)
+        self.total += v[ok].sum()
+        self.total_sq += (v[ok] ** 2).sum()
+        self.count += ok.sum()
+        self.skipped += (~ok).sum()
+
+
 def relight_metrics(rule: str | None = None, data_range: float = 1.0, prefix: str | None = None,
                     postfix: str | None = None) -> MetricCollection:
     """The three metrics as one collection ``{dssim, mse, lpips}`` (keys get ``prefix``/``postfix``)."""

@@ -2,7 +2,7 @@
 
 Per-image CSV (one per run, ``<run_dir>/metrics_per_image.csv``), columns in this order:
 
-    method, protocol, record_id, dssim, mse, lpips, seconds[, rule][, status]
+    method, protocol, record_id, dssim, mse, lpips, seconds[, rule][, <extra metrics>][, <strata>][, status]
 
 ``protocol`` is ``same`` ((i) target light estimated from the same person) or ``different``
 ((ii) from a different person); other names are allowed and sort after these. ``seconds`` is the
@@ -20,6 +20,11 @@ they have no scores, count as failed in the table and never enter a mean. Readin
 malformed row (wrong field count, a cut last line), a non-finite or empty metric of a scored row, or a file
 with no rows is a :class:`TableError` naming the file and line, or with ``drop_bad_rows`` the row is left out
 and the count is shown under the table.
+
+Issue 43 added optional columns, each present only when the run computed it: the metrics of
+:data:`EXTRA_METRICS` (identity cosines, lighting error, shadow adherence; empty where undefined, e.g. a target
+shadow too small to score: such cells are counted apart, ``(n=k)`` in the table) and the strata of :data:`STRATA`
+(the target light's category, the target shadow's share of the face) that ``difareli-table strata=`` groups by.
 
 Rows quoted from a paper (:attr:`Table.published`, e.g. ``difareli.evaluation.published``) are marked as such in
 every rendering and never take part in the bold "best" marks, which compare what was measured here.
@@ -45,6 +50,18 @@ COLUMNS = ("method", "protocol", "record_id", "dssim", "mse", "lpips", "seconds"
 LEGACY_RULE = "composite"
 METRICS = ("dssim", "mse", "lpips")
 METRIC_LABELS = {"dssim": "DSSIM", "mse": "MSE", "lpips": "LPIPS"}
+#: Optional per-image metrics (issue 43), in table order: identity cosine of the relit face vs the input and vs the
+#: ground truth, the lighting error of the relit image (degrees, relative SH), shadow adherence (ratio, raw, IoU).
+EXTRA_METRICS = ("identity_input", "identity_gt", "light_angle", "light_rel_error", "shadow_adherence",
+                 "shadow_darkening", "shadow_iou")
+METRIC_LABELS.update({"identity_input": "ID vs input", "identity_gt": "ID vs GT", "light_angle": "light angle (deg)",
+                      "light_rel_error": "light SH rel. err", "shadow_adherence": "shadow darkening ratio",
+                      "shadow_darkening": "shadow darkening", "shadow_iou": "shadow IoU"})
+#: Which way is better: "low", "high", "one" (closest to 1); metrics absent here are never marked best.
+BETTER = {"dssim": "low", "mse": "low", "lpips": "low", "identity_input": "high", "identity_gt": "high",
+          "light_angle": "low", "light_rel_error": "low", "shadow_adherence": "one", "shadow_iou": "high"}
+#: Optional per-image strata columns (text): the target light's category, the target shadow's share of the face.
+STRATA = ("light_category", "shadow_share")
 PROTOCOL_LABELS = {"same": "(i) same subject", "different": "(ii) different subject"}
 
 
@@ -61,6 +78,14 @@ class Record:
     seconds: float = math.nan
     status: str = "ok"  # "failed": the relight was invalid (no scores)
     rule: str = DEFAULT_RULE  # the metric rule the scores were computed under (difareli.evaluation.metrics.RULES)
+    #: scores of :data:`EXTRA_METRICS` this run computed (NaN: undefined for this pair)
+    extra: dict = field(default_factory=dict, hash=False)
+    #: values of :data:`STRATA` (text) this run recorded
+    info: dict = field(default_factory=dict, hash=False)
+
+    def value(self, metric: str) -> float:
+        """The score of ``metric`` (a base one or an extra one; NaN when this row lacks it)."""
+        return float(getattr(self, metric)) if metric in METRICS else float(self.extra.get(metric, math.nan))
 
 
 @dataclass(frozen=True)
@@ -111,6 +136,12 @@ def _row_problem(row: list[str], header: list[str], last: bool, cut: bool) -> tu
     if not all(d[k].strip() for k in ("method", "protocol", "record_id")):
         return "empty method, protocol or record_id", None
     vals = {}
+    extra = {}
+    for k in (k for k in EXTRA_METRICS if k in d):  # empty: undefined for this pair (counted apart)
+        try:
+            extra[k] = _num(d[k])
+        except ValueError:
+            return f"{k}={d[k]!r} is not a number", None
     for k in (*METRICS, "seconds"):
         try:
             vals[k] = _num(d[k])
@@ -121,7 +152,7 @@ def _row_problem(row: list[str], header: list[str], last: bool, cut: bool) -> tu
         if k != "seconds" and status == "ok" and not d[k].strip():
             return f"{k} is empty in a scored row", None
     return "", Record(d["method"], d["protocol"], d["record_id"], *(vals[k] for k in (*METRICS, "seconds")),
-                      status=status, rule=rule)
+                      status=status, rule=rule, extra=extra, info={k: d[k] for k in STRATA if k in d})
 
 
 #: The fix a bad row's message names where the caller has no drop_bad_rows option (difareli-ablate, rescore).
@@ -165,11 +196,28 @@ def read_records_checked(path: str | Path, drop_bad_rows: bool = False, *,
     return records, dropped
 
 
-def record_row(r: Record, status: bool = True) -> list[str]:
-    """One CSV row of ``r``: :data:`COLUMNS`, ``rule`` and (``status``) its status, floats at full precision."""
-    return ([r.method, r.protocol, r.record_id]
-            + ["" if math.isnan(x) else repr(float(x)) for x in (r.dssim, r.mse, r.lpips, r.seconds)]
-            + [r.rule] + ([r.status] if status else []))
+def extra_columns(records: Iterable[Record]) -> list[str]:
+    """The :data:`EXTRA_METRICS` then :data:`STRATA` columns any of ``records`` carries, in that order."""
+    have = set()
+    for r in records:
+        have |= set(r.extra) | set(r.info)
+    return [k for k in (*EXTRA_METRICS, *STRATA) if k in have]
+
+
+def header(extra: Sequence[str] = (), status: bool = True) -> list[str]:
+    """A per-image CSV's header: :data:`COLUMNS`, ``rule``, the ``extra`` columns, (``status``) ``status``."""
+    return [*COLUMNS, "rule", *extra] + (["status"] if status else [])
+
+
+def record_row(r: Record, status: bool = True, extra: Sequence[str] = ()) -> list[str]:
+    """One CSV row of ``r``: :data:`COLUMNS`, ``rule``, the ``extra`` columns and (``status``) its status, floats at
+    full precision (an undefined extra score is empty)."""
+    def num(x):
+        return "" if math.isnan(x) else repr(float(x))
+
+    return ([r.method, r.protocol, r.record_id] + [num(x) for x in (r.dssim, r.mse, r.lpips, r.seconds)]
+            + [r.rule] + [num(r.value(k)) if k in EXTRA_METRICS else str(r.info.get(k, "")) for k in extra]
+            + ([r.status] if status else []))
 
 
 def write_records(path: str | Path, records: Iterable[Record]) -> Path:
@@ -179,11 +227,12 @@ def write_records(path: str | Path, records: Iterable[Record]) -> Path:
     records = list(records)
     # The status column only when a row failed: runs without failures keep the original format.
     status = any(r.status != "ok" for r in records)
+    extra = extra_columns(records)
     with open(path, "w", newline="") as f:
         w = csv.writer(f)
-        w.writerow(COLUMNS + ("rule",) + (("status",) if status else ()))
+        w.writerow(header(extra, status))
         for r in records:
-            w.writerow(record_row(r, status))
+            w.writerow(record_row(r, status, extra))
     return path
 
 
@@ -195,9 +244,17 @@ def read_records(path: str | Path) -> list[Record]:
 # ------------------------------------------------------------------------------------- the table
 
 
-def _protocol_key(p: str) -> tuple[int, str]:
+def _protocol_key(p: str) -> tuple[int, str, str]:
+    # A stratified protocol is "<protocol> | <stratum>" (difareli.evaluation.paired.stratify): by protocol first.
+    base, _, stratum = p.partition(" | ")
     order = list(PROTOCOL_LABELS)
-    return (order.index(p), "") if p in order else (len(order), p)
+    return (order.index(base), "", stratum) if base in order else (len(order), base, stratum)
+
+
+def protocol_label(p: str) -> str:
+    """A protocol's printed label (a stratified one keeps its stratum)."""
+    base, sep, stratum = p.partition(" | ")
+    return PROTOCOL_LABELS.get(base, base) + (f" | {stratum}" if sep else "")
 
 
 @dataclass
@@ -216,6 +273,10 @@ class Table:
     rule: str = DEFAULT_RULE
     #: rows quoted from a paper: method -> where the figures come from (rendered as published, never bold)
     published: dict[str, str] = field(default_factory=dict)
+    #: the metric columns, in order: :data:`METRICS` then the :data:`EXTRA_METRICS` the records carry
+    metrics: list[str] = field(default_factory=lambda: list(METRICS))
+    #: lines saying why a metric is absent or how a breakdown was made (printed under the table)
+    remarks: list[str] = field(default_factory=list)
 
     def add_published(self, rows: dict[tuple[str, str], dict[str, Stat]], source: str) -> None:
         """Append rows quoted from ``source`` (``{(method, protocol): {metric: Stat}}``) after the measured ones."""
@@ -231,14 +292,17 @@ class Table:
 
     # -- formatting helpers
     def _best(self) -> dict[tuple[str, str], float]:
-        """Lowest mean per (protocol, metric) over the measured rows: every metric here is lower-is-better."""
+        """Best mean per (protocol, metric) over the measured rows, in :data:`BETTER`'s sense (stored as the value
+        whose printed form is compared)."""
         best: dict[tuple[str, str], float] = {}
         for (m, p), stats in self.cells.items():
             if m in self.published:
                 continue
             for k, s in stats.items():
-                if math.isfinite(s.mean):
-                    best[(p, k)] = min(best.get((p, k), math.inf), s.mean)
+                if math.isfinite(s.mean) and k in BETTER:
+                    have = best.get((p, k))
+                    if have is None or _badness(k, s.mean) < _badness(k, have):
+                        best[(p, k)] = s.mean
         return best
 
     def _cell(self, method: str, protocol: str, metric: str, digits: int, latex: bool, bold: bool) -> str:
@@ -270,7 +334,10 @@ class Table:
 
     def notes(self) -> list[str]:
         """Lines to print under a table: the metric rule, published rows, failed relights and rows left out."""
-        out = [f"Metrics {describe(self.rule)}."]
+        out = [f"Metrics {describe(self.rule)}."] + list(self.remarks)
+        if any(k not in METRICS for k in self.metrics):
+            out.append("A cell's (n=k) counts the images where that metric is defined (e.g. shadow metrics need a "
+                       "target shadow covering 5-95% of the face); the others are counted apart, never averaged.")
         for src in dict.fromkeys(self.published.values()):
             names = ", ".join(m for m, s in self.published.items() if s == src)
             out.append(f"[published]: {names}: figures quoted from {src}; not measured here, never marked best.")
@@ -292,21 +359,22 @@ class Table:
         s = self.cells.get((method, protocol), {}).get(metric)
         b = best.get((protocol, metric))
         # Compare at the printed precision so ties print bold together.
-        return s is not None and b is not None and s.n > 0 and round(s.mean, digits) == round(b, digits)
+        return (s is not None and b is not None and s.n > 0
+                and round(_badness(metric, s.mean), digits) == round(_badness(metric, b), digits))
 
     # -- renderers
     def to_markdown(self, digits: int = 4, bold_best: bool = True) -> str:
         """GitHub Markdown: one row per method, columns ``<protocol> <metric>`` and ``<protocol> n``, then
         ``s/img``; notes (failed relights, dropped rows) follow the table."""
         best = self._best()
-        head = ["Method"] + [f"{PROTOCOL_LABELS.get(p, p)} {c}" for p in self.protocols
-                             for c in [*(METRIC_LABELS[k] for k in METRICS), "n"]] + ["s/img"]
+        head = ["Method"] + [f"{protocol_label(p)} {c}" for p in self.protocols
+                             for c in [*(METRIC_LABELS[k] for k in self.metrics), "n"]] + ["s/img"]
         lines = ["| " + " | ".join(head) + " |", "|" + "---|" + "---:|" * (len(head) - 1)]
         for m in self.methods:
             row = [self.label(m)]
             for p in self.protocols:
                 row += [self._cell(m, p, k, digits, False, bold_best and self._is_best(best, m, p, k, digits))
-                        for k in METRICS] + [self._n(m, p)]
+                        for k in self.metrics] + [self._n(m, p)]
             lines.append("| " + " | ".join(row + [self._time(m)]) + " |")
         return "\n".join(lines) + "\n\n" + "\n".join(self.notes()) + "\n"
 
@@ -318,19 +386,21 @@ class Table:
         out += [f"% [published] {m}: {src}" for m, src in self.published.items()]
         if caption:
             out.append(f"\\caption{{{_tex_escape(caption)} (metrics rule: {self.rule})}}")
-        out += [r"\begin{tabular}{l" + "cccr" * len(self.protocols) + "c}", r"\toprule"]
-        groups = " & ".join(f"\\multicolumn{{4}}{{c}}{{{_tex_escape(PROTOCOL_LABELS.get(p, p))}}}"
+        k = len(self.metrics) + 1
+        out += [r"\begin{tabular}{l" + ("c" * (k - 1) + "r") * len(self.protocols) + "c}", r"\toprule"]
+        groups = " & ".join(f"\\multicolumn{{{k}}}{{c}}{{{_tex_escape(protocol_label(p))}}}"
                             for p in self.protocols)
         out.append(f" & {groups} & \\\\")
-        out.append("".join(f"\\cmidrule(lr){{{2 + 4 * i}-{5 + 4 * i}}}" for i in range(len(self.protocols))))
-        out.append("Method & " + " & ".join(c for _ in self.protocols for c in [*(METRIC_LABELS[k] for k in METRICS),
-                                                                              "$n$"]) + r" & s/img \\")
+        out.append("".join(f"\\cmidrule(lr){{{2 + k * i}-{1 + k * (i + 1)}}}" for i in range(len(self.protocols))))
+        out.append("Method & " + " & ".join(c for _ in self.protocols for c in
+                                             [*(_tex_escape(METRIC_LABELS[x]) for x in self.metrics), "$n$"])
+                   + r" & s/img \\")
         out.append(r"\midrule")
         for m in self.methods:
             cells = []
             for p in self.protocols:
                 cells += [self._cell(m, p, k, digits, True, bold_best and self._is_best(best, m, p, k, digits))
-                          for k in METRICS] + [_tex_escape(self._n(m, p))]
+                          for k in self.metrics] + [_tex_escape(self._n(m, p))]
             out.append(" & ".join([_tex_escape(self.label(m))] + cells + [self._time(m)]) + r" \\")
         out += [r"\bottomrule", r"\end{tabular}", r"\end{table}"]
         return "\n".join(out) + "\n"
@@ -341,7 +411,7 @@ class Table:
         header = ["method"]
         failed = any(self.failed.values())  # the column only when a relight failed: otherwise unchanged
         for p in self.protocols:
-            header += [f"{p}_{k}_{s}" for k in METRICS for s in ("mean", "se")] + [f"{p}_n"]
+            header += [f"{p}_{k}_{s}" for k in self.metrics for s in ("mean", "se")] + [f"{p}_n"]
             header += [f"{p}_failed"] if failed else []
         header += ["seconds_per_image", "rule", "source"]
         buf = io.StringIO()
@@ -351,7 +421,7 @@ class Table:
             row: list[str] = [m]
             for p in self.protocols:
                 stats = self.cells.get((m, p), {})
-                for k in METRICS:
+                for k in self.metrics:
                     s = stats.get(k, Stat(math.nan, math.nan, 0))
                     row += [_fmt(s.mean), _fmt(s.se)]
                 row.append(str(max((s.n for s in stats.values()), default=0)))
@@ -363,6 +433,12 @@ class Table:
         if path is not None:
             Path(path).write_text(text)
         return text
+
+
+def _badness(metric: str, mean: float) -> float:
+    """Lower is better: the mean, its negative, or its distance from 1 (:data:`BETTER`)."""
+    way = BETTER.get(metric, "low")
+    return -mean if way == "high" else abs(mean - 1.0) if way == "one" else mean
 
 
 def _fmt(x: float) -> str:
@@ -395,9 +471,10 @@ def summarize(records: Sequence[Record], methods: Sequence[str] | None = None) -
     seen = list(dict.fromkeys(r.method for r in records))
     order = list(methods) + [m for m in seen if m not in methods] if methods else seen
     protocols = sorted({p for _, p in keys}, key=_protocol_key)
-    cells = {k: {m: mean_se(getattr(r, m) for r in rs) for m in METRICS} for k, rs in keys.items()}
+    names = [*METRICS, *(k for k in EXTRA_METRICS if k in extra_columns(records))]
+    cells = {k: {m: mean_se(r.value(m) for r in rs) for m in names} for k, rs in keys.items()}
     seconds = {m: mean_se(r.seconds for r in records if r.method == m and r.status == "ok") for m in order}
-    return Table(order, protocols, cells, seconds, failed, rule=_one_rule(records))
+    return Table(order, protocols, cells, seconds, failed, rule=_one_rule(records), metrics=names)
 
 
 def _one_rule(records: Sequence[Record], where: dict | None = None) -> str:
@@ -414,9 +491,11 @@ def _one_rule(records: Sequence[Record], where: dict | None = None) -> str:
 
 
 def merge_runs(run_dirs: Iterable[str | Path], filename: str = PER_IMAGE_CSV,
-               methods: Sequence[str] | None = None, drop_bad_rows: bool = False) -> Table:
+               methods: Sequence[str] | None = None, drop_bad_rows: bool = False, *, strata: str | None = None,
+               bins: Sequence[float] | None = None, with_records: bool = False):
     """Read each run's per-image CSV (checked row by row, see :func:`read_records_checked`) and summarise
-    them as one table.
+    them as one table; ``strata`` breaks it down (:func:`difareli.evaluation.paired.stratify`); ``with_records``
+    returns ``(table, the rows it summarises)``.
 
     The same (method, protocol, record_id) appearing twice (e.g. a run listed twice) is an error:
     it would silently double-count an image.
@@ -433,11 +512,20 @@ def merge_runs(run_dirs: Iterable[str | Path], filename: str = PER_IMAGE_CSV,
         for r in rows:
             key = (r.method, r.protocol, r.record_id)
             if key in where:
-                raise ValueError(f"duplicate record {key} in {where[key]} and {path}")
+                raise TableError(f"duplicate record {key} in {where[key]} and {path}; list each run once and "
+                                 "remove repeated rows")
             where[key] = path
             records.append(r)
     _one_rule(records, where)  # names a run dir of each rule
+    if strata not in (None, "protocol"):
+        from difareli.evaluation import paired
+
+        records = paired.stratify(records, strata, paired.SHADOW_BINS if bins is None else bins)
     table = summarize(records, methods)
     table.dropped = dropped
-    return table
+    if strata not in (None, "protocol"):
+        edges = list(bins) if bins is not None else list(paired.SHADOW_BINS)
+        table.remarks.append(f"Broken down by {strata}" + (f" (bins {edges})" if strata == "shadow_share" else "")
+                             + ": each protocol column group is one stratum.")
+    return (table, records) if with_records else table
 

@@ -8,6 +8,10 @@ the metric rule (``paper`` by default) through the torchmetrics Metrics of :mod:
 input | relit | ground truth grid, to every configured logger. It runs at the start of a validation (after the EMA
 callback has swapped its average in) once ``every_n_steps`` have passed since its last run (null: every
 validation), and prints what one evaluation cost against the training wall time since the previous one.
+With ``extras`` (default) it also logs the metrics beyond DSSIM / MSE / LPIPS that difareli-benchmark writes
+(:mod:`difareli.evaluation.extras`: ``val/identity_input/same``, ``val/light_angle/different``,
+``val/shadow_adherence/same``, ...; each where the store and the installed extras allow it, a metric undefined on
+every pair is not logged).
 
 The pairs and their target conditions are prepared once, at fit start. Under DDP every process relights its share
 of the sources and the Metrics' summed states reduce over all of them. A store without SynthFaces light groups in its
@@ -70,7 +74,8 @@ class RelightMetrics(L.Callback):
     """
 
     def __init__(self, pairs: int = 4, every_n_steps: int | None = None, sampler: Any = "unipc", steps: int | None = 10,
-                 rule: str | None = None, precision: str = "auto", grid: bool = True, enabled: bool = True):
+                 rule: str | None = None, precision: str = "auto", grid: bool = True, enabled: bool = True,
+                 extras: bool = True):
         self.spec: SamplerSpec = as_spec(sampler, steps=steps)  # a bad sampler fails before training
         self.rule = metrics.check_rule(rule)
         if precision not in ("auto", "fp32", "bf16"):
@@ -78,7 +83,8 @@ class RelightMetrics(L.Callback):
         if every_n_steps is not None and (not isinstance(every_n_steps, int) or every_n_steps < 1):
             raise ValueError(f"callbacks.relight_metrics.every_n_steps={every_n_steps!r} must be null or an int >= 1")
         self.pairs, self.every_n_steps, self.precision = int(pairs), every_n_steps, precision
-        self.grid, self.enabled = bool(grid), bool(enabled)
+        self.grid, self.enabled, self.extras = bool(grid), bool(enabled), bool(extras)
+        self.scorer = None  # difareli.evaluation.extras.PairExtras of the store, made at fit start
         self.cases: list[dict[str, Any]] = []
         self.history: list[dict[str, Any]] = []
         self._last_step: int | None = None
@@ -100,6 +106,10 @@ class RelightMetrics(L.Callback):
             return
         rank, world = trainer.global_rank, trainer.world_size
         self.cases = [self._prepare(store, pl_module, p) for p in pairs[rank::world]]
+        if self.extras:
+            from difareli.evaluation.extras import PairExtras
+
+            self.scorer = PairExtras(store)
         self._clock = time.perf_counter()
 
     def _disable(self, why: str) -> None:
@@ -113,13 +123,14 @@ class RelightMetrics(L.Callback):
 
         names = relight_reads(model_inputs(model))
         arrays = read_record(store, pair["source"], names)
-        fit, targets = LightFit(), []
+        fit, targets, lights = LightFit(), [], []
         for proto in PROTOCOLS.values():
             light = fit.from_store(store, pair[proto])
             shadow, _ = target_shadow_of(store, pair[proto])
             targets.append(retarget(arrays, model_inputs(model), light, shadow))
+            lights.append(light)
         gt = store.read(pair["target"], ["image", "face_mask"])
-        return {"pair": dict(pair), "x0": image_to_tensor(arrays["image"])[None],
+        return {"pair": dict(pair), "lights": lights, "x0": image_to_tensor(arrays["image"])[None],
                 "source": condition_tensors(model, [arrays]), "targets": condition_tensors(model, targets),
                 "gt": torch.from_numpy(np.asarray(gt["image"], np.float64) / 255.0).permute(2, 0, 1)[None],
                 "mask": torch.from_numpy(np.array(gt["face_mask"], dtype=bool))[None]}
@@ -146,6 +157,7 @@ class RelightMetrics(L.Callback):
         dev = pl_module.device
         runtime = Runtime(device="cpu" if dev.type == "cpu" else str(dev), precision=self.precision)
         scores = {p: metrics.relight_metrics(self.rule).to(dev) for p in PROTOCOLS.values()}
+        extra: dict[str, dict[str, metrics.FiniteMean]] = {p: {} for p in PROTOCOLS.values()}
         was_training = pl_module.training
         pl_module.eval()
         rows: dict[str, list] = {p: [] for p in PROTOCOLS.values()}
@@ -157,9 +169,14 @@ class RelightMetrics(L.Callback):
             relit = torch.from_numpy(np.stack(images).astype(np.float64) / 255.0).permute(0, 3, 1, 2).to(dev)
             for k, proto in enumerate(PROTOCOLS.values()):
                 scores[proto].update(relit[k:k + 1], case["gt"].to(dev), case["mask"].to(dev))
+                if self.scorer is not None:  # the benchmark's extra scores of the same uint8 image
+                    ex, _ = self.scorer(images[k], case["pair"]["source"], case["pair"]["target"], case["lights"][k])
+                    for name, v in ex.items():
+                        extra[proto].setdefault(name, metrics.FiniteMean().to(dev)).update(v)
                 rows[proto].append([viz.to_uint8(case["x0"][0]), images[k], viz.to_uint8(case["gt"][0] * 2 - 1)])
         pl_module.train(was_training)
         values = {f"val/{k}/{proto}": float(v) for proto, coll in scores.items() for k, v in coll.compute().items()}
+        values.update({f"val/{k}/{proto}": float(m.compute()) for proto, ms in extra.items() for k, m in ms.items()})
         seconds = time.perf_counter() - t0
         for name, v in values.items():
             if math.isfinite(v):

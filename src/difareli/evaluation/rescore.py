@@ -1,0 +1,103 @@
+"""``difareli-benchmark rescore=<run dir>``: a finished run's saved relit PNGs scored again (another metric rule or
+mask, and the extra columns of :mod:`difareli.evaluation.extras`) without relighting, against the run's own store only
+and from a per-image CSV that holds each of the run's pairs exactly once."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+from typing import Sequence
+
+from difareli import errors
+from difareli.data import provenance
+from difareli.data import shard as sharding
+from difareli.data.store import EncodingStore
+from difareli.evaluation import metrics, tables
+from difareli.evaluation.benchmark import (PROTOCOLS, SETTINGS, BenchmarkResult, Lights, _read_png, _recorded,
+                                           check_score_mask, load_pairs, score, write_outputs)
+from difareli.evaluation.extras import PairExtras
+from difareli.lighting.light_fit import LightFit
+from difareli.utils.fileio import on_full_disk, write_json_atomic
+
+
+def rescore(store: EncodingStore, run_dir: str | Path, out_dir: str | Path, rule: str | None = None,
+            score_mask: str | None = None, estimator: LightFit | None = None) -> BenchmarkResult:
+    """Score the relit PNGs a finished run saved (``relit/<protocol>/<pair id>.png``) again under ``rule`` on
+    ``score_mask``, into ``out_dir``: the same images, another metric rule or mask (seconds and failed rows are
+    kept from the run). The store must be the run's (its recorded identity), and the run's CSV must hold each of
+    its pairs exactly once; the lighting error refits the target light with ``estimator`` (default LightFit)."""
+    run_dir, rule = Path(run_dir), metrics.check_rule(rule)
+    score_mask = check_score_mask(store, score_mask)
+    settings = _recorded(run_dir)
+    _check_same_store(store, run_dir, settings)
+    rows = tables.read_records(run_dir / tables.PER_IMAGE_CSV)
+    _check_rows(store, run_dir, rows, settings)
+    pairs = {(PROTOCOLS[p.protocol], p.id): p for v in load_pairs(store, list(PROTOCOLS)).values() for p in v}
+    prov = run_dir / "provenance.json"
+    result = BenchmarkResult(records=[], provenance={**(json.loads(prov.read_text()) if prov.is_file() else {}),
+                                                     "metrics rule": rule, "score mask": score_mask,
+                                                     "rescored from": str(run_dir)})
+    extras = PairExtras(store, score_mask, fit=estimator)
+    result.provenance.update(extras.provenance())
+    result.notes = list(extras.notes)
+    oracle = bool(settings.get("oracle_light"))
+    lights = Lights(store, None if oracle else (estimator or LightFit()))
+    scorers = {short: metrics.relight_metrics(rule) for short in PROTOCOLS.values()}
+    for r in rows:
+        pair = pairs.get((r.protocol, r.record_id))
+        if r.status != "ok":
+            ex, info = extras.empty(pair.target) if pair else ({}, {})
+            result.records.append(dataclasses.replace(r, rule=rule, extra=ex, info=info))
+            continue
+        png = run_dir / "relit" / (pair.protocol if pair else "?") / f"{r.record_id}.png"
+        if pair is None or not png.is_file():
+            raise errors.UserError(f"rescore={run_dir}: no relit image {png} for {r.protocol} pair {r.record_id} "
+                                   "(was the run made with save_images=true on this store?); rerun the benchmark")
+        gt = store.read(pair.target, ["image", score_mask])
+        relit = _read_png(png)
+        s = score(relit, gt["image"], gt[score_mask], rule, scorers[r.protocol])
+        ex, info = extras(relit, pair.source, pair.target, lights.get(pair.target if oracle else pair.light_source))
+        result.records.append(dataclasses.replace(r, dssim=s["dssim"], mse=s["mse"], lpips=s["lpips"], rule=rule,
+                                                  extra=ex, info=info))
+    result.metric_stats = {p: {k: m.stat() for k, m in sc.items()} for p, sc in scorers.items()}
+    with on_full_disk(out_dir, scratch=[out_dir]):
+        if settings:  # the rescored folder records its store too: a rescore of it is checked the same way
+            write_json_atomic(Path(out_dir) / SETTINGS, {**settings, "rule": rule, "score_mask": score_mask})
+        result.paths.update(write_outputs(result, Path(out_dir), caption=f"{run_dir.name} rescored ({rule})"))
+    return result
+
+
+def _check_same_store(store: EncodingStore, run_dir: Path, settings: dict) -> None:
+    """A rescore reads the ground truths of the store the run was scored on, or nothing: the same record ids in
+    another store would score the saved images against other ground truths."""
+    have, now = settings.get("store"), provenance.store_identity(store)
+    if have is None:
+        raise errors.UserError(f"rescore={run_dir}: the run records no store identity ({SETTINGS} missing or "
+                               "without 'store'), so nothing says its images belong to this store; rerun the benchmark")
+    if have != now:
+        prov = run_dir / "provenance.json"
+        where = json.loads(prov.read_text()).get("store") if prov.is_file() else None
+        raise errors.UserError(f"rescore={run_dir}: the run was scored on store {where or have}, store={store.root} "
+                               f"is another one ({now}); rescore against the run's own store")
+
+
+def _check_rows(store: EncodingStore, run_dir: Path, rows: Sequence[tables.Record], settings: dict) -> None:
+    """Each pair of the run exactly once, as difareli-table requires: duplicated or missing rows are refused."""
+    seen: dict[tuple[str, str], int] = {}
+    for r in rows:
+        seen[(r.protocol, r.record_id)] = seen.get((r.protocol, r.record_id), 0) + 1
+    dup = [k for k, n in seen.items() if n > 1]
+    if dup:
+        raise errors.UserError(f"rescore={run_dir}: {tables.PER_IMAGE_CSV} repeats {len(dup)} pair(s) (e.g. "
+                               f"{dup[0][0]} {dup[0][1]} {seen[dup[0]]} times); each pair is scored once: remove the "
+                               "repeated rows or rerun the benchmark")
+    if "protocols" not in settings:
+        return
+    want = {(PROTOCOLS[p], q.id) for p, v in load_pairs(store, settings["protocols"], settings.get("limit")).items()
+            for q in sharding.select(v, settings.get("shard"), key=lambda q: q.id)}
+    missing, extra = sorted(want - set(seen)), sorted(set(seen) - want)
+    if missing or extra:
+        raise errors.UserError(f"rescore={run_dir}: {tables.PER_IMAGE_CSV} lacks {len(missing)} of the run's pairs "
+                               f"(e.g. {missing[:2]}) and has {len(extra)} it did not score (e.g. {extra[:2]}); "
+                               "rerun the benchmark to complete it")

@@ -1,0 +1,72 @@
+"""The benchmark's extra columns (identity, lighting error, shadow adherence, strata) on known cases, and rescore's
+refusals (another store, duplicated or missing rows)."""
+
+import json
+import math
+import shutil
+
+import numpy as np
+import pytest
+
+from difareli.errors import UserError
+from difareli.evaluation import identity, tables
+
+from tests.evaluation.test_benchmark import _bench_cfg
+
+
+@pytest.fixture(scope="module")
+def runs(synth_store, tmp_path_factory):
+    from difareli.cli.benchmark import run
+
+    root = tmp_path_factory.mktemp("extras")
+    return root, {m: run(_bench_cfg(root / m, synth_store, f"method={m}", "grid_pairs=0", "limit=3"))
+                  for m in ("identity", "oracle")}
+
+
+def test_known_values_of_the_extra_columns(runs):
+    root, res = runs
+    header = (root / "oracle" / tables.PER_IMAGE_CSV).read_text().splitlines()[0].split(",")
+    want = ["light_angle", "light_rel_error", "shadow_adherence", "shadow_darkening", "shadow_iou",
+            "light_category", "shadow_share"]
+    if identity.unavailable() is None:
+        want = ["identity_input", "identity_gt", *want]
+    assert header == [*tables.COLUMNS, "rule", *want]
+    for r in res["oracle"].records:  # the relit image is the ground truth itself
+        if not math.isnan(r.extra["shadow_adherence"]):
+            assert r.extra["shadow_adherence"] == 1.0
+        if "identity_gt" in r.extra:
+            assert r.extra["identity_gt"] == pytest.approx(1.0, abs=1e-6)
+        assert r.info["light_category"] and 0 <= float(r.info["shadow_share"]) <= 1
+    for r in res["identity"].records:  # the relit image is the input itself
+        if "identity_input" in r.extra:
+            assert r.extra["identity_input"] == pytest.approx(1.0, abs=1e-6)
+        assert 0 <= r.extra["light_angle"] <= 180 and r.extra["light_rel_error"] >= 0
+    summary = (root / "oracle" / "summary.md").read_text()
+    assert "light angle (deg)" in summary and "target shadow M: shadow_" in summary
+
+
+def test_rescore_refuses_another_store_and_bad_rows(runs, synth_store, tmp_path):
+    from difareli.cli.benchmark import run
+
+    root, _ = runs
+    other = tmp_path / "other"
+    shutil.copytree(synth_store, other)  # the same record ids, another store (another seed in its header)
+    doc = json.loads((other / "store.json").read_text())
+    doc["meta"]["seed"] = int(doc["meta"].get("seed", 0)) + 1
+    (other / "store.json").write_text(json.dumps(doc))
+    with pytest.raises(UserError, match=r"the run was scored on store .* is another one \(sha256:"):
+        run(_bench_cfg(tmp_path / "re1", other, "method=identity", f"rescore={root / 'identity'}"))
+    dup = tmp_path / "dup"
+    shutil.copytree(root / "identity", dup)
+    lines = (dup / tables.PER_IMAGE_CSV).read_text().splitlines(keepends=True)
+    (dup / tables.PER_IMAGE_CSV).write_text("".join(lines + lines[1:3]))
+    with pytest.raises(UserError, match=r"repeats 2 pair\(s\)"):
+        run(_bench_cfg(tmp_path / "re2", synth_store, "method=identity", f"rescore={dup}"))
+    (dup / tables.PER_IMAGE_CSV).write_text("".join(lines[:-1]))
+    with pytest.raises(UserError, match=r"lacks 1 of the run's pairs"):
+        run(_bench_cfg(tmp_path / "re3", synth_store, "method=identity", f"rescore={dup}"))
+    # the run's own store: the same rows again, extra columns included
+    again = run(_bench_cfg(tmp_path / "re4", synth_store, "method=identity", f"rescore={root / 'identity'}"))
+    first = tables.read_records(root / "identity" / tables.PER_IMAGE_CSV)
+    assert [(r.record_id, r.dssim) for r in again.records] == [(r.record_id, r.dssim) for r in first]
+    assert np.allclose([r.extra["light_angle"] for r in again.records], [r.extra["light_angle"] for r in first])
