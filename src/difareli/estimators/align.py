@@ -1,8 +1,11 @@
 """Face detection and FFHQ-style alignment (mediapipe 0.10.21 legacy solutions; models ship in the wheel).
 
 1. BlazeFace (``face_detection``) on a copy shrunk to ``detect_max_side``: the short-range model (0, faces
-   within ~2 m: portraits) first, the full-range model (1) only if it finds nothing; the largest box wins
-   and the face count is recorded (several faces are a note, not a failure).
+   within ~2 m: portraits) first, the full-range model (1) only if it finds nothing; on a photo of at least
+   ``tile_min_side`` px the short-range model also runs on overlapping square tiles (its 128 px input misses
+   faces under ~1/6 of the photo: 3 of the 6 faces of a group photo were found without tiles, 6 with), and
+   boxes covering the same face are merged. The largest box wins unless ``select`` names one (a box of
+   :meth:`FaceAligner.detect`); the face count is recorded (several faces are a note, not a failure).
 2. FaceMesh on a square crop around that box gives 478 landmarks in the original image.
 3. The FFHQ recipe (Karras et al., ``ffhq-dataset/download_ffhq.py``) turns the eye centres and the mouth
    corners into an oriented square ``quad``, which is resampled to ``size`` x ``size`` (reflect padding
@@ -48,8 +51,9 @@ def ffhq_quad(landmarks_xy: np.ndarray) -> np.ndarray:
     return np.stack([c - x - y, c - x + y, c + x + y, c + x - y])
 
 
-def warp_quad(image: np.ndarray, quad: np.ndarray, size: int) -> np.ndarray:
-    """Resample the oriented square ``quad`` of ``image`` to ``size`` x ``size`` (bilinear, reflect pad)."""
+def warp_quad(image: np.ndarray, quad: np.ndarray, size: int, border: str = "reflect") -> np.ndarray:
+    """Resample the oriented square ``quad`` of ``image`` to ``size`` x ``size`` (bilinear; where the quad leaves
+    the image: ``border`` reflect | replicate | zeros)."""
     import cv2
 
     quad = np.asarray(quad, dtype=np.float64)
@@ -64,8 +68,34 @@ def warp_quad(image: np.ndarray, quad: np.ndarray, size: int) -> np.ndarray:
     # Output pixel centre (u + .5, v + .5) -> input continuous coords; cv2 indexes pixel centres as integers.
     off = quad[0] + 0.5 * (ex + ey) - 0.5
     m = np.array([[ex[0], ey[0], off[0]], [ex[1], ey[1], off[1]]])
+    mode = {"reflect": cv2.BORDER_REFLECT_101, "replicate": cv2.BORDER_REPLICATE, "zeros": cv2.BORDER_CONSTANT}
     return cv2.warpAffine(image, m, (size, size), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                          borderMode=cv2.BORDER_REFLECT_101)
+                          borderMode=mode[border], borderValue=0)
+
+
+def inside_photo(quad: np.ndarray, size: int, hw: tuple[int, int]) -> np.ndarray:
+    """Bool (size, size): crop pixels whose centre samples the photo (``hw``) rather than its padding."""
+    quad = np.asarray(quad, dtype=np.float64)
+    v, u = np.mgrid[0:size, 0:size] + 0.5
+    xy = quad[0] + u[..., None] * (quad[3] - quad[0]) / size + v[..., None] * (quad[1] - quad[0]) / size
+    return (xy[..., 0] >= 0) & (xy[..., 0] <= hw[1]) & (xy[..., 1] >= 0) & (xy[..., 1] <= hw[0])
+
+
+def merge_boxes(found: list[tuple[float, np.ndarray]], overlap: float = 0.5) -> list[tuple[float, np.ndarray]]:
+    """Boxes (score, x0 y0 w h) less those whose intersection covers ``overlap`` of the smaller of two boxes
+    (the same face seen in two tiles, or in a tile and the whole photo); the higher score stays."""
+    kept: list[tuple[float, np.ndarray]] = []
+    for score, b in sorted(found, key=lambda sb: -sb[0]):
+        dup = False
+        for _, k in kept:
+            iw = min(b[0] + b[2], k[0] + k[2]) - max(b[0], k[0])
+            ih = min(b[1] + b[3], k[1] + k[3]) - max(b[1], k[1])
+            if iw > 0 and ih > 0 and iw * ih >= overlap * min(b[2] * b[3], k[2] * k[3]):
+                dup = True
+                break
+        if not dup:
+            kept.append((score, b))
+    return kept
 
 
 def quad_to_crop(points_xy: np.ndarray, quad: np.ndarray, size: int) -> np.ndarray:
@@ -113,8 +143,11 @@ class FaceAligner:
     """Detect the largest face and return the FFHQ-aligned ``size`` x ``size`` crop (see module doc)."""
 
     def __init__(self, size: int = 256, detect_max_side: int = 1024, min_detection_confidence: float = 0.5,
-                 models: tuple[int, ...] = (0, 1), crop_factor: float = 2.2, mesh_crop: int = 384):
+                 models: tuple[int, ...] = (0, 1), crop_factor: float = 2.2, mesh_crop: int = 384,
+                 tile_min_side: int = 384, tile_share: float = 0.6, border: str = "reflect"):
         self.size = int(size)
+        self.tile_min_side, self.tile_share, self.border = int(tile_min_side), float(tile_share), border
+        self.select: np.ndarray | None = None  # a box of detect() to align instead of the largest
         self.detect_max_side = detect_max_side
         self.min_detection_confidence = min_detection_confidence
         self.models = tuple(models)
@@ -127,24 +160,55 @@ class FaceAligner:
         """(score, box x0, y0, w, h in original pixels) of every face, largest first; the detector models
         are tried in ``models`` order until one finds a face."""
         import cv2
-        import mediapipe as mp
 
         h, w = rgb.shape[:2]
         f = min(1.0, self.detect_max_side / max(h, w))
         small = rgb if f == 1.0 else cv2.resize(rgb, (round(w * f), round(h * f)), interpolation=cv2.INTER_AREA)
         small = np.ascontiguousarray(small)
+        boxes: list[tuple[float, np.ndarray]] = []
         for model in self.models:
-            if model not in self._detectors:
-                self._detectors[model] = mp.solutions.face_detection.FaceDetection(
-                    model_selection=model, min_detection_confidence=self.min_detection_confidence)
-            res = self._detectors[model].process(small)
-            boxes = []
-            for d in res.detections or []:
-                b = d.location_data.relative_bounding_box
-                boxes.append((float(d.score[0]), np.array([b.xmin * w, b.ymin * h, b.width * w, b.height * h])))
+            boxes = self._run(model, small, 1.0 / f, (0, 0))
             if boxes:
-                return sorted(boxes, key=lambda sb: -sb[1][2] * sb[1][3])
-        return []
+                break
+        sh, sw = small.shape[:2]
+        if min(sh, sw) >= self.tile_min_side:  # small faces: the short-range model on overlapping tiles
+            t = round(min(sh, sw) * self.tile_share)
+            ys = np.unique(np.linspace(0, sh - t, max(2, int(np.ceil(2 * sh / t)) - 1)).round().astype(int))
+            xs = np.unique(np.linspace(0, sw - t, max(2, int(np.ceil(2 * sw / t)) - 1)).round().astype(int))
+            tiled = []
+            for y0 in ys:
+                for x0 in xs:
+                    tiled += self._run(self.models[0], small[y0:y0 + t, x0:x0 + t], 1.0 / f, (x0, y0))
+            merged = merge_boxes([(s + 1.0, b) for s, b in boxes] + tiled)  # the whole photo's boxes win
+            # A face only a tile saw must also be one to FaceMesh (tiles see faces in shirts and patterns).
+            boxes = [(s - 1.0, b) if s > 1.0 else (s, b) for s, b in merged
+                     if s > 1.0 or self._confirmed(rgb, b)]
+        return sorted(boxes, key=lambda sb: -sb[1][2] * sb[1][3])
+
+    def _confirmed(self, rgb: np.ndarray, box: np.ndarray) -> bool:
+        """FaceMesh finds a face whose landmarks' centre lies in ``box``."""
+        lm = self.landmarks(rgb, box)
+        if lm is None:
+            return False
+        cx, cy = lm[:, :2].mean(0)
+        return bool(box[0] <= cx <= box[0] + box[2] and box[1] <= cy <= box[1] + box[3])
+
+    def _run(self, model: int, rgb: np.ndarray, scale: float, offset: tuple[int, int]
+             ) -> list[tuple[float, np.ndarray]]:
+        """BlazeFace ``model`` on ``rgb`` (a tile at ``offset`` of the detection copy): boxes in photo pixels."""
+        import mediapipe as mp
+
+        if model not in self._detectors:
+            self._detectors[model] = mp.solutions.face_detection.FaceDetection(
+                model_selection=model, min_detection_confidence=self.min_detection_confidence)
+        res = self._detectors[model].process(np.ascontiguousarray(rgb))
+        h, w = rgb.shape[:2]
+        out = []
+        for d in res.detections or []:
+            b = d.location_data.relative_bounding_box
+            box = np.array([b.xmin * w + offset[0], b.ymin * h + offset[1], b.width * w, b.height * h]) * scale
+            out.append((float(d.score[0]), box))
+        return out
 
     def landmarks(self, rgb: np.ndarray, box: np.ndarray | None) -> np.ndarray | None:
         """FaceMesh landmarks (478, 3) in original pixels, from a square crop around ``box`` (or the image)."""
@@ -164,17 +228,26 @@ class FaceAligner:
     def __call__(self, rgb: np.ndarray) -> dict:
         """``{"image": aligned uint8, "quad": (4, 2), "faces": n, "box": ..., "notes": [...], "landmarks": (478, 3)
         FaceMesh landmarks in original pixels}``."""
-        faces = self.detect(rgb)
         notes = []
-        box = faces[0][1] if faces else None
-        if len(faces) > 1:
-            notes.append(f"{len(faces)} faces detected; kept the largest (box x,y,w,h = "
-                         f"{', '.join(f'{v:.0f}' for v in box)})")
-        lm = self.landmarks(rgb, box)
-        if lm is None and box is not None:
-            lm = self.landmarks(rgb, None)  # detector box was off: let FaceMesh search the whole photo
+        if self.select is not None:  # a face the caller chose among detect()'s (photo.py: face=<index>)
+            faces, box = [(1.0, np.asarray(self.select, np.float64))], np.asarray(self.select, np.float64)
+            lm = self.landmarks(rgb, box)
+            if lm is not None:
+                cx, cy = lm[:, :2].mean(0)
+                if not (box[0] - 0.5 * box[2] <= cx <= box[0] + 1.5 * box[2]
+                        and box[1] - 0.5 * box[3] <= cy <= box[1] + 1.5 * box[3]):
+                    lm = None  # FaceMesh took a neighbouring face
+        else:
+            faces = self.detect(rgb)
+            box = faces[0][1] if faces else None
+            if len(faces) > 1:
+                notes.append(f"{len(faces)} faces detected; kept the largest (box x,y,w,h = "
+                             f"{', '.join(f'{v:.0f}' for v in box)}; face=<index>|all picks others)")
+            lm = self.landmarks(rgb, box)
+            if lm is None and box is not None:
+                lm = self.landmarks(rgb, None)  # detector box was off: let FaceMesh search the whole photo
         if lm is None:
             raise BadInput("no face detected" if not faces else "face detected but FaceMesh found no landmarks")
         quad = ffhq_quad(lm[:, :2])
-        return {"image": warp_quad(rgb, quad, self.size), "quad": quad, "faces": max(len(faces), 1),
+        return {"image": warp_quad(rgb, quad, self.size, self.border), "quad": quad, "faces": max(len(faces), 1),
                 "box": None if box is None else box.tolist(), "notes": notes, "landmarks": lm}

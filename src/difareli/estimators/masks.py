@@ -190,7 +190,8 @@ class FaceMeshSelfieMasks:
     def __init__(self, person_threshold: float = 0.5, neck_depth: float = 0.45, neck_halfwidth: float = 0.4,
                  model_selection: int = 0, colour: bool = True, skin_chroma: float = 14.0, skin_dark: float = 45.0,
                  neck_max_depth: float = 0.9, neck_max_halfwidth: float = 0.6, hat_chroma: float = 20.0,
-                 hat_lightness: float = 40.0, hat_min_share: float = 0.15, hat_min_width: float = 0.6):
+                 hat_lightness: float = 40.0, hat_min_share: float = 0.15, hat_min_width: float = 0.6,
+                 forehead_height: float = 0.35):
         self.person_threshold = person_threshold
         self.neck_depth = neck_depth
         self.neck_halfwidth = neck_halfwidth
@@ -199,6 +200,7 @@ class FaceMeshSelfieMasks:
         self.neck_max_depth, self.neck_max_halfwidth = neck_max_depth, neck_max_halfwidth
         self.hat_chroma, self.hat_lightness, self.hat_min_share = hat_chroma, hat_lightness, hat_min_share
         self.hat_min_width = hat_min_width
+        self.forehead_height = forehead_height
         self._seg = None
 
     def person(self, image: np.ndarray) -> np.ndarray:
@@ -244,6 +246,32 @@ class FaceMeshSelfieMasks:
                        background=np.where(_FG_LUT[labels][..., None], 0, image).astype(np.uint8))
         return out
 
+    def forehead(self, image, labels, lm, rows, cols, h, w, ref, rgb2lab) -> None:
+        """Forehead skin above FaceMesh's oval (the oval stops below the hairline) is ``skin``, not ``hair``:
+        skin-coloured person pixels (the neck rule's colour test) above the oval, within ``forehead_height * h``
+        of its top and the face's width, connected to the oval's top edge. Labelled ``hair`` (and, unlike the hair
+        beside the face, ``hat``) it was a grey band or a bright block across the forehead of the relight."""
+        from scipy import ndimage
+
+        oval = _FACE_LUT[labels]
+        top = lm[FOREHEAD, 1]
+        xs = lm[:, 0]
+        zone = ((labels == PART_INDEX["hair"]) & (rows < top + 0.1 * h) & (rows > top - self.forehead_height * h)
+                & (cols > xs.min()) & (cols < xs.max()))
+        if not zone.any():
+            return
+        lab = rgb2lab(image[zone])
+        skinlike = np.zeros_like(zone)
+        skinlike[zone] = ((np.hypot(lab[:, 1] - ref[1], lab[:, 2] - ref[2]) < self.skin_chroma)
+                          & (np.abs(lab[:, 0] - ref[0]) < self.skin_dark))
+        skinlike = opening(skinlike, 1)
+        comp, n = ndimage.label(skinlike)
+        seed = skinlike & dilate(oval, 1)
+        keep = np.zeros(n + 1, dtype=bool)
+        keep[comp[seed]] = True
+        keep[0] = False
+        labels[keep[comp]] = PART_INDEX["skin"]
+
     def refine(self, image: np.ndarray, labels: np.ndarray, lm: np.ndarray, rows: np.ndarray, cols: np.ndarray,
                h: float, w: float, jaw: float) -> None:
         """The colour rules of the module docstring, in place on ``labels`` (neck by skin colour, hat by a colour
@@ -277,6 +305,7 @@ class FaceMeshSelfieMasks:
             neck = closing(neck, 2) & below
             labels[below] = PART_INDEX["clothes"]
             labels[neck] = PART_INDEX["neck"]
+        self.forehead(image, labels, lm, rows, cols, h, w, ref, rgb2lab)
         # Hat: hair above the forehead unlike the hair beside the face.
         hair = labels == PART_INDEX["hair"]
         eyes_y = 0.5 * (lm[33, 1] + lm[263, 1])

@@ -17,7 +17,10 @@ Two transfers (``mode``):
 
 The blend mask is the masks encoding's ``parts`` (face parts, hair, neck, hat) in crop space, blurred by a
 Gaussian of ``feather`` x the crop size and faded to zero over the same width at the crop border (so clothes cut
-by the crop never leave an edge), then warped like the image. Outside its support the photo is untouched.
+by the crop never leave an edge), then warped like the image. Outside its support the photo is untouched. Where
+the crop ran past the photo's edge (``inside``: the crop pixels that sampled the photo) the padding's mask is
+its nearest photo pixel's before the blur: the padding (labelled background there) never fades the blend at
+the photo's edge, and it lands outside the photo, so nothing made of it comes back.
 """
 
 from __future__ import annotations
@@ -96,6 +99,7 @@ class Compositor:
     eps: float = 4.0 / 255.0
     max_gain: float = 4.0
     chunk: int = 8
+    inside: np.ndarray | None = None  # bool (S, S): crop pixels that sampled the photo (None: all)
 
     def __post_init__(self):
         if self.mode not in MODES:
@@ -118,13 +122,24 @@ class Compositor:
         return kornia.geometry.transform.warp_affine(crops, mt, (y1 - y0, x1 - x0), mode="bilinear",
                                                      padding_mode="zeros", align_corners=True)
 
+    def _crop_mask(self) -> torch.Tensor:
+        """The feathered blend mask in crop space [1, 1, S, S]."""
+        m = part_mask(self.labels, self.parts)
+        inside = None if self.inside is None else np.asarray(self.inside, bool)
+        if inside is not None and inside.any() and not inside.all():
+            from scipy import ndimage
+
+            idx = ndimage.distance_transform_edt(~inside, return_distances=False, return_indices=True)
+            m = m[idx[0], idx[1]]
+        return feathered(m, self.feather)
+
     def mask(self) -> np.ndarray:
         """The blend mask (H, W) float32 in [0, 1] in photo coordinates."""
         out = np.zeros(self.photo.shape[:2], np.float32)
         window = photo_window(self.quad, self.photo.shape[:2])
         if window is not None:
             y0, y1, x0, x1 = window
-            out[y0:y1, x0:x1] = self._warp(feathered(part_mask(self.labels, self.parts), self.feather), window)[0, 0]
+            out[y0:y1, x0:x1] = self._warp(self._crop_mask(), window)[0, 0]
         return out
 
     def __call__(self, relit: np.ndarray) -> np.ndarray:
@@ -139,10 +154,9 @@ class Compositor:
         if window is None:
             return out[0] if single else out
         y0, y1, x0, x1 = window
-        to_t = lambda a: torch.from_numpy(np.ascontiguousarray(a)).permute(0, 3, 1, 2).float() / 255.0
+        to_t = lambda a: torch.from_numpy(np.array(a, copy=True)).permute(0, 3, 1, 2).float() / 255.0
         # One warp for the mask and (ratio mode) the aligned input: they are the same for every frame.
-        fixed = torch.cat([feathered(part_mask(self.labels, self.parts), self.feather),
-                           to_t(self.aligned[None])], dim=1)
+        fixed = torch.cat([self._crop_mask(), to_t(self.aligned[None])], dim=1)
         fixed = self._warp(fixed, window)
         m, base = fixed[:, :1], fixed[:, 1:]
         photo = to_t(self.photo[None, y0:y1, x0:x1])

@@ -9,6 +9,12 @@ per process and crop size (:func:`pipeline_for`): building one and its first ima
 a photo is aligned at it unless told otherwise, and an input at another resolution is named in a warning
 (:func:`resolution_warning`). A grey photo (:func:`is_grey`) gets a grey light and comes back grey
 (:func:`grey_like`): it has no colour for the model to keep.
+
+A group photo: :func:`detect_faces` lists every face (left to right), ``prepare_photo(..., face=box)`` aligns the
+one chosen (``face=<index>|largest|all`` of difareli-relight, :func:`choose_faces`). Where the aligned square runs
+past the photo's edge (a tight crop) the crop is reflect-padded (``border="reflect"``, the default: measured
+closer to the uncut photo's relight than ``"mask"``, which labels the padded band ``background``; docs/photos.md,
+issue 44); the composite never takes the padding back.
 """
 
 from __future__ import annotations
@@ -27,6 +33,7 @@ from difareli.estimators.light import describe_light, is_grey, light_direction  
 #: The default estimators (``conf/preprocess.yaml``'s choices) as plain config, for callers without Hydra.
 DEFAULT_ESTIMATORS = {"align": "mediapipe", "geometry": "bfm", "masks": "facemesh_selfie", "light": "skin_sh",
                       "identity": "dlib", "shadow": "logreg"}
+BORDERS = ("reflect", "mask")
 EXTRAS_FIX = "install the photo estimators: DIFARELI_PREPROCESS=1 bash scripts/install.sh"
 PHOTO_FIX = "use a photo with one clearly visible face"
 _PIPELINES: dict[Any, Any] = {}
@@ -92,35 +99,100 @@ class PreparedPhoto:
     quad: np.ndarray
     meta: dict = field(default_factory=dict)
     seconds: float = 0.0
+    inside: np.ndarray | None = None  # bool (S, S): crop pixels sampling the photo, not its padding
+    landmarks: np.ndarray | None = None  # the alignment's FaceMesh landmarks (478, 3), photo pixels
+
+    @property
+    def past_edge(self) -> float:
+        """Share of the aligned crop that lies past the photo's edge (padding)."""
+        return 0.0 if self.inside is None else float(1.0 - self.inside.mean())
 
     def compositor(self, mode: str = "ratio", feather: float = 0.03, parts: Sequence[str] | None = None):
         """A :class:`difareli.relight.composite.Compositor` putting relit crops of this photo back into it."""
         from difareli.relight.composite import DEFAULT_PARTS, Compositor
 
         return Compositor(self.rgb, np.asarray(self.arrays["image"]), np.asarray(self.arrays["masks"]), self.quad,
-                          mode=mode, feather=float(feather), parts=tuple(parts or DEFAULT_PARTS))
+                          mode=mode, feather=float(feather), parts=tuple(parts or DEFAULT_PARTS),
+                          inside=self.inside)
+
+
+def detect_faces(rgb: np.ndarray, size: int, estimators: Mapping[str, Any] | None = None
+                 ) -> list[np.ndarray]:
+    """Every face BlazeFace finds (``align.FaceAligner.detect``: whole photo, then tiles), as boxes (x, y, w, h
+    in photo pixels) ordered left to right: ``face=<index>`` counts in this order."""
+    try:
+        aligner = pipeline_for(["masks"], size, estimators).aligner
+        from difareli.estimators.quiet import native_logs
+
+        with native_logs():
+            found = aligner.detect(np.ascontiguousarray(np.asarray(rgb)[..., :3]))
+    except ImportError as e:
+        raise ImportError(f"relighting a photo needs the estimators' packages ({e}); {EXTRAS_FIX}") from e
+    return [b for _, b in sorted(found, key=lambda sb: sb[1][0])]
+
+
+def choose_faces(boxes: Sequence[np.ndarray], face: Any, what: str) -> list[int]:
+    """Indices into ``boxes`` (left to right) for ``face`` = largest | all | <index>; a UserError otherwise."""
+    key = str(face).strip().lower()
+    if not boxes:
+        return []
+    if key == "largest":
+        return [int(np.argmax([b[2] * b[3] for b in boxes]))]
+    if key == "all":
+        return list(range(len(boxes)))
+    try:
+        i = int(key)
+    except ValueError:
+        raise UserError(f"face={face}: not a face choice; give face=largest, face=all or face=<index> "
+                        f"(0..{len(boxes) - 1}, left to right)") from None
+    if not 0 <= i < len(boxes):
+        raise UserError(f"face={face}: {what} has {len(boxes)} detected face(s), indices 0..{len(boxes) - 1} left "
+                        "to right; give one of them, face=largest or face=all")
+    return [i]
+
+
+def describe_box(i: int, box: np.ndarray, chosen: bool) -> str:
+    """One line per detected face: its index, box and whether it is relit."""
+    x, y, w, h = (float(v) for v in box)
+    return f"face {i}: box x={x:.0f} y={y:.0f} w={w:.0f} h={h:.0f} px{' (relit)' if chosen else ''}"
 
 
 def prepare_photo(rgb: np.ndarray, encodings: Sequence[str], *, size: int,
                   estimators: Mapping[str, Any] | None = None, what: str = "photo",
-                  composite: bool = True) -> PreparedPhoto:
+                  composite: bool = True, face: np.ndarray | None = None, border: str = "reflect") -> PreparedPhoto:
     """Preprocess one decoded RGB photo (uint8 HxWx3) for ``encodings`` at ``size`` px; ``composite`` adds the
-    part masks the composite blends with. Errors: a UserError naming ``what`` (no face...), or an ImportError
-    naming the install command."""
+    part masks the composite blends with; ``face``: a box of :func:`detect_faces` (None: the largest);
+    ``border``: ``reflect`` leaves the crop's padding past the photo's edge to the estimators, ``mask`` labels it
+    background (module doc). Errors: a UserError naming ``what`` (no face...), or an ImportError naming the
+    install command."""
+    from difareli.estimators.align import inside_photo
     from difareli.estimators.loading import BadInput
 
+    if border not in BORDERS:
+        raise ValueError(f"border must be one of {BORDERS}, got {border!r}")
     rgb = np.ascontiguousarray(np.asarray(rgb)[..., :3])
     names = [*encodings, *(["masks"] if composite else [])]
     start = time.perf_counter()
     try:
-        arrays, meta, ctx = pipeline_for(names, size, estimators).process(rgb)
+        pipe = pipeline_for(names, size, estimators)
+        pipe.aligner.select = None if face is None else np.asarray(face, np.float64)
+        try:
+            arrays, meta, ctx = pipe.process(rgb)
+        finally:
+            pipe.aligner.select = None
     except ImportError as e:
         raise ImportError(f"relighting a photo needs the estimators' packages ({e}); {EXTRAS_FIX}") from e
     except BadInput as e:
         raise UserError(f"{what}: {e}; {PHOTO_FIX}") from None
     meta["notes"] = list(ctx["notes"])
-    return PreparedPhoto(rgb, {k: np.asarray(v) for k, v in arrays.items()}, np.asarray(ctx["quad"], np.float64),
-                         meta, time.perf_counter() - start)
+    arrays = {k: np.asarray(v) for k, v in arrays.items()}
+    quad = np.asarray(ctx["quad"], np.float64)
+    inside = inside_photo(quad, size, rgb.shape[:2])
+    if border == "mask" and "masks" in arrays and not inside.all():
+        arrays["masks"] = np.where(inside, arrays["masks"], 0).astype(arrays["masks"].dtype)
+    lm = ctx.get("alignment_landmarks")
+    return PreparedPhoto(rgb, arrays, quad, meta, time.perf_counter() - start, inside,
+                         None if lm is None else np.asarray(lm))
 
 
 def preprocess_photo(rgb: np.ndarray, encodings: Sequence[str], *, size: int,

@@ -1,0 +1,141 @@
+"""Photos in one command (issue 44): ``difareli-relight image=<folder or glob>`` and ``face=all|<index>``.
+
+:func:`photo_paths` expands the ``image=`` value; :func:`relight_photos` relights every photo under one target
+(a progress bar), composites every chosen face into the one photo, and writes per input ``<stem>_composite.png``
+and ``<stem>_relit.png`` (the relit crops side by side) into ``out_dir``, and a row per photo to ``relight.csv``
+(seconds, faces, the check's measures, the outcome). A photo that cannot be relit (unreadable or truncated
+file, no face, too small, ``strict`` and a poor check) is one line on stderr and a ``skipped`` row. A rerun skips
+the photos whose composite exists (a killed run resumes: files are written atomically, the CSV row last).
+"""
+
+from __future__ import annotations
+
+import csv
+import glob
+import sys
+import time
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from difareli.errors import UserError
+from difareli.relight import photo, photo_check
+
+CSV_NAME = "relight.csv"
+FIELDS = ("photo", "status", "seconds", "faces", "relit_faces", "verdict", *photo_check.LIMITS, "reason")
+
+
+def photo_paths(value: str) -> list[Path] | None:
+    """The photos of a folder (its image files, sorted) or of a glob pattern; None for one file."""
+    from difareli.estimators.loading import IMAGE_SUFFIXES
+
+    p = Path(str(value))
+    if p.is_dir():
+        found = sorted(q for q in p.iterdir() if q.is_file() and q.suffix.lower() in IMAGE_SUFFIXES)
+    elif any(c in str(value) for c in "*?["):
+        found = sorted(Path(q) for q in glob.glob(str(value)) if Path(q).is_file())
+    else:
+        return None
+    if not found:
+        raise UserError(f"image={value}: no photos there ({', '.join(IMAGE_SUFFIXES)}); give a folder of face "
+                        "photos, a glob such as 'photos/*.jpg', or one photo")
+    return found
+
+
+def done_rows(out_dir: Path) -> dict[str, dict[str, str]]:
+    """The CSV rows of an earlier run, by photo."""
+    path = out_dir / CSV_NAME
+    if not path.is_file():
+        return {}
+    with path.open(newline="") as f:
+        return {row["photo"]: row for row in csv.DictReader(f)}
+
+
+def append_row(out_dir: Path, row: Mapping[str, Any]) -> None:
+    """One CSV row (the header first in a new file), flushed: a kill loses at most the photo in progress."""
+    path = out_dir / CSV_NAME
+    new = not path.is_file()
+    with path.open("a", newline="") as f:
+        w = csv.DictWriter(f, FIELDS, extrasaction="ignore")
+        if new:
+            w.writeheader()
+        w.writerow({k: (f"{v:.4g}" if isinstance(v, float) else v) for k, v in row.items()})
+        f.flush()
+
+
+def relight_one(path: Path, *, relighter, target: Callable[[np.ndarray], Any], size: int, face: Any,
+                composite: Mapping[str, Any], stats=None, strict: bool = False, say=print
+                ) -> tuple[np.ndarray, list[np.ndarray], dict[str, Any]]:
+    """One photo: every chosen face relit under ``target(source light)`` and composited in turn into the photo.
+    Returns (composite, relit crops, CSV row fields); a UserError for a photo that cannot be relit."""
+    what = f"image={path}"
+    rgb = photo.read_photo(path)
+    boxes = photo.detect_faces(rgb, size)
+    chosen = photo.choose_faces(boxes, face, what) if boxes else [None]
+    for i, box in enumerate(boxes):
+        say(f"{what}: {photo.describe_box(i, box, i in chosen)}")
+    out, crops, worst = rgb, [], None
+    for i in chosen:
+        prepared = photo.prepare_photo(rgb, relighter.needed_encodings(), size=size,
+                                       what=what, face=None if i is None else boxes[i])
+        name = what if i is None or len(boxes) < 2 else f"{what} face {i}"
+        result = photo_check.check(prepared, name, stats)
+        say(result.line())
+        if strict and not result.ok:
+            raise UserError(f"{name}: refused (strict=true): {'; '.join(result.problems)}")
+        worst = result if worst is None or (worst.ok and not result.ok) else worst
+        source = relighter.source_from_arrays(prepared.arrays, name, key=("image", str(path), i))
+        relit = relighter.relight(source, target(source.arrays["light"]))[0]
+        if photo.is_grey(source.arrays["image"]):
+            relit = photo.grey_like(relit)
+        crops.append(relit)
+        comp = prepared.compositor(composite.get("mode", "ratio"), composite.get("feather", 0.03),
+                                   list(composite["parts"]) if composite.get("parts") else None)
+        # Each face's gain goes onto the composite so far (faces do not overlap; ratio keeps the others).
+        out = type(comp)(out, comp.aligned, comp.labels, comp.quad, mode=comp.mode, feather=comp.feather,
+                         parts=comp.parts, inside=comp.inside)(relit)
+    row = {"faces": len(boxes), "relit_faces": len(crops), "verdict": "ok" if worst.ok else "poor",
+           **worst.measures}
+    return out, crops, row
+
+
+def relight_photos(paths: Sequence[Path], out_dir: str | Path, *, progress: bool = True, **kwargs) -> dict:
+    """Relight every photo of ``paths`` (module doc); returns counts {"done", "skipped", "resumed"}."""
+    from tqdm.auto import tqdm
+
+    from difareli.utils import viz
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    before = done_rows(out_dir)
+    counts = {"done": 0, "skipped": 0, "resumed": 0}
+    stems: dict[str, int] = {}
+    bar = tqdm(paths, desc="photos", unit="photo", disable=not progress, file=sys.stderr)
+    for path in bar:
+        stem = path.stem if path.stem not in stems else f"{path.stem}_{path.suffix.lstrip('.')}"
+        stems[stem] = 1
+        target = out_dir / f"{stem}_composite.png"
+        prior = before.get(str(path))
+        if prior is not None and (prior["status"] == "skipped" or target.is_file()):
+            counts["resumed" if prior["status"] == "relit" else "skipped"] += 1
+            if prior["status"] == "skipped":
+                print(f"skipped image={path}: {prior['reason']}", file=sys.stderr)
+            continue
+        start = time.perf_counter()
+        try:
+            full, crops, row = relight_one(path, say=lambda s: bar.write(s), **kwargs)
+        except UserError as e:
+            counts["skipped"] += 1
+            reason = str(e).removeprefix(f"image={path}: ").splitlines()[0]
+            print(f"skipped image={path}: {reason}", file=sys.stderr)
+            append_row(out_dir, {"photo": str(path), "status": "skipped", "reason": reason,
+                                 "seconds": time.perf_counter() - start})
+            continue
+        viz.save_png(np.concatenate(crops, axis=1), out_dir / f"{stem}_relit.png")
+        viz.save_png(full, target)
+        append_row(out_dir, {"photo": str(path), "status": "relit", "seconds": time.perf_counter() - start, **row})
+        counts["done"] += 1
+    bar.close()
+    return counts
