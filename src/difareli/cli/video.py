@@ -41,9 +41,10 @@ def run(cfg: DictConfig) -> dict[str, Path]:
     rid = cfg.record or (store.ids(split="test") or store.ids())[0]
     synth = store.store_meta.get("generator") == "synthfaces"
     with_gt = bool(cfg.ground_truth) and synth
-    if cfg.oracle_shadow and not with_gt:
-        raise errors.UserError("oracle_shadow=true needs the SynthFaces ground truth (a SynthFaces store and "
-                               "ground_truth=true); set oracle_shadow=false")
+    for key in ("oracle_shadow", "oracle_maps"):
+        if cfg.get(key) and not with_gt:
+            raise errors.UserError(f"{key}=true needs the SynthFaces ground truth (a SynthFaces store and "
+                                   f"ground_truth=true); set {key}=false")
     relighter = Relighter(cfg.checkpoint, cfg.sampler, runtime=cfg.runtime, mean_matching=cfg.mean_matching,
                           batch_size=cfg.batch_size, progress=cfg.progress)
     source = relighter.source(store, rid)
@@ -69,8 +70,10 @@ def run(cfg: DictConfig) -> dict[str, Path]:
     print(f"{rid}: {what}; {c_note}")
 
     out, ext = Path(cfg.out_dir), cfg.format
-    video = vid.rotation_video(relighter, source, Targets.of(lights, shadows, what), out, "relit", fps=cfg.fps,
-                               fmt=ext)
+    if cfg.oracle_maps:  # each frame's exact cast-shadow map (the ground truth's), not the one the march makes
+        what += "; target shadow maps: the ground truth's exact ones (oracle_maps=true)"
+    targets = Targets.of(lights, shadows, what, maps=gt.targets["shadow_map"] if cfg.oracle_maps else None)
+    video = vid.rotation_video(relighter, source, targets, out, "relit", fps=cfg.fps, fmt=ext)
     relit, seconds = video.frames, video.seconds
     print(f"{len(relit)} relit frames in {seconds:.1f} s ({len(relit) / seconds:.2f} frames/s)")
     written = {"relit": video.paths["video"], "frames_sheet": video.paths["sheet"]}
@@ -79,7 +82,8 @@ def run(cfg: DictConfig) -> dict[str, Path]:
     rows = ([[gt.frames[i] for i in picks]] if gt is not None else []) + [[relit[i] for i in picks]]
     written["sheet"] = viz.save_png(viz.grid(rows), out / "contact_sheet.png")
     summary = {"record": rid, "rotation": what, "shadow": c_note, "frames": len(relit),
-               "sampler": dict(cfg.sampler), "seconds": round(seconds, 3), "oracle_shadow": bool(cfg.oracle_shadow)}
+               "sampler": dict(cfg.sampler), "seconds": round(seconds, 3), "oracle_shadow": bool(cfg.oracle_shadow),
+               "oracle_maps": bool(cfg.oracle_maps)}
     if gt is not None:
         written["gt"] = vid.write_video(gt.frames, out / f"ground_truth.{ext}", cfg.fps)
         side = np.stack([viz.grid([[g, r]]) for g, r in zip(gt.frames, relit)])
@@ -87,7 +91,10 @@ def run(cfg: DictConfig) -> dict[str, Path]:
         # The rule measures (it is no model input): it uses the exact input and frame lights when the store has them.
         rule_arrays = {**arrays, "light": np.asarray(store.read(rid, ["light_gt"])["light_gt"])} \
             if store.available("light_gt") else arrays
-        report = vid.measure(relit, gt.frames, rule_arrays, gt.targets["light"], gt.cast())
+        # The maps the frames were given (made by the march, or the oracle's), to measure how far they are followed.
+        given = np.stack([a["shadow_map"] for a in targets.retarget(source.arrays, ["shadow_map"])]) \
+            if "shadow_map" in relighter.model_inputs else None
+        report = vid.measure(relit, gt.frames, rule_arrays, gt.targets["light"], gt.cast(), maps=given)
         written["csv"] = vid.write_csv(report, out / "frames.csv", angles)
         written["figure"] = vid.plot_temporal(report, out / "temporal.png", f"{rid}: {what}")
         summary.update(report.summary(), shadow_rule=(f"cast shadow where luminance < {vid.SHADOW_RATIO} x "

@@ -93,7 +93,7 @@ def temporal_error(relit: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> np.nd
 class VideoReport:
     """Per-frame measurements of a relit sequence against its ground truth."""
 
-    per_frame: dict[str, np.ndarray]       # dssim, mse, lpips, shadow_iou, rule_iou (N,)
+    per_frame: dict[str, np.ndarray]       # dssim, mse, lpips, shadow_iou, rule_iou [, map_adherence, map_iou] (N,)
     changes: dict[str, np.ndarray] = field(default_factory=dict)  # relit, gt, error (N - 1,)
 
     def summary(self) -> dict[str, float]:
@@ -106,9 +106,12 @@ class VideoReport:
 
 
 def measure(relit: np.ndarray, gt: np.ndarray, arrays: Mapping[str, np.ndarray], lights: np.ndarray,
-            gt_cast: np.ndarray | None = None) -> VideoReport:
+            gt_cast: np.ndarray | None = None, maps: np.ndarray | None = None) -> VideoReport:
     """Measure relit frames (N, H, W, 3) against GT frames; ``lights`` (N, 9, 3) are the target lights the
-    detection rule uses, ``gt_cast`` (N, H, W) the exact GT cast maps (for the rule's own IoU)."""
+    detection rule uses, ``gt_cast`` (N, H, W) the exact GT cast maps (for the rule's own IoU), ``maps`` (N, H, W)
+    the target shadow maps the relight was given: how far each frame follows its map
+    (:func:`difareli.evaluation.adherence.shadow_scores`: ``map_adherence``, its darkening against the ground
+    truth's under the same map, and ``map_iou``, the shadow found in the frame against the map)."""
     from difareli.evaluation import metrics
 
     if relit.shape != gt.shape:
@@ -122,6 +125,12 @@ def measure(relit: np.ndarray, gt: np.ndarray, arrays: Mapping[str, np.ndarray],
     scores["shadow_iou"] = iou(sr, sg)
     scores["rule_iou"] = iou(sg, np.asarray(gt_cast, bool) & judged) if gt_cast is not None else \
         np.full(len(relit), np.nan)
+    if maps is not None:
+        from difareli.evaluation.adherence import shadow_scores
+
+        follow = [shadow_scores(r, g, mask, np.asarray(m) > 0) for r, g, m in zip(relit, gt, maps)]
+        scores["map_adherence"] = np.array([f["shadow_adherence"] for f in follow])
+        scores["map_iou"] = np.array([f["shadow_iou"] for f in follow])
     changes = {"relit": frame_changes(relit, mask), "gt": frame_changes(gt, mask),
                "error": temporal_error(relit, gt, mask)} if len(relit) > 1 else {}
     return VideoReport(scores, changes)

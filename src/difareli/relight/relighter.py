@@ -29,7 +29,7 @@ from difareli.relight.core import invert_image, relight  # noqa: F401 (callers i
 from difareli.relight.relightable import OnePassRelightable, Relightable, model_inputs
 from difareli.runtime.core import Runtime
 from difareli.data.store import EncodingStore
-from difareli.relight.targets import Targets, check_maker, retarget_many
+from difareli.relight.targets import Targets, check_maker
 
 
 def needed_encodings(model: Relightable) -> list[str]:
@@ -144,7 +144,7 @@ class Relighter:
         out = []
         chunks = range(0, len(targets), self.batch_size)
         for start in tqdm(chunks, desc="relight", disable=not self.progress or len(chunks) == 1):
-            batch = retarget_many(arrays, self.model_inputs, targets[start:start + self.batch_size])
+            batch = targets.retarget(arrays, self.model_inputs, start, start + self.batch_size)
             x = relight(self.model, x0, cond, condition_tensors(self.model, batch, self.device), self.spec,
                         runtime=self.runtime, mean_matching=self.mean_matching, inversion=inv)
             errors.check_finite(x.float().cpu().numpy(), f"relight of {source.what}",

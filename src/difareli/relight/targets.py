@@ -26,14 +26,17 @@ from difareli.errors import TARGET_LIGHT_MAX_ABS, UserError, check_finite, check
 
 @dataclass(frozen=True)
 class Targets:
-    """N target lights (N, 9, 3) and their shadow logits c' (``None``: the model's own rule), checked once."""
+    """N target lights (N, 9, 3) and their shadow logits c' (``None``: the model's own rule), checked once; with
+    ``maps`` (N, H, W), the target shadow maps given instead of made (an exact or edited map, an oracle)."""
 
     lights: np.ndarray
     shadows: tuple[float | None, ...]
+    maps: np.ndarray | None = None
 
     @classmethod
-    def of(cls, lights, shadows=None, what: str = "target") -> "Targets":
-        """Lights (one 9x3 or a sequence/array of them) and optional shadows, checked finite and in range."""
+    def of(cls, lights, shadows=None, what: str = "target", maps=None) -> "Targets":
+        """Lights (one 9x3 or a sequence/array of them), optional shadows and optional target shadow maps,
+        checked finite and in range."""
         arr = np.asarray(lights, dtype=np.float64)
         arr = arr[None] if arr.ndim == 2 else arr
         if arr.ndim != 3 or arr.shape[1:] != (9, 3) or len(arr) == 0:
@@ -43,16 +46,36 @@ class Targets:
         if len(cs) != len(checked):
             raise ValueError(f"{what}: {len(checked)} target lights but {len(cs)} shadow values")
         cs = [check_number(c, f"{what} shadow strength {i}") for i, c in enumerate(cs)]
-        return cls(checked, tuple(None if c is None else float(c) for c in cs))
+        if maps is not None:
+            maps = check_finite(np.asarray(maps, dtype=np.float32), f"{what} shadow maps")
+            if maps.ndim != 3 or len(maps) != len(checked) or maps.min() < 0 or maps.max() > 1:
+                raise ValueError(f"{what}: {len(checked)} target lights need {len(checked)} shadow maps (N, H, W) "
+                                 f"with values in [0, 1]; got shape {maps.shape}")
+        return cls(checked, tuple(None if c is None else float(c) for c in cs), maps)
 
     def __len__(self) -> int:
         return len(self.lights)
 
     def __getitem__(self, i):
-        """``(light, c)`` for an index; a :class:`Targets` for a slice."""
+        """``(light, c)`` for an index; a list of them for a slice."""
         if isinstance(i, slice):
             return list(zip(self.lights[i], self.shadows[i]))
         return self.lights[i], self.shadows[i]
+
+    def retarget(self, arrays: Mapping[str, np.ndarray], names: list[str], start: int = 0, stop: int | None = None
+                 ) -> list[dict[str, np.ndarray]]:
+        """The encodings ``names`` of ``arrays`` under targets ``start:stop`` (:func:`retarget_many`), the given
+        ``maps`` taking the place of the made shadow maps."""
+        stop = len(self) if stop is None else min(stop, len(self))
+        out = retarget_many(arrays, names, self[start:stop])
+        if self.maps is not None and "shadow_map" in names:
+            hw = np.asarray(arrays["image"]).shape[:2]
+            if self.maps.shape[1:] != hw:
+                raise ValueError(f"target shadow maps are {self.maps.shape[1:]}, the source image {hw}: give maps at "
+                                 "the source's resolution")
+            for k, o in enumerate(out):
+                o["shadow_map"] = self.maps[start + k]
+        return out
 
 
 def load_sh_file(path: str | Path) -> np.ndarray:
