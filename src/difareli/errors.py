@@ -1,4 +1,4 @@
-"""User errors: one style for every console script, and the input checks that raise them (issue 15).
+"""User errors: one style for every console script, and the input checks that raise them.
 
 A *user error* (bad config value, unreadable or corrupt file, non-finite input) ends a CLI with one or two
 lines ``difareli-<name>: <input>: <what is wrong>; <the fix>`` on stderr and exit status 2, no traceback.

@@ -84,7 +84,7 @@ def metric_rule(cfg: DictConfig) -> str:
 
 
 def validate(cfg: DictConfig) -> None:
-    """Config values, checked before any work (issue 15): a bad value is a UserError naming the key."""
+    """Config values, checked before any work: a bad value is a UserError naming the key."""
     errors.check_int(cfg.limit, "limit", 1, allow_none=True)
     errors.check_int(cfg.grid_pairs, "grid_pairs", 0)
     errors.check_int(cfg.num_threads, "num_threads", 1, allow_none=True)

@@ -1,4 +1,4 @@
-"""difareli-teacher-pairs: a teacher relights every training record toward another record's light (issue 13)."""
+"""difareli-teacher-pairs: a teacher relights every training record toward another record's light."""
 
 from __future__ import annotations
 

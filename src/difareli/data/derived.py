@@ -1,5 +1,5 @@
 """Derived encodings: versioned alternatives of a declared encoding, computed after a store was written
-(e.g. DiFaReli++'s difference-method shadow maps, ``shadow_map@diff-<hash>``; issue 12).
+(e.g. DiFaReli++'s difference-method shadow maps, ``shadow_map@diff-<hash>``).
 
 Layout: ``records/<record_id>/<base>@<version>.npy`` beside the record's own encodings (nothing is copied),
 and the version's provenance (checkpoint, sampler, threshold, ...) under ``"derived"`` in ``store.json``.

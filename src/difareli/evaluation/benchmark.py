@@ -14,7 +14,7 @@ metric rule (``rule``: :data:`difareli.evaluation.metrics.RULES`, default ``pape
 Scores go through the torchmetrics ``Metric`` s of :func:`difareli.evaluation.metrics.relight_metrics`. A store without exact
 lights (``"exact_lights": false`` in ``protocols.json``: Multi-PIE) gets no light-estimation errors and no oracle.
 
-Beyond DSSIM / MSE / LPIPS (issue 43, :mod:`difareli.evaluation.extras`), each row carries the identity cosines of
+Beyond DSSIM / MSE / LPIPS (:mod:`difareli.evaluation.extras`), each row carries the identity cosines of
 the relit face (vs the input, vs the ground truth), the lighting error of the relit image against the target light
 and the shadow adherence to the target's cast shadow, where the store and the installed extras allow them (an absent
 column is one line in ``summary.md`` saying why), and the strata ``difareli-table strata=`` groups by.

@@ -1,4 +1,4 @@
-"""The per-image metrics beyond DSSIM / MSE / LPIPS (issue 43) and the strata of a benchmark pair, read from a store.
+"""The per-image metrics beyond DSSIM / MSE / LPIPS and the strata of a benchmark pair, read from a store.
 
 :class:`PairExtras` decides once per run which of :data:`tables.EXTRA_METRICS` the store allows (identity: the
 descriptor's weights are installed, :mod:`.identity`; lighting error: the store has normals; shadow adherence: it

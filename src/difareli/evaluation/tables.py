@@ -15,7 +15,7 @@ Statistics per (method, protocol) and metric: mean and standard error
 ``SE = std(ddof=1) / sqrt(n)`` (sample standard deviation; SE is NaN when n < 2). Every rendered table
 shows the n each mean is over.
 
-An optional last column ``status`` marks rows whose relight ``failed`` (a non-finite result, issue 15):
+An optional last column ``status`` marks rows whose relight ``failed`` (a non-finite result):
 they have no scores, count as failed in the table and never enter a mean. Reading checks every row: a
 malformed row (wrong field count, a cut last line), a non-finite or empty metric of a scored row, or a file
 with no rows is a :class:`TableError` naming the file and line, or with ``drop_bad_rows`` the row is left out
@@ -46,11 +46,11 @@ from difareli.evaluation.metrics import DEFAULT_RULE, RULES, describe
 
 PER_IMAGE_CSV = "metrics_per_image.csv"
 COLUMNS = ("method", "protocol", "record_id", "dssim", "mse", "lpips", "seconds")
-#: The rule of a per-image CSV without a ``rule`` column: every score before issue 22 was composited.
+#: The rule of a per-image CSV without a ``rule`` column: every score before the paper rule became the default was composited.
 LEGACY_RULE = "composite"
 METRICS = ("dssim", "mse", "lpips")
 METRIC_LABELS = {"dssim": "DSSIM", "mse": "MSE", "lpips": "LPIPS"}
-#: Optional per-image metrics (issue 43), in table order: identity cosine of the relit face vs the input and vs the
+#: Optional per-image metrics, in table order: identity cosine of the relit face vs the input and vs the
 #: ground truth, the lighting error of the relit image (degrees, relative SH), shadow adherence (ratio, raw, IoU).
 EXTRA_METRICS = ("identity_input", "identity_gt", "light_angle", "light_rel_error", "shadow_adherence",
                  "shadow_darkening", "shadow_iou")

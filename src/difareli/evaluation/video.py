@@ -1,4 +1,4 @@
-"""Moving-light videos, measured (issue 12): a record relit under a rotating light beside its ground truth.
+"""Moving-light videos, measured: a record relit under a rotating light beside its ground truth.
 
 What is measured per frame (relit vs ground truth, on the record's face mask):
 

@@ -1,10 +1,10 @@
-"""DiFaReli++'s difference-method shadow maps from a trained DiFaReli (paper Sec. IV-A; issue 12).
+"""DiFaReli++'s difference-method shadow maps from a trained DiFaReli (paper Sec. IV-A).
 
 For every record: relight it with its own light at the largest and at the smallest shadow strength of the
 training split (``c_max``, ``c_min``), through the relighting core (any sampler; records inverted in batches,
 both targets decoded in one batch). The **difference** is ``Y(relit at c_min) - Y(relit at c_max)`` (Rec. 709
 luminance, images in [0, 1]): positive where the stronger shadow darkened the face. Then, by the authors' recipe
-(XezXey/guided-diffusion ``experiment_scripts/TPAMI/cast_shadows/gen_smooth_sdiff/``; issue 23):
+(XezXey/guided-diffusion ``experiment_scripts/TPAMI/cast_shadows/gen_smooth_sdiff/``):
 
 Then (:mod:`difareli.jobs.shadow_response`): each record's difference is **centred** (its face median subtracted:
 raising c also brightens the lit skin, a global change that is not a shadow), cut at a threshold **relative** to

@@ -1,4 +1,4 @@
-"""Training guards (issue 15): a non-finite loss or gradient stops training before it poisons the weights.
+"""Training guards: a non-finite loss or gradient stops training before it poisons the weights.
 
 The check runs before ``backward`` (loss) and before the optimizer step (gradients), so the step that would
 write NaN into the parameters never happens and ModelCheckpoint (which saves after the batch) never saves a

@@ -1,4 +1,4 @@
-"""Relit pairs for the single-shot student (DiFaReli++_ss, issue 13): the pair samplers and how a teacher-pair
+"""Relit pairs for the single-shot student (DiFaReli++_ss): the pair samplers and how a teacher-pair
 store is read.
 
 A pair is a source record, a target light (and shadow logit c') and the image under it. The student's

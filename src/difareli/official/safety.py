@@ -1,4 +1,4 @@
-"""What difareli-import-checkpoint refuses or says before it writes (issue 42): non-finite weights, an ``out=``
+"""What difareli-import-checkpoint refuses or says before it writes: non-finite weights, an ``out=``
 that is one of the inputs or a folder, the UNet and Modulator of different training steps, and the config keys
 the tensors cannot show (a wrong YAML with the same shapes would import silently)."""
 

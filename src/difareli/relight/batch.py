@@ -1,4 +1,4 @@
-"""Photos in one command (issue 44): ``difareli-relight image=<folder or glob>`` and ``face=all|<index>``.
+"""Photos in one command: ``difareli-relight image=<folder or glob>`` and ``face=all|<index>``.
 
 :func:`photo_paths` expands the ``image=`` value; :func:`relight_photos` relights every photo under one target
 (a progress bar), composites every chosen face into the one photo, and writes per input ``<stem>_composite.png``

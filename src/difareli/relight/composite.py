@@ -1,4 +1,4 @@
-"""The relit face back in the whole photo (issue 25): the aligned crop warped through the inverse of the alignment
+"""The relit face back in the whole photo: the aligned crop warped through the inverse of the alignment
 transform into the original photo at its resolution, blended with a feathered face / hair mask (kornia).
 
 The alignment (:mod:`difareli.estimators.align`) resamples the oriented square ``quad`` of the photo (continuous

@@ -14,7 +14,7 @@ A group photo: :func:`detect_faces` lists every face (left to right), ``prepare_
 one chosen (``face=<index>|largest|all`` of difareli-relight, :func:`choose_faces`). Where the aligned square runs
 past the photo's edge (a tight crop) the crop is reflect-padded (``border="reflect"``, the default: measured
 closer to the uncut photo's relight than ``"mask"``, which labels the padded band ``background``; docs/photos.md,
-issue 44); the composite never takes the padding back.
+the composite never takes the padding back.
 """
 
 from __future__ import annotations

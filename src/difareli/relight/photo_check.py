@@ -1,4 +1,4 @@
-"""A check before relighting (issue 44): will this photo relight well? One line per photo.
+"""A check before relighting: will this photo relight well? One line per photo.
 
 Measured on the prepared photo (:class:`~difareli.relight.photo.PreparedPhoto`), nothing relit:
 

@@ -1,4 +1,4 @@
-"""The c range of a SynthFaces v3 store: its training split's, as the authors normalise c (issue 23).
+"""The c range of a SynthFaces v3 store: its training split's, as the authors normalise c.
 
 DiFaReli++'s shadow map is ``binary map * c_norm``; the authors take ``c_norm = (c - c_min) / (c_max - c_min)`` over
 the training set. A v3 store records that range in its header (``encodings.C_RANGE_KEY``) once every record is

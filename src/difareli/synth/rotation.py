@@ -1,5 +1,5 @@
 """Ground-truth light rotations for SynthFaces: the same subject rendered under moving lights, cast shadows
-included (issue 12, "moving lights, measured").
+included ("moving lights, measured").
 
 A SynthFaces record is fully determined by the store header's :class:`~difareli.synth.config.SynthConfig`,
 its subject index ``k`` and its light index ``j`` (``meta.json``: ``subject``, ``light_index``,

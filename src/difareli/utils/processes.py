@@ -1,5 +1,5 @@
-"""Processes that behave on a shared machine: workers that die with their parent (issue 15), threads that sleep
-when idle (issue 26).
+"""Processes that behave on a shared machine: workers that die with their parent, threads that sleep
+when idle.
 
 Use :func:`die_with_parent` as a ``ProcessPoolExecutor`` initializer with the parent's pid. On Linux the
 kernel delivers SIGKILL to the worker the moment its parent exits, however it exits (SIGKILL included,
@@ -8,7 +8,7 @@ kernel delivers SIGKILL to the worker the moment its parent exits, however it ex
 :func:`passive_openmp` sets ``OMP_WAIT_POLICY=PASSIVE`` where the environment leaves it unset. torch's OpenMP
 runtime (libgomp) otherwise spins 300,000 iterations after every parallel region before sleeping: on a machine
 shared with another job those spinning threads hold cores the other job needs, and the same relight took 1.75 s
-to 50 s between rounds (issue 26); passive waiting removed the spread. libgomp reads the variable once, when
+to 50 s between rounds; passive waiting removed the spread. libgomp reads the variable once, when
 torch loads it, so this must run before ``import torch`` (a console entry's first line); processes started later
 inherit it either way.
 """
