@@ -3,7 +3,7 @@
 For a record of a SynthFaces store: invert it with its own condition, then decode (one batch, the same inversion)
 under its own light twice, once with the shadow-map channel holding a map ``M`` and once with it zeroed. The
 **darkening** is the mean luminance drop inside ``M`` less the drop on the rest of the face (a change of the
-whole face's brightness is not a shadow). It is compared with what a real cast shadow removes on the same
+whole face's brightness is not a shadow); the drop inside ``M`` alone is reported beside it. It is compared with what a real cast shadow removes on the same
 record: ``Y * f / (1 - f)`` averaged over its visibly shadowed pixels (``shadow_visible_gt``), ``f`` the share of
 the pixel's light the shadows take (``shadow_fraction_gt``; images are linear, so the unshadowed pixel is
 ``Y / (1 - f)``). A model that draws the shadow it is given scores a ratio near 1; one that ignores its map, 0.
@@ -66,6 +66,7 @@ class RecordResponse:
     record: str
     kind: str
     darkening: float       # inside the map less the rest of the face (luminance in [0, 1])
+    inside: float          # the drop inside the map alone
     real: float            # what a real cast shadow removes on this record
     map_share: float       # share of the face the map covers
 
@@ -91,7 +92,8 @@ def respond(relighter, store, rid: str, kinds=MAPS) -> list[RecordResponse]:
         inside, drop = (m > 0) & face, y[2 * i + 1] - y[2 * i]
         rest = face & ~inside
         dark = float(drop[inside].mean() - drop[rest].mean()) if inside.any() and rest.any() else float("nan")
-        out.append(RecordResponse(rid, kind, dark, real, float(inside.sum() / max(face.sum(), 1))))
+        alone = float(drop[inside].mean()) if inside.any() else float("nan")
+        out.append(RecordResponse(rid, kind, dark, alone, real, float(inside.sum() / max(face.sum(), 1))))
     return out
 
 
@@ -100,9 +102,12 @@ def summarise(rows: list[RecordResponse]) -> dict[str, dict[str, float]]:
     out = {}
     for kind in dict.fromkeys(r.kind for r in rows):
         d = np.array([r.darkening for r in rows if r.kind == kind and np.isfinite(r.darkening)])
+        alone = np.array([r.inside for r in rows if r.kind == kind and np.isfinite(r.inside)])
         real = np.array([r.real for r in rows if r.kind == kind and np.isfinite(r.real)])
         se = lambda v: float(v.std(ddof=1) / np.sqrt(len(v))) if len(v) > 1 else float("nan")  # noqa: E731
         out[kind] = {"ratio": float(d.mean() / real.mean()) if len(d) and len(real) else float("nan"),
                      "darkening": float(d.mean()) if len(d) else float("nan"), "darkening_se": se(d),
+                     "inside": float(alone.mean()) if len(alone) else float("nan"),
+                     "inside_ratio": float(alone.mean() / real.mean()) if len(alone) and len(real) else float("nan"),
                      "real": float(real.mean()) if len(real) else float("nan"), "records": int(len(d))}
     return out
