@@ -11,17 +11,14 @@ from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
-import torch
 from tqdm.auto import tqdm
 
 from difareli.data import encodings as enc
-from difareli.utils import viz
 from difareli.data import provenance
 from difareli.errors import UserError, check_record
 from difareli.utils.fileio import folder_lock
-from difareli.data.inputs import condition_tensors, image_to_tensor
-from difareli.lit.pairs import LIGHT_FROM_KEY, SOURCE_KEY, target_arrays
-from difareli.relight.core import relight
+from difareli.lit.pairs import LIGHT_FROM_KEY, SOURCE_KEY
+from difareli.relight.targets import Targets
 from difareli.data.provenance import model_identity, store_identity
 from difareli.data.store import EncodingStore
 
@@ -72,8 +69,7 @@ def pair_provenance(relighter, store: EncodingStore, *, split: str, seed: int, p
 
 def _generate(relighter, store: EncodingStore, out: str | Path, *, split: str, per_record: int, limit: int | None,
               batch_size: int, seed: int, progress: bool, stop_after: int | None) -> dict[str, Any]:
-    model = relighter.model
-    inputs = [*model.spatial_inputs, *model.nonspatial_inputs]
+    inputs = relighter.model_inputs
     dependent = enc.light_dependent(inputs)
     ids = store.ids(split=split) or []
     if not ids:
@@ -99,19 +95,14 @@ def _generate(relighter, store: EncodingStore, out: str | Path, *, split: str, p
             batch = batch[:max(0, stop_after - written)]
         if not batch:
             break
-        srcs = [relighter.read(store, rid) for rid, _, _ in batch]
+        srcs = [relighter.source(store, rid) for rid, _, _ in batch]
         lights = [check_record(store.read(lid, ["light"] + (["shadow"] if has_c else [])), lid, store.root)
                   for _, _, lid in batch]
-        tgts = [target_arrays(s, inputs, l["light"], enc.shadow_logit(l)) for s, l in zip(srcs, lights)]
-        x0 = torch.stack([image_to_tensor(s["image"]) for s in srcs]).to(relighter.device)
-        relit = relight(model, x0, condition_tensors(model, srcs, relighter.device),
-                        condition_tensors(model, tgts, relighter.device), relighter.spec, runtime=relighter.runtime,
-                        mean_matching=relighter.mean_matching)
-        if not bool(torch.isfinite(relit).all()):
-            raise UserError(f"the teacher produced NaN/Inf relighting {[t[0] for t in batch]}; try runtime.precision="
-                            "fp32 or another checkpoint")
+        targets = Targets.of([l["light"] for l in lights], [enc.shadow_logit(l) for l in lights], "teacher targets")
+        relit = relighter.relight_each(srcs, targets)  # one batched inversion and decode; NaN refused there
+        tgts = [targets.retarget(s.arrays, inputs, k, k + 1)[0] for k, s in enumerate(srcs)]
         for (rid, k, lid), img, light, tgt in zip(batch, relit, lights, tgts):
-            arrays = {**{n: tgt[n] for n in dependent}, "image": viz.to_uint8(img.clamp(-1, 1)),
+            arrays = {**{n: tgt[n] for n in dependent}, "image": img,
                       "light": light["light"], **({"shadow": light["shadow"]} if has_c else {})}
             meta = {SOURCE_KEY: rid, LIGHT_FROM_KEY: lid, "split": split, "subject": store.meta(rid).get("subject"),
                     "shadow": enc.shadow_logit(light)}

@@ -14,9 +14,10 @@ from __future__ import annotations
 import dataclasses
 import warnings
 from dataclasses import dataclass
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
 
 import numpy as np
+import torch
 from torch import Tensor
 from tqdm.auto import tqdm
 
@@ -150,6 +151,33 @@ class Relighter:
             errors.check_finite(x.float().cpu().numpy(), f"relight of {source.what}",
                                 fix="the model produced NaN/Inf; try precision=fp32 or another checkpoint")
             self._warn_if_saturated(x, source.what, start)
+            out.extend(viz.to_uint8(xi.clamp(-1, 1)) for xi in x)
+        return np.stack(out)
+
+    def relight_each(self, sources: Sequence[Source], targets: Targets) -> np.ndarray:
+        """Source ``i`` under target ``i`` for many sources at once (N, H, W, 3) uint8: ``batch_size`` sources
+        inverted in one batch and decoded in one batch (a one-pass model: one pass per batch). The door for jobs
+        that relight a whole store (teacher pairs, shadow maps, measurements)."""
+        if len(sources) != len(targets):
+            raise ValueError(f"{len(sources)} sources but {len(targets)} targets: give one target per source")
+        out = []
+        for start in range(0, len(sources), self.batch_size):
+            chunk = sources[start:start + self.batch_size]
+            x0 = torch.stack([image_to_tensor(s.arrays["image"]) for s in chunk]).to(self.device)
+            src = condition_tensors(self.model, [s.arrays for s in chunk], self.device)
+            tgt = [targets.retarget(s.arrays, self.model_inputs, start + k, start + k + 1)[0]
+                   for k, s in enumerate(chunk)]
+            if isinstance(self.model, OnePassRelightable):  # its source condition is per image: one pass each
+                x = torch.cat([relight(self.model, x0[k:k + 1], tuple(None if v is None else v[k:k + 1] for v in src),
+                                       condition_tensors(self.model, [a], self.device), runtime=self.runtime)
+                               for k, a in enumerate(tgt)])
+            else:
+                x = relight(self.model, x0, src, condition_tensors(self.model, tgt, self.device), self.spec,
+                            runtime=self.runtime, mean_matching=self.mean_matching)
+            what = f"relight of {', '.join(s.what for s in chunk[:2])}{' ...' if len(chunk) > 2 else ''}"
+            errors.check_finite(x.float().cpu().numpy(), what,
+                                fix="the model produced NaN/Inf; try runtime.precision=fp32 or another checkpoint")
+            self._warn_if_saturated(x, what, start)
             out.extend(viz.to_uint8(xi.clamp(-1, 1)) for xi in x)
         return np.stack(out)
 
