@@ -18,6 +18,7 @@ from difareli.cli import common
 from difareli.relight.relighter import Relighter
 from difareli.data.encodings import shadow_logit
 from difareli.data.store import EncodingStore
+from difareli.utils.fileio import staged_outputs
 from difareli.relight.targets import Targets, load_envmap, video_shadow
 
 _MEASURE = ("image", "light", "normal", "face_mask", "shadow_map", "shadow")
@@ -69,45 +70,54 @@ def run(cfg: DictConfig) -> dict[str, Path]:
         shadows = [c] * len(angles)
     print(f"{rid}: {what}; {c_note}")
 
-    out, ext = Path(cfg.out_dir), cfg.format
-    if cfg.oracle_maps:  # each frame's exact cast-shadow map (the ground truth's), not the one the march makes
-        what += "; target shadow maps: the ground truth's exact ones (oracle_maps=true)"
-    targets = Targets.of(lights, shadows, what, maps=gt.targets["shadow_map"] if cfg.oracle_maps else None)
-    video = vid.rotation_video(relighter, source, targets, out, "relit", fps=cfg.fps, fmt=ext)
-    relit, seconds = video.frames, video.seconds
-    print(f"{len(relit)} relit frames in {seconds:.1f} s ({len(relit) / seconds:.2f} frames/s)")
-    written = {"relit": video.paths["video"], "frames_sheet": video.paths["sheet"]}
-    step = max(1, len(relit) // cfg.sheet_columns)
-    picks = list(range(0, len(relit), step))[:cfg.sheet_columns]
-    rows = ([[gt.frames[i] for i in picks]] if gt is not None else []) + [[relit[i] for i in picks]]
-    written["sheet"] = viz.save_png(viz.grid(rows), out / "contact_sheet.png")
-    summary = {"record": rid, "rotation": what, "shadow": c_note, "frames": len(relit),
-               "sampler": dict(cfg.sampler), "seconds": round(seconds, 3), "oracle_shadow": bool(cfg.oracle_shadow),
-               "oracle_maps": bool(cfg.oracle_maps)}
-    if gt is not None:
-        written["gt"] = vid.write_video(gt.frames, out / f"ground_truth.{ext}", cfg.fps)
-        side = np.stack([viz.grid([[g, r]]) for g, r in zip(gt.frames, relit)])
-        written["side_by_side"] = vid.write_video(side, out / f"side_by_side.{ext}", cfg.fps)
-        # The rule measures (it is no model input): it uses the exact input and frame lights when the store has them.
-        rule_arrays = {**arrays, "light": np.asarray(store.read(rid, ["light_gt"])["light_gt"])} \
-            if store.available("light_gt") else arrays
-        # The maps the frames were given (made by the march, or the oracle's), to measure how far they are followed.
-        given = np.stack([a["shadow_map"] for a in targets.retarget(source.arrays, ["shadow_map"])]) \
-            if "shadow_map" in relighter.model_inputs else None
-        report = vid.measure(relit, gt.frames, rule_arrays, gt.targets["light"], gt.cast(), maps=given)
-        written["csv"] = vid.write_csv(report, out / "frames.csv", angles)
-        written["figure"] = vid.plot_temporal(report, out / "temporal.png", f"{rid}: {what}")
-        summary.update(report.summary(), shadow_rule=(f"cast shadow where luminance < {vid.SHADOW_RATIO} x "
-                                                      "albedo-proxy x target SH irradiance (difareli/evaluation/video.py)"))
-        print("GT rows: top = ground truth, bottom = relit.  " + ", ".join(
-            f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in report.summary().items()))
-    tmp = out / "summary.json.tmp"
-    tmp.write_text(json.dumps(summary, indent=2, default=str))
-    tmp.replace(out / "summary.json")
-    written["summary"] = out / "summary.json"
+    ext = cfg.format
+    # Every output is staged and published at the end: a rerun into a finished folder never leaves it mixing runs.
+    with staged_outputs(cfg.out_dir, OUTPUTS, last="summary.json") as out:
+        if cfg.oracle_maps:  # each frame's exact cast-shadow map (the ground truth's), not the one the march makes
+            what += "; target shadow maps: the ground truth's exact ones (oracle_maps=true)"
+        targets = Targets.of(lights, shadows, what, maps=gt.targets["shadow_map"] if cfg.oracle_maps else None)
+        video = vid.rotation_video(relighter, source, targets, out, "relit", fps=cfg.fps, fmt=ext)
+        relit, seconds = video.frames, video.seconds
+        print(f"{len(relit)} relit frames in {seconds:.1f} s ({len(relit) / seconds:.2f} frames/s)")
+        written = {"relit": video.paths["video"], "frames_sheet": video.paths["sheet"]}
+        step = max(1, len(relit) // cfg.sheet_columns)
+        picks = list(range(0, len(relit), step))[:cfg.sheet_columns]
+        rows = ([[gt.frames[i] for i in picks]] if gt is not None else []) + [[relit[i] for i in picks]]
+        written["sheet"] = viz.save_png(viz.grid(rows), out / "contact_sheet.png")
+        summary = {"record": rid, "rotation": what, "shadow": c_note, "frames": len(relit),
+                   "sampler": dict(cfg.sampler), "seconds": round(seconds, 3), "oracle_shadow": bool(cfg.oracle_shadow),
+                   "oracle_maps": bool(cfg.oracle_maps)}
+        if gt is not None:
+            written["gt"] = vid.write_video(gt.frames, out / f"ground_truth.{ext}", cfg.fps)
+            side = np.stack([viz.grid([[g, r]]) for g, r in zip(gt.frames, relit)])
+            written["side_by_side"] = vid.write_video(side, out / f"side_by_side.{ext}", cfg.fps)
+            # The rule measures (it is no model input): the exact input and frame lights where the store has them.
+            rule_arrays = {**arrays, "light": np.asarray(store.read(rid, ["light_gt"])["light_gt"])} \
+                if store.available("light_gt") else arrays
+            # The maps the frames were given (made by the march, or the oracle's), to measure how far they are followed.
+            given = np.stack([a["shadow_map"] for a in targets.retarget(source.arrays, ["shadow_map"])]) \
+                if "shadow_map" in relighter.model_inputs else None
+            report = vid.measure(relit, gt.frames, rule_arrays, gt.targets["light"], gt.cast(), maps=given)
+            written["csv"] = vid.write_csv(report, out / "frames.csv", angles)
+            written["figure"] = vid.plot_temporal(report, out / "temporal.png", f"{rid}: {what}")
+            summary.update(report.summary(), shadow_rule=(
+                f"cast shadow where luminance < {vid.SHADOW_RATIO} x albedo-proxy x target SH irradiance "
+                "(difareli/evaluation/video.py)"))
+            print("GT rows: top = ground truth, bottom = relit.  " + ", ".join(
+                f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in report.summary().items()))
+        tmp = out / "summary.json.tmp"
+        tmp.write_text(json.dumps(summary, indent=2, default=str))
+        tmp.replace(out / "summary.json")
+        written["summary"] = out / "summary.json"
+    written = {k: Path(cfg.out_dir) / Path(v).name for k, v in written.items()}
     for k, p in written.items():
         print(f"{k}: {p}")
     return written
+
+
+#: What a video run writes (a rerun replaces all of them, never some).
+OUTPUTS = ("relit.gif", "relit.mp4", "relit.png", "contact_sheet.png", "ground_truth.gif", "ground_truth.mp4",
+           "side_by_side.gif", "side_by_side.mp4", "frames.csv", "temporal.png", "summary.json")
 
 
 def validate(cfg: DictConfig) -> None:

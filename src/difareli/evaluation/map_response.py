@@ -3,10 +3,11 @@
 For a record of a SynthFaces store: invert it with its own condition, then decode (one batch, the same inversion)
 under its own light twice, once with the shadow-map channel holding a map ``M`` and once with it zeroed. The
 **darkening** is the mean luminance drop inside ``M`` less the drop on the rest of the face (a change of the
-whole face's brightness is not a shadow); the drop inside ``M`` alone is reported beside it. It is compared with what a real cast shadow removes on the same
-record: ``Y * f / (1 - f)`` averaged over its visibly shadowed pixels (``shadow_visible_gt``), ``f`` the share of
-the pixel's light the shadows take (``shadow_fraction_gt``; images are linear, so the unshadowed pixel is
-``Y / (1 - f)``). A model that draws the shadow it is given scores a ratio near 1; one that ignores its map, 0.
+whole face's brightness is not a shadow); the drop inside ``M`` alone is reported beside it. Both are compared
+with what a real cast shadow removes on the same record: ``Y * f / (1 - f)`` averaged over its visibly shadowed
+pixels (``shadow_visible_gt``), ``f`` the share of the pixel's light the shadows take (``shadow_fraction_gt``;
+images are linear, so the unshadowed pixel is ``Y / (1 - f)``). A model that draws the shadow it is given scores
+a ratio near 1; one that ignores its map, 0.
 
 The maps tried (``MAPS``): ``exact`` (the visible shadows times the exact c), ``march_exact`` (the relight's own
 maker toward the exact light with the exact c) and ``march_fitted`` (toward the stored, fitted light with the

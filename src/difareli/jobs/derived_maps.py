@@ -62,7 +62,8 @@ def check(store, method: str, light: str) -> None:
     needs = ["shadow_visible_gt", c_name] if method == "visible" else ["depth", "normal", "cam", light_name, c_name]
     gone = [n for n in needs if not store.available(n)]
     if gone:
-        hint = "a SynthFaces v3 store (difareli-synth)" if method == "visible" else "light=fitted, or a SynthFaces store"
+        hint = ("a SynthFaces v3 store (difareli-synth)" if method == "visible"
+                else "light=fitted, or a SynthFaces store")
         raise errors.UserError(f"maker={method} light={light} reads {needs}, but store {store.root} has no "
                                f"{', '.join(gone)}; use {hint}")
 

@@ -193,7 +193,8 @@ def compute(model, store, spec, *, provenance: Mapping[str, Any], ids: Sequence[
             batch_size: int = 8, version: str | None = None, runtime=None, mean_matching: bool = True,
             device="cpu", progress: bool = True, c_range=None, check_after: int = CHECK_AFTER) -> ShadowMapReport:
     """The whole difference pipeline over ``ids`` (default: every record); writes two derived versions.
-    ``min_contrast`` / ``min_coherence`` None: the judge's defaults. ``c_range``: ``(c_min, c_max)`` to relight at instead of
+    ``min_contrast`` / ``min_coherence`` None: the judge's defaults. ``c_range``: ``(c_min, c_max)`` to relight at
+    instead of
     ``split``'s. The DiFaReli's response is checked once ``check_after`` records are relit (0: only at the end), so
     a model that will be refused is refused in minutes, not after the whole store. The store is locked for the
     run: a second concurrent writer is refused, naming this one."""
@@ -224,7 +225,8 @@ def _face_values(store, raw: str, ids: Sequence[str], zero_parts: Sequence[str],
 
 
 def _compute(model, store, spec, *, provenance, ids, split, c_quantile, threshold, relative, centre, median, zero_parts,
-             min_contrast, min_coherence, batch_size, version, runtime, mean_matching, device, progress, given, check_after) -> ShadowMapReport:
+             min_contrast, min_coherence, batch_size, version, runtime, mean_matching, device, progress, given,
+             check_after) -> ShadowMapReport:
     ids = list(ids) if ids is not None else store.ids()
     c_min, c_max, source = c_range_of(store, split, c_quantile, given)
     median = median_size(median, int(store.dims["H"]))

@@ -20,6 +20,7 @@ import contextlib
 import errno
 import json
 import os
+import shutil
 from pathlib import Path
 from typing import Any, Iterable, Iterator
 
@@ -197,3 +198,28 @@ def folder_lock(folder: str | Path, command: str) -> Iterator[Path]:
         yield folder
     finally:
         os.close(fd)  # closing releases the lock
+
+
+@contextlib.contextmanager
+def staged_outputs(out_dir: str | Path, names: Iterable[str], last: str | None = None) -> Iterator[Path]:
+    """Write a command's outputs into a scratch folder inside ``out_dir`` and publish them only when the block
+    succeeds: the previous run's files of ``names`` are removed, then the new ones renamed into place (``last``,
+    e.g. the summary, last of all), so the folder never mixes two runs; a block that fails (a full disk, a kill)
+    leaves the previous outputs as they were and removes the scratch folder. Renames and removals need no space."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    stage = out / f".partial-{os.getpid()}"
+    stage.mkdir(exist_ok=True)
+    try:
+        yield stage
+    except BaseException:
+        shutil.rmtree(stage, ignore_errors=True)
+        raise
+    made = sorted(p.name for p in stage.iterdir())
+    for name in set(names) | set(made):
+        if (out / name).is_file():
+            (out / name).unlink()
+    for name in sorted(made, key=lambda n: n == last):
+        os.replace(stage / name, out / name)
+    stage.rmdir()
+    fsync_dir(out)

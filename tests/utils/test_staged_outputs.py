@@ -1,0 +1,39 @@
+"""staged_outputs: a command's outputs are published whole or not at all, so a rerun into a finished folder that
+fails (a full disk, a kill) leaves the previous run's files as they were, and one that succeeds leaves none of them."""
+
+from __future__ import annotations
+
+import errno
+
+import pytest
+
+from difareli.utils.fileio import staged_outputs
+
+NAMES = ("relit.gif", "ground_truth.gif", "summary.json")
+
+
+def _first_run(out):
+    with staged_outputs(out, NAMES, last="summary.json") as stage:
+        for n in NAMES:
+            (stage / n).write_text(f"first {n}")
+
+
+def test_a_failed_rerun_leaves_the_previous_outputs_untouched(tmp_path):
+    out = tmp_path / "video"
+    _first_run(out)
+    with pytest.raises(OSError):
+        with staged_outputs(out, NAMES, last="summary.json") as stage:
+            (stage / "relit.gif").write_text("second relit")
+            raise OSError(errno.ENOSPC, "No space left on device", str(stage / "ground_truth.gif"))
+    assert {p.name: p.read_text() for p in out.iterdir()} == {n: f"first {n}" for n in NAMES}  # no scratch left
+
+
+def test_a_successful_rerun_replaces_every_output_of_the_previous_one(tmp_path):
+    out = tmp_path / "video"
+    _first_run(out)
+    (out / "notes.txt").write_text("the user's own file")
+    with staged_outputs(out, NAMES, last="summary.json") as stage:
+        (stage / "relit.gif").write_text("second relit")
+        (stage / "summary.json").write_text("second summary")  # this run renders no ground truth
+    got = {p.name: p.read_text() for p in out.iterdir()}
+    assert got == {"relit.gif": "second relit", "summary.json": "second summary", "notes.txt": "the user's own file"}
