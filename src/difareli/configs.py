@@ -11,6 +11,7 @@ shipped ones without touching the installation.
 from __future__ import annotations
 
 import os
+from datetime import datetime
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -31,6 +32,17 @@ def train_precision() -> str:
     return "bf16-mixed" if auto_precision("cpu") == "bf16" else "32-true"
 
 
+def run_stamp(pattern: str = "%Y-%m-%d_%H-%M-%S") -> str:
+    """``${difareli_run:}``: a run folder's name, the start time plus this process's id and 4 random hex digits.
+    ``${now:}`` alone let two commands started in the same second share (and overwrite) one folder; the id keeps
+    them apart on one machine, the random digits across the nodes of a cluster writing to one log folder. Hydra
+    caches the value per config (``use_cache``) and copies that cache into every job of a sweep, so one run (or
+    one multirun) sees one name; each new composition draws a new one."""
+    import secrets
+
+    return f"{datetime.now().strftime(pattern)}_{os.getpid()}-{secrets.token_hex(2)}"
+
+
 def _register_resolvers() -> None:
     # Only where OmegaConf is installed: the GPU readiness script reads plain YAML on images without Hydra.
     try:
@@ -41,6 +53,7 @@ def _register_resolvers() -> None:
     # paths.root_dir: the directory the command runs in (jobs never chdir). Not ${hydra:runtime.cwd}: a multirun's
     # sweeper resolves hydra.sweep.dir (under paths.log_dir) before any job has a HydraConfig, and that failed.
     OmegaConf.register_new_resolver("difareli_cwd", os.getcwd, replace=True)
+    OmegaConf.register_new_resolver("difareli_run", run_stamp, replace=True, use_cache=True)
 
 
 _register_resolvers()

@@ -185,6 +185,7 @@ def test_200_steps_values_do_not_grow_the_caches(app):
 
 
 # ---------------------------------------------------------------------------------------------- an abandoned relight
+@pytest.mark.slow  # asserts the next relight answers within 20 s of wall time
 def test_abandoned_relight_gives_the_lock_back(app):
     svc, port = app
     rid = _record(app)

@@ -73,6 +73,7 @@ def test_notebooks_are_stored_without_outputs():
 
 
 # ------------------------------------------------------------------------------------ relight_from_checkpoint
+@pytest.mark.slow  # a Jupyter kernel runs the notebook: ~20 s loaded (the missing-checkpoint run stays fast)
 def test_relight_notebook(tiny_checkpoint, synth_store, jupyter_path, tmp_path, monkeypatch):
     import imageio.v3 as iio
     import torch
@@ -134,6 +135,7 @@ def test_relight_notebook_with_a_missing_checkpoint_says_how_to_get_one(jupyter_
 
 @pytest.mark.skipif("difareli_pp-synth64" not in __import__("difareli.checkpoints.zoo").checkpoints.zoo.available(),
                     reason="no shipped difareli_pp-synth64")
+@pytest.mark.slow  # a Jupyter kernel relights with the shipped reference: ~35 s on the loaded 2-core CI
 def test_relight_notebook_runs_on_the_shipped_reference_by_default(jupyter_path, tmp_path, monkeypatch):
     """No parameters but the step count: the shipped checkpoint on SynthFaces generated in the notebook."""
     import imageio.v3 as iio
@@ -169,6 +171,7 @@ def _write_runs(root: Path) -> dict[tuple[str, str], dict[str, list[float]]]:
     return values
 
 
+@pytest.mark.slow  # a Jupyter kernel runs the whole notebook: ~10 s (the no-runs run stays fast)
 def test_tables_notebook(jupyter_path, tmp_path, monkeypatch):
     runs = tmp_path / "multirun"
     values = _write_runs(runs)

@@ -26,7 +26,7 @@ def test_demo_writes_grid_video_and_table(tiny_checkpoint, tmp_path):
                                    "runtime.device=cpu"], config_name="demo")
     res = run(cfg)
     grid = iio.imread(res.paths["comparison"])
-    assert grid.shape == (96 + 4, 3 * 98 + 2, 3)  # one row, zoomed x3: input | relit | ground truth
+    assert grid.shape == (96 + 4 + 18 + 14, 3 * 98 + 2, 3)  # header, one captioned row x3: input | relit | ground truth
     frames = iio.imread(res.paths["video"])
     assert frames.shape[0] == 4 and np.ptp(frames.astype(int), axis=0).max() > 0  # the light moves
     methods = res.table.methods
@@ -94,8 +94,8 @@ def test_relight_a_photo_in_one_command(tmp_path):
     written = run(cfg)
     relit = iio.imread(written["image"])
     comparison = iio.imread(written["comparison"])
-    assert relit.shape == (64, 64, 3) and comparison.shape == (68, 2 * 66 + 2, 3)
-    src = comparison[2:66, 2:66].astype(float)
+    assert relit.shape == (64, 64, 3) and comparison.shape == (68 + 18, 2 * 66 + 2, 3)  # with its header
+    src = comparison[20:84, 2:66].astype(float)
     assert src.std() > 10  # the aligned face crop, not a blank
     assert np.abs(relit.astype(float) - src).mean() > 1.0  # the light changed the image
 

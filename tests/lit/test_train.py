@@ -170,6 +170,7 @@ def test_init_from_refuses_another_variant_and_a_resume_at_once(tiny_checkpoint,
         train(compose_train(tmp_path / "b", [*base, f"init_from={other}", f"ckpt_path={other}"]))
 
 
+@pytest.mark.slow  # a console-script multirun in a fresh interpreter: ~18 s on the loaded 2-core CI
 def test_multirun_one_directory_per_variant(synth_store, tmp_path):
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     cmd = [sys.executable, "-m", "difareli.cli.train", "-m", "model=difareli,difareli_pp", "debug=fdr",

@@ -15,6 +15,9 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
+# The script in a fresh interpreter builds, times and trains toy models: minutes idle, past 600 s on the loaded 2-core
+# CI. The fast tier keeps its pieces: tests/perf/test_bench_modes.py (every mode) and test_perf.py (FLOP counts).
+pytestmark = pytest.mark.slow
 
 
 @pytest.fixture(scope="module")

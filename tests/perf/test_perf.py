@@ -134,6 +134,7 @@ def test_gemm_ceiling_is_2n3_over_the_fastest_timed_matmul(monkeypatch):
     assert perf.gemm_ceiling("cpu", "bf16", n=64, repeats=2) > 0
 
 
+@pytest.mark.slow  # a fresh interpreter runs scripts/bench_train.py: ~13 s loaded (profile_train_step stays fast)
 def test_bench_train_script_reports_the_built_models_parameters():
     proc = subprocess.run([sys.executable, str(ROOT / "scripts" / "bench_train.py"), "--configs", "tiny:16:2:32-true",
                            "--steps", "1", "--warmup", "1", "--variant", "difareli", "--json", "/dev/stdout"],

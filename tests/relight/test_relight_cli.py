@@ -41,11 +41,11 @@ def test_yaw_target_writes_relit_and_comparison(ckpt, depth_store, tmp_path):
     written = run(cfg)
     relit, comparison = iio.imread(written["image"]), iio.imread(written["comparison"])
     assert written["image"] == tmp_path / "relit.png" and relit.shape == (32, 32, 3)
-    assert comparison.shape == (CELL + 2, 2 * CELL + 2, 3)  # input | relit (no ground truth for a rotation)
+    assert comparison.shape == (CELL + 2 + 18, 2 * CELL + 2, 3)  # a header, input | relit (no ground truth)
     store = EncodingStore.open(depth_store)
     rid = store.ids(split="test")[0]  # record=null: the first test record
-    np.testing.assert_array_equal(comparison[2:34, 2:34], store.read(rid, ["image"])["image"])
-    np.testing.assert_array_equal(comparison[2:34, 2 + CELL:34 + CELL], relit)
+    np.testing.assert_array_equal(comparison[20:52, 2:34], store.read(rid, ["image"])["image"])
+    np.testing.assert_array_equal(comparison[20:52, 2 + CELL:34 + CELL], relit)
     # The same relight through the API: UniPC-20 under the input's light rotated 60 degrees about +y.
     r = Relighter(cfg.checkpoint, cfg.sampler, device="cpu")
     own = np.asarray(store.read(rid, ["light"])["light"])
@@ -57,10 +57,10 @@ def test_target_record_shows_ground_truth_for_same_subject(target, gt, ckpt, dep
     cfg = compose(tmp_path, [f"checkpoint={ckpt}", f"store={depth_store}", "record=s00006_l0",
                              f"target.record={target}", "sampler.steps=5"])
     comparison = iio.imread(run(cfg)["comparison"])
-    assert comparison.shape == (CELL + 2, (3 if gt else 2) * CELL + 2, 3)
+    assert comparison.shape == (CELL + 2 + 18, (3 if gt else 2) * CELL + 2, 3)
     if gt:
         truth = EncodingStore.open(depth_store).read(target, ["image"])["image"]
-        np.testing.assert_array_equal(comparison[2:34, 2 + 2 * CELL:34 + 2 * CELL], truth)
+        np.testing.assert_array_equal(comparison[20:52, 2 + 2 * CELL:34 + 2 * CELL], truth)
 
 
 def test_rotation_video_gif_and_contact_sheet(ckpt, depth_store, tmp_path):
@@ -72,7 +72,7 @@ def test_rotation_video_gif_and_contact_sheet(ckpt, depth_store, tmp_path):
     assert frames.shape[0] == 12 and frames.shape[1:3] == (32, 32)
     assert len({f.tobytes() for f in frames}) > 1  # the light moves
     sheet = iio.imread(written["sheet"])
-    assert sheet.shape == (2 * CELL + 2, 10 * CELL + 2, 3)  # 10 frames per row: 10 + 2
+    assert sheet.shape == (2 * (CELL + 14) + 2, 10 * CELL + 2, 3)  # 10 captioned frames per row: 10 + 2
 
 
 def test_two_targets_is_an_error(ckpt, depth_store, tmp_path):

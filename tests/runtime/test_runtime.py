@@ -160,6 +160,7 @@ def test_condition_flattens_to_its_tensors(case):
     assert type(back) is type(cond) and back.nonspatial is cond.nonspatial and back.spatial[0] is cond.spatial[0]
 
 
+@pytest.mark.slow  # asserts a 50 ms sleep reads under 1 s of wall time: not on a loaded CPU
 def test_timed_measures_a_sleep():
     import time
 

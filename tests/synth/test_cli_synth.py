@@ -49,6 +49,7 @@ def test_run_then_nothing_to_do(tmp_path, capsys):
     assert report.written == 0 and "nothing to do" in capsys.readouterr().out
 
 
+@pytest.mark.slow  # a fresh interpreter: ~12 s loaded (test_missing_out_dir_and_unknown_key stays fast)
 def test_console_script_reports_bad_key(tmp_path):
     env = dict(os.environ, PYTHONWARNINGS="ignore")
     proc = subprocess.run(

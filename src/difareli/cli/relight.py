@@ -17,7 +17,7 @@ import numpy as np
 from omegaconf import DictConfig
 
 from difareli import errors
-from difareli.relight import photo
+from difareli.relight import batch, photo, photo_check
 from difareli.utils import viz
 from difareli.cli import common
 from difareli.relight.composite import write_gif
@@ -48,6 +48,10 @@ def read_source_and_photo(cfg: DictConfig, relighter: Relighter, store: Encoding
         source = relighter.source_from_arrays(prepared.arrays, f"image={cfg.image}", key=("image", str(cfg.image)))
         for note in prepared.meta.get("notes", []):
             print(f"image={cfg.image}: {note}")
+        result = photo_check.check(prepared, f"image={cfg.image}")
+        print(result.line())
+        if cfg.strict and not result.ok:
+            raise errors.UserError(f"image={cfg.image}: refused (strict=true): {'; '.join(result.problems)}")
         print(f"source light (fitted on the photo): {photo.describe_light(source.arrays['light'])}")
         return source, prepared
     check_store(cfg, relighter, store, trained)
@@ -132,12 +136,39 @@ def composite_frames(cfg: DictConfig, prepared: photo.PreparedPhoto, relit: np.n
     return out
 
 
+def run_photos(cfg: DictConfig, relighter: Relighter, paths: list[Path]) -> dict[str, Path]:
+    """``image=<folder or glob>`` or ``face=all|<index>``: every photo (and chosen face) under the one target, by
+    :func:`difareli.relight.batch.relight_photos`; a UserError (non-zero exit) saying how many were skipped."""
+    t = cfg.target
+    if cfg.video.axis is not None or t.record is not None:
+        raise errors.UserError(f"image={cfg.image} face={cfg.face}: a folder or several faces take a target light "
+                               "(target.light|yaw|roll|envmap), not video.axis or target.record")
+
+    def target(light):
+        return Targets.of([target_lights(light, light=t.light, yaw=t.yaw, roll=t.roll, envmap=t.envmap)],
+                          [t.shadow], "the target")
+
+    counts = batch.relight_photos(paths, cfg.out_dir, progress=cfg.progress, relighter=relighter, target=target,
+                                  size=photo_size(cfg, photo.training_resolution(relighter.config)), face=cfg.face,
+                                  composite=cfg.composite, strict=bool(cfg.strict))
+    print(f"{counts['done']} photo(s) relit, {counts['resumed']} already done, {counts['skipped']} skipped; "
+          f"results and {batch.CSV_NAME} in {cfg.out_dir}")
+    if counts["skipped"]:
+        raise errors.UserError(f"image={cfg.image}: {counts['skipped']} of {len(paths)} photo(s) skipped (one line "
+                               f"each above, and in {Path(cfg.out_dir) / batch.CSV_NAME}); fix or remove them")
+    return {"csv": Path(cfg.out_dir) / batch.CSV_NAME}
+
+
 def run(cfg: DictConfig) -> dict[str, Path]:
     """Relight as configured; returns the paths written."""
     validate(cfg)
     store = EncodingStore.open(cfg.store).use_versions(cfg.get("versions")) if cfg.store is not None else None
     relighter = Relighter(cfg.checkpoint, cfg.sampler, runtime=cfg.runtime, mean_matching=cfg.mean_matching,
                           batch_size=cfg.batch_size, progress=cfg.progress)
+    if cfg.image is not None:
+        paths = batch.photo_paths(cfg.image)
+        if paths is not None or str(cfg.face).lower() != "largest":
+            return run_photos(cfg, relighter, paths or [Path(str(cfg.image))])
     source, prepared = read_source_and_photo(cfg, relighter, store)
     if photo.is_grey(source.arrays["image"]):
         print(f"{source.what} is grey: its light is grey and its relights are made grey (their luminance)")
@@ -153,18 +184,20 @@ def run(cfg: DictConfig) -> dict[str, Path]:
         start = time.perf_counter()
         relit = relighter.relight(source, targets)[0]
         print(f"relit {source.what} in {time.perf_counter() - start:.2f} s ({relighter.describe()})")
-        row = [source.arrays["image"], relit]
+        row, names = [source.arrays["image"], relit], ["input", "relit"]
         rid = source.key[1] if store is not None else None
         if t.record is not None and store.meta(t.record).get("subject") == store.meta(rid).get("subject"):
             row.append(np.asarray(store.read(t.record, ["image"])["image"]))  # ground truth: same subject
+            names.append("ground truth")
         written["image"] = viz.save_png(relit, out_dir / "relit.png")
-        written["comparison"] = viz.save_png(viz.grid([row]), out_dir / "comparison.png")
+        written["comparison"] = viz.save_png(viz.grid([row], col_labels=names), out_dir / "comparison.png")
         if prepared is not None:  # the whole photo back: the aligned crop and the full composite
             full = composite_frames(cfg, prepared, relit[None])[0]
             written["aligned"] = viz.save_png(source.arrays["image"], out_dir / "aligned.png")
             written["composite"] = viz.save_png(full, out_dir / "composite.png")
-            written["composite_comparison"] = viz.save_png(viz.grid([[prepared.rgb, full]]),
-                                                           out_dir / "composite_comparison.png")
+            written["composite_comparison"] = viz.save_png(
+                viz.grid([[prepared.rgb, full]], col_labels=["photo", "relit photo"]),
+                out_dir / "composite_comparison.png")
     if cfg.video.axis is not None:
         targets, why = rotation_targets(source.arrays, cfg.video.axis, cfg.video.frames, store=store,
                                         given=t.shadow)
@@ -176,6 +209,9 @@ def run(cfg: DictConfig) -> dict[str, Path]:
                                fmt=cfg.video.format)
         print(f"{len(video.frames)} frames in {video.seconds:.1f} s ({video.seconds / len(video.frames):.2f} s/frame, "
               f"{relighter.describe()})")
+        # rotation_video's sheet has no captions: written again with each frame's light angle.
+        viz.save_png(viz.contact_sheet(video.frames, viz.rotation_captions(cfg.video.axis, len(video.frames))),
+                     video.paths["sheet"])
         written.update(video.paths)
         if prepared is not None:  # every frame back into the whole photo
             frames = composite_frames(cfg, prepared, video.frames)

@@ -15,6 +15,7 @@ from difareli.checkpoints import zoo
 from difareli.cli import common
 from difareli.checkpoints.loading import read_checkpoint
 from difareli.lit import logging as lit_logging
+from difareli.lit import summary as lit_summary
 
 
 def train(cfg: DictConfig) -> dict[str, Any]:
@@ -53,9 +54,24 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     if init_from:
         model.load_state_dict(ckpt["state_dict"])
     lit_logging.log_run_info(trainer, cfg)  # git commit + resolved config as text
-    trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt_path)
+    try:
+        trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt_path)
+    except SystemExit:  # Lightning ends a Ctrl-C'd fit with sys.exit(1): say where the run got to first
+        if trainer.interrupted:
+            report(trainer, cfg)
+        raise
+    report(trainer, cfg)
     metric = common.metric_value(trainer.callback_metrics, cfg.get("optimized_metric"))
     return {"trainer": trainer, "model": model, "datamodule": datamodule, "metric": metric}
+
+
+def report(trainer, cfg: DictConfig) -> None:
+    """The closing line: steps done of planned, why it stopped, the checkpoint, the next command."""
+    from hydra.core.hydra_config import HydraConfig
+
+    overrides = list(HydraConfig.get().overrides.task) if HydraConfig.initialized() else []
+    if trainer.is_global_zero:
+        print(lit_summary.train_summary(trainer, overrides, cfg.data.get("root"), cfg.get("ckpt_path")), flush=True)
 
 
 def check_accelerator(trainer_cfg: DictConfig) -> None:

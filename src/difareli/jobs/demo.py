@@ -3,9 +3,11 @@
 On the embedded default (SynthFaces test subjects generated on the fly with a seed the reference models never
 trained on, and scikit-image's astronaut photo when the photo estimators are installed) it writes:
 
-- ``comparison.png``: rows of input | relit | ground truth (the same subject rendered under the target light);
-- ``rotation_yaw.gif`` + ``rotation_yaw.png`` (contact sheet): a 360-degree yaw rotation of the input's light,
-  cast shadows included;
+- ``comparison.png``: rows of input | relit | ground truth (the same subject rendered under the target light),
+  the columns and rows labelled;
+- ``rotation_yaw.mp4`` (where imageio-ffmpeg is installed, else an optimised ``rotation_yaw.gif``) and
+  ``rotation_yaw.png``, its contact sheet with each frame's light angle: a 360-degree yaw rotation of the input's
+  light, cast shadows included;
 - ``benchmark.md`` / ``benchmark.csv``: the checkpoint against identity and the Lambertian ratio image on a few
   pairs of both protocols (fitted target lights, as a user has them).
 """
@@ -88,7 +90,7 @@ def run_demo(checkpoint: Any, out_dir: str | Path, *, sampler: Mapping[str, Any]
     t0 = time.perf_counter()
     by_subject = {s: sorted(r for r in test if store.meta(r)["subject"] == s) for s in subjects_ids}
     lights = {r: np.asarray(store.read(r, ["light"])["light"], dtype=np.float64) for r in test}
-    grid = []
+    grid, names = [], []
     for subject in subjects_ids[:rows]:
         recs = by_subject[subject]
         src = max(recs, key=lambda r: directionality(lights[r]))
@@ -97,7 +99,10 @@ def run_demo(checkpoint: Any, out_dir: str | Path, *, sampler: Mapping[str, Any]
         source = relighter.source(store, src)
         relit = relighter.relight(source, Targets.of([target["light"]], [shadow_logit(target)], source.what))[0]
         grid.append([source.arrays["image"], relit, np.asarray(target["image"])])
-    res.paths["comparison"] = viz.save_png(viz.grid(_zoom(grid, 3)), out / "comparison.png")
+        names.append(f"{src} -> {tgt}")  # the source record, the record whose light it takes
+    res.paths["comparison"] = viz.save_png(
+        viz.grid(_zoom(grid, 3), col_labels=["input", "relit", "ground truth"],
+                 cell_labels=[[n, "", ""] for n in names]), out / "comparison.png")
     res.seconds["relight"] = time.perf_counter() - t0
 
     # 2. A 360-degree yaw rotation of the most directionally lit test input's light; the cast-shadow map is
@@ -107,7 +112,10 @@ def run_demo(checkpoint: Any, out_dir: str | Path, *, sampler: Mapping[str, Any]
     source = relighter.source(store, first)
     targets, why = rotation_targets(source.arrays, "yaw", frames, store=store)
     res.notes.append(f"rotation video of {first}, shadow strength: {why}")
-    video = rotation_video(relighter, source, targets, out, "rotation_yaw", fps=20, zoom=2)
+    video = rotation_video(relighter, source, targets, out, "rotation_yaw", fps=20, zoom=2, fmt=video_format())
+    # rotation_video's sheet has no captions: written again with each frame's light angle.
+    viz.save_png(viz.contact_sheet(video.frames, viz.rotation_captions("yaw", len(video.frames))),
+                 video.paths["sheet"])
     res.paths.update(video.paths)
     res.seconds["video"] = time.perf_counter() - t0
 
@@ -142,7 +150,16 @@ def relight_photo(relighter: Relighter, path: Path, resolution: int) -> Path:
     source = relighter.source_from_arrays(arrays, "the astronaut photo", key=("photo", "astronaut"))
     lights = [target_lights(arrays["light"], yaw=a) for a in (-60, -30, 30, 60)]
     relit = relighter.relight(source, Targets.of(lights, what=source.what))
-    return viz.save_png(viz.grid([[arrays["image"], *relit]]), path)
+    strip = viz.grid(_zoom([[arrays["image"], *relit]], 2),
+                     col_labels=["input", "yaw -60°", "yaw -30°", "yaw +30°", "yaw +60°"])
+    return viz.save_png(strip, path)
+
+
+def video_format() -> str:
+    """``mp4`` where imageio's ffmpeg plugin is installed (a 60-frame rotation is a few tens of kB), else ``gif``."""
+    import importlib.util
+
+    return "mp4" if importlib.util.find_spec("imageio_ffmpeg") is not None else "gif"
 
 
 def directionality(light: np.ndarray) -> float:

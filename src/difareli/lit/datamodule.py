@@ -94,6 +94,7 @@ class EncodingsDataModule(L.LightningDataModule):
 
     def prepare_data(self) -> None:
         if (self.root / "store.json").exists():
+            self.check_store_settings()
             return
         if self.synth is None:
             raise FileNotFoundError(
@@ -103,6 +104,32 @@ class EncodingsDataModule(L.LightningDataModule):
         from difareli.synth.generator import generate  # only needed when the data set is missing
 
         generate(out_dir=str(self.root), resolution=self.resolution, **self.synth)
+
+    def check_store_settings(self) -> None:
+        """An existing store at ``root`` is reused only if it was generated with the ``synth`` settings asked for
+        (and ``resolution``); otherwise one line names the differing settings and the fix. Without the check,
+        ``data.synth.subjects=8`` on a root that already held a 250-subject store trained on the 250 silently."""
+        if self.synth is None:  # data.synth=null: the store as it is
+            return
+        from dataclasses import fields
+
+        from difareli.synth.config import ConfigError, SynthConfig
+
+        asked = {k: v for k, v in self.synth.items() if k in {f.name for f in fields(SynthConfig)}}
+        asked.setdefault("resolution", self.resolution)
+        try:
+            want = SynthConfig(**asked).header_meta()
+        except (ConfigError, TypeError):  # invalid settings: generate() names them if they are ever used
+            return
+        have = EncodingStore.open(self.root).store_meta
+        keys = ["generator"] + [f.name for f in fields(SynthConfig)]
+        # Keys an older store's header lacks are not differences: it predates them and still opens.
+        diff = [f"{k}: {have.get(k)!r} in the store, {want[k]!r} asked" for k in keys
+                if (k == "generator" or k in have) and have.get(k) != want[k]]
+        if diff:
+            raise UserError(f"data.root={self.root} already holds a store made with other settings than data.synth "
+                            f"asks for ({'; '.join(diff)}); use another data.root to generate these settings, or "
+                            "data.synth=null to train on the store as it is")
 
     def _open(self) -> EncodingStore:
         if self.store is None:
