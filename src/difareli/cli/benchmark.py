@@ -1,4 +1,4 @@
-"""difareli-benchmark: one relighting method on a store's protocols (SynthFaces, or Multi-PIE from difareli.diffusion.spec import check_sampler
+"""difareli-benchmark: one relighting method on a store's protocols (SynthFaces, or Multi-PIE
 from difareli-multipie)
 -> relit images, per-image CSV, tables; scored under ``metrics.rule`` (paper | composite, difareli.evaluation.metrics)."""
 
@@ -11,6 +11,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from difareli import errors
+from difareli.diffusion.spec import check_sampler
 from difareli.evaluation import metrics
 from difareli.checkpoints import zoo
 from difareli.data import shard as sharding
