@@ -61,7 +61,7 @@ def run(cfg: DictConfig):
     write_json_atomic(Path(cfg.out_dir) / "shadow_maps.json", summary)
     print(f"c range ({rep.c_source}): [{rep.c_min:.3f}, {rep.c_max:.3f}]; threshold {rep.threshold:.5f} "
           f"({summary['threshold_rule']}); median {summary['median']}; candidates {summary['contrast']:.4f} darker "
-          f"than the rest of the face, {summary['coherence']:.0%} coherent")
+          f"than the rest of the face, coherence {summary['coherence']:.2f} (0: speckle)")
     print(f"relit {rep.relit} record(s) at 2 shadow strengths in {rep.seconds:.1f} s "
           f"({rep.images_per_second:.2f} images/s); wrote {rep.written} map(s) as {rep.name}")
     print(f"train on them: data.versions={{shadow_map: {version}}}   (relight/video: versions={{shadow_map: {version}}})")
