@@ -15,7 +15,7 @@ from difareli.lit import load_checkpoint
 from tests.helpers import CONF, compose_train
 
 DEFAULT = PRESETS[DEFAULT_SAMPLER]
-ROOT = CONF.parents[2]
+ROOT = CONF.parent  # conf/ sits at the top of the repository
 
 
 @pytest.mark.parametrize("command", ["relight", "video", "benchmark", "ablate", "demo", "teacher_pairs"])

@@ -55,8 +55,11 @@ def record_ids(files: list[Path]) -> dict[Path, str]:
 
 def load_image(path: str | os.PathLike, min_side: int = 64, max_side: int = 8192) -> tuple[np.ndarray, list[str]]:
     """Decode ``path`` to uint8 RGB HxWx3 and the list of conversions applied; raise :class:`BadInput`."""
-    from PIL import Image, ImageOps, UnidentifiedImageError
+    from PIL import Image, ImageFile, ImageOps, UnidentifiedImageError
 
+    # face_recognition sets PIL's LOAD_TRUNCATED_IMAGES at import: once the identity estimator had loaded, a
+    # truncated JPEG decoded silently (grey below the cut) and was relit. A truncated file is refused here always.
+    ImageFile.LOAD_TRUNCATED_IMAGES = False
     path = Path(path)
     if path.suffix.lower() not in IMAGE_SUFFIXES:
         raise BadInput(f"not an image file (suffix {path.suffix or 'none'!r})")

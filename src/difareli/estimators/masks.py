@@ -253,6 +253,8 @@ class FaceMeshSelfieMasks:
         beside the face, ``hat``) it was a grey band or a bright block across the forehead of the relight."""
         from scipy import ndimage
 
+        if self.forehead_height <= 0:  # the rule off (the masks before it)
+            return
         oval = _FACE_LUT[labels]
         top = lm[FOREHEAD, 1]
         xs = lm[:, 0]
@@ -262,8 +264,19 @@ class FaceMeshSelfieMasks:
             return
         lab = rgb2lab(image[zone])
         skinlike = np.zeros_like(zone)
-        skinlike[zone] = ((np.hypot(lab[:, 1] - ref[1], lab[:, 2] - ref[2]) < self.skin_chroma)
-                          & (np.abs(lab[:, 0] - ref[0]) < self.skin_dark))
+        near = ((np.hypot(lab[:, 1] - ref[1], lab[:, 2] - ref[2]) < self.skin_chroma)
+                & (np.abs(lab[:, 0] - ref[0]) < self.skin_dark))
+        # Light hair can pass the skin colour test (the astronaut's blonde hair did): a pixel is forehead skin only
+        # if it is also closer in colour to the skin than to the hair beside the face.
+        hairy = labels == PART_INDEX["hair"]
+        above = hairy & (rows <= top - self.forehead_height * h) & (cols > xs.min()) & (cols < xs.max())
+        side = hairy & (rows > top) & (rows < top + 0.5 * h) & ((cols < xs.min()) | (cols > xs.max()))
+        for other in (above, side):  # the hair above the zone, else beside the face
+            if other.sum() >= 30:
+                hair = np.median(rgb2lab(image[other]), axis=0)
+                near &= np.linalg.norm(lab - ref, axis=1) < np.linalg.norm(lab - hair, axis=1)
+                break
+        skinlike[zone] = near
         skinlike = opening(skinlike, 1)
         comp, n = ndimage.label(skinlike)
         seed = skinlike & dilate(oval, 1)
