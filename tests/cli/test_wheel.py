@@ -70,7 +70,8 @@ def test_installed_wheel_relights_and_trains_outside_the_checkout(installed, tmp
     (work / "conf" / "model" / "my_variant.yaml").write_text("defaults:\n  - difareli_pp\n  - _self_\nname: mine\n")
     _run([*py, "difareli.cli.train", "experiment=quickstart", "model=my_variant", f"data.root={work / 'sf'}",
           "trainer.max_steps=2", "trainer.val_check_interval=1", "trainer.limit_val_batches=1", "data.batch_size=2",
-          "data.num_workers=0", "sample_grid=false", "data.allow_split_fallback=true", f"paths.log_dir={work / 'logs'}"],
+          "data.num_workers=0", "sample_grid=false", "data.allow_split_fallback=true", "data.synth=null",
+          f"paths.log_dir={work / 'logs'}"],  # data.synth=null: the store as it is (other settings are refused)
          work, env)
     ckpts = list((work / "logs").rglob("last.ckpt"))
     assert ckpts, "no checkpoint written"
