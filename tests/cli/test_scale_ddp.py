@@ -57,7 +57,7 @@ def test_ddp_two_cpu_processes_then_resume_on_one(synth_store, tmp_path):
     run_dir = tmp_path / "run"
     cmd = [sys.executable, "-m", "difareli.cli.train", "trainer=ddp_cpu", "trainer.max_steps=2",
            *_overrides(synth_store), "~callbacks.progress_bar", "~callbacks.reconstruction_grid",
-           "+callbacks.probe._target_=tests.test_scale_ddp.RankProbe", f"+callbacks.probe.out_dir={probe}",
+           "+callbacks.probe._target_=tests.cli.test_scale_ddp.RankProbe", f"+callbacks.probe.out_dir={probe}",
            f"hydra.run.dir={run_dir}", f"paths.log_dir={tmp_path}"]
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO / "src"), str(REPO)]), "OMP_NUM_THREADS": "1",
            "PYTHONWARNINGS": "ignore"}
