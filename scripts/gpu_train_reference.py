@@ -111,6 +111,7 @@ def main() -> None:
         cmd = [sys.executable, "-m", "difareli.cli.train", "experiment=reference_gpu", f"model={model}",
                f"data.root={data}", f"data.resolution={res}", f"hydra.run.dir={run_dir}",
                "data.versions.shadow_map=null",  # the ray-traced maps: no DiFaReli has made difference maps here
+               "data.synth=null",  # the store this script generated above, as it is (--small makes a smaller one)
                f"paths.root_dir={work}", f"trainer.max_time=00:00:{int(minutes):02d}:{int(minutes % 1 * 60):02d}",
                *cfg["overrides"]]
         wall = run(cmd, out / f"train_{model}.log" if args.small else work / f"train_{model}.log")
