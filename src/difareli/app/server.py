@@ -4,7 +4,11 @@ a JSON API over :class:`~difareli.app.service.Service`. Nothing is fetched from 
 
     GET  /              the page
     GET  /api/info      checkpoints, samplers, HDR maps, store records, cache sizes
-    POST /api/source    {"kind": "upload", "name", "data": <data URL>} | {"kind": "record", "id"}; "checkpoint"
+    GET  /api/examples  the example photos (:mod:`~difareli.app.examples`): name, description, size, thumbnail
+    GET  /api/presets   the preset lights (:mod:`~difareli.app.presets`), each with the light /api/relight takes
+    POST /api/source    {"kind": "upload", "name", "data": <data URL>} | {"kind": "record", "id"} |
+                        {"kind": "example", "name"}; "checkpoint". The answer: the crop, the whole input photo,
+                        the photo check's verdict and the warnings (``Service.source_answer``)
     POST /api/relight   {"id", "checkpoint", "sampler", "steps", "light": {...}, "shadow": 0..1}
 
 No request is trusted (:mod:`difareli.app.checks`): a Host that is not the app's address is refused 403 (DNS
@@ -29,7 +33,7 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
 from typing import Any
 
-from . import checks
+from . import checks, examples, presets
 from .checks import MAX_BODY, Guard, RequestError  # noqa: F401 (MAX_BODY re-exported)
 from .service import Service
 
@@ -99,13 +103,17 @@ class Handler(BaseHTTPRequestHandler):
             self._send(200, page(), "text/html; charset=utf-8")
         elif self.path == "/api/info":
             self._guarded(lambda: self.service.info())
+        elif self.path == "/api/examples":
+            self._guarded(lambda: {"examples": examples.listing()})
+        elif self.path == "/api/presets":
+            self._guarded(lambda: {"presets": presets.presets()})
         elif self.path == "/healthz":
             self._json(200, {"ok": True})
         else:
             self._json(404, {"error": f"{self.path[:200]}: no such page"})
 
     def do_POST(self) -> None:
-        routes = {"/api/source": self.service.source_request, "/api/relight": self.service.relight}
+        routes = {"/api/source": self.service.source_answer, "/api/relight": self.service.relight}
         try:
             self.guard.check(self.headers, state_changing=True)
             if self.path not in routes:

@@ -374,6 +374,41 @@ class Service:
         name = s.source.what.removeprefix("image=")
         return self.upload(Path(name).with_suffix(".png").name, data, checkpoint)
 
+    # ------------------------------------------------------------------ the page's examples and photo check
+    def example(self, name: str, checkpoint: str | None = None) -> AppSource:
+        """A shipped example photo (:mod:`difareli.app.examples`; ``name`` is checked against its fixed list, never
+        read as a path), prepared like an upload of it."""
+        from .examples import EXAMPLES, example_png
+
+        name = checks.choice({"name": name}, "name", EXAMPLES)
+        return self.upload(f"{name}.png", example_png(name), checkpoint)
+
+    def source_answer(self, body: Mapping[str, Any]) -> dict:
+        """``POST /api/source`` as the page uses it: :meth:`source_request`, or ``{"kind": "example", "name"}``;
+        the answer also carries the whole input photo (``photo``: the before of the page's before/after) and, for
+        a photo, the photo check's verdict (``check``) with the estimators' notes among the ``warnings``."""
+        from difareli.relight import photo_check
+
+        from .examples import EXAMPLES
+
+        kind = checks.choice(body, "kind", ("upload", "record", "example"))
+        if kind == "example":
+            checks.only(body, ("kind", "name", "checkpoint"))
+            name = checks.choice(body, "name", EXAMPLES)
+            out = self.describe(self.example(name, checks.text(body, "checkpoint", default=None)))
+        else:
+            out = self.source_request(body)
+        s = self._sources.get(out["id"])
+        if s is None or s.prepared is None:  # a store record: its crop is the whole input
+            out["photo"], out["check"] = out["crop"], None
+            return out
+        out["photo"] = png_data_url(np.asarray(s.prepared.rgb))
+        verdict = photo_check.check(s.prepared, s.source.what)
+        out["check"] = {"ok": verdict.ok, "line": verdict.line(), "problems": list(verdict.problems)}
+        notes = [str(n) for n in s.prepared.meta.get("notes", [])]
+        out["warnings"] = list(dict.fromkeys([*out.get("warnings", []), *notes]))
+        return out
+
 
 def _zoo_name(value: str) -> bool:
     """A shipped checkpoint's name (no path)."""
