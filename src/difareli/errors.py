@@ -26,6 +26,7 @@ import functools
 import linecache
 import math
 import os
+import re
 import signal
 import sys
 from pathlib import Path
@@ -41,6 +42,9 @@ LIGHT_MAX_ABS = 1e4
 #: A *target* light's bound: SynthFaces and fitted photo lights stay below ~5 (irradiance ~1-2 on a face whose
 #: pixels are albedo x irradiance in [0, 1]); a light 20x brighter than that relights to saturated noise.
 TARGET_LIGHT_MAX_ABS = 100.0
+#: numpy's ``ndarray.tofile`` (what ``np.save`` writes an array's data with) reports a short write, the way a full
+#: disk shows mid-array, as a bare ``OSError("<n> requested and <m> written")``: the errno is lost.
+_SHORT_WRITE = re.compile(r"\d+ requested and \d+ written")
 _USER_ERRNOS = {errno.ENOENT, errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOSPC, errno.EISDIR, errno.ENOTDIR,
                 errno.EEXIST}
 
@@ -72,6 +76,18 @@ def _text(exc: BaseException) -> str:
     return str(exc.args[0]) if isinstance(exc, KeyError) and len(exc.args) == 1 else str(exc)
 
 
+def is_no_space(exc: BaseException) -> bool:
+    """Whether ``exc`` is a full disk or an exceeded quota (ENOSPC, EDQUOT, or numpy's short write)."""
+    if not isinstance(exc, OSError):
+        return False
+    return exc.errno in (errno.ENOSPC, errno.EDQUOT) or (exc.errno is None and bool(_SHORT_WRITE.fullmatch(str(exc))))
+
+
+def os_reason(exc: OSError) -> str:
+    """What went wrong, for a message: the OS's words, or numpy's short write named as one."""
+    return exc.strerror or (f"short write: {exc}" if _SHORT_WRITE.fullmatch(str(exc)) else str(exc))
+
+
 def user_message(exc: BaseException) -> str | None:
     """The one/two-line message if ``exc`` is a user error (see the module docstring), else None."""
     from omegaconf.errors import ConfigAttributeError, ConfigKeyError, MissingMandatoryValue
@@ -93,9 +109,9 @@ def user_message(exc: BaseException) -> str | None:
         return f"{str(exc).splitlines()[0]}; check the spelling against the config (--cfg job prints it)"
     if isinstance(exc, (ValueError, KeyError, FileNotFoundError)) and _raised_here(exc):
         return _text(exc)
-    if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
+    if is_no_space(exc):
         where = f" writing {exc.filename}" if exc.filename else ""
-        return (f"no space left on the device{where} ({exc.strerror}); free space or give another output folder "
+        return (f"no space left on the device{where} ({os_reason(exc)}); free space or give another output folder "
                 "(files and records already complete are kept)")
     if isinstance(exc, OSError) and exc.errno in _USER_ERRNOS and exc.filename is not None:
         return f"{exc.filename}: {exc.strerror}; check the path and its permissions"

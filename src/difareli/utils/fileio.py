@@ -24,7 +24,7 @@ import shutil
 from pathlib import Path
 from typing import Any, Iterable, Iterator
 
-from difareli.errors import UserError
+from difareli.errors import UserError, is_no_space, os_reason
 
 LOCK_NAME = ".difareli.lock"
 
@@ -48,18 +48,13 @@ NO_SPACE_ERRNOS = (errno.ENOSPC, errno.EDQUOT)
 RESUME = "free space and rerun the same command to resume (what was already written is complete and kept)"
 
 
-def is_no_space(err: BaseException) -> bool:
-    """Whether ``err`` is a full disk or an exceeded quota."""
-    return isinstance(err, OSError) and err.errno in NO_SPACE_ERRNOS
-
-
 class NoSpaceError(UserError):
     """A full disk (or quota) while writing ``path``: the message names the file and the fix."""
 
     def __init__(self, path: str | Path, err: OSError, fix: str | None = None):
         self.path, self.err = path, err
         fix = fix or "free space or write elsewhere (nothing already written was changed)"
-        super().__init__(f"no space left on the device writing {path} ({err.strerror}); {fix}")
+        super().__init__(f"no space left on the device writing {path} ({os_reason(err)}); {fix}")
 
 
 def no_space(path: str | Path, err: OSError, fix: str | None = None) -> UserError:
