@@ -37,6 +37,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         ckpt = read_checkpoint(str(zoo.resolve(init_from, "init_from")))
     if ckpt is not None:  # another variant's statistics would not even fit the network: name both variants
         check_resume_variant(ckpt_path or init_from, ckpt, cfg.model, "init_from" if init_from else "ckpt_path")
+        datamodule.check_checkpoint(ckpt["hyper_parameters"], ckpt_path or init_from)  # before a size mismatch
     # The network's input sizes and the non-spatial statistics come from the data set (the training split),
     # or, when resuming, from the checkpoint: a resumed run keeps the normalisation it was trained with.
     # The maker of the shadow maps it trains on is recorded, so a relight can say when its target maps differ.

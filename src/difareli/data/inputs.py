@@ -95,3 +95,40 @@ def variant_widths(model: str, dims: Mapping[str, int] | None = None) -> tuple[i
     """``(spatial channels, non-spatial features)`` of a ``conf/model`` variant at the producers' dimensions."""
     d = input_dims(*variant_inputs(model), dims)
     return d["spatial_channels"], d["nonspatial_dim"]
+
+
+def _widths(names: Sequence[str], store) -> str:
+    return ", ".join(f"{n} {enc.channels(n, {**enc.PRODUCER_DIMS, **store.dims})}" if store.available(n)
+                     else f"{n} missing" for n in names)
+
+
+def check_store_fits(config: Mapping[str, Any], store, checkpoint: Any = "the checkpoint") -> None:
+    """A checkpoint's model (its hyperparameters ``config``: inputs and ``input_dims``) can read ``store``'s
+    encodings: same spatial channels and non-spatial width, every input present. Else one UserError naming the
+    checkpoint, what it expects (resolution, inputs, sizes), what the store gives and the fix, in place of a
+    tensor-size mismatch deep in the model. A resolution alone that differs is not refused (the network is
+    convolutional; the relighter says it in its notes). A config without ``input_dims`` is not checked."""
+    from difareli.errors import UserError
+
+    want = dict(config.get("input_dims") or {})
+    if "spatial_channels" not in want or "nonspatial_dim" not in want:
+        return
+    spatial, nonspatial = list(config.get("spatial_inputs") or []), list(config.get("nonspatial_inputs") or [])
+    missing = [n for n in spatial + nonspatial if not store.available(n)]
+    have = None if missing else input_dims(spatial, nonspatial, store.dims)
+    if have and (have["spatial_channels"], have["nonspatial_dim"]) == (want["spatial_channels"],
+                                                                       want["nonspatial_dim"]):
+        return
+    res = f"{want['resolution']} px, " if want.get("resolution") else ""
+    size = int(store.dims.get("H", 0))
+    kind = store.store_meta.get("generator") or store.store_meta.get("source") or "a store"
+    gives = (f"lacks {missing}" if missing else
+             f"gives {have['spatial_channels']} channels ({_widths(spatial, store)}) and {have['nonspatial_dim']} "
+             f"values ({_widths(nonspatial, store)})")
+    raise UserError(
+        f"checkpoint={checkpoint} cannot read store {store.root}: it expects {res}spatial inputs "
+        f"{', '.join(spatial) or 'none'} ({want['spatial_channels']} channels) and a non-spatial condition of "
+        f"{want['nonspatial_dim']} values ({', '.join(nonspatial) or 'none'}); the store ({kind}, {size} px) "
+        f"{gives}; use a checkpoint trained on a store like this one (difareli-train data.root={store.root}), or a "
+        "store made like the checkpoint's training data (an imported official checkpoint reads stores written by "
+        "difareli.official.importers)")

@@ -164,6 +164,12 @@ class DiffusionMethod:
             maps += " (shadow map ray-marched on the input's depth; inversion uses the input's own map)"
         return maps
 
+    def check_store(self, store) -> None:
+        """The checkpoint reads this store's encodings (else one line naming both; before any pair is relit)."""
+        from difareli.data.inputs import check_store_fits
+
+        check_store_fits(self.relighter.config, store, self.relighter.checkpoint)
+
     def relight(self, store, source_id, target_light, target_shadow=None, target_id=None) -> np.ndarray:
         from difareli.relight.targets import Targets
 

@@ -254,6 +254,8 @@ def run_benchmark(store: EncodingStore, method: Method, protocols: Sequence[str]
     out_dir = Path(out_dir)
     rule = metrics.check_rule(rule)
     score_mask = check_score_mask(store, score_mask)
+    if hasattr(method, "check_store"):  # a model that cannot read the store: one line, not a failed row per pair
+        method.check_store(store)
     with folder_lock(out_dir, "benchmark"), on_full_disk(out_dir, scratch=[out_dir], fix=RESUME):
         settings = run_settings(store, method, protocols, limit=limit, oracle_light=oracle_light,
                                 oracle_shadow=oracle_shadow, rule=rule, shard=shard, score_mask=score_mask)

@@ -17,7 +17,8 @@ from torch.utils.data import DataLoader, Dataset
 
 from difareli.data import encodings as enc
 from difareli.errors import UserError, check_record
-from difareli.data.inputs import MissingEncodingError, image_to_tensor, input_dims, prepare_nonspatial, prepare_spatial
+from difareli.data.inputs import (MissingEncodingError, check_store_fits, image_to_tensor, input_dims,
+                                  prepare_nonspatial, prepare_spatial)
 from difareli.data.store import EncodingStore
 
 
@@ -168,6 +169,11 @@ class EncodingsDataModule(L.LightningDataModule):
         """Sizes the network needs: spatial channels, non-spatial vector length, image resolution."""
         store = self._open()
         return input_dims(self.spatial, self.nonspatial, store.dims, int(store.dims["H"]))
+
+    def check_checkpoint(self, config: dict, checkpoint: Any) -> None:
+        """A checkpoint (its hyperparameters ``config``) that starts or resumes training on this store must read
+        its encodings: else one line naming both (:func:`difareli.data.inputs.check_store_fits`)."""
+        check_store_fits(config, self._open(), checkpoint)
 
     def _split_ids(self) -> tuple[list[str], list[str]]:
         store = self._open()
