@@ -1,7 +1,8 @@
 """difareli-table: merge benchmark run dirs into one table (rows = methods, column groups = protocols); on Multi-PIE
 runs, ``published=all|ours|[names]`` adds the paper's Table I rows, labelled as published figures. ``paired`` adds the
 paired comparisons of every two methods scored on the same pairs (``difareli.evaluation.paired``: mean difference,
-bootstrap CI, Wilcoxon p) and ``strata=`` breaks every table down by light category or target shadow share."""
+bootstrap CI, Wilcoxon p) and ``strata=`` breaks every table down by light category or target shadow share.
+``label=[...]`` names each run dir's rows (two runs of one method, e.g. two checkpoints, are refused without it)."""
 
 from __future__ import annotations
 
@@ -85,7 +86,7 @@ def run(cfg: DictConfig) -> tables.Table:
     strata, bins, mode = check_strata(cfg)
     table, records = tables.merge_runs(dirs, methods=list(cfg.methods) if cfg.methods else None,
                                        drop_bad_rows=bool(cfg.get("drop_bad_rows", False)), strata=strata,
-                                       bins=bins, with_records=True)
+                                       bins=bins, with_records=True, labels=run_labels(cfg.get("label")))
     chosen = published_methods(cfg.get("published"))
     if chosen is not False:
         from difareli.evaluation import published
@@ -112,6 +113,18 @@ def run(cfg: DictConfig) -> tables.Table:
         written += ", paired.md, paired.csv"
     print(written)
     return table
+
+
+def run_labels(value) -> list[str] | None:
+    """``label``: null (the method names), or one name per run dir (a list; a string for one run dir)."""
+    if value is None:
+        return None
+    if isinstance(value, (ListConfig, list)):
+        return [str(v) for v in value]
+    if isinstance(value, (str, int, float)) and not isinstance(value, bool):
+        return [str(value)]
+    raise errors.UserError(f"label={value!r}: give one name per run dir, e.g. 'label=[pp_604,pp_8212]' (null: the "
+                           "method names)")
 
 
 def check_strata(cfg: DictConfig) -> tuple[str | None, list[float], str]:

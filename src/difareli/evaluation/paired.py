@@ -24,7 +24,8 @@ from typing import Sequence
 import numpy as np
 
 from difareli.errors import UserError
-from difareli.evaluation.tables import METRIC_LABELS, Record, _protocol_key, protocol_label
+from difareli.evaluation.records import BETTER, METRIC_LABELS, Record
+from difareli.evaluation.tables import _protocol_key, protocol_label
 
 #: The strata ``difareli-table strata=`` takes; ``protocol`` is every table's own grouping.
 STRATA = ("protocol", "light_category", "shadow_share")
@@ -124,7 +125,8 @@ def compare(records: Sequence[Record], metrics: Sequence[str], *, n_boot: int = 
 
 
 def to_markdown(rows: Sequence[Comparison], notes: Sequence[str] = (), n_boot: int = N_BOOT, seed: int = 0) -> str:
-    """The comparisons as one Markdown table, with how the CI and p were computed under it."""
+    """The comparisons as one Markdown table, with how the CI and p were computed under it and which orderings are
+    significant (:func:`significance`)."""
     lines = ["| protocol | metric | A | B | n | mean(B - A) | 95% CI | Wilcoxon p |",
              "|---|---|---|---|---:|---:|---|---:|"]
     for c in rows:
@@ -133,7 +135,32 @@ def to_markdown(rows: Sequence[Comparison], notes: Sequence[str] = (), n_boot: i
     lines += ["", f"Per-image differences B - A on the pairs both methods scored (joined on protocol and pair id); "
               f"95% CI: percentile bootstrap of the mean, {n_boot} resamples, seed {seed}; p: two-sided Wilcoxon "
               "signed-rank test (n/a when every difference is 0)."]
+    lines += ["", significance(rows)] if rows else []
     return "\n".join(lines + list(notes)) + "\n"
+
+
+def significance(rows: Sequence[Comparison], alpha: float = 0.05) -> str:
+    """One sentence, from the numbers: per protocol and metric, which orderings are significant at ``alpha`` (the
+    Wilcoxon p below ``alpha`` and the bootstrap CI excluding 0: both tests agree) and which are not."""
+    yes, no = {}, {}
+    for c in rows:
+        where = f"{protocol_label(c.protocol)} {METRIC_LABELS.get(c.metric, c.metric)}"
+        ci_clear = c.lo > 0 or c.hi < 0
+        if math.isfinite(c.p) and c.p < alpha and ci_clear:
+            lo, hi = (c.b, c.a) if c.mean < 0 else (c.a, c.b)  # lo has the lower mean
+            way = BETTER.get(c.metric)
+            text = (f"{lo} better than {hi}" if way == "low" else f"{hi} better than {lo}" if way == "high"
+                    else f"{lo} lower than {hi}")
+            yes.setdefault(where, []).append(f"{text} (p={_p(c.p)})")
+        else:
+            split = " (the CI and p disagree)" if ci_clear or (math.isfinite(c.p) and c.p < alpha) else ""
+            no.setdefault(where, []).append(f"{c.a} vs {c.b} (p={_p(c.p)}){split}")
+
+    def listing(groups: dict[str, list[str]]) -> str:
+        return "; ".join(f"{k}: {', '.join(v)}" for k, v in groups.items()) or "none"
+
+    return (f"At the {alpha:.0%} level (Wilcoxon p < {alpha:g} and the bootstrap 95% CI excluding 0), significant: "
+            f"{listing(yes)}; not significant: {listing(no)}.")
 
 
 def _p(p: float) -> str:
