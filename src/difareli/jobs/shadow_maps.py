@@ -26,11 +26,14 @@ refused. The store is locked for the run (:func:`difareli.utils.fileio.folder_lo
 The raw differences are kept as the derived version ``shadow_map@diffraw-<hash>`` (resumable: a killed run
 redoes only records without it), the maps as ``shadow_map@<version>`` (:mod:`difareli.data.derived`), both with their
 provenance (the weights' content identity, sampler, c range, centring, threshold rule and value, median size) in
-the store header: retrained weights at the same path are another version.
+the store header: retrained weights at the same path are another version (``version=null`` names it by that
+hash; a name given, the default ``difference``, already made with other settings is refused before any relight,
+naming what differs).
 """
 
 from __future__ import annotations
 
+import json
 import time
 from dataclasses import dataclass
 from typing import Any, Mapping, Sequence
@@ -224,6 +227,21 @@ def _face_values(store, raw: str, ids: Sequence[str], zero_parts: Sequence[str],
     return diffs, hits, keeps, faces
 
 
+def check_version_free(store, version: str, settings: Mapping[str, Any]) -> None:
+    """``shadow_map@<version>`` is new or was made with these ``settings`` (a resume); a version made with others
+    (retrained weights at the same path, another sampler or rule) is refused naming what differs."""
+    have = store.derived.get(derived.version_name("shadow_map", version))
+    if have is None:
+        return
+    want = json.loads(json.dumps(dict(settings), default=str))  # as the header stores it
+    diff = [k for k in sorted(want) if have.get(k) != want[k]]
+    if diff:
+        shown = "; ".join(f"{k}: {have.get(k)!r} there, {want[k]!r} now" for k in diff[:3])
+        raise errors.UserError(f"version={version}: store {store.root} already has shadow_map@{version} made with "
+                               f"other settings ({shown}); give another name (version={version}-2) or version=null "
+                               "(named by the settings' hash) and train on it with data.versions={shadow_map: <name>}")
+
+
 def _compute(model, store, spec, *, provenance, ids, split, c_quantile, threshold, relative, centre, median, zero_parts,
              min_contrast, min_coherence, batch_size, version, runtime, mean_matching, device, progress, given,
              check_after) -> ShadowMapReport:
@@ -236,13 +254,15 @@ def _compute(model, store, spec, *, provenance, ids, split, c_quantile, threshol
             "difference": "Y(relit at c_min) - Y(relit at c_max), own light"}
     if given is not None or split == ALL or (split == "train" and not store.ids(split="train")):
         prov["c_source"] = source  # not the train split's records: said so (the default's versions are unchanged)
-    raw = derived.declare(store, "shadow_map", derived.content_version("diffraw", prov),
-                          {**prov, "stage": "raw difference"})
     # The global threshold depends on which records it is taken over: another record set is another version.
     chosen = "all" if set(ids) == set(store.ids()) else derived.content_version("ids", {"ids": sorted(ids)}, 12)
     rule = {"threshold": threshold, "relative": relative if threshold == "relative" else None, "centre": centre,
             "median": int(median), "records": chosen}
+    if version:  # a name of the user's: checked before any relight, not after every record is relit
+        check_version_free(store, version, {**prov, **rule})
     version = version or derived.content_version("diff", {**prov, **rule})
+    raw = derived.declare(store, "shadow_map", derived.content_version("diffraw", prov),
+                          {**prov, "stage": "raw difference"})
     todo = derived.missing(store, raw, ids)
     needed = relight_reads(model_inputs(model))
     start = time.perf_counter()
