@@ -1,10 +1,13 @@
 """The reference suite: every shipped model beside identity and the Lambertian ratio image (estimated inputs) on
 SynthFaces stores generated with a seed none of them trained on, both protocols, the paper's metric rule, each
-model at the defaults a user gets (the default sampler; one pass for a student). Mean ± standard error and s/img.
+model at the defaults a user gets (the default sampler; one pass for a student). Mean ± standard error and s/img,
+then the paired differences of every two rows on the same pairs (DSSIM, MSE, LPIPS: mean, bootstrap 95% CI,
+Wilcoxon p, and a sentence naming the significant orderings) and the table broken down by the target light's
+category and by the target's visible-shadow share (``difareli.evaluation.paired``).
 
 One table per store: SynthFaces v2 (``inputs=estimated_light``: light and shadow estimated, geometry exact, what
 the shipped models trained on) and v3 (every input estimated, as a user has them). Writes ``<out>/suite.md`` (and
-``<out>/<store>/suite.csv``) and, with ``--ship``, ``src/difareli/checkpoints/suite.md`` (package
+``<out>/<store>/suite.csv``, ``<out>/<store>/paired.csv``) and, with ``--ship``, ``src/difareli/checkpoints/suite.md`` (package
 data: ``difareli-demo`` prints it). Runs resume: a model's rows already in ``<out>`` with the same settings are
 reused (``scripts/release_reference.py --out <out>`` writes the same run folders).
 
@@ -22,7 +25,7 @@ import time
 from collections import Counter
 from pathlib import Path
 
-from difareli.evaluation import tables
+from difareli.evaluation import paired, tables
 from difareli.checkpoints import zoo
 from difareli.diffusion import DEFAULT_SAMPLER, PRESETS
 from difareli.utils.fileio import write_text_atomic
@@ -65,14 +68,39 @@ def section(store: str, models: list[str], pairs: int, out: Path) -> str:
         comparison = compare_to_baselines(store, name, sampler, out, pairs=pairs, progress=True, reuse=True)
         runs.update(comparison.runs)  # identity and Lambertian are the same runs for every model (resumed)
         names[comparison.facts["model"]] = f"`{name}` ({comparison.facts['sampler']})"
-    table = tables.summarize([r for run in runs.values() for r in run.records])
+    records = [r for run in runs.values() for r in run.records]
+    table = tables.summarize(records)
     table.to_csv(out / "suite.csv")
     counts = sorted({n for run in runs.values() for n in Counter(r.protocol for r in run.records).values()})
     return "\n".join([
         f"**{store}**: {' and '.join(map(str, counts))} pairs per protocol (a seed no shipped model trained on), "
         "target lights fitted to the target images and c estimated (no oracle inputs), every model at its defaults. "
         "Rows: "
-        + "; ".join(f"`{row}` = {shipped}" for row, shipped in names.items()) + ".", "", table.to_markdown(), ""])
+        + "; ".join(f"`{row}` = {shipped}" for row, shipped in names.items()) + ".", "", table.to_markdown(), "",
+        comparisons(records, table.methods, out / "paired.csv")])
+
+
+#: The strata the suite breaks its table down by, with their headings.
+BREAKDOWNS = {"light_category": "the target light's category",
+              "shadow_share": "the share of the face in the target's visible cast shadow"}
+
+
+def comparisons(records: list[tables.Record], methods: list[str], csv_path: Path | None = None,
+                n_boot: int = paired.N_BOOT, seed: int = 0) -> str:
+    """Paired differences of every two ``methods`` on the pairs both scored (DSSIM, MSE, LPIPS), with the sentence
+    naming the significant orderings, then the summary broken down by each of :data:`BREAKDOWNS`."""
+    rows, notes = paired.compare(records, tables.METRICS, n_boot=n_boot, seed=seed, strict=False, methods=methods)
+    if csv_path is not None:
+        write_text_atomic(csv_path, paired.to_csv(rows))
+    out = ["Paired differences, every two rows on the same pairs:", "", paired.to_markdown(rows, notes, n_boot, seed)]
+    for by, what in BREAKDOWNS.items():
+        if any(r.status == "ok" and not str(r.info.get(by, "")).strip() for r in records):
+            out += [f"No breakdown by {what}: some runs have no {by} column (rerun them with this difareli).", ""]
+            continue
+        strata = tables.summarize(paired.stratify(records, by), methods, metrics=tables.METRICS)
+        bins = f"; bins {list(paired.SHADOW_BINS)}" if by == "shadow_share" else ""
+        out += [f"By {what} ({by}{bins}):", "", strata.to_markdown_long()]
+    return "\n".join(out)
 
 
 if __name__ == "__main__":

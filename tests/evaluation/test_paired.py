@@ -119,3 +119,32 @@ def test_table_cli_paired_strata_and_published_values(tmp_path):
     for bad in ("published=0", "published=1"):
         with pytest.raises(UserError, match="published= accepts null or false"):
             run(_table_cfg(tmp_path / "y", [tmp_path / "A"], bad))
+
+
+def test_significance_sentence_names_orderings_from_the_numbers():
+    a = np.random.default_rng(2).uniform(0.1, 0.3, 40)
+    eps = np.repeat(np.random.default_rng(3).uniform(0.001, 0.02, 20), 2) * np.tile([1, -1], 20)
+    assert eps.sum() == 0  # symmetric noise: every +e has its -e
+    ident = {"identity_gt": 0.8}
+    rows = (_rows("A", a, extra=ident) + _rows("B", a + 0.01, extra={"identity_gt": 0.9})
+            + _rows("C", a + eps, extra=ident))
+    comps, _ = P.compare(rows, ["dssim", "identity_gt"], n_boot=2000, seed=1)
+    by = {(c.a, c.b, c.metric): c for c in comps}
+    shift, noise = by[("A", "B", "dssim")], by[("A", "C", "dssim")]
+    assert shift.lo > 0 and shift.p < 0.05  # better by a constant on every pair: the CI excludes 0
+    assert noise.mean == pytest.approx(0, abs=1e-12) and noise.lo < 0 < noise.hi and noise.p > 0.9
+    text = P.significance(comps)
+    yes, no = text.split("; not significant: ")
+    assert yes.startswith("At the 5% level (Wilcoxon p < 0.05 and the bootstrap 95% CI excluding 0), significant: "
+                          "(i) same subject DSSIM: A better than B (p=")
+    assert "C better than B" in yes and "A vs C" not in yes  # C = A + noise is 0.01 below B on every pair as well
+    assert "(i) same subject ID vs GT: B better than A" in yes  # higher is better for identity
+    assert f"(i) same subject DSSIM: A vs C (p={P._p(noise.p)})" in no and no.endswith(".")
+    assert "(i) same subject ID vs GT: A vs C (p=n/a)" in no  # every difference 0: no test
+    assert "significant: none" in P.significance([c for c in comps if c.b == "C" and c.a == "A"])
+    # the tests disagree: 15 small gains and one large loss (Wilcoxon p < 0.05, the mean's CI covers 0)
+    d = np.array([0.01] * 15 + [-1.0])
+    (c,) = P.compare(_rows("X", np.ones(16)) + _rows("Y", 1 + d), ["dssim"], n_boot=2000)[0]
+    assert c.p < 0.05 and c.lo < 0 < c.hi
+    assert P.significance([c]).endswith("not significant: (i) same subject DSSIM: X vs Y (p=" + P._p(c.p)
+                                        + ") (the CI and p disagree).")
