@@ -135,7 +135,8 @@ def test_significance_sentence_names_orderings_from_the_numbers():
     assert noise.mean == pytest.approx(0, abs=1e-12) and noise.lo < 0 < noise.hi and noise.p > 0.9
     text = P.significance(comps)
     yes, no = text.split("; not significant: ")
-    assert yes.startswith("At the 5% level (Wilcoxon p < 0.05 and the bootstrap 95% CI excluding 0), significant: "
+    assert yes.startswith("At the 5% level (Wilcoxon p < 0.05 and the bootstrap 95% CI excluding 0; each of the 6 "
+                          "comparisons on its own, no multiple-comparison correction), significant: "
                           "(i) same subject DSSIM: A better than B (p=")
     assert "C better than B" in yes and "A vs C" not in yes  # C = A + noise is 0.01 below B on every pair as well
     assert "(i) same subject ID vs GT: B better than A" in yes  # higher is better for identity

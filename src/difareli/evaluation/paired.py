@@ -159,8 +159,10 @@ def significance(rows: Sequence[Comparison], alpha: float = 0.05) -> str:
     def listing(groups: dict[str, list[str]]) -> str:
         return "; ".join(f"{k}: {', '.join(v)}" for k, v in groups.items()) or "none"
 
-    return (f"At the {alpha:.0%} level (Wilcoxon p < {alpha:g} and the bootstrap 95% CI excluding 0), significant: "
-            f"{listing(yes)}; not significant: {listing(no)}.")
+    # Each test stands alone: with many comparisons some "significant" ones are expected by chance, and says so.
+    return (f"At the {alpha:.0%} level (Wilcoxon p < {alpha:g} and the bootstrap 95% CI excluding 0; each of the "
+            f"{len(rows)} comparisons on its own, no multiple-comparison correction), significant: {listing(yes)}; "
+            f"not significant: {listing(no)}.")
 
 
 def _p(p: float) -> str:
