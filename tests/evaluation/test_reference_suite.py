@@ -37,7 +37,8 @@ def test_suite_tables_every_model_beside_the_baselines_at_the_default_sampler(ti
     for piece in (f"**{synth_store}**: 2 pairs per protocol", "| identity |", "| lambertian |", f"| {row} |",
                   synth_command(synth_store), f"--store {synth_store} --pairs 2",
                   "Paired differences, every two rows on the same pairs:", f"| (i) same subject | DSSIM | lambertian | "
-                  f"{row} | 2 |", "At the 5% level (Wilcoxon p < 0.05", "By the target light's category (light_category):",
+                  f"{row} | 2 |", "At the 5% level (Wilcoxon p < 0.05",
+                  "By the target light's category (light_category):",
                   "| Protocol | Stratum | Method | DSSIM | MSE | LPIPS | n |"):
         assert piece in text, piece
     assert (out / synth_store.name / "paired.csv").read_text().startswith("protocol,metric,a,b,n,mean_b_minus_a")

@@ -38,7 +38,8 @@ from difareli.evaluation.metrics import DEFAULT_RULE, RULES
 
 PER_IMAGE_CSV = "metrics_per_image.csv"
 COLUMNS = ("method", "protocol", "record_id", "dssim", "mse", "lpips", "seconds")
-#: The rule of a per-image CSV without a ``rule`` column: every score before the paper rule became the default was composited.
+#: The rule of a per-image CSV without a ``rule`` column: every score before the paper rule became the default was
+#: composited.
 LEGACY_RULE = "composite"
 METRICS = ("dssim", "mse", "lpips")
 METRIC_LABELS = {"dssim": "DSSIM", "mse": "MSE", "lpips": "LPIPS"}
