@@ -8,8 +8,9 @@ category and by the target's visible-shadow share (``difareli.evaluation.paired`
 One table per store: SynthFaces v2 (``inputs=estimated_light``: light and shadow estimated, geometry exact, what
 the shipped models trained on) and v3 (every input estimated, as a user has them). Writes ``<out>/suite.md`` (and
 ``<out>/<store>/suite.csv``, ``<out>/<store>/paired.csv``) and, with ``--ship``,
-``src/difareli/checkpoints/suite.md`` (package data: ``difareli-demo`` prints it). Runs resume: a model's rows already in ``<out>`` with the same settings are
-reused (``scripts/release_reference.py --out <out>`` writes the same run folders).
+``src/difareli/checkpoints/suite.md`` (package data: ``difareli-demo`` prints it). Runs resume: a model's rows
+already in ``<out>`` with the same settings are reused (``scripts/release_reference.py --out <out>`` writes the
+same run folders).
 
     difareli-synth out_dir=data/unseen_v2_s777 subjects=100 lights=4 resolution=64 seed=777 realism=full \\
         inputs=estimated_light workers=2
