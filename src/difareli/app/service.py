@@ -215,7 +215,7 @@ class Service:
     def upload(self, name: str, data: bytes, checkpoint: str | None = None) -> AppSource:
         """An uploaded photo, decoded with the CLI's checks and preprocessed once for ``checkpoint``'s model;
         a bad upload raises the CLI's UserError (``image=<name>: ...``)."""
-        from difareli.relight.photo import prepare_photo, read_photo
+        from difareli.relight.photo import read_photo
 
         name = Path(str(name or "upload")).name or "upload"
         if len(data) > MAX_UPLOAD_BYTES:
@@ -234,10 +234,9 @@ class Service:
             path = Path(tmp) / name
             path.write_bytes(data)
             rgb = read_photo(path, "image", name=name)
-        prepared = prepare_photo(rgb, names, size=size, what=f"image={name}")
-        source = self._fits(relighter, prepared.arrays, f"image={name}", ckpt, key=("app", sid))
+        source = relighter.photo_source(rgb, size=size, what=f"image={name}", key=("app", sid), also=names)
         notes = tuple(str(w.message) for w in caught if issubclass(w.category, UserWarning))
-        self._sources[sid] = AppSource(sid, source, prepared, prepared.seconds, ckpt, names, notes)
+        self._sources[sid] = AppSource(sid, source, source.photo, source.photo.seconds, ckpt, names, notes)
         return self._sources[sid]
 
     def record(self, rid: str, checkpoint: str | None = None) -> AppSource:
@@ -254,29 +253,9 @@ class Service:
         arrays = dict(src.arrays)
         if "face_mask" not in arrays and st.available("face_mask"):
             arrays["face_mask"] = np.asarray(st.read(rid, ["face_mask"])["face_mask"])
-        out = AppSource(f"record-{rid}", self._fits(relighter, arrays, src.what, ckpt, src.key), None, 0.0, ckpt)
+        out = AppSource(f"record-{rid}", relighter.source_from_arrays(arrays, src.what, key=src.key), None, 0.0, ckpt)
         self._sources[out.id] = out
         return out
-
-    def _fits(self, relighter, arrays: Mapping[str, np.ndarray], what: str, ckpt: str, key: Any = None):
-        """The relighter's Source of ``arrays`` once their encodings have the sizes the network was built for (an
-        imported official checkpoint beside a store of another layout would fail deep inside on a tensor size)."""
-        from difareli.data.inputs import condition_tensors
-
-        source = relighter.source_from_arrays(arrays, what, key=key)
-        dims, model = dict(relighter.config.get("input_dims") or {}), relighter.model
-        try:
-            sp, ns = condition_tensors(model, [source.arrays], "cpu")
-        except (ValueError, RuntimeError, KeyError) as e:
-            raise RequestError(f"checkpoint={ckpt}: {what} does not fit the model "
-                               f"({str(e).splitlines()[0][:160]})") from None
-        for dim, t, names in (("spatial_channels", sp, model.spatial_inputs), ("nonspatial_dim", ns,
-                                                                                model.nonspatial_inputs)):
-            if t is not None and dims.get(dim) is not None and int(dims[dim]) != int(t.shape[1]):
-                raise RequestError(f"checkpoint={ckpt} reads {dims[dim]} {dim.replace('_', ' ')} from {list(names)}, "
-                                   f"{what} gives {int(t.shape[1])}; relight sources written for this model (an "
-                                   "imported official checkpoint: a store from difareli.official.importers)")
-        return source
 
     def describe(self, s: AppSource) -> dict:
         """What the page shows of a source: the aligned crop, its light's direction and shadow strength."""
@@ -334,34 +313,25 @@ class Service:
         arrays = s.source.arrays
         c = shadow_logit(float(strength)) if strength is not None else encodings.shadow_logit(arrays)
         own_c = encodings.shadow_logit(arrays)
-        seconds = {}
-        t0 = time.perf_counter()
-        relighter.inversion(s.source)  # cached per source: 0 s from the second relight on
-        seconds["invert"] = time.perf_counter() - t0
         # The reconstruction (the source relit under its own light) joins the first decode's batch, then is cached.
         key = (id(relighter), s.id)
         lights, cs = [light], [c]
         if key not in self._errors:
             lights, cs = [light, arrays["light"]], [c, own_c]
-        t0 = time.perf_counter()
         with warnings.catch_warnings(record=True) as caught:  # e.g. "unstable at this step count": show it
             warnings.simplefilter("always")
-            out_frames = relighter.relight(s.source, Targets.of(lights, cs, s.source.what))
-        seconds["decode"] = time.perf_counter() - t0
+            relit = relighter.relight(s.source, Targets.of(lights, cs, s.source.what))  # inversion cached per source
         if key not in self._errors:
-            self._errors[key] = reconstruction_error(out_frames[1], arrays)
-        relit = out_frames[0]
-        out = {"crop": png_data_url(relit), "what": s.source.what, "how": relighter.describe(),
+            self._errors[key] = reconstruction_error(relit[1], arrays)
+        out = {"crop": png_data_url(relit[0]), "what": s.source.what, "how": relighter.describe(),
                "error": self._errors[key],
                "warnings": list(dict.fromkeys(str(w.message) for w in caught if issubclass(w.category, RuntimeWarning)))}
         if s.prepared is not None:
-            t0 = time.perf_counter()
-            full = s.prepared.compositor(self.composite.get("mode", "ratio"),
-                                         self.composite.get("feather", 0.03))(relit)
-            seconds["composite"] = time.perf_counter() - t0
-            out["image"] = png_data_url(full)
+            out["image"] = png_data_url(relit.composite(self.composite.get("mode", "ratio"),
+                                                        self.composite.get("feather", 0.03), images=relit[:1])[0])
         else:
             out["image"] = out["crop"]
+        seconds = dict(relit.seconds)
         seconds["total"] = time.perf_counter() - t_all
         out["seconds"] = {k: round(v, 3) for k, v in seconds.items()}
         return out
@@ -403,7 +373,7 @@ class Service:
             out["photo"], out["check"] = out["crop"], None
             return out
         out["photo"] = png_data_url(np.asarray(s.prepared.rgb))
-        verdict = photo_check.check(s.prepared, s.source.what)
+        verdict = s.source.check or photo_check.check(s.prepared, s.source.what)
         out["check"] = {"ok": verdict.ok, "line": verdict.line(), "problems": list(verdict.problems)}
         notes = [str(n) for n in s.prepared.meta.get("notes", [])]
         out["warnings"] = list(dict.fromkeys([*out.get("warnings", []), *notes]))

@@ -178,6 +178,7 @@ class RotationVideo:
     frames: np.ndarray
     paths: dict[str, Path]
     seconds: float
+    relit: object = None  # the relighter's answer (a Relit: its ``composite()`` puts the frames into a photo)
 
 
 def rotation_video(relighter, source, targets, out_dir: str | Path, name: str, *, fps: int = 20,
@@ -189,14 +190,15 @@ def rotation_video(relighter, source, targets, out_dir: str | Path, name: str, *
     from difareli.utils import viz
 
     start = time.perf_counter()
-    frames = relighter.relight(source, targets)
+    relit = relighter.relight(source, targets)
+    frames = np.asarray(relit)
     seconds = time.perf_counter() - start
     out = Path(out_dir)
     big = np.repeat(np.repeat(frames, zoom, axis=1), zoom, axis=2) if zoom > 1 else frames
     paths = {"video": write_video(big, out / f"{name}.{fmt}", fps),
              "sheet": viz.save_png(viz.grid([list(frames[i:i + columns]) for i in range(0, len(frames), columns)]),
                                    out / f"{name}.png")}
-    return RotationVideo(frames, paths, seconds)
+    return RotationVideo(frames, paths, seconds, relit)
 
 
 def plot_temporal(report: VideoReport, path: str | Path, title: str = "") -> Path:

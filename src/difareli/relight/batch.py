@@ -65,37 +65,29 @@ def append_row(out_dir: Path, row: Mapping[str, Any]) -> None:
         f.flush()
 
 
-def relight_one(path: Path, *, relighter, target: Callable[[np.ndarray], Any], size: int, face: Any,
-                composite: Mapping[str, Any], stats=None, strict: bool = False, say=print
+def relight_one(path: Path, *, relighter, target: Callable[[np.ndarray], Any], size: int | None, face: Any,
+                composite: Mapping[str, Any], strict: bool = False, say=print
                 ) -> tuple[np.ndarray, list[np.ndarray], dict[str, Any]]:
-    """One photo: every chosen face relit under ``target(source light)`` and composited in turn into the photo.
-    Returns (composite, relit crops, CSV row fields); a UserError for a photo that cannot be relit."""
+    """One photo: every chosen face relit under ``target(source light)`` by the relighter's one door
+    (:meth:`~difareli.relight.relighter.Relighter.photo_source`, ``relight``) and composited in turn into the
+    photo. Returns (composite, relit crops, CSV row fields); a UserError for a photo that cannot be relit."""
     what = f"image={path}"
     rgb = photo.read_photo(path)
-    boxes = photo.detect_faces(rgb, size)
+    boxes = photo.detect_faces(rgb, relighter.photo_size(size))
     chosen = photo.choose_faces(boxes, face, what) if boxes else [None]
     for i, box in enumerate(boxes):
         say(f"{what}: {photo.describe_box(i, box, i in chosen)}")
     out, crops, worst = rgb, [], None
+    parts = list(composite["parts"]) if composite.get("parts") else None
     for i in chosen:
-        prepared = photo.prepare_photo(rgb, relighter.needed_encodings(), size=size,
-                                       what=what, face=None if i is None else boxes[i])
         name = what if i is None or len(boxes) < 2 else f"{what} face {i}"
-        result = photo_check.check(prepared, name, stats)
-        say(result.line())
-        if strict and not result.ok:
-            raise UserError(f"{name}: refused (strict=true): {'; '.join(result.problems)}")
-        worst = result if worst is None or (worst.ok and not result.ok) else worst
-        source = relighter.source_from_arrays(prepared.arrays, name, key=("image", str(path), i))
-        relit = relighter.relight(source, target(source.arrays["light"]))[0]
-        if photo.is_grey(source.arrays["image"]):
-            relit = photo.grey_like(relit)
-        crops.append(relit)
-        comp = prepared.compositor(composite.get("mode", "ratio"), composite.get("feather", 0.03),
-                                   list(composite["parts"]) if composite.get("parts") else None)
-        # Each face's gain goes onto the composite so far (faces do not overlap; ratio keeps the others).
-        out = type(comp)(out, comp.aligned, comp.labels, comp.quad, mode=comp.mode, feather=comp.feather,
-                         parts=comp.parts, inside=comp.inside)(relit)
+        source = relighter.photo_source(rgb, size=size, face=None if i is None else boxes[i], strict=strict,
+                                        what=name, key=("image", str(path), i))
+        say(source.check.line())
+        worst = source.check if worst is None or (worst.ok and not source.check.ok) else worst
+        relit = relighter.relight(source, target(source.arrays["light"]))
+        crops.append(relit[0])
+        out = relit.composite(composite.get("mode", "ratio"), composite.get("feather", 0.03), parts, onto=out)[0]
     row = {"faces": len(boxes), "relit_faces": len(crops), "verdict": "ok" if worst.ok else "poor",
            **worst.measures}
     return out, crops, row

@@ -4,16 +4,22 @@ A model offers the :mod:`difareli.relight.relightable` interfaces (diffusion or 
 
 - :func:`relight` is the one tensor-level relight: invert with the input's own condition (mean-matching offsets
   computed once, :mod:`difareli.diffusion.relight`), then one batched decode under many targets;
-- :class:`Relighter` wraps it: ``relight(source, targets)`` for a :class:`Source` (a store record or in-memory
-  encodings, read and checked once) under :class:`~difareli.relight.targets.Targets`, caching inversions.
+- :class:`Relighter` wraps it, the one door for a relight request: a :class:`Source` (a store record, a photo
+  preprocessed in memory, or in-memory encodings; read and checked once: :meth:`Relighter.source`,
+  :meth:`Relighter.photo_source`, :meth:`Relighter.source_from_arrays`), then ``relight(source, targets)``
+  -> :class:`~difareli.relight.relit.Relit` (images, seconds per stage, whole photos by ``composite()``),
+  the inversion cached and reused across targets; ``relight_each`` for many sources at once. Grey sources
+  come back grey; what a request gets wrong is said once, at :meth:`Relighter.check_inputs`.
 The :class:`~difareli.runtime.core.Runtime` decides device, precision, compile and CUDA graphs.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import time
 import warnings
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 import numpy as np
@@ -27,7 +33,9 @@ from difareli.data.inputs import condition_tensors, image_to_tensor, read_record
 from difareli.diffusion.relight import Inversion, SamplerSpec
 from difareli.diffusion.spec import DEFAULT_SAMPLER, PRESETS
 from difareli.relight.core import invert_image, relight  # noqa: F401 (callers import the tensor-level call here too)
+from difareli.relight import photo as photos
 from difareli.relight.relightable import OnePassRelightable, Relightable, model_inputs
+from difareli.relight.relit import Relit
 from difareli.runtime.core import Runtime
 from difareli.data.store import EncodingStore
 from difareli.relight.targets import Targets, check_maker
@@ -46,6 +54,10 @@ class Source:
     arrays: Mapping[str, np.ndarray]
     key: Any
     what: str
+    photo: Any = None        # a photo's PreparedPhoto (original, quad, masks): what composites its relights back
+    notes: tuple[str, ...] = ()  # lines worth printing about it (how it was read, its check, its light)
+    grey: bool = False       # a grey image: its relights come back grey (a colour the model adds is invented)
+    check: Any = None        # a photo's check before relighting (photo_check.Check: measures and verdict)
 
 
 #: Share of clipped values above which a relit image is reported as saturated (a warning, not an error).
@@ -69,6 +81,8 @@ class Relighter:
         ckpt = checkpoint if isinstance(checkpoint, LoadedCheckpoint) else load_checkpoint(checkpoint, self.device)
         self.model = ckpt.model.to(self.device)
         self.config = ckpt.config
+        self.checkpoint = "the given checkpoint" if isinstance(checkpoint, LoadedCheckpoint) else checkpoint
+        self.resolution = photos.training_resolution(self.config)  # None: the checkpoint records none
         if sampler is None:  # a diffusion model without a named sampler gets the default, the cards' sampler
             sampler = None if isinstance(self.model, OnePassRelightable) else PRESETS[DEFAULT_SAMPLER]
         self.spec = None if sampler is None else (sampler if isinstance(sampler, SamplerSpec)
@@ -92,14 +106,90 @@ class Relighter:
     def needed_encodings(self) -> list[str]:
         return needed_encodings(self.model)
 
-    def source(self, store: EncodingStore, record_id: str) -> Source:
-        """A store record as a :class:`Source`: the encodings relighting it reads (and nothing else), checked."""
+    def source(self, store: EncodingStore, record_id: str | None = None) -> Source:
+        """A store record as a :class:`Source`: the encodings relighting it reads (and nothing else), checked.
+        ``record_id=None``: the first record of the test split (said in its notes). The store must hold what
+        this model reads (else a UserError naming the fix); a store at another resolution than the checkpoint's
+        is said in the notes."""
+        from difareli.data.inputs import check_store_fits
+
+        notes = []
+        check_store_fits(self.config, store, self.checkpoint)  # an imported official checkpoint on a SynthFaces store
         missing = [n for n in self.needed_encodings() if not store.available(n)]
         if missing:
-            raise KeyError(f"relighting with this model needs encoding(s) {missing}, which the store at "
-                           f"{store.root} does not have")
-        return Source(read_record(store, record_id, self.needed_encodings()), (str(store.root), record_id),
-                      f"record {record_id!r} of {store.root}")
+            raise KeyError(f"relighting with checkpoint={self.checkpoint} needs encoding(s) {missing}, which "
+                           f"the store at {store.root} does not have; {self._restore_fix(store)}")
+        size = int(store.dims.get("H", 0))
+        line = photos.resolution_warning(self.checkpoint, self.resolution, f"the store {store.root}", size,
+                                         f"use a {self.resolution} px store")
+        notes += [line] if line else []
+        if record_id is None:
+            test = store.ids(split="test")
+            record_id = (test or store.ids())[0]
+            notes.append(f"record=null: relighting {record_id}, the first record of the "
+                         f"{'test split' if test else 'store'} (record=<id> picks another)")
+        arrays = read_record(store, record_id, self.needed_encodings())
+        notes.append(f"source light (record {record_id}): {photos.describe_light(arrays['light'])}")
+        return Source(arrays, (str(store.root), record_id), f"record {record_id!r} of {store.root}", None,
+                      tuple(notes), photos.is_grey(arrays["image"]))
+
+    def _restore_fix(self, store: EncodingStore) -> str:
+        """How to get a store this model can read: re-run difareli-preprocess on the store's photos, or another
+        store."""
+        import json
+
+        if store.store_meta.get("source") != "difareli-preprocess":
+            return "use a store that has them (difareli-synth writes every encoding)"
+        try:
+            in_dir = json.loads((Path(store.root) / "preprocess_report.json").read_text())["in_dir"]
+        except (OSError, ValueError, KeyError, TypeError):
+            in_dir = "<the photos>"
+        return (f"difareli-preprocess in_dir={in_dir} out_dir=<a new store> checkpoint={self.checkpoint} writes them "
+                f"(at the checkpoint's {self.resolution} px)")
+
+    def photo_size(self, size: int | None = None) -> int:
+        """A photo's crop size: ``size``, or (None) the checkpoint's training resolution."""
+        if size is not None:
+            return int(errors.check_int(size, "photo_size", 16))
+        if self.resolution is None:
+            raise errors.UserError(f"checkpoint={self.checkpoint} records no training resolution "
+                                   "(hyper_parameters.input_dims.resolution); give the crop size: photo_size=<px>")
+        return self.resolution
+
+    def photo_source(self, image: str | Path | np.ndarray, *, size: int | None = None, face: Any = None,
+                     strict: bool = False, what: str | None = None, key: Any = None,
+                     also: Sequence[str] = ()) -> Source:
+        """A photo (a path, or decoded RGB uint8) preprocessed in memory by difareli-preprocess's estimators (the
+        encodings this model reads) at ``size`` px (None: the training resolution), ``face`` a box of
+        :func:`~difareli.relight.photo.detect_faces` (None: the largest). Checked before relighting
+        (:mod:`~difareli.relight.photo_check`: one line in its notes; ``strict``: a poor photo is refused).
+        Its ``photo`` composites the relights back (:meth:`Relit.composite`); ``also``: encodings estimated beyond
+        the model's (e.g. ``face_mask`` for scoring)."""
+        from difareli.relight import photo_check
+
+        is_path = isinstance(image, (str, Path))
+        what = what or (f"image={image}" if is_path else "photo")
+        rgb = photos.read_photo(image) if is_path else np.asarray(image)
+        px = self.photo_size(size)
+        notes = [] if size is None else [line for line in [photos.resolution_warning(
+            self.checkpoint, self.resolution, f"photo_size={size}", px,
+            f"leave photo_size unset (null) or give photo_size={self.resolution}")] if line]
+        reads = list(dict.fromkeys([*self.needed_encodings(), *also]))
+        prepared = photos.prepare_photo(rgb, reads, size=px, what=what, face=face)
+        stages = ", ".join(f"{k} {1000 * v:.0f} ms" for k, v in prepared.meta.get("seconds", {}).items())
+        notes.append(f"preprocessed {what} in {prepared.seconds:.1f} s ({px} px crop of "
+                     f"{prepared.rgb.shape[1]}x{prepared.rgb.shape[0]}; {stages})")
+        notes += [f"{what}: {note}" for note in prepared.meta.get("notes", [])]
+        verdict = photo_check.check(prepared, what)
+        notes.append(verdict.line())
+        if strict and not verdict.ok:
+            raise errors.UserError(f"{what}: refused (strict=true): {'; '.join(verdict.problems)}")
+        src = self.source_from_arrays(prepared.arrays, what, key=key if key is not None or not is_path
+                                      else ("image", str(image), None if face is None else tuple(np.ravel(face))))
+        notes.append(f"source light (fitted on the photo): {photos.describe_light(src.arrays['light'])}")
+        if src.grey:
+            notes.append(f"{what} is grey: its light is grey and its relights are made grey (their luminance)")
+        return dataclasses.replace(src, photo=prepared, notes=tuple(notes), check=verdict)
 
     def source_from_arrays(self, arrays: Mapping[str, np.ndarray], what: str = "in-memory record",
                            key: Any = None) -> Source:
@@ -111,7 +201,26 @@ class Relighter:
         # Non-finite inputs would decode to a black image without a word: stop here, naming what is wrong.
         for name in self.needed_encodings():
             errors.check_finite(arrays[name], f"{what}, encoding {name!r}")
-        return Source({n: np.asarray(arrays[n]) for n in arrays}, key, what)
+        arrays = {n: np.asarray(arrays[n]) for n in arrays}
+        self._check_fits(arrays, what)
+        return Source(arrays, key, what, grey=photos.is_grey(arrays["image"]))
+
+    def _check_fits(self, arrays: Mapping[str, np.ndarray], what: str) -> None:
+        # Encodings of another layout (an imported official checkpoint beside SynthFaces encodings) would fail deep
+        # inside the network on a tensor size: said here, naming both sizes.
+        dims = dict(self.config.get("input_dims") or {})
+        try:
+            sp, ns = condition_tensors(self.model, [arrays], "cpu")
+        except (ValueError, RuntimeError, KeyError) as e:
+            raise errors.UserError(f"checkpoint={self.checkpoint}: {what} does not fit the model "
+                                   f"({str(e).splitlines()[0][:160]})") from None
+        for dim, t, names in (("spatial_channels", sp, self.model.spatial_inputs),
+                              ("nonspatial_dim", ns, self.model.nonspatial_inputs)):
+            if t is not None and dims.get(dim) is not None and int(dims[dim]) != int(t.shape[1]):
+                raise errors.UserError(
+                    f"checkpoint={self.checkpoint} reads {dims[dim]} {dim.replace('_', ' ')} from {list(names)}, "
+                    f"{what} gives {int(t.shape[1])}; relight sources written for this model (an imported official "
+                    "checkpoint: a store from difareli.official.importers)")
 
     def read(self, store: EncodingStore, record_id: str) -> dict[str, np.ndarray]:
         """The checked encodings of a store record (``source(...).arrays``)."""
@@ -135,31 +244,56 @@ class Relighter:
             raise ValueError("this model is a diffusion model: give the Relighter a sampler")
         return self.spec
 
-    def relight(self, source: Source, targets: Targets) -> np.ndarray:
-        """Relit images (N, H, W, 3) uint8 of ``source`` under the N ``targets`` (lights and shadow logits c'):
-        one inversion (cached), then batched decodes of ``batch_size`` targets."""
+    def check_inputs(self, source: Source, targets: Targets) -> None:
+        """The one check of a request at the door, each bound once: the source's encodings (present and finite:
+        checked when the :class:`Source` was made), the targets (lights and shadows: checked by
+        :meth:`Targets.of`), what only the pair can tell (given target maps at the source's resolution) and the
+        sampler a diffusion model needs. A UserError naming the input."""
+        if not isinstance(source, Source) or not isinstance(targets, Targets):
+            raise errors.UserError(f"relight takes a Source (Relighter.source / photo_source / source_from_arrays) "
+                                   f"and Targets (Targets.of); got {type(source).__name__}, {type(targets).__name__}")
+        hw = np.asarray(source.arrays["image"]).shape[:2]
+        if targets.maps is not None and targets.maps.shape[1:] != hw:
+            raise errors.UserError(f"target shadow maps are {targets.maps.shape[1:]} px, {source.what} is {hw}: "
+                                   "give maps at the source's resolution")
+        if self.spec is None and not isinstance(self.model, OnePassRelightable):
+            raise errors.UserError(f"checkpoint={self.checkpoint} is a diffusion model: give the Relighter a sampler")
+
+    def relight(self, source: Source, targets: Targets) -> Relit:
+        """``source`` relit under the N ``targets`` (lights and shadow logits c'): :meth:`check_inputs`, one
+        inversion (cached per source key, reused across targets and calls), then batched decodes of
+        ``batch_size`` targets; a grey source comes back grey. A :class:`Relit` (images (N, H, W, 3) uint8,
+        seconds per stage), indexable as its images."""
+        self.check_inputs(source, targets)
         arrays = source.arrays
+        start = time.perf_counter()
         inv = self.inversion(source)
+        seconds = {"invert": time.perf_counter() - start}
+        start = time.perf_counter()
         x0 = image_to_tensor(arrays["image"])[None].to(self.device)
         cond = condition_tensors(self.model, [arrays], self.device)
         out = []
         chunks = range(0, len(targets), self.batch_size)
-        for start in tqdm(chunks, desc="relight", disable=not self.progress or len(chunks) == 1):
-            batch = targets.retarget(arrays, self.model_inputs, start, start + self.batch_size)
+        for first in tqdm(chunks, desc="relight", disable=not self.progress or len(chunks) == 1):
+            batch = targets.retarget(arrays, self.model_inputs, first, first + self.batch_size)
             x = relight(self.model, x0, cond, condition_tensors(self.model, batch, self.device), self.spec,
                         runtime=self.runtime, mean_matching=self.mean_matching, inversion=inv)
             errors.check_finite(x.float().cpu().numpy(), f"relight of {source.what}",
                                 fix="the model produced NaN/Inf; try precision=fp32 or another checkpoint")
-            self._warn_if_saturated(x, source.what, start)
+            self._warn_if_saturated(x, source.what, first)
             out.extend(viz.to_uint8(xi.clamp(-1, 1)) for xi in x)
-        return np.stack(out)
+        images = np.stack(out)
+        seconds["decode"] = time.perf_counter() - start
+        return Relit(photos.grey_like(images) if source.grey else images, seconds, source, targets)
 
     def relight_each(self, sources: Sequence[Source], targets: Targets) -> np.ndarray:
         """Source ``i`` under target ``i`` for many sources at once (N, H, W, 3) uint8: ``batch_size`` sources
         inverted in one batch and decoded in one batch (a one-pass model: one pass per batch). The door for jobs
         that relight a whole store (teacher pairs, shadow maps, measurements)."""
         if len(sources) != len(targets):
-            raise ValueError(f"{len(sources)} sources but {len(targets)} targets: give one target per source")
+            raise errors.UserError(f"{len(sources)} sources but {len(targets)} targets: give one target per source")
+        for s in sources:
+            self.check_inputs(s, targets)
         out = []
         for start in range(0, len(sources), self.batch_size):
             chunk = sources[start:start + self.batch_size]

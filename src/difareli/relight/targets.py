@@ -68,11 +68,7 @@ class Targets:
         ``maps`` taking the place of the made shadow maps."""
         stop = len(self) if stop is None else min(stop, len(self))
         out = retarget_many(arrays, names, self[start:stop])
-        if self.maps is not None and "shadow_map" in names:
-            hw = np.asarray(arrays["image"]).shape[:2]
-            if self.maps.shape[1:] != hw:
-                raise ValueError(f"target shadow maps are {self.maps.shape[1:]}, the source image {hw}: give maps at "
-                                 "the source's resolution")
+        if self.maps is not None and "shadow_map" in names:  # their size: Relighter.check_inputs
             for k, o in enumerate(out):
                 o["shadow_map"] = self.maps[start + k]
         return out
@@ -92,7 +88,7 @@ def load_sh_file(path: str | Path) -> np.ndarray:
     if arr.size != 27:
         raise UserError(f"target light file {path} holds {arr.size} numbers; a 9x3 SH light needs 27 "
                         "(row-major, DECA basis order)")
-    return check_light(arr.reshape(9, 3), f"target light file {path}")
+    return check_light(arr.reshape(9, 3), f"target light file {path}", TARGET_LIGHT_MAX_ABS)
 
 
 def load_envmap(path: str | Path) -> np.ndarray:
@@ -124,7 +120,8 @@ def load_envmap(path: str | Path) -> np.ndarray:
 
 def target_lights(source_light: np.ndarray, *, light: str | None = None, other_light: np.ndarray | None = None,
                   yaw: float | None = None, roll: float | None = None, envmap: str | None = None) -> np.ndarray:
-    """Resolve exactly one target specification into a (9, 3) light."""
+    """Resolve exactly one target specification into a (9, 3) light (its bound is checked once, by
+    :meth:`Targets.of`)."""
     given = {k: v for k, v in dict(light=light, record=other_light, yaw=yaw, roll=roll, envmap=envmap).items()
              if v is not None}
     if len(given) != 1:
@@ -133,13 +130,13 @@ def target_lights(source_light: np.ndarray, *, light: str | None = None, other_l
     if light is not None:
         return load_sh_file(light)
     if other_light is not None:
-        return check_light(other_light, "target.record's light")
-    src = check_light(source_light, "the source record's light")
+        return np.asarray(other_light, np.float64)
+    src = np.asarray(source_light, np.float64)
     if yaw is not None:
         return sh.yaw(src, check_number(yaw, "target.yaw", allow_none=False))
     if roll is not None:
         return sh.roll(src, check_number(roll, "target.roll", allow_none=False))
-    return check_light(sh.project_envmap(load_envmap(envmap)), f"the SH projection of environment map {envmap}")
+    return sh.project_envmap(load_envmap(envmap))
 
 
 def rotation_lights(source_light: np.ndarray, axis: str, frames: int = 60) -> np.ndarray:
