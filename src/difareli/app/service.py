@@ -223,7 +223,7 @@ class Service:
                                "upload limit; give a smaller photo")
         ckpt = self.allowed_checkpoint(checkpoint)
         relighter = self.relighter(ckpt)
-        size = int(relighter.config.get("input_dims", {}).get("resolution", 64))
+        size = relighter.photo_size()
         names = self._face_mask_reads(relighter)
         sid = f"photo-{hashlib.sha1(data).hexdigest()[:16]}-{size}"
         cached = self._sources.get(sid)

@@ -48,7 +48,7 @@ def warm_up(svc) -> None:
         from difareli.relight.photo import pipeline_for
 
         rel = svc.relighter(None)
-        size = int(rel.config.get("input_dims", {}).get("resolution", 64))
+        size = rel.photo_size()  # the training resolution (a checkpoint without one is refused, naming photo_size)
         pipe = pipeline_for(list(dict.fromkeys([*rel.needed_encodings(), "face_mask", "masks"])), size)
         from skimage import data
 
