@@ -158,6 +158,21 @@ def test_masks_cover_the_face(results, name):
     assert arrays["background"][m == PART_INDEX["skin"]].max() == 0
 
 
+
+def test_masks_colour_rules_read_only_the_photo(results):
+    """The pipeline passes ``inside`` (crop pixels in the photo, not the reflected padding); the colour rules read
+    only those: with every pixel inside nothing changes, and rows marked padding get no hat from Grace Hopper's cap."""
+    arrays, _, ctx = results["grace"]
+    assert ctx["inside"].all()
+    without = {k: v for k, v in ctx.items() if k != "inside"}
+    np.testing.assert_array_equal(masks.FaceMeshSelfieMasks()(without, {"masks"})["masks"], arrays["masks"])
+    cap = np.nonzero((arrays["masks"] == PART_INDEX["hat"]).any(1))[0]
+    inside = ctx["inside"].copy()
+    inside[:(cap[0] + cap[-1]) // 2] = False  # the cap's top half past the photo's edge
+    lab = masks.FaceMeshSelfieMasks()({**ctx, "inside": inside}, {"masks"})["masks"]
+    assert (lab[~inside] == PART_INDEX["hat"]).sum() == 0
+    assert (lab[inside] == PART_INDEX["hat"]).any()
+
 def test_identity_same_face_close_different_faces_far(pipe, results):
     a = results["astronaut"][0]["identity"]
     g = results["grace"][0]["identity"]

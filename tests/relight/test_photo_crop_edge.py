@@ -53,9 +53,6 @@ def test_composite_mask_reaches_the_photo_edge():
 
 
 @pytest.mark.skipif(not HAS_ESTIMATORS, reason="needs the photo estimators")
-@pytest.mark.xfail(strict=True, reason="open: the forehead rule now refuses pixels closer in colour to the hair above "
-                   "the oval (the astronaut's blonde hair had become skin: tests/estimators/test_estimators.py), and on "
-                   "this crop the hair above is the reflected padding, so the block comes back")
 def test_forehead_above_the_oval_is_skin_on_a_tight_crop():
     """The astronaut cut just above the brows: the reflected forehead was a hat block; now no hat, and the
     forehead skin above the FaceMesh oval is skin."""

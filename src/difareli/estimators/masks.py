@@ -21,6 +21,7 @@ import functools
 import numpy as np
 
 from difareli.data.encodings import FACE_PARTS, FOREGROUND_PARTS, PART_INDEX
+from difareli.errors import UserError
 
 # Lip contours (FACEMESH_LIPS is four chains; tests check these against it), corners first and last.
 LIPS_OUTER_UPPER = (61, 185, 40, 39, 37, 0, 267, 269, 270, 409, 291)
@@ -100,7 +101,7 @@ def outline(edges, points_xy: np.ndarray) -> list[int]:
     if len(parts) == 1:
         return parts[0]
     if len(parts) != 2:
-        raise ValueError(f"expected one cycle or two paths, got {len(parts)} chains")
+        raise UserError(f"expected one cycle or two paths, got {len(parts)} chains")
     a, b = parts
     # Join so that the closing gaps are short: a's end meets b's start.
     if np.linalg.norm(points_xy[a[-1]] - points_xy[b[0]]) > np.linalg.norm(points_xy[a[-1]] - points_xy[b[-1]]):
@@ -241,16 +242,19 @@ class FaceMeshSelfieMasks:
             labels[neck] = PART_INDEX["neck"]
             labels[rest & ~above & ~neck] = PART_INDEX["clothes"]
             if self.colour:
-                self.refine(image, labels, lm, rows, cols, h, w, jaw)
+                # Crop pixels past the photo's edge are a reflection of it (``align.warp_quad``): the colour
+                # rules read only the real ones (the pipeline's ``inside``; all pixels where there is none).
+                self.refine(image, labels, lm, rows, cols, h, w, jaw, real=ctx.get("inside"))
             out.update(masks=labels, person=person,
                        background=np.where(_FG_LUT[labels][..., None], 0, image).astype(np.uint8))
         return out
 
-    def forehead(self, image, labels, lm, rows, cols, h, w, ref, rgb2lab) -> None:
+    def forehead(self, image, labels, lm, rows, cols, h, w, ref, rgb2lab, real=None) -> None:
         """Forehead skin above FaceMesh's oval (the oval stops below the hairline) is ``skin``, not ``hair``:
         skin-coloured person pixels (the neck rule's colour test) above the oval, within ``forehead_height * h``
         of its top and the face's width, connected to the oval's top edge. Labelled ``hair`` (and, unlike the hair
-        beside the face, ``hat``) it was a grey band or a bright block across the forehead of the relight."""
+        beside the face, ``hat``) it was a grey band or a bright block across the forehead of the relight.
+        ``real``: bool mask of the crop pixels inside the photo (None: all), the only ones the hair is sampled from."""
         from scipy import ndimage
 
         if self.forehead_height <= 0:  # the rule off (the masks before it)
@@ -268,10 +272,18 @@ class FaceMeshSelfieMasks:
                 & (np.abs(lab[:, 0] - ref[0]) < self.skin_dark))
         # Light hair can pass the skin colour test (the astronaut's blonde hair did): a pixel is forehead skin only
         # if it is also closer in colour to the skin than to the hair beside the face.
+        # Only hair in the photo counts: on a tight crop the "hair" above the zone is the padding, a reflection of
+        # the forehead itself, and comparing with it refused the forehead (a hat block came back). Where the
+        # photo shows nothing above the zone there is nothing to compare with, not even the hair beside the face
+        # (as light as the astronaut's forehead, it refused it all): the guard stands down.
         hairy = labels == PART_INDEX["hair"]
-        above = hairy & (rows <= top - self.forehead_height * h) & (cols > xs.min()) & (cols < xs.max())
+        if real is not None:
+            hairy = hairy & real
+        band = (rows <= top - self.forehead_height * h) & (cols > xs.min()) & (cols < xs.max())
+        blind = real is not None and band.any() and not (band & real).any()  # all padding above the zone
+        above = hairy & band
         side = hairy & (rows > top) & (rows < top + 0.5 * h) & ((cols < xs.min()) | (cols > xs.max()))
-        for other in (above, side):  # the hair above the zone, else beside the face
+        for other in () if blind else (above, side):  # the hair above the zone, else beside the face
             if other.sum() >= 30:
                 hair = np.median(rgb2lab(image[other]), axis=0)
                 near &= np.linalg.norm(lab - ref, axis=1) < np.linalg.norm(lab - hair, axis=1)
@@ -286,9 +298,9 @@ class FaceMeshSelfieMasks:
         labels[keep[comp]] = PART_INDEX["skin"]
 
     def refine(self, image: np.ndarray, labels: np.ndarray, lm: np.ndarray, rows: np.ndarray, cols: np.ndarray,
-               h: float, w: float, jaw: float) -> None:
+               h: float, w: float, jaw: float, real: np.ndarray | None = None) -> None:
         """The colour rules of the module docstring, in place on ``labels`` (neck by skin colour, hat by a colour
-        unlike the hair beside the face)."""
+        unlike the hair beside the face); ``real``: bool mask of the crop pixels inside the photo (None: all)."""
         from scipy import ndimage
 
         from difareli.utils.imageops import rgb2lab_u8 as rgb2lab  # scikit-image's rgb2lab, bit for bit, for uint8
@@ -318,7 +330,7 @@ class FaceMeshSelfieMasks:
             neck = closing(neck, 2) & below
             labels[below] = PART_INDEX["clothes"]
             labels[neck] = PART_INDEX["neck"]
-        self.forehead(image, labels, lm, rows, cols, h, w, ref, rgb2lab)
+        self.forehead(image, labels, lm, rows, cols, h, w, ref, rgb2lab, real)
         # Hat: hair above the forehead unlike the hair beside the face.
         hair = labels == PART_INDEX["hair"]
         eyes_y = 0.5 * (lm[33, 1] + lm[263, 1])
@@ -326,6 +338,8 @@ class FaceMeshSelfieMasks:
         beside = hair & (rows > eyes_y) & (rows < jaw) & (((cols < xs.min()) & (cols > xs.min() - 0.35 * w))
                                                          | ((cols > xs.max()) & (cols < xs.max() + 0.35 * w)))
         top = hair & (rows < lm[FOREHEAD, 1])
+        if real is not None:  # a hat is only what the photo shows: a reflected forehead is not one
+            beside, top = beside & real, top & real
         if beside.sum() < 30 or top.sum() < 30:
             return
         hair_ref = np.median(rgb2lab(image[beside]), axis=0)
@@ -346,4 +360,5 @@ class FaceMeshSelfieMasks:
                 if area >= 0.05 * top.sum() and bw >= self.hat_min_width * w and area >= 0.5 * bw * bh:
                     keep.append(i)
             if keep:
-                labels[closing(np.isin(comp, keep), 2) & hair] = PART_INDEX["hat"]
+                hat = closing(np.isin(comp, keep), 2) & hair
+                labels[hat if real is None else hat & real] = PART_INDEX["hat"]

@@ -16,7 +16,9 @@ from typing import Any
 import numpy as np
 
 from difareli.data.encodings import ENCODINGS
+from difareli.errors import UserError
 
+from .align import inside_photo
 from .quiet import native_logs
 
 
@@ -59,7 +61,7 @@ class Pipeline:
         self.encodings = estimable if encodings is None else tuple(dict.fromkeys(encodings))
         unknown = [e for e in self.encodings if e not in ENCODINGS]
         if unknown:
-            raise ValueError(f"unknown encodings {unknown}; the schema has {list(ENCODINGS)}")
+            raise UserError(f"unknown encodings {unknown}; the schema has {list(ENCODINGS)}")
         self.min_side, self.max_side = min_side, max_side
         self.steps, self.needed = self.plan(self.encodings)
 
@@ -95,8 +97,8 @@ class Pipeline:
                 continue
             needed.add(name)
             if name not in producer:
-                raise ValueError(f"no configured estimator provides {name!r} (configured: "
-                                 f"{[type(e).__name__ for e in self.estimators]})")
+                raise UserError(f"no configured estimator provides {name!r} (configured: "
+                                f"{[type(e).__name__ for e in self.estimators]})")
             est = producer[name]
             if est not in chosen:
                 chosen.append(est)
@@ -105,8 +107,8 @@ class Pipeline:
         while len(steps) < len(chosen):  # topological order by requirements
             ready = [e for e in chosen if e not in steps and set(e.requires) <= done]
             if not ready:
-                raise ValueError("estimator requirements form a cycle or are missing: "
-                                 f"{[(type(e).__name__, e.requires) for e in chosen if e not in steps]}")
+                raise UserError("estimator requirements form a cycle or are missing: "
+                                f"{[(type(e).__name__, e.requires) for e in chosen if e not in steps]}")
             steps.append(ready[0])
             done |= set(ready[0].provides)
         return steps, needed
@@ -149,6 +151,8 @@ class Pipeline:
         aligned = self.aligner(rgb)
         # The quad unrounded: compositing warps the relit crop back through it (difareli.relight.composite).
         ctx: dict[str, Any] = {"image": aligned["image"], "quad": aligned["quad"], "notes": list(aligned["notes"])}
+        # Crop pixels inside the photo (the rest is padding, a reflection): the masks' colour rules read only these.
+        ctx["inside"] = inside_photo(aligned["quad"], aligned["image"].shape[0], rgb.shape[:2])
         # The alignment pass's FaceMesh landmarks (original pixels), for estimators that can reuse them.
         ctx["alignment_landmarks"] = aligned.get("landmarks")
         meta = {"faces": aligned["faces"], "box": aligned["box"], "quad": np.round(aligned["quad"], 2).tolist()}
