@@ -145,20 +145,22 @@ def test_in_dir_may_be_one_photo_but_not_a_text_file(tmp_path):
 
 # ------------------------------------------------------------------ relight: the checkpoint's resolution
 @needs_shipped
-def test_photo_size_defaults_to_the_checkpoint_resolution(tmp_path, capsys):
-    from difareli.cli.relight import photo_size
+def test_photo_size_defaults_to_the_checkpoint_resolution():
     from difareli.checkpoints.loading import read_checkpoint
-    from difareli.relight.photo import training_resolution
+    from difareli.relight.photo import resolution_warning, training_resolution
+    from difareli.relight.relighter import Relighter
 
     assert training_resolution(read_checkpoint("difareli_pp-synth64")["hyper_parameters"]) == 64
-    base = ["checkpoint=difareli_pp-synth64", "image=x.png", "target.yaw=45"]
-    assert photo_size(compose_train(tmp_path, base, config_name="relight"), 64) == 64
-    assert capsys.readouterr().err == ""
-    assert photo_size(compose_train(tmp_path, [*base, "photo_size=256"], config_name="relight"), 64) == 256
-    err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "trained at 64 px, photo_size=256 is 256 px" in err and "photo_size=64" in err
+    relighter = Relighter("difareli_pp-synth64")
+    assert relighter.photo_size() == 64 and relighter.photo_size(256) == 256
+    line = resolution_warning("difareli_pp-synth64", 64, "photo_size=256", 256, "give photo_size=64")
+    assert "\n" not in line and "trained at 64 px, photo_size=256 is 256 px" in line and "photo_size=64" in line
+    assert resolution_warning("difareli_pp-synth64", 64, "photo_size=64", 64, "") is None
+    with pytest.raises(UserError, match="photo_size=8 is invalid: must be an integer >= 16"):
+        relighter.photo_size(8)
+    relighter.resolution = None  # a checkpoint that records none
     with pytest.raises(UserError, match="records no training resolution.*photo_size=<px>"):
-        photo_size(compose_train(tmp_path, base, config_name="relight"), None)
+        relighter.photo_size()
 
 
 # ------------------------------------------------------------------ third-party noise
@@ -221,7 +223,7 @@ def test_single_file_variant_store_prints_and_reports_the_light_quietly(variant_
 @needs_estimators
 @needs_shipped
 def test_the_variant_store_relights_and_a_short_store_names_the_fix(variant_store, tmp_path, capsys, one_thread):
-    from difareli.cli.relight import check_store, run
+    from difareli.cli.relight import run
     from difareli.relight.relighter import Relighter
     from difareli.data.store import EncodingStore
 
@@ -241,15 +243,16 @@ def test_the_variant_store_relights_and_a_short_store_names_the_fix(variant_stor
     (tmp_path / "short" / "preprocess_report.json").write_text(json.dumps({"in_dir": "photos/"}))
     relighter = Relighter("difareli_pp-synth64")
     with pytest.raises(KeyError) as e:
-        check_store(cfg, relighter, short, 64)
+        relighter.source(short, "astronaut")
     msg = str(e.value.args[0])
     assert "['light', 'normal', 'depth', 'shadow']" in msg and str(short.root) in msg
     assert "difareli-preprocess in_dir=photos/ out_dir=<a new store> checkpoint=difareli_pp-synth64 writes" in msg
-    # A store at another resolution than the checkpoint's: one warning line naming both and the fix.
-    check_store(cfg, relighter, src, 128)
-    err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "trained at 128 px, the store" in err and "is 64 px" in err
-    assert f"in_dir={store.parent / 'astronaut.png'} out_dir=<a new store> checkpoint=difareli_pp-synth64" in err
+    # A store at another resolution than the checkpoint's: one warning line in the source's notes (the CLI prints it
+    # on stderr), naming both and the fix.
+    relighter.resolution = 128
+    err = [n for n in relighter.source(src, "astronaut").notes if n.startswith("warning:")]
+    assert len(err) == 1 and "\n" not in err[0] and "trained at 128 px, the store" in err[0] and "is 64 px" in err[0]
+    assert f"in_dir={store.parent / 'astronaut.png'} out_dir=<a new store> checkpoint=difareli_pp-synth64" in err[0]
 
 
 @needs_estimators

@@ -116,12 +116,15 @@ class Relighter:
         notes = []
         check_store_fits(self.config, store, self.checkpoint)  # an imported official checkpoint on a SynthFaces store
         missing = [n for n in self.needed_encodings() if not store.available(n)]
+        redo = self._redo(store)
         if missing:
+            fix = (f"{redo} writes them (at the checkpoint's {self.resolution} px)" if redo else
+                   "use a store that has them (difareli-synth writes every encoding)")
             raise KeyError(f"relighting with checkpoint={self.checkpoint} needs encoding(s) {missing}, which "
-                           f"the store at {store.root} does not have; {self._restore_fix(store)}")
-        size = int(store.dims.get("H", 0))
-        line = photos.resolution_warning(self.checkpoint, self.resolution, f"the store {store.root}", size,
-                                         f"use a {self.resolution} px store")
+                           f"the store at {store.root} does not have; {fix}")
+        line = photos.resolution_warning(self.checkpoint, self.resolution, f"the store {store.root}",
+                                         int(store.dims.get("H", 0)), f"preprocess at {self.resolution} px: {redo}"
+                                         if redo else f"use a {self.resolution} px store")
         notes += [line] if line else []
         if record_id is None:
             test = store.ids(split="test")
@@ -133,19 +136,17 @@ class Relighter:
         return Source(arrays, (str(store.root), record_id), f"record {record_id!r} of {store.root}", None,
                       tuple(notes), photos.is_grey(arrays["image"]))
 
-    def _restore_fix(self, store: EncodingStore) -> str:
-        """How to get a store this model can read: re-run difareli-preprocess on the store's photos, or another
-        store."""
+    def _redo(self, store: EncodingStore) -> str | None:
+        """For a store difareli-preprocess wrote, the command that writes it again for this checkpoint; else None."""
         import json
 
         if store.store_meta.get("source") != "difareli-preprocess":
-            return "use a store that has them (difareli-synth writes every encoding)"
+            return None
         try:
             in_dir = json.loads((Path(store.root) / "preprocess_report.json").read_text())["in_dir"]
         except (OSError, ValueError, KeyError, TypeError):
             in_dir = "<the photos>"
-        return (f"difareli-preprocess in_dir={in_dir} out_dir=<a new store> checkpoint={self.checkpoint} writes them "
-                f"(at the checkpoint's {self.resolution} px)")
+        return f"difareli-preprocess in_dir={in_dir} out_dir=<a new store> checkpoint={self.checkpoint}"
 
     def photo_size(self, size: int | None = None) -> int:
         """A photo's crop size: ``size``, or (None) the checkpoint's training resolution."""
