@@ -2,9 +2,13 @@
 
 import os
 
-import numpy as np
-import pytest
-import torch
+# Before torch loads OpenMP: idle threads sleep instead of spinning, so a test beside another busy process (a
+# benchmark, a training, the other tests' subprocesses) is not slowed many times over by threads waiting hot.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+import torch  # noqa: E402
 
 # Two cores: keep intra-op threads modest so parallel helpers/tests do not oversubscribe.
 torch.set_num_threads(max(1, min(2, os.cpu_count() or 1)))
