@@ -44,16 +44,22 @@ def main() -> None:
     ap.add_argument("--out", required=True, help="folder of the benchmark runs (resumed), one sub-folder per store")
     ap.add_argument("--models", nargs="*", default=None, help="shipped names (default: all of them)")
     ap.add_argument("--ship", action="store_true", help="also write src/difareli/checkpoints/suite.md")
+    ap.add_argument("--cards", action="store_true",
+                    help="also write each shipped card's paired comparisons (its <name>.md and <name>/README.md)")
     a = ap.parse_args()
 
     start = time.perf_counter()
     out = Path(a.out)
     # Read before the long work, so a store no header describes stops the run at once.
     store_cmd = a.store_cmd if a.store_cmd is not None else [synth_command(store) for store in a.store]
-    sections = [section(store, a.models or zoo.available(), a.pairs, out / Path(store).name) for store in a.store]
-    text = "\n".join([*sections, "Reproduce:", "", "```bash", *store_cmd,
-                      f"python scripts/reference_suite.py --store {' '.join(a.store)} --pairs {a.pairs} --out <folder>",
-                      "```", ""])
+    claims: dict[str, list[str]] = {}
+    sections = [section(store, a.models or zoo.available(), a.pairs, out / Path(store).name, claims)
+                for store in a.store]
+    command = f"python scripts/reference_suite.py --store {' '.join(a.store)} --pairs {a.pairs} --out <folder>"
+    text = "\n".join([*sections, "Reproduce:", "", "```bash", *store_cmd, command, "```", ""])
+    if a.cards:
+        for name, lines in claims.items():
+            write_card_claims(name, lines, [*store_cmd, command])
     write_text_atomic(out / "suite.md", text)
     if a.ship:
         write_text_atomic(zoo.SHIPPED_DIR / "suite.md", text)
@@ -61,15 +67,22 @@ def main() -> None:
     print(f"{time.perf_counter() - start:.0f} s; {out / 'suite.md'}")
 
 
-def section(store: str, models: list[str], pairs: int, out: Path) -> str:
-    """Every model (and identity, Lambertian, run once) on ``store``; the table and what it measured."""
+def section(store: str, models: list[str], pairs: int, out: Path, claims: dict[str, list[str]] | None = None) -> str:
+    """Every model (and identity, Lambertian, run once) on ``store``; the table and what it measured. ``claims``
+    gets, per shipped name, the sentence of its paired comparisons on this store (:func:`model_claims`)."""
     sampler = PRESETS[DEFAULT_SAMPLER].to_config()
-    runs, names = {}, {}
+    runs, names, rows = {}, {}, {}
     for name in models:
-        comparison = compare_to_baselines(store, name, sampler, out, pairs=pairs, progress=True, reuse=True)
+        # Rows named after the shipped name (less its resolution): two shipped checkpoints of one variant differ.
+        comparison = compare_to_baselines(store, name, sampler, out, pairs=pairs, progress=True, reuse=True,
+                                          model_name=name.rsplit("-", 1)[0] if name in zoo.available() else None)
         runs.update(comparison.runs)  # identity and Lambertian are the same runs for every model (resumed)
         names[comparison.facts["model"]] = f"`{name}` ({comparison.facts['sampler']})"
+        rows[name] = comparison.facts["model"]
     records = [r for run in runs.values() for r in run.records]
+    if claims is not None:
+        for name, row in rows.items():
+            claims.setdefault(name, []).append(model_claims(records, row, store))
     table = tables.summarize(records)
     table.to_csv(out / "suite.csv")
     counts = sorted({n for run in runs.values() for n in Counter(r.protocol for r in run.records).values()})
@@ -102,6 +115,38 @@ def comparisons(records: list[tables.Record], methods: list[str], csv_path: Path
         bins = f"; bins {list(paired.SHADOW_BINS)}" if by == "shadow_share" else ""
         out += [f"By {what} ({by}{bins}):", "", strata.to_markdown_long()]
     return "\n".join(out)
+
+
+def model_claims(records: list[tables.Record], row: str, store: str, n_boot: int = paired.N_BOOT) -> str:
+    """What a card may claim of its model's row ``row`` on ``store``: its paired comparisons (DSSIM, MSE, LPIPS)
+    against every other row of the suite, as the sentence :func:`difareli.evaluation.paired.significance` writes."""
+    rows, _ = paired.compare(records, tables.METRICS, n_boot=n_boot, strict=False)
+    mine = [c for c in rows if row in (c.a, c.b)]
+    n = sorted({c.n for c in mine})
+    return (f"On `{store}` ({' or '.join(map(str, n))} pairs per protocol, a seed it never saw; row `{row}`): "
+            + paired.significance(mine))
+
+
+#: The heading of the card section :func:`write_card_claims` owns (replaced on each run, the rest kept).
+CLAIMS_HEADING = "## Paired comparisons (reference suite)"
+
+
+def write_card_claims(name: str, lines: list[str], reproduce: list[str]) -> None:
+    """Put ``lines`` under :data:`CLAIMS_HEADING` in the shipped card ``<name>.md`` and its folder's README.md
+    (the same text: the folder's card is the shipped card), replacing that section if it is there."""
+    body = "\n\n".join([CLAIMS_HEADING, *lines, "Reproduce:\n\n```bash\n" + "\n".join(reproduce) + "\n```"])
+    for path in (zoo.SHIPPED_DIR / f"{name}.md", zoo.SHIPPED_DIR / name / "README.md"):
+        if not path.is_file():
+            continue
+        text = path.read_text()
+        if CLAIMS_HEADING in text:
+            start = text.index(CLAIMS_HEADING)
+            nxt = text.find("\n## ", start + len(CLAIMS_HEADING))
+            text = text[:start] + body + ("\n" + text[nxt:] if nxt >= 0 else "\n")
+        else:  # before "## Intended use" (after the benchmark), else at the end
+            at = text.find("\n## Intended use")
+            text = (text[:at] + "\n" + body + "\n" + text[at:]) if at >= 0 else text.rstrip("\n") + "\n\n" + body + "\n"
+        write_text_atomic(path, text)
 
 
 if __name__ == "__main__":

@@ -16,6 +16,8 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
+from difareli.errors import MissingError
+
 #: The shipped config folder (a real folder: the checkout's conf/ in an editable install, package data in a wheel).
 CONFIG_DIR = Path(str(resources.files("difareli.conf")))
 #: What ``@hydra.main(config_path=...)`` is given.
@@ -64,7 +66,7 @@ def config_file(group: str, name: str) -> Path:
     path = CONFIG_DIR / group / f"{name}.yaml"
     if not path.is_file():
         known = sorted(p.stem for p in path.parent.glob("*.yaml"))
-        raise KeyError(f"no config {group}/{name}.yaml; known {group} options: {known}")
+        raise MissingError(f"no config {group}/{name}.yaml; known {group} options: {known}")
     return path
 
 

@@ -5,13 +5,14 @@ lines ``difareli-<name>: <input>: <what is wrong>; <the fix>`` on stderr and exi
 Anything else is an internal error and keeps its traceback. ``DIFARELI_DEBUG=1`` (or ``HYDRA_FULL_ERROR=1``)
 re-raises user errors too, with the traceback.
 
-What counts as a user error (:func:`user_message`):
+What counts as a user error (:func:`user_message`) is decided by the exception's type:
 
-- :class:`UserError` and its subclasses (raised by the checks below);
-- the project's own user-facing types: ``inputs.MissingEncodingError``, ``synth.config.ConfigError``;
-- ``ValueError`` / ``KeyError`` / ``FileNotFoundError`` raised *explicitly* by difareli code (the innermost
-  frame is a ``raise`` line of this package): those are our validation messages. The same types raised inside
-  numpy/torch (a broadcast error, a bad index) are bugs or unchecked inputs, so they keep the traceback;
+- :class:`UserError` and its subclasses: every message difareli writes for a user. The subclasses keep the
+  builtin types callers catch: :class:`MissingError` is a ``KeyError`` (not found, missing encoding, unknown
+  key), :class:`UserFileNotFoundError` a ``FileNotFoundError``; project types such as
+  ``inputs.MissingEncodingError`` and ``synth.config.ConfigError`` derive from them. A plain ``ValueError`` /
+  ``KeyError`` / ``FileNotFoundError`` is not one, wherever it was raised: a bug or an unchecked input, so it
+  keeps the traceback;
 - ``OSError`` naming a file with errno ENOENT/EACCES/EPERM/EROFS/ENOSPC/EISDIR/ENOTDIR/EEXIST (the
   environment, not the code);
 - OmegaConf's missing-mandatory-value and unknown-key errors (a config the user composed).
@@ -23,7 +24,6 @@ from __future__ import annotations
 
 import errno
 import functools
-import linecache
 import math
 import os
 import re
@@ -34,7 +34,6 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
-_PACKAGE_DIR = str(Path(__file__).resolve().parent)
 #: Exit status of a user error (like argparse's usage errors).
 EXIT_USER = 2
 #: SH light coefficients beyond this are not a light a face can be lit with (DECA lights stay within ~10).
@@ -54,28 +53,24 @@ class UserError(ValueError):
 
     A ValueError, so code that already catches validation ValueErrors keeps working."""
 
+    def __str__(self) -> str:  # the message itself (a KeyError subclass would quote it)
+        return str(self.args[0]) if len(self.args) == 1 else super().__str__()
+
+
+class MissingError(UserError, KeyError):
+    """Something asked for is not there (a record, an encoding, a key, a name): a KeyError to its catchers."""
+
+
+class UserFileNotFoundError(UserError, FileNotFoundError):
+    """An input file or folder that does not exist: a FileNotFoundError to its catchers. Raised with one
+    message argument (its ``errno`` and ``filename`` stay None: the message names the path)."""
+
 
 class NonFiniteError(UserError):
     """An array that must be finite holds NaN or Inf (or absurd magnitudes)."""
 
 
 # ---------------------------------------------------------------------------------------------- classifying
-def _raised_here(exc: BaseException) -> bool:
-    """Whether the innermost frame of ``exc`` is an explicit ``raise`` in difareli's own source."""
-    tb = exc.__traceback__
-    if tb is None:
-        return False
-    while tb.tb_next is not None:
-        tb = tb.tb_next
-    file = tb.tb_frame.f_code.co_filename
-    return file.startswith(_PACKAGE_DIR) and linecache.getline(file, tb.tb_lineno).strip().startswith("raise")
-
-
-def _text(exc: BaseException) -> str:
-    # KeyError's str() quotes its message; show the message itself.
-    return str(exc.args[0]) if isinstance(exc, KeyError) and len(exc.args) == 1 else str(exc)
-
-
 def is_no_space(exc: BaseException) -> bool:
     """Whether ``exc`` is a full disk or an exceeded quota (ENOSPC, EDQUOT, or numpy's short write)."""
     if not isinstance(exc, OSError):
@@ -100,15 +95,11 @@ def user_message(exc: BaseException) -> str | None:
         exc = exc.__cause__
     if isinstance(exc, UserError):
         return str(exc)
-    if type(exc).__name__ in ("MissingEncodingError", "ConfigError"):
-        return _text(exc)
     if isinstance(exc, MissingMandatoryValue):
         key = getattr(exc, "full_key", None) or "a value"
         return f"{key} is required (it is ??? in the config); give it on the command line: {key}=..."
     if isinstance(exc, (ConfigKeyError, ConfigAttributeError)):
         return f"{str(exc).splitlines()[0]}; check the spelling against the config (--cfg job prints it)"
-    if isinstance(exc, (ValueError, KeyError, FileNotFoundError)) and _raised_here(exc):
-        return _text(exc)
     if is_no_space(exc):
         where = f" writing {exc.filename}" if exc.filename else ""
         return (f"no space left on the device{where} ({os_reason(exc)}); free space or give another output folder "
@@ -214,7 +205,8 @@ def check_int(value: Any, key: str, minimum: int = 1, *, allow_none: bool = Fals
 
 
 def check_number(value: Any, key: str, *, allow_none: bool = True, limit: float = 1e6) -> float | None:
-    """``value`` as a finite float with ``|value| <= limit`` (``None`` allowed if ``allow_none``)."""
+    """``value`` as a finite float with ``|value| <= limit`` (``None`` allowed if ``allow_none``); a number
+    that is not finite or too large is a NonFiniteError (a bad value, like a NaN in an array)."""
     if value is None and allow_none:
         return None
     try:
@@ -222,7 +214,7 @@ def check_number(value: Any, key: str, *, allow_none: bool = True, limit: float 
     except (TypeError, ValueError):
         raise UserError(f"{key}={value!r} is invalid: must be a number") from None
     if not math.isfinite(x) or abs(x) > limit:
-        raise UserError(f"{key}={value!r} is invalid: must be a finite number with magnitude <= {limit:g}")
+        raise NonFiniteError(f"{key}={value!r} is invalid: must be a finite number with magnitude <= {limit:g}")
     return x
 
 
@@ -245,11 +237,12 @@ def check_out_dir(path: Any, key: str = "out_dir") -> Path:
 
 
 def check_file(path: Any, key: str) -> Path:
-    """An input file that exists and is readable (a missing one is a FileNotFoundError, as callers expect)."""
+    """An input file that exists and is readable (a missing one is a UserFileNotFoundError: a FileNotFoundError, as
+    callers expect)."""
     p = Path(str(path))
     if not p.is_file():
         what = "is a folder" if p.is_dir() else "does not exist"
-        raise FileNotFoundError(f"{key}={p} {what}; give the path of an existing file")
+        raise UserFileNotFoundError(f"{key}={p} {what}; give the path of an existing file")
     if not os.access(p, os.R_OK):
         raise UserError(f"{key}={p} is not readable; fix its permissions")
     return p
@@ -307,7 +300,7 @@ def load_torch_file(path: Any, what: str = "checkpoint", map_location: Any = "cp
 
     p = Path(str(path))
     if not p.is_file():
-        raise FileNotFoundError(f"{what} {p} does not exist (difareli-train writes <run>/checkpoints/last.ckpt)")
+        raise UserFileNotFoundError(f"{what} {p} does not exist (difareli-train writes <run>/checkpoints/last.ckpt)")
     try:
         return torch.load(p, map_location=map_location, weights_only=True)
     except Exception as e:  # random bytes reach the unpickler's internals: KeyError, struct.error, ...

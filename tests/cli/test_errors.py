@@ -47,13 +47,81 @@ def test_internal_error_keeps_traceback_and_debug_shows_user_ones(monkeypatch, c
         errors.cli_entry("demo")(lambda: errors.check_int(0, "limit"))()
 
 
-def test_explicit_project_raises_and_os_errors_are_user_errors(monkeypatch, capsys):
+def test_project_user_types_and_os_errors_are_user_errors(monkeypatch, capsys):
     from difareli.data.store import EncodingStore
 
     code, err = _run_task(lambda: EncodingStore.open("/nonexistent/store"), monkeypatch, capsys)
     assert code == 2 and err.startswith("difareli-demo: no encoding store at /nonexistent/store")
     code, err = _run_task(lambda: open("/nonexistent/x/y.txt"), monkeypatch, capsys)
     assert code == 2 and "/nonexistent/x/y.txt: No such file or directory" in err
+
+
+def _raiser(exc):
+    def task():
+        raise exc
+
+    return task
+
+
+def test_a_builtin_error_raised_by_difareli_keeps_its_traceback(monkeypatch, capsys):
+    """The type decides, not where the raise is: a plain ValueError/KeyError/FileNotFoundError from a ``raise``
+    line of difareli's source is an internal error and keeps its traceback."""
+    import linecache
+    from pathlib import Path
+
+    # A function whose code is a file of the package with a ``raise`` line: what the old rule, reading the
+    # innermost frame's source text, took for a user error.
+    src = "def check(exc):\n    raise exc\n"
+    fake = str(Path(errors.__file__).parent / "_probe_raise.py")
+    monkeypatch.setitem(linecache.cache, fake, (len(src), None, src.splitlines(True), fake))
+    scope: dict = {}
+    exec(compile(src, fake, "exec"), scope)
+    for exc in (ValueError("shapes (3,) and (4,) differ"), KeyError("k"), FileNotFoundError("f")):
+        with pytest.raises(type(exc)) as e:
+            errors.cli_entry("demo")(lambda: scope["check"](exc))()
+        assert e.value is exc and e.value.__traceback__.tb_next is not None
+        assert errors.user_message(exc) is None
+    assert capsys.readouterr().err == ""
+
+
+def test_user_subclasses_give_one_line_and_keep_builtin_catchers(monkeypatch, capsys):
+    class BadThing(UserError):
+        pass
+
+    code, err = _run_task(_raiser(BadThing("thing=3 is bad; give thing=1")), monkeypatch, capsys)
+    assert code == 2 and err == "difareli-demo: thing=3 is bad; give thing=1\n"
+    missing = errors.MissingError("no record 'x' in store /s")
+    assert str(missing) == "no record 'x' in store /s" == errors.user_message(missing)  # KeyError would quote it
+    with pytest.raises(KeyError):
+        raise missing
+    code, err = _run_task(_raiser(missing), monkeypatch, capsys)
+    assert code == 2 and err == "difareli-demo: no record 'x' in store /s\n"
+    gone = errors.UserFileNotFoundError("target light file /x.npy does not exist")
+    assert isinstance(gone, OSError) and str(gone) == errors.user_message(gone)
+    with pytest.raises(FileNotFoundError):
+        raise gone
+    with pytest.raises(FileNotFoundError, match="does not exist; give the path"):
+        errors.check_file("/nonexistent/light.npy", "target.light")
+
+
+def test_project_types_are_user_types(synth_store):
+    from difareli.app.checks import RequestError
+    from difareli.data.inputs import MissingEncodingError
+    from difareli.data.store import EncodingStore
+    from difareli.diffusion.spec import SamplerConfigError
+    from difareli.synth.config import ConfigError
+
+    assert issubclass(MissingEncodingError, errors.MissingError) and issubclass(MissingEncodingError, KeyError)
+    assert str(MissingEncodingError("needs shadow_map")) == "needs shadow_map"
+    assert all(issubclass(t, UserError) for t in (ConfigError, SamplerConfigError, RequestError))
+    store = EncodingStore.open(synth_store)
+    try:  # code that recovers from a missing record with ``except KeyError`` still does
+        store.read("no_such_record")
+    except KeyError as e:
+        assert isinstance(e, errors.MissingError) and errors.user_message(e) == f"no record 'no_such_record' in " \
+            f"store {store.root}"
+    with pytest.raises(FileNotFoundError):  # and a missing store is still a FileNotFoundError
+        EncodingStore.open(synth_store / "none")
 
 
 def test_sigterm_stops_cleanly(monkeypatch, capsys):

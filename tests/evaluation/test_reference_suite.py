@@ -109,3 +109,27 @@ def test_suite_comparisons_and_strata_on_built_records(tmp_path):
                                                                       "model |"))
     assert f"**{(base[:10] - 0.02).mean():.4f} ± " in low  # the best DSSIM of its stratum, in bold
     assert "shadow [0.15, 0.3) | identity |" in text and "bins [0.0, 0.05, 0.15, 0.3, 1.0]" in text
+
+
+def test_card_claims_replace_their_own_section_in_both_copies_of_a_card(tmp_path, monkeypatch):
+    """--cards writes the paired-comparison sentence into <name>.md and <name>/README.md, before "Intended use",
+    and a rerun replaces that section (the rest of the card kept byte for byte)."""
+    import importlib.util
+
+    from difareli.checkpoints import zoo
+
+    spec = importlib.util.spec_from_file_location("reference_suite", ROOT / "scripts" / "reference_suite.py")
+    suite = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(suite)
+    monkeypatch.setattr(zoo, "SHIPPED_DIR", tmp_path)
+    card = "# m\n\n## Benchmark\n\ntable\n\n## Intended use\n\nresearch\n"
+    (tmp_path / "m").mkdir()
+    for path in (tmp_path / "m.md", tmp_path / "m" / "README.md"):
+        path.write_text(card)
+    suite.write_card_claims("m", ["first claim"], ["cmd 1"])
+    suite.write_card_claims("m", ["second claim"], ["cmd 2"])
+    for path in (tmp_path / "m.md", tmp_path / "m" / "README.md"):
+        text = path.read_text()
+        assert text.count(suite.CLAIMS_HEADING) == 1 and "second claim" in text and "first claim" not in text
+        assert text.index("second claim") < text.index("## Intended use")
+        assert text.startswith("# m\n\n## Benchmark\n\ntable\n") and text.endswith("## Intended use\n\nresearch\n")

@@ -8,6 +8,8 @@ from collections import OrderedDict
 from collections.abc import Callable
 from typing import Any
 
+from difareli.errors import UserError
+
 from .checks import RequestError
 
 
@@ -18,7 +20,7 @@ class LRU(OrderedDict):
     def __init__(self, size: int):
         super().__init__()
         if int(size) < 1:
-            raise ValueError(f"cache size {size!r} must be >= 1")
+            raise UserError(f"cache size {size!r} must be >= 1")
         self.size = int(size)
 
     def __getitem__(self, key: Any) -> Any:

@@ -14,6 +14,8 @@ from collections.abc import Iterable, Mapping
 from typing import Any
 from urllib.parse import urlsplit
 
+from difareli.errors import UserError
+
 MAX_BODY = 48 * 2 ** 20
 MAX_DEPTH = 8  # the deepest request the page sends is 3 ({"light": {"direction": [...]}})
 MAX_STEPS = 1000  # the schedule's T: more steps than timesteps is not a sampler
@@ -21,7 +23,7 @@ MAX_DIRECTION = 1e6  # a direction's length does not matter; beyond this a compo
 _LENGTH = re.compile(r"^[0-9]{1,12}$")
 
 
-class RequestError(ValueError):
+class RequestError(UserError):
     """A request the page should not have sent (a bad header or field, an unknown id): one line, HTTP ``status``."""
 
     def __init__(self, message: str, status: int = 400):
@@ -109,7 +111,7 @@ def body_length(headers: Mapping[str, str]) -> int:
 def parse_body(data: bytes) -> dict:
     """The JSON object of a body: valid UTF-8 JSON, no NaN/Infinity, nested at most :data:`MAX_DEPTH` deep."""
     def constant(name: str):
-        raise ValueError(f"{name} is not a number JSON allows")
+        raise UserError(f"{name} is not a number JSON allows")
 
     try:
         obj = json.loads(data or b"{}", parse_constant=constant)

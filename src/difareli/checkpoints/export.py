@@ -24,6 +24,7 @@ from typing import Any
 import torch
 
 from difareli.checkpoints.format import FORMAT_KEY, MODULE_KEY
+from difareli.errors import UserError
 
 WEIGHTS, CONFIG, CARD = "model.safetensors", "config.json", "README.md"
 #: ``config.json``'s ``format``: what wrote the folder, so another folder with a config.json is never mistaken.
@@ -48,14 +49,14 @@ def read_folder(folder: str | Path, map_location: str | torch.device = "cpu") ->
     try:
         config = json.loads((folder / CONFIG).read_text())
     except (OSError, ValueError) as e:
-        raise ValueError(f"{folder / CONFIG}: unreadable ({e}); export the folder again: difareli-export "
-                         f"<checkpoint> {folder}") from None
+        raise UserError(f"{folder / CONFIG}: unreadable ({e}); export the folder again: difareli-export "
+                        f"<checkpoint> {folder}") from None
     if not isinstance(config, dict) or config.get("format") != FOLDER_FORMAT:
-        raise ValueError(f"{folder / CONFIG} is not a difareli weights folder's config (no \"format\": "
-                         f"\"{FOLDER_FORMAT}\"); make one with difareli-export <checkpoint> <folder>")
+        raise UserError(f"{folder / CONFIG} is not a difareli weights folder's config (no \"format\": "
+                        f"\"{FOLDER_FORMAT}\"); make one with difareli-export <checkpoint> <folder>")
     if int(config.get("version", 0)) > FOLDER_VERSION:
-        raise ValueError(f"{folder} is a weights folder of version {config.get('version')}, newer than this "
-                         f"difareli reads ({FOLDER_VERSION}); load it with the difareli version that wrote it")
+        raise UserError(f"{folder} is a weights folder of version {config.get('version')}, newer than this "
+                        f"difareli reads ({FOLDER_VERSION}); load it with the difareli version that wrote it")
     device = str(torch.device(map_location)) if not isinstance(map_location, str) else map_location
     ckpt = {k: config[k] for k in CONFIG_KEYS if k in config}
     ckpt["state_dict"] = load_file(folder / WEIGHTS, device=device)
@@ -83,10 +84,10 @@ def export_folder(checkpoint: str | Path, folder: str | Path) -> Path:
 
     source = zoo.resolve(checkpoint)
     if source.is_dir():
-        raise ValueError(f"checkpoint={checkpoint} is already a weights folder ({source}); copy it instead")
+        raise UserError(f"checkpoint={checkpoint} is already a weights folder ({source}); copy it instead")
     folder = Path(folder)
     if folder.exists() and (not folder.is_dir() or (any(folder.iterdir()) and not is_folder(folder))):
-        raise ValueError(f"{folder} exists and is not an empty folder or a weights folder; give a new folder")
+        raise UserError(f"{folder} exists and is not an empty folder or a weights folder; give a new folder")
     ckpt = read_checkpoint(source)
     folder.mkdir(parents=True, exist_ok=True)
     # Own contiguous copies: safetensors refuses tensors that share storage or are strided views.

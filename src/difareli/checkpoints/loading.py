@@ -19,7 +19,7 @@ import torch
 
 from difareli.checkpoints import zoo
 from difareli.checkpoints.export import is_folder, read_folder
-from difareli.errors import load_torch_file
+from difareli.errors import UserError, load_torch_file
 from difareli.checkpoints.format import MODULE_KEY, upgrade_checkpoint
 
 #: Modules a checkpoint may name: the package's own namespace only (a checkpoint is data, not code).
@@ -39,15 +39,15 @@ class LoadedCheckpoint:
 def module_class(path: str) -> type[L.LightningModule]:
     """Import the LightningModule class named ``package.module.Class`` (``difareli.`` namespace only)."""
     if not isinstance(path, str) or not path.startswith(ALLOWED_PREFIX) or "." not in path[len(ALLOWED_PREFIX):]:
-        raise ValueError(f"checkpoint names module class {path!r}; only classes under {ALLOWED_PREFIX!r} load")
+        raise UserError(f"checkpoint names module class {path!r}; only classes under {ALLOWED_PREFIX!r} load")
     module, _, name = path.rpartition(".")
     try:
         cls = getattr(importlib.import_module(module), name, None)
     except ImportError as e:
-        raise ValueError(f"checkpoint names module class {path!r}, which this difareli version does not have "
-                         f"({e}); it was written by another version of difareli: load it with that version") from None
+        raise UserError(f"checkpoint names module class {path!r}, which this difareli version does not have "
+                        f"({e}); it was written by another version of difareli: load it with that version") from None
     if not (isinstance(cls, type) and issubclass(cls, L.LightningModule)):
-        raise ValueError(f"checkpoint names {path!r}, which is not a LightningModule class of this package")
+        raise UserError(f"checkpoint names {path!r}, which is not a LightningModule class of this package")
     return cls
 
 
@@ -63,7 +63,7 @@ def read_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
         from difareli.checkpoints.format import refuse_official
 
         refuse_official(ckpt, path)  # the authors' ImgCond/ImgEncoder .pt: a message naming the import command
-        raise ValueError(f"{path} is not a difareli Lightning checkpoint (no hyper_parameters/state_dict)")
+        raise UserError(f"{path} is not a difareli Lightning checkpoint (no hyper_parameters/state_dict)")
     return upgrade_checkpoint(ckpt)
 
 

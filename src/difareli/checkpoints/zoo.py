@@ -19,7 +19,7 @@ import torch
 
 from difareli.checkpoints.export import is_folder
 from difareli.checkpoints.format import SLIM_KEYS
-from difareli.errors import UserError, check_file, load_torch_file
+from difareli.errors import UserError, UserFileNotFoundError, check_file, load_torch_file
 from difareli.utils.fileio import torch_save_atomic, write_text_atomic
 
 #: Where the shipped checkpoints and their model cards live (package data).
@@ -51,9 +51,9 @@ def resolve(checkpoint: str | Path, key: str = "checkpoint", prefer_folder: bool
     try:
         return check_file(path, key)
     except FileNotFoundError as e:
-        raise FileNotFoundError(f"{e} (<run>/checkpoints/last.ckpt, or a weights folder of difareli-export), or "
-                                f"the name of a shipped checkpoint: "
-                                f"{', '.join(available()) or 'none shipped'}") from None
+        raise UserFileNotFoundError(f"{e} (<run>/checkpoints/last.ckpt, or a weights folder of difareli-export), or "
+                                    f"the name of a shipped checkpoint: "
+                                    f"{', '.join(available()) or 'none shipped'}") from None
 
 
 def suite() -> str | None:

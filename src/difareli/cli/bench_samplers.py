@@ -40,15 +40,15 @@ def run(cfg: DictConfig) -> dict:
     names = list(cfg.names) if cfg.names is not None else list(configured)
     unknown = [n for n in names if n not in configured]
     if unknown:
-        raise KeyError(f"names {unknown} are not configured under samplers ({sorted(configured)}); add one with "
-                       "+sampler@samplers.<name>=<conf/sampler file>")
+        raise errors.MissingError(f"names {unknown} are not configured under samplers ({sorted(configured)}); add one "
+                                  "with +sampler@samplers.<name>=<conf/sampler file>")
     samplers = {n: configured[n] for n in names}
     steps = sorted({int(n) for n in cfg.steps})
     if cfg.checkpoint is not None:
         from difareli.lit import load_checkpoint
 
         if cfg.store is None:
-            raise ValueError("store=... is required with a checkpoint (the records to relight)")
+            raise errors.UserError("store=... is required with a checkpoint (the records to relight)")
         model = load_checkpoint(cfg.checkpoint, device).model.to(device)
         if isinstance(model, OnePassRelightable):  # every sampler row would time the same single pass
             raise errors.UserError(f"checkpoint={cfg.checkpoint} is a one-pass student: it has no sampler or step "
@@ -59,7 +59,7 @@ def run(cfg: DictConfig) -> dict:
                                   device=device, oracle_target=bool(cfg.get("oracle_target", False)))
         reference = (cfg.reference.sampler, int(cfg.reference.steps)) if cfg.reference is not None else None
         if reference is not None and reference[0] not in configured:
-            raise KeyError(f"reference.sampler={reference[0]!r} is not configured under samplers ({sorted(configured)})")
+            raise errors.MissingError(f"reference.sampler={reference[0]!r} is not configured under samplers ({sorted(configured)})")
         what = f"{cfg.checkpoint} on {len(cases)} record(s) of {cfg.store} ({cases[0].inputs})"
     else:
         model_cfg = OmegaConf.to_container(cfg.model, resolve=True)
@@ -106,8 +106,8 @@ def _student(cfg: DictConfig, cases: list, device) -> tuple:
 
         student = load_checkpoint(zoo.resolve(cfg.student, "student"), device).model.to(device)
         if cfg.checkpoint is None:
-            raise ValueError("student=<checkpoint> is timed against a teacher checkpoint: give checkpoint=... and "
-                             "store=..., or student=untrained for timing only")
+            raise errors.UserError("student=<checkpoint> is timed against a teacher checkpoint: give checkpoint=... "
+                                   "and store=..., or student=untrained for timing only")
     if not isinstance(student, OnePassRelightable):
         raise errors.UserError(f"student={cfg.student} is not a one-pass model; give a model=student checkpoint")
     return student, speed.store_cases(EncodingStore.open(cfg.store), student, records=[c.record for c in cases],

@@ -43,13 +43,13 @@ def verify_folder(checkpoint: str, folder: str) -> int:
 
     a, b = read_checkpoint(zoo.resolve(checkpoint)), read_folder(folder)
     if set(a["state_dict"]) != set(b["state_dict"]):
-        raise ValueError(f"{folder}: its tensors differ in names from {checkpoint}'s")
+        raise UserError(f"{folder}: its tensors differ in names from {checkpoint}'s")
     for k, v in a["state_dict"].items():
         w = b["state_dict"][k]
         if v.dtype != w.dtype or not torch.equal(v, w):
-            raise ValueError(f"{folder}: tensor {k} differs from {checkpoint}'s")
+            raise UserError(f"{folder}: tensor {k} differs from {checkpoint}'s")
     if a["hyper_parameters"] != b["hyper_parameters"]:
-        raise ValueError(f"{folder}: config.json's hyperparameters differ from {checkpoint}'s")
+        raise UserError(f"{folder}: config.json's hyperparameters differ from {checkpoint}'s")
     return len(a["state_dict"])
 
 

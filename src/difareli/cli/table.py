@@ -29,11 +29,11 @@ def expand_runs(patterns: Iterable[str]) -> list[Path]:
         if glob.has_magic(pat):
             hits = [Path(p) for p in sorted(glob.glob(pat)) if (Path(p) / tables.PER_IMAGE_CSV).is_file()]
             if not hits:
-                raise FileNotFoundError(f"no run dir with {tables.PER_IMAGE_CSV} matches {pat!r}")
+                raise errors.UserFileNotFoundError(f"no run dir with {tables.PER_IMAGE_CSV} matches {pat!r}")
             found += hits
         else:
             if not (Path(pat) / tables.PER_IMAGE_CSV).is_file():
-                raise FileNotFoundError(f"no {tables.PER_IMAGE_CSV} in run dir {pat}")
+                raise errors.UserFileNotFoundError(f"no {tables.PER_IMAGE_CSV} in run dir {pat}")
             found.append(Path(pat))
     return list(dict.fromkeys(found))
 

@@ -22,6 +22,7 @@ from typing import Any, Iterable, Mapping
 import numpy as np
 
 from difareli.data import encodings as enc
+from difareli.errors import MissingError, UserError
 from difareli.utils.fileio import save_npy_atomic, write_text_atomic
 
 SEP = "@"
@@ -33,8 +34,8 @@ def version_name(base: str, version: str) -> str:
     enc.get(base)
     if not version or len(version) > 64 or not all(ch.isalnum() or ch in "_.+=-" for ch in version) \
             or version[0] in ".-":
-        raise ValueError(f"derived version {version!r} is invalid: use 1-64 characters from [A-Za-z0-9_.+=-], not "
-                         "starting with '.' or '-'")
+        raise UserError(f"derived version {version!r} is invalid: use 1-64 characters from [A-Za-z0-9_.+=-], not "
+                        "starting with '.' or '-'")
     return f"{base}{SEP}{version}"
 
 
@@ -65,7 +66,7 @@ def replace_base(store, record_id: str, name: str, array: np.ndarray) -> None:
     """Rewrite one record's own encoding ``name`` in place (scratch file, then rename), validated by its schema."""
     final = Path(store.records_dir) / record_id / f"{name}.npy"
     if not final.is_file():
-        raise KeyError(f"record {record_id!r} of store {store.root} has no {name}")
+        raise MissingError(f"record {record_id!r} of store {store.root} has no {name}")
     arr = np.ascontiguousarray(enc.get(name).validate(np.asarray(array), store.dims))
     save_npy_atomic(final, arr)
 
@@ -79,15 +80,15 @@ def declare(store, base: str, version: str, provenance: Mapping[str, Any]) -> st
 
     name = version_name(base, version)
     if base not in store.encodings:
-        raise ValueError(f"store {store.root} has no encoding {base!r} to derive a version of")
+        raise UserError(f"store {store.root} has no encoding {base!r} to derive a version of")
     path = Path(store.root) / HEADER
     header = json.loads(path.read_text())
     derived = dict(header.get(KEY, {}))
     prov = json.loads(json.dumps(dict(provenance), default=str))
     if name in derived:
         if derived[name] != prov:
-            raise ValueError(f"store {store.root} already has {name} with other provenance {derived[name]}; choose "
-                             "another version name")
+            raise UserError(f"store {store.root} already has {name} with other provenance {derived[name]}; choose "
+                            "another version name")
     else:
         derived[name] = prov
         header[KEY] = derived
@@ -114,11 +115,11 @@ def write(store, record_id: str, name: str, array: np.ndarray, *, overwrite: boo
     """Write one record's derived encoding atomically; False (nothing written) if present and not ``overwrite``."""
     base, version = split_name(name)
     if version is None or name not in store.derived:
-        raise ValueError(f"{name!r} is not a declared derived version of store {store.root} (declare it first; "
-                         f"declared: {sorted(store.derived)})")
+        raise UserError(f"{name!r} is not a declared derived version of store {store.root} (declare it first; "
+                        f"declared: {sorted(store.derived)})")
     final = path_of(store, record_id, name)
     if not final.parent.is_dir():
-        raise KeyError(f"no record {record_id!r} in store {store.root}")
+        raise MissingError(f"no record {record_id!r} in store {store.root}")
     if final.exists() and not overwrite:
         return False
     arr = np.ascontiguousarray(enc.get(base).validate(np.asarray(array), store.dims))

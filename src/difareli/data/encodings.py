@@ -20,6 +20,8 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from difareli.errors import MissingError, UserError
+
 SCHEMA_VERSION = 2
 
 #: The ``shadow`` logit c and the ``shadow_map`` scaling: ``shadow_map = binary cast map * normalise_c(c)``
@@ -42,7 +44,7 @@ def normalise_c(c, c_range=None):
     training-split range, :func:`store_c_range`) or, when None, the fixed [SHADOW_C_LO, SHADOW_C_HI]."""
     lo, hi = (SHADOW_C_LO, SHADOW_C_HI) if c_range is None else (float(c_range[0]), float(c_range[1]))
     if not hi > lo:
-        raise ValueError(f"shadow c range ({lo}, {hi}) is empty: c_max must exceed c_min")
+        raise UserError(f"shadow c range ({lo}, {hi}) is empty: c_max must exceed c_min")
     return np.clip((np.asarray(c, dtype=np.float64) - lo) / (hi - lo), 0.0, 1.0)
 
 
@@ -132,7 +134,7 @@ class Encoding:
         try:
             return tuple(d if isinstance(d, int) else int(dims[d]) for d in self.shape)
         except KeyError as e:
-            raise KeyError(f"encoding {self.name!r} needs dimension {e.args[0]!r}; known: {sorted(dims)}") from None
+            raise MissingError(f"encoding {self.name!r} needs dimension {e.args[0]!r}; known: {sorted(dims)}") from None
 
     def channels(self, dims: dict[str, int]) -> int:
         """Channels (spatial) or features (non-spatial) once prepared as a network input."""
@@ -161,7 +163,7 @@ class Encoding:
     def render(self, arrays, light: np.ndarray, shadow: float | None) -> np.ndarray:
         """This encoding under a target ``light`` (and shadow logit ``shadow``) from a record's ``arrays``."""
         if self.rerender is None:
-            raise ValueError(f"encoding {self.name!r} does not depend on the light; nothing to re-render")
+            raise UserError(f"encoding {self.name!r} does not depend on the light; nothing to re-render")
         import importlib
 
         module, func = self.rerender.split(":")
@@ -172,11 +174,11 @@ class Encoding:
         arr = np.asarray(array)
         want = self.resolve(dims)
         if arr.shape != want:
-            raise ValueError(f"encoding {self.name!r}: shape {arr.shape} does not match schema {want}")
+            raise UserError(f"encoding {self.name!r}: shape {arr.shape} does not match schema {want}")
         if not np.can_cast(arr.dtype, self.dtype, casting="same_kind") and arr.dtype != np.bool_:
-            raise ValueError(f"encoding {self.name!r}: dtype {arr.dtype} cannot be stored as {self.dtype}")
+            raise UserError(f"encoding {self.name!r}: dtype {arr.dtype} cannot be stored as {self.dtype}")
         if np.issubdtype(arr.dtype, np.floating) and not np.all(np.isfinite(arr)):
-            raise ValueError(f"encoding {self.name!r}: contains NaN or Inf")
+            raise UserError(f"encoding {self.name!r}: contains NaN or Inf")
         return arr.astype(self.dtype, copy=False)
 
 
@@ -259,4 +261,4 @@ def get(name: str) -> Encoding:
     try:
         return ENCODINGS[name]
     except KeyError:
-        raise KeyError(f"unknown encoding {name!r}; the schema (v{SCHEMA_VERSION}) has: {', '.join(ENCODINGS)}") from None
+        raise MissingError(f"unknown encoding {name!r}; the schema (v{SCHEMA_VERSION}) has: {', '.join(ENCODINGS)}") from None

@@ -15,15 +15,13 @@ import torch
 from torch import Tensor
 
 from difareli.data import encodings as enc
+from difareli.errors import MissingError, UserError
 
 Condition = tuple[Tensor | None, Tensor | None]  # (spatial [B, C, H, W], non-spatial [B, D]), raw encodings
 
 
-class MissingEncodingError(KeyError):
+class MissingEncodingError(MissingError):
     """A model variant needs an encoding the data set does not have."""
-
-    def __str__(self) -> str:  # KeyError quotes its message; keep it readable
-        return str(self.args[0])
 
 
 def image_to_tensor(image: np.ndarray) -> Tensor:
@@ -108,8 +106,6 @@ def check_store_fits(config: Mapping[str, Any], store, checkpoint: Any = "the ch
     checkpoint, what it expects (resolution, inputs, sizes), what the store gives and the fix, in place of a
     tensor-size mismatch deep in the model. A resolution alone that differs is not refused (the network is
     convolutional; the relighter says it in its notes). A config without ``input_dims`` is not checked."""
-    from difareli.errors import UserError
-
     want = dict(config.get("input_dims") or {})
     if "spatial_channels" not in want or "nonspatial_dim" not in want:
         return

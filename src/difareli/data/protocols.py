@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from difareli.errors import UserError
 from difareli.utils.fileio import write_text_atomic
 
 SPLITS = ("train", "val", "test")
@@ -44,10 +45,10 @@ def assign_splits(subjects: int, fractions: dict[str, float], group_size: int, s
     """
     unknown = set(fractions) - set(SPLITS)
     if unknown:
-        raise ValueError(f"splits: unknown split names {sorted(unknown)}; use {list(SPLITS)}")
+        raise UserError(f"splits: unknown split names {sorted(unknown)}; use {list(SPLITS)}")
     fr = {k: float(fractions.get(k, 0.0)) for k in SPLITS}
     if any(v < 0 for v in fr.values()) or sum(fr.values()) <= 0:
-        raise ValueError(f"splits: fractions must be >= 0 with a positive sum, got {fr}")
+        raise UserError(f"splits: fractions must be >= 0 with a positive sum, got {fr}")
     total = sum(fr.values())
     fr = {k: v / total for k, v in fr.items()}
     n_groups = -(-subjects // group_size)
@@ -59,7 +60,7 @@ def assign_splits(subjects: int, fractions: dict[str, float], group_size: int, s
         counts[k] = n
     counts["train"] = n_groups - counts["test"] - counts["val"]
     if counts["train"] < 0 or (fr["train"] > 0 and counts["train"] == 0 and n_groups >= 3):
-        raise ValueError(f"splits: {n_groups} light groups are too few for fractions {fr}")
+        raise UserError(f"splits: {n_groups} light groups are too few for fractions {fr}")
     order = np.random.default_rng([seed, 0x5B117]).permutation(n_groups)
     out: dict[str, list[int]] = {}
     start = 0

@@ -27,6 +27,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping, Sequence, TypeVar
 
+from difareli.errors import UserError
 from difareli.utils.fileio import write_text_atomic
 
 T = TypeVar("T")
@@ -68,11 +69,11 @@ def parse(spec: Any) -> Shard | None:
         return spec
     m = _SPEC.match(str(spec))
     if not m:
-        raise ValueError(f"shard={spec!r} is invalid: use 'i/n' with 0 <= i < n, e.g. shard=0/4 (quote it in a "
-                         "multirun: 'shard=0/2,1/2')")
+        raise UserError(f"shard={spec!r} is invalid: use 'i/n' with 0 <= i < n, e.g. shard=0/4 (quote it in a "
+                        "multirun: 'shard=0/2,1/2')")
     i, n = int(m.group(1)), int(m.group(2))
     if n < 1 or not 0 <= i < n:
-        raise ValueError(f"shard={spec!r} is invalid: the index must satisfy 0 <= i < n (got i={i}, n={n})")
+        raise UserError(f"shard={spec!r} is invalid: the index must satisfy 0 <= i < n (got i={i}, n={n})")
     return Shard(i, n)
 
 
@@ -119,15 +120,15 @@ def check_complete(run_dirs: Sequence[str | Path]) -> dict[str, list[Path]]:
         spec = parse(doc["shard"])
         job = json.dumps(doc["job"], sort_keys=True)
         if counts.setdefault(job, spec.count) != spec.count:
-            raise ValueError(f"{path}: shard {spec} but other shards of the same job are out of {counts[job]}")
+            raise UserError(f"{path}: shard {spec} but other shards of the same job are out of {counts[job]}")
         groups.setdefault(job, {}).setdefault(spec.index, []).append(Path(d))
     for job, by_index in groups.items():
         n = counts[job]
         missing = [i for i in range(n) if i not in by_index]
         repeated = {i: [str(p) for p in ps] for i, ps in by_index.items() if len(ps) > 1}
         if missing or repeated:
-            raise ValueError(f"sharded job {job}: " + (f"shards {[f'{i}/{n}' for i in missing]} missing; "
-                                                       if missing else "")
-                             + (f"shards listed twice: {repeated}; " if repeated else "")
-                             + "merge all n shard run dirs exactly once (rerun the missing ones with shard=i/n)")
+            raise UserError(f"sharded job {job}: " + (f"shards {[f'{i}/{n}' for i in missing]} missing; "
+                                                      if missing else "")
+                            + (f"shards listed twice: {repeated}; " if repeated else "")
+                            + "merge all n shard run dirs exactly once (rerun the missing ones with shard=i/n)")
     return {job: [p for i in sorted(ix) for p in ix[i]] for job, ix in groups.items()}

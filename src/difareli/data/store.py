@@ -27,7 +27,7 @@ import numpy as np
 
 from difareli.utils.fileio import RESUME, fsync_dir, is_no_space, no_space, write_text_atomic
 from difareli.data import encodings as enc
-from difareli.errors import UserError, check_light
+from difareli.errors import MissingError, UserError, UserFileNotFoundError, check_light
 
 HEADER = "store.json"
 #: Schema versions this code reads. v2 only appended encodings (SynthFaces v2's ``*_gt`` block) and changed none,
@@ -40,10 +40,15 @@ _OLD = ".old-"
 _ID_RE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.+=-]{0,199}$")
 
 
+class CorruptRecordError(UserError):
+    """One record's stored file is unreadable or of the wrong shape or kind: that record is bad, not the store
+    (the benchmark scores such a pair as a failed row)."""
+
+
 def validate_record_id(record_id: str) -> str:
     """Return ``record_id`` if it is a safe folder name, else raise ValueError saying why."""
     if not isinstance(record_id, str) or not _ID_RE.match(record_id):
-        raise ValueError(
+        raise UserError(
             f"invalid record id {record_id!r}: use 1-200 characters from [A-Za-z0-9_.+=-], "
             "not starting with '.' or '-' (no '/', no spaces)"
         )
@@ -114,30 +119,30 @@ class EncodingStore:
         root = Path(root)
         names = list(dict.fromkeys(encodings))
         if not names:
-            raise ValueError("a store needs at least one encoding")
+            raise UserError("a store needs at least one encoding")
         for name in names:
             enc.get(name)  # raises listing the valid names
         dims = {str(k): int(v) for k, v in dims.items()}
         for k, v in dims.items():
             if v <= 0:
-                raise ValueError(f"store dimension {k}={v} must be positive")
+                raise UserError(f"store dimension {k}={v} must be positive")
         for name in names:
             try:
                 enc.get(name).resolve(dims)
             except KeyError as e:
-                raise ValueError(e.args[0]) from None
+                raise UserError(e.args[0]) from None
         header = {"schema_version": enc.SCHEMA_VERSION, "dims": dims, "encodings": names, "meta": dict(meta or {})}
         if (root / HEADER).exists():
             store = cls.open(root, writable=True, durable=durable)
             if store.dims != dims:
                 diff = {k: (store.dims.get(k), dims.get(k)) for k in sorted(set(store.dims) | set(dims))
                         if store.dims.get(k) != dims.get(k)}
-                raise ValueError(
+                raise UserError(
                     f"store {root} exists with dims {store.dims}, requested {dims}; differing dims "
                     f"(existing, requested): {diff}. Use a new root or delete the old store."
                 )
             if list(store.encodings) != names:
-                raise ValueError(
+                raise UserError(
                     f"store {root} exists with encodings {list(store.encodings)}, requested {names}. "
                     "Use a new root or delete the old store."
                 )
@@ -155,18 +160,18 @@ class EncodingStore:
         root = Path(root)
         path = root / HEADER
         if not path.is_file():
-            raise FileNotFoundError(f"no encoding store at {root} (missing {HEADER}); make one with difareli-synth, "
-                                    "difareli-preprocess or difareli-teacher-pairs")
+            raise UserFileNotFoundError(f"no encoding store at {root} (missing {HEADER}); make one with "
+                                        "difareli-synth, difareli-preprocess or difareli-teacher-pairs")
         try:
             header = json.loads(path.read_text())
         except json.JSONDecodeError as e:
-            raise ValueError(f"corrupt store header {path}: {e}") from None
+            raise UserError(f"corrupt store header {path}: {e}") from None
         missing = {"schema_version", "dims", "encodings"} - set(header)
         if missing:
-            raise ValueError(f"store header {path} lacks {sorted(missing)}")
+            raise UserError(f"store header {path} lacks {sorted(missing)}")
         version = int(header["schema_version"])
         if version not in READABLE_VERSIONS:
-            raise ValueError(
+            raise UserError(
                 f"store {root} has schema_version {header['schema_version']} but this code reads versions "
                 f"{list(READABLE_VERSIONS)} (it writes version {enc.SCHEMA_VERSION}, difareli.data.encodings.SCHEMA_VERSION); "
                 "regenerate the store with this code, or use the code version that wrote it"
@@ -246,7 +251,7 @@ class EncodingStore:
         try:
             meta_text = json.dumps(dict(meta or {}), indent=1, sort_keys=True, default=_json_default)
         except TypeError as e:
-            raise ValueError(f"record {record_id!r}: meta is not JSON-serialisable: {e}") from None
+            raise UserError(f"record {record_id!r}: meta is not JSON-serialisable: {e}") from None
 
         tmp = self.records_dir / f"{_TMP}{record_id}-{os.getpid()}"
         if tmp.exists():
@@ -281,19 +286,19 @@ class EncodingStore:
     def _validate_arrays(self, record_id: str, arrays: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
         unknown = [n for n in arrays if n not in self.encodings]
         if unknown:
-            raise ValueError(
+            raise UserError(
                 f"record {record_id!r}: encodings {unknown} are not declared in the header of {self.root} "
                 f"(declared: {list(self.encodings)})"
             )
         missing = [n for n in self.encodings if n not in arrays]
         if missing:
-            raise ValueError(f"record {record_id!r}: missing encodings {missing} declared in the header of {self.root}")
+            raise UserError(f"record {record_id!r}: missing encodings {missing} declared in the header of {self.root}")
         out = {}
         for name in self.encodings:
             try:
                 out[name] = np.ascontiguousarray(enc.get(name).validate(arrays[name], self.dims))
             except ValueError as e:
-                raise ValueError(f"record {record_id!r}: {e}") from None
+                raise UserError(f"record {record_id!r}: {e}") from None
         return out
 
     def _sync(self, f) -> None:
@@ -379,7 +384,7 @@ class EncodingStore:
         validate_record_id(record_id)
         path = self.records_dir / record_id
         if not path.is_dir():
-            raise KeyError(f"no record {record_id!r} in store {self.root}")
+            raise MissingError(f"no record {record_id!r} in store {self.root}")
         return path
 
     def read(self, record_id: str, names: Iterable[str] | None = None) -> dict[str, np.ndarray]:
@@ -396,20 +401,21 @@ class EncodingStore:
                 out[name] = np.load(file, mmap_mode="r", allow_pickle=False)
             except FileNotFoundError:
                 if stem != name or "@" in name:
-                    raise KeyError(f"record {record_id!r} of store {self.root} has no derived {stem!r} yet (a run "
-                                   "computing it did not reach it); resume that run or choose another version") from None
+                    raise MissingError(f"record {record_id!r} of store {self.root} has no derived {stem!r} yet (a run "
+                                       "computing it did not reach it); resume that run or choose another version") from None
                 declared = "declared in the header" if self.available(name) else "not in the header either"
-                raise KeyError(
+                raise MissingError(
                     f"encoding {name!r} missing for record {record_id!r} in store {self.root} ({declared}; "
                     f"available: {list(self.encodings)})"
                 ) from None
             except (ValueError, OSError, EOFError) as e:  # truncated / corrupt .npy: name the file, not mmap
-                raise UserError(f"record {record_id!r}, encoding {name!r} in store {self.root}: {file} is "
-                                f"corrupt or truncated ({str(e)[:100]}); regenerate or remove the record") from None
+                raise CorruptRecordError(f"record {record_id!r}, encoding {name!r} in store {self.root}: {file} "
+                                         f"is corrupt or truncated ({str(e)[:100]}); regenerate or remove the "
+                                         "record") from None
             if self.available(base) and out[name].shape != enc.get(base).resolve(self.dims):
-                raise UserError(f"record {record_id!r}, encoding {name!r} in store {self.root} has shape "
-                                f"{out[name].shape}, the store's schema wants {enc.get(base).resolve(self.dims)}; "
-                                "regenerate or remove the record")
+                raise CorruptRecordError(f"record {record_id!r}, encoding {name!r} in store {self.root} has "
+                                         f"shape {out[name].shape}, the store's schema wants "
+                                         f"{enc.get(base).resolve(self.dims)}; regenerate or remove the record")
         return out
 
     def meta(self, record_id: str) -> dict[str, Any]:
@@ -418,13 +424,14 @@ class EncodingStore:
         try:
             meta = json.loads(path.read_text())
         except FileNotFoundError:
-            raise KeyError(f"record {record_id!r} in store {self.root} has no {META}") from None
+            raise MissingError(f"record {record_id!r} in store {self.root} has no {META}") from None
         except ValueError as e:
-            raise UserError(f"record {record_id!r} in store {self.root}: {META} is not JSON ({e}); regenerate or "
-                            f"remove the record (difareli-store verify {self.root} lists all)") from None
+            raise CorruptRecordError(f"record {record_id!r} in store {self.root}: {META} is not JSON ({e}); "
+                                     f"regenerate or remove the record (difareli-store verify {self.root} lists "
+                                     "all)") from None
         if not isinstance(meta, dict):
-            raise UserError(f"record {record_id!r} in store {self.root}: {META} holds {type(meta).__name__}, not an "
-                            "object; regenerate or remove the record")
+            raise CorruptRecordError(f"record {record_id!r} in store {self.root}: {META} holds "
+                                     f"{type(meta).__name__}, not an object; regenerate or remove the record")
         return meta
 
     def verify(self, ids: Iterable[str] | None = None, *, check_values: bool = False) -> list[str]:

@@ -20,6 +20,7 @@ import torch
 
 from difareli.diffusion.schedule import DiffusionSchedule
 from difareli.diffusion.spec import SamplerSpec
+from difareli.errors import UserError
 
 Denoiser = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 
@@ -42,7 +43,7 @@ class Inversion:
     def expand(self, n: int) -> "Inversion":
         """The same inversion repeated for ``n`` targets of one image (batch of 1 -> n)."""
         if self.x_T.shape[0] != 1:
-            raise ValueError(f"expand() needs an inversion of one image, got a batch of {self.x_T.shape[0]}")
+            raise UserError(f"expand() needs an inversion of one image, got a batch of {self.x_T.shape[0]}")
         off = None if self.offsets is None else self.offsets.expand(-1, n, -1)
         return Inversion(self.x_T.expand(n, -1, -1, -1).contiguous(), self.spec, off)
 

@@ -40,6 +40,7 @@ import torch
 from tqdm.auto import tqdm
 
 from difareli.diffusion.schedule import CLEAN, DiffusionSchedule
+from difareli.errors import UserError
 
 Denoiser = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 Callback = Callable[[int, int, int, torch.Tensor], "torch.Tensor | None"]
@@ -50,12 +51,12 @@ def _prepare(x: torch.Tensor, timesteps, schedule: DiffusionSchedule):
     """Validate the grid; return it as ints, x in the working dtype and (alpha, sigma, lambda) per point."""
     ts = [int(t) for t in (timesteps.tolist() if hasattr(timesteps, "tolist") else timesteps)]
     if len(ts) < 2:
-        raise ValueError("a grid needs at least 2 points (1 step)")
+        raise UserError("a grid needs at least 2 points (1 step)")
     d = [b - a for a, b in zip(ts, ts[1:])]
     if not (all(v > 0 for v in d) or all(v < 0 for v in d)):
-        raise ValueError(f"grid must be strictly monotone (first points {ts[:8]})")
+        raise UserError(f"grid must be strictly monotone (first points {ts[:8]})")
     if CLEAN in ts[1:-1] or schedule.T in ts[:-1] or (ts[-1] == schedule.T and d[0] < 0):
-        raise ValueError("t=-1 (clean) may only be a grid end; t=T (abar=0) only the end of an inversion")
+        raise UserError("t=-1 (clean) may only be a grid end; t=T (abar=0) only the end of an inversion")
     wd = torch.float64 if x.dtype == torch.float64 else torch.float32
     return ts, x.to(wd), [schedule.marginal(t) for t in ts]
 
@@ -108,7 +109,7 @@ def ddim(denoiser: Denoiser, x: torch.Tensor, timesteps, schedule: DiffusionSche
 def _dpm_multistep(denoiser, x, timesteps, schedule, *, data_pred: bool, order: int, clip_x0, callback,
                    progress, lower_order_final: bool, name: str) -> torch.Tensor:
     if order not in (1, 2):
-        raise ValueError(f"order must be 1 or 2, got {order}")
+        raise UserError(f"order must be 1 or 2, got {order}")
     ts, x, m = _prepare(x, timesteps, schedule)
     model = _Model(denoiser, schedule.T, clip_x0)
     n = len(ts) - 1
@@ -182,9 +183,9 @@ def unipc(denoiser: Denoiser, x: torch.Tensor, timesteps, schedule: DiffusionSch
     default clean-ended grids take those steps with DDIM and stay accurate.
     """
     if order not in (1, 2):
-        raise ValueError(f"order must be 1 or 2, got {order}")
+        raise UserError(f"order must be 1 or 2, got {order}")
     if variant not in ("bh1", "bh2"):
-        raise ValueError(f"variant must be 'bh1' or 'bh2', got {variant!r}")
+        raise UserError(f"variant must be 'bh1' or 'bh2', got {variant!r}")
     ts, x, m = _prepare(x, timesteps, schedule)
     model = _Model(denoiser, schedule.T, clip_x0)
     n = len(ts) - 1

@@ -25,6 +25,8 @@ import math
 import numpy as np
 import torch
 
+from difareli.errors import UserError
+
 #: Grid sentinel for clean data (abar = 1).
 CLEAN = -1
 
@@ -36,7 +38,7 @@ class DiffusionSchedule:
 
     def __init__(self, T: int = 1000, beta_start: float = 1e-4, beta_end: float = 0.02, kind: str = "linear"):
         if T < 2:
-            raise ValueError(f"T must be >= 2, got {T}")
+            raise UserError(f"T must be >= 2, got {T}")
         self.T = int(T)
         self.kind = kind
         if kind == "linear":
@@ -45,7 +47,7 @@ class DiffusionSchedule:
             f = lambda u: math.cos((u + 0.008) / 1.008 * math.pi / 2) ** 2  # noqa: E731
             betas = np.array([min(1 - f((i + 1) / self.T) / f(i / self.T), 0.999) for i in range(self.T)])
         else:
-            raise ValueError(f"unknown schedule kind {kind!r} (linear | cosine)")
+            raise UserError(f"unknown schedule kind {kind!r} (linear | cosine)")
         # Sums of log1p keep 1 - abar accurate near t = 0, where it is ~1e-4 and sigma/lambda depend on it.
         log_ac = np.cumsum(np.log1p(-betas))
         self.betas = betas
@@ -75,7 +77,7 @@ class DiffusionSchedule:
     def _check_point(self, t) -> int:
         t = int(t)
         if not CLEAN <= t <= self.T:
-            raise ValueError(f"grid point {t} outside [-1, T={self.T}]")
+            raise UserError(f"grid point {t} outside [-1, T={self.T}]")
         return t
 
     # ------------------------------------------------------------------ training side
@@ -120,17 +122,17 @@ class DiffusionSchedule:
         """
         n = int(n)
         if end not in ("clean", "t0"):
-            raise ValueError(f"end must be 'clean' or 't0', got {end!r}")
+            raise UserError(f"end must be 'clean' or 't0', got {end!r}")
         g0 = CLEAN if end == "clean" else 0
         span = self.T - 1 - g0  # T for clean ends, T - 1 for t0
         if not 1 <= n <= span:
-            raise ValueError(f"n must be in [1, {span}], got {n}")
+            raise UserError(f"n must be in [1, {span}], got {n}")
         if kind not in GRID_KINDS:
-            raise ValueError(f"unknown grid kind {kind!r} ({' | '.join(GRID_KINDS)})")
+            raise UserError(f"unknown grid kind {kind!r} ({' | '.join(GRID_KINDS)})")
         if direction not in ("generate", "invert"):
-            raise ValueError(f"direction must be 'generate' or 'invert', got {direction!r}")
+            raise UserError(f"direction must be 'generate' or 'invert', got {direction!r}")
         if alpha_zero_end and direction != "invert":
-            raise ValueError("alpha_zero_end applies to inversion grids only")
+            raise UserError("alpha_zero_end applies to inversion grids only")
         k = np.arange(n + 1, dtype=np.float64)
         if kind == "uniform":
             f = g0 + k * span / n

@@ -33,7 +33,7 @@ Denoiser = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 COMMON = ("clip_x0", "callback", "progress")
 
 
-class SamplerConfigError(ValueError):
+class SamplerConfigError(UserError):
     """A sampler configuration that names an unknown sampler, preset or option, or a value of the wrong type."""
 
 

@@ -22,6 +22,7 @@ from typing import Any
 
 from difareli.utils.fileio import write_json_atomic
 from difareli.data.store import EncodingStore
+from difareli.errors import UserError
 
 from .loading import BadInput, list_inputs, load_image, record_ids
 from .pipeline import PREVIEWS, REPORT, Pipeline
@@ -46,8 +47,8 @@ def compute_in_workers(pipeline, files: list[Path], preview_dir: Path | None, id
     """:func:`compute_one` of every file in ``workers`` processes, yielded in ``files`` order."""
     config = getattr(pipeline, "config", None)
     if config is None:
-        raise ValueError("workers > 1 needs a pipeline built by Pipeline.from_config (its config is rebuilt in "
-                         "each worker)")
+        raise UserError("workers > 1 needs a pipeline built by Pipeline.from_config (its config is rebuilt in "
+                        "each worker)")
     n = max(1, min(int(workers), len(files)))
     env = {"OMP_WAIT_POLICY": "PASSIVE", "OMP_NUM_THREADS": "1"}
     old = {k: os.environ.get(k) for k in env}

@@ -27,6 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from difareli.errors import UserError
 from difareli.render import OrthoCamera, Scene, render_gbuffer
 from difareli.render.face_model import N_EXP, N_ID, PIVOT, SHAPE_DIM, FaceModel, FaceParams, pose_points
 
@@ -218,7 +219,7 @@ class BFMGeometry(FaceMeshGeometry):
         self.max_rmse = max_rmse
         self.mesh_min_size = mesh_min_size
         if landmark_source not in ("crop", "alignment"):
-            raise ValueError(f"landmark_source must be 'crop' or 'alignment', got {landmark_source!r}")
+            raise UserError(f"landmark_source must be 'crop' or 'alignment', got {landmark_source!r}")
         self.landmark_source = landmark_source
 
     def landmarks(self, ctx: dict) -> tuple[np.ndarray, list[str]]:

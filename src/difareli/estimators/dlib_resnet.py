@@ -27,6 +27,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from difareli.errors import UserError
+
 CHIP = 150
 DIM = 128
 #: (width, downsamples) of the residual blocks, input to output (alevel4 ... alevel0).
@@ -44,13 +46,13 @@ def _layer_kinds() -> list[str]:
 
 
 class _Reader:
-    """A cursor over dlib's serialized bytes; every failure is a ValueError naming the file and the offset."""
+    """A cursor over dlib's serialized bytes; every failure is a UserError naming the file and the offset."""
 
     def __init__(self, data: bytes, path: str):
         self.data, self.path, self.pos = data, path, 0
 
-    def fail(self, why: str) -> ValueError:
-        return ValueError(f"{self.path}: not a readable dlib face-recognition ResNet file ({why} at byte {self.pos})")
+    def fail(self, why: str) -> UserError:
+        return UserError(f"{self.path}: not a readable dlib face-recognition ResNet file ({why} at byte {self.pos})")
 
     def take(self, n: int) -> bytes:
         if self.pos + n > len(self.data):
@@ -147,12 +149,12 @@ def _details(r: _Reader) -> tuple[str, dict]:
 
 def read_dlib_resnet(path: str | Path) -> dict:
     """Parse dlib's serialized ``anet_type`` into numpy arrays: ``mean_rgb`` (3,), ``layers`` (input to output,
-    ``(kind, fields)``, tags and skips left out). Raises ValueError naming ``path`` on anything unexpected."""
+    ``(kind, fields)``, tags and skips left out). Raises a UserError naming ``path`` on anything unexpected."""
     path = str(path)
     try:
         data = Path(path).read_bytes()
     except OSError as e:
-        raise ValueError(f"{path}: cannot read the dlib face-recognition ResNet file ({e})") from e
+        raise UserError(f"{path}: cannot read the dlib face-recognition ResNet file ({e})") from e
     r = _Reader(data, path)
     if r.int() != 1 or (loss := r.string()) not in ("loss_metric_", "loss_metric_2"):
         raise r.fail("no loss_metric layer at the top")
@@ -256,18 +258,18 @@ class DlibFaceResNet(nn.Module):
         pools = [tuple(f.values()) for k, f in parsed["layers"] if k.endswith("pool")]
         down = sum(d for _, d in BLOCKS)  # (nr, nc, stride_y, stride_x, pad_y, pad_x): 3x3/2, 2x2/2s, global
         if pools != [(3, 3, 2, 2, 0, 0)] + [(2, 2, 2, 2, 0, 0)] * down + [(0, 0, 1, 1, 0, 0)]:
-            raise ValueError(f"{path}: pooling layers {pools} do not match dlib's face ResNet")
+            raise UserError(f"{path}: pooling layers {pools} do not match dlib's face ResNet")
         with torch.no_grad():
             for conv, con, aff in zip(convs, cons, affines, strict=True):
                 got = (con["weight"].shape, con["stride_y"], con["pad_y"])
                 if got != (conv.weight.shape, conv.stride[0], conv.padding[0]):
-                    raise ValueError(f"{path}: convolution {got} does not match dlib's face ResNet")
+                    raise UserError(f"{path}: convolution {got} does not match dlib's face ResNet")
                 g = torch.from_numpy(aff["gamma"].copy())
                 conv.weight.copy_(torch.from_numpy(con["weight"].copy()) * g[:, None, None, None])
                 conv.bias.copy_(torch.from_numpy(con["bias"].copy()) * g + torch.from_numpy(aff["beta"].copy()))
             fc = parsed["layers"][-1][1]["weight"]
             if fc.shape != (256, DIM):
-                raise ValueError(f"{path}: fc layer of shape {fc.shape}, expected (256, {DIM})")
+                raise UserError(f"{path}: fc layer of shape {fc.shape}, expected (256, {DIM})")
             net.fc.weight.copy_(torch.from_numpy(fc.T.copy()))
             net.mean_rgb.copy_(torch.from_numpy(parsed["mean_rgb"]).view(1, 3, 1, 1))
         # channels_last: measured 1.7x faster than NCHW at batch 1 on one CPU thread (oneDNN's native layout)
@@ -287,7 +289,7 @@ def face_descriptors(chips: np.ndarray, net: DlibFaceResNet | None = None, batch
     if chips.ndim == 3:
         chips = chips[None]
     if chips.ndim != 4 or chips.shape[1:] != (CHIP, CHIP, 3):
-        raise ValueError(f"face chips must be (N, {CHIP}, {CHIP}, 3) RGB, got shape {chips.shape}")
+        raise UserError(f"face chips must be (N, {CHIP}, {CHIP}, 3) RGB, got shape {chips.shape}")
     net = load() if net is None else net
     out = []
     with torch.inference_mode():

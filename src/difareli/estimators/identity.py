@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from difareli.errors import UserError
+
 from .loading import BadInput
 
 IDENTITY_DIM = 128
@@ -39,9 +41,9 @@ class DlibIdentity:
 
     def __init__(self, num_jitters: int = 1, model: str = "small", backend: str = "torch"):
         if model not in ("small", "large"):
-            raise ValueError(f"identity model must be 'small' (5 points) or 'large' (68 points), got {model!r}")
+            raise UserError(f"identity model must be 'small' (5 points) or 'large' (68 points), got {model!r}")
         if backend not in ("torch", "dlib"):
-            raise ValueError(f"identity backend must be 'torch' or 'dlib', got {backend!r}")
+            raise UserError(f"identity backend must be 'torch' or 'dlib', got {backend!r}")
         self.num_jitters = num_jitters
         self.model = model
         self.backend = "dlib" if num_jitters > 1 else backend  # jitter: dlib's RNG, not ported

@@ -13,6 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
+from difareli.errors import UserFileNotFoundError
+
 #: File suffixes tried as images; anything else in the input folder is reported as "not an image file".
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp", ".gif", ".ppm", ".pgm")
 
@@ -28,7 +30,7 @@ def list_inputs(in_dir: str | os.PathLike) -> list[Path]:
     if p.is_file():
         return [p]
     if not p.is_dir():
-        raise FileNotFoundError(f"in_dir {p} is neither a file nor a folder")
+        raise UserFileNotFoundError(f"in_dir {p} is neither a file nor a folder")
     return sorted(f for f in p.iterdir() if f.is_file() and not f.name.startswith("."))
 
 

@@ -24,6 +24,7 @@ from difareli.lighting import sh
 from difareli.data.encodings import normalise_c
 from difareli.utils.imageops import LUMA
 from difareli.render import cast_shadow
+from difareli.errors import UserError, UserFileNotFoundError
 
 LABEL_S = 0.02
 LABEL_C = math.log(LABEL_S / (1 - LABEL_S))
@@ -69,8 +70,9 @@ class LogisticShadowClassifier:
     def load(cls, path: str | Path) -> "LogisticShadowClassifier":
         path = Path(path)
         if not path.is_file():
-            raise FileNotFoundError(f"shadow classifier weights {path} not found; train them with "
-                                    "scripts/train_shadow_classifier.py or drop 'shadow'/'shadow_map' from encodings")
+            raise UserFileNotFoundError(f"shadow classifier weights {path} not found; train them with "
+                                        "scripts/train_shadow_classifier.py or drop 'shadow'/'shadow_map' from "
+                                        "encodings")
         return cls(json.loads(path.read_text()))
 
     def logit(self, x: np.ndarray) -> np.ndarray:
@@ -103,7 +105,7 @@ class ShadowEstimator:
 
     def __init__(self, weights: str | None = None, c_scale: str = "synthfaces"):
         if c_scale not in ("synthfaces", "logit"):
-            raise ValueError(f"c_scale must be 'synthfaces' or 'logit', got {c_scale!r}")
+            raise UserError(f"c_scale must be 'synthfaces' or 'logit', got {c_scale!r}")
         self.weights = Path(weights) if weights else DEFAULT_WEIGHTS
         self.c_scale = c_scale
         self._clf = None

@@ -19,6 +19,7 @@ import numpy as np
 from difareli.lighting import sh
 from difareli.lighting.light_fit import LightFit, face_normals
 from difareli.data.store import EncodingStore
+from difareli.errors import UserError
 
 
 def exact_light_name(store: EncodingStore) -> str:
@@ -76,7 +77,7 @@ class Oracle:
 
     def relight(self, store, source_id, target_light, target_shadow=None, target_id=None) -> np.ndarray:
         if target_id is None:
-            raise ValueError("the oracle needs the ground-truth record (target_id)")
+            raise UserError("the oracle needs the ground-truth record (target_id)")
         return np.array(store.read(target_id, ["image"])["image"])
 
 
@@ -136,19 +137,21 @@ class DiffusionMethod:
     needs_light, needs_light_fit = True, False
 
     def __init__(self, checkpoint: str | None = None, sampler: Mapping[str, Any] | None = None, *,
-                 name: str | None = None, runtime: Mapping[str, Any] | None = None, mean_matching: bool = True, batch_size: int = 16):
+                 name: str | None = None, runtime: Mapping[str, Any] | None = None, mean_matching: bool = True, batch_size: int = 16,
+                 model_name: str | None = None):
         from difareli.relight.relightable import OnePassRelightable
         from difareli.relight.relighter import Relighter
 
         if not checkpoint or checkpoint == "???":
-            raise ValueError("method=diffusion needs method.checkpoint=<run>/checkpoints/last.ckpt")
+            raise UserError("method=diffusion needs method.checkpoint=<run>/checkpoints/last.ckpt")
         if sampler is None:
-            raise ValueError("method=diffusion needs a sampler config (the benchmark's `sampler` group)")
+            raise UserError("method=diffusion needs a sampler config (the benchmark's `sampler` group)")
 
         self.relighter = Relighter(checkpoint, sampler, runtime=runtime, mean_matching=mean_matching,
                                    batch_size=batch_size)
         spec = self.relighter.spec
-        model = self.relighter.config.get("name") or "diffusion"
+        # ``model_name`` tells apart two checkpoints of one variant (the shipped difareli_pp and difareli_pp_shadows).
+        model = model_name or self.relighter.config.get("name") or "diffusion"
         #: a student: one network pass, the sampler plays no part
         self.one_pass = isinstance(self.relighter.model, OnePassRelightable)
         self.name = name or (model if self.one_pass else f"{model}/{spec.name}-{spec.steps}")
@@ -196,15 +199,15 @@ def build_method(cfg: Mapping[str, Any], *, sampler: Mapping[str, Any] | None = 
 
     cfg = dict(cfg)
     if not cfg.get("_target_"):
-        raise ValueError(f"a method config needs a _target_ class (see conf/method/*.yaml, e.g. method=identity); "
-                         f"got keys {sorted(cfg)}")
+        raise UserError(f"a method config needs a _target_ class (see conf/method/*.yaml, e.g. method=identity); "
+                        f"got keys {sorted(cfg)}")
     missing = [k for k, v in cfg.items() if v == "???"]
     if missing:
-        raise ValueError(f"method.{missing[0]} must be set (e.g. method.checkpoint=<run>/checkpoints/last.ckpt)")
+        raise UserError(f"method.{missing[0]} must be set (e.g. method.checkpoint=<run>/checkpoints/last.ckpt)")
     try:
         cls = get_class(cfg["_target_"])
     except Exception as e:
-        raise ValueError(f"method._target_={cfg['_target_']!r} is not an importable class: {e}") from None
+        raise UserError(f"method._target_={cfg['_target_']!r} is not an importable class: {e}") from None
     accepted = inspect.signature(cls).parameters
     given = {"sampler": sampler, "runtime": runtime, "estimator": estimator}
     # Run-time objects go to the partial's call, not through OmegaConf (which would turn a LightFit into a config).

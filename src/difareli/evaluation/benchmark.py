@@ -54,7 +54,7 @@ from difareli.lighting.light_fit import LightFit
 from difareli.data import encodings
 from difareli.utils.fileio import RESUME, append_text, atomic_path, folder_lock, on_full_disk, write_json_atomic, \
     write_text_atomic
-from difareli.data.store import EncodingStore
+from difareli.data.store import CorruptRecordError, EncodingStore
 from difareli.data.protocols import PROTOCOLS_FILE
 
 #: protocols.json key -> the ``protocol`` column of the per-image CSV (tables.PROTOCOL_LABELS).
@@ -90,7 +90,7 @@ def _scored_so_far(out_dir: Path, method: str, rule: str) -> dict[tuple[str, str
         return {}
     try:
         rows, _ = tables.read_records_checked(path, drop_bad_rows=True)
-    except errors.UserError:
+    except tables.TableError:  # an unreadable partial CSV: start over (other errors are not the file's)
         return {}
     return {(r.protocol, r.record_id): r for r in rows if r.method == method and r.rule == rule}
 
@@ -132,8 +132,8 @@ def protocols_doc(store: EncodingStore) -> dict:
     """The store's ``protocols.json`` (written by difareli-synth or difareli-multipie)."""
     path = Path(store.root) / PROTOCOLS_FILE
     if not path.is_file():
-        raise FileNotFoundError(f"{path} missing: benchmarks need a store with evaluation pairs (difareli-synth "
-                                "or difareli-multipie writes it)")
+        raise errors.UserFileNotFoundError(f"{path} missing: benchmarks need a store with evaluation pairs "
+                                           "(difareli-synth or difareli-multipie writes it)")
     return json.loads(path.read_text())
 
 
@@ -145,11 +145,11 @@ def load_pairs(store: EncodingStore, protocols: Sequence[str], limit: int | None
     out: dict[str, list[Pair]] = {}
     for p in protocols:
         if p not in PROTOCOLS:
-            raise ValueError(f"unknown protocol {p!r}; choose from {list(PROTOCOLS)}")
+            raise errors.UserError(f"unknown protocol {p!r}; choose from {list(PROTOCOLS)}")
         rows = doc.get(p, [])
         if not rows:
-            raise ValueError(f"{path} has no pairs for protocol {p!r} (a test split with light groups of >= 2 "
-                             "subjects is needed for different_subject)")
+            raise errors.UserError(f"{path} has no pairs for protocol {p!r} (a test split with light groups of >= 2 "
+                                   "subjects is needed for different_subject)")
         if limit is not None and 0 < limit < len(rows):
             rows = [rows[i] for i in np.unique(np.linspace(0, len(rows) - 1, int(limit)).round().astype(int))]
         out[p] = [Pair(p, r["source"], r["light_source"], r["target"]) for r in rows]
@@ -362,7 +362,10 @@ def _run(store: EncodingStore, method: Method, protocols: Sequence[str], out_dir
                     grid_rows.append([np.asarray(src), np.asarray(lsrc), _read_png(png), np.asarray(gt["image"])])
                 continue
             start = time.perf_counter()
-            try:  # a non-finite input or result is a failed row, reported as failed, never a score
+            # Only a bad pair is a failed row, reported as failed, never a score: a non-finite input or result, or
+            # a record whose file is corrupt. Other user errors (a missing record or encoding, an image too small
+            # to score, a method's wrong output) hold for every pair: they stop the run with their message.
+            try:
                 errors.check_record(store.read(pair.source), pair.source, store.root)
                 errors.check_light(light, f"target light of pair {pair.id}")
                 errors.check_number(shadow, f"target shadow of pair {pair.id}")
@@ -370,11 +373,11 @@ def _run(store: EncodingStore, method: Method, protocols: Sequence[str], out_dir
                                             f"{method.name} relight of pair {pair.id}")
                 seconds = time.perf_counter() - start
                 if relit.shape != gt["image"].shape or relit.dtype != np.uint8:
-                    raise ValueError(f"{method.name} returned {relit.dtype} {relit.shape}; expected uint8 "
-                                     f"{gt['image'].shape}")
+                    raise errors.UserError(f"{method.name} returned {relit.dtype} {relit.shape}; expected uint8 "
+                                           f"{gt['image'].shape}")
                 s = score(relit, gt["image"], gt[score_mask], rule, scorer)
                 errors.check_finite(list(s.values()), f"scores of pair {pair.id} (is its {score_mask} empty?)")
-            except errors.UserError as e:
+            except (errors.NonFiniteError, CorruptRecordError) as e:
                 print(f"FAILED {proto} {pair.id}: {e}", file=sys.stderr)
                 ex, info = extras.empty(pair.target)
                 rec = tables.Record(method.name, short, pair.id, math.nan, math.nan, math.nan,

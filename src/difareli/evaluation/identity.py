@@ -18,6 +18,8 @@ import functools
 
 import numpy as np
 
+from difareli.errors import UserError
+
 #: The face box is upsampled to at least this width before the shape predictor and the 150 px chip.
 MIN_BOX = 150
 CHIP, PADDING = 150, 0.25
@@ -58,7 +60,7 @@ def face_box(mask: np.ndarray) -> tuple[int, int, int, int]:
     """(left, top, right, bottom) of the mask's pixels; a ValueError for an empty mask."""
     ys, xs = np.nonzero(np.asarray(mask, dtype=bool))
     if ys.size == 0:
-        raise ValueError("identity: empty face mask, no face box")
+        raise UserError("identity: empty face mask, no face box")
     return int(xs.min()), int(ys.min()), int(xs.max()) + 1, int(ys.max()) + 1
 
 

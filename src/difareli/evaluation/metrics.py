@@ -31,6 +31,7 @@ from torch import Tensor
 from torchmetrics import Metric, MetricCollection
 from torchmetrics.functional.image import structural_similarity_index_measure
 
+from difareli.errors import UserError
 from difareli.nn.lpips import get_lpips
 
 #: The scoring rules; ``paper`` is the default everywhere (``metrics.rule`` in the configs).
@@ -50,7 +51,7 @@ def check_rule(rule: str | None) -> str:
     """``rule`` (None: :data:`DEFAULT_RULE`) if it is one of :data:`RULES`, else a ValueError naming them."""
     rule = DEFAULT_RULE if rule is None else rule
     if rule not in RULES:
-        raise ValueError(f"metrics rule {rule!r} is not one of {', '.join(RULES)} (metrics.rule=paper|composite)")
+        raise UserError(f"metrics rule {rule!r} is not one of {', '.join(RULES)} (metrics.rule=paper|composite)")
     return rule
 
 
@@ -67,11 +68,11 @@ def from_signed(x: Tensor) -> Tensor:
 
 def _check(pred: Tensor, target: Tensor, mask: Tensor) -> Tensor:
     if pred.shape != target.shape or pred.ndim != 4:
-        raise ValueError(f"pred/target must be equal NCHW tensors, got {tuple(pred.shape)}, {tuple(target.shape)}")
+        raise UserError(f"pred/target must be equal NCHW tensors, got {tuple(pred.shape)}, {tuple(target.shape)}")
     if mask.ndim == 3:
         mask = mask[:, None]
     if mask.ndim != 4 or mask.shape[1] != 1 or mask.shape[0] != pred.shape[0] or mask.shape[-2:] != pred.shape[-2:]:
-        raise ValueError(f"mask must be [B,H,W] or [B,1,H,W] matching {tuple(pred.shape)}, got {tuple(mask.shape)}")
+        raise UserError(f"mask must be [B,H,W] or [B,1,H,W] matching {tuple(pred.shape)}, got {tuple(mask.shape)}")
     return (mask > 0.5) if mask.dtype != torch.bool else mask
 
 
@@ -95,7 +96,7 @@ def ssim_map(pred: Tensor, target: Tensor, data_range: float = 1.0) -> Tensor:
     """Per-pixel, per-channel SSIM map [B,C,H,W] in float64: torchmetrics' ``return_full_image`` map
     (Gaussian 11x11 window, sigma 1.5, K1 = 0.01, K2 = 0.03, reflect padding of 5 pixels)."""
     if min(pred.shape[-2:]) < WIN_SIZE:
-        raise ValueError(f"images must be at least {WIN_SIZE}x{WIN_SIZE}")
+        raise UserError(f"images must be at least {WIN_SIZE}x{WIN_SIZE}")
     _, full = structural_similarity_index_measure(pred.to(torch.float64), target.to(torch.float64),
                                                   gaussian_kernel=True, sigma=SIGMA, kernel_size=WIN_SIZE,
                                                   data_range=float(data_range), reduction="none",

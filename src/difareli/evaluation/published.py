@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 
+from difareli.errors import UserError
 from difareli.evaluation.tables import Stat, Table
 
 SOURCE = ("the DiFaReli++ paper (TPAMI 2026) Table I, SEs from its appendix table of Table I's top half; "
@@ -59,7 +60,7 @@ def rows(methods: list[str] | None = None,
     """``{(method, protocol): {metric: Stat}}`` of the published figures (``methods`` None: every row)."""
     unknown = sorted(set(methods or ()) - set(FIGURES))
     if unknown:
-        raise ValueError(f"no published Multi-PIE figures for {unknown}; choose from {list(FIGURES)}")
+        raise UserError(f"no published Multi-PIE figures for {unknown}; choose from {list(FIGURES)}")
     out = {}
     for m in methods or list(FIGURES):
         for p, figs in FIGURES[m].items():

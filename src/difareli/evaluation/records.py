@@ -33,7 +33,7 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from difareli.data import shard as sharding
-from difareli.errors import UserError
+from difareli.errors import UserError, UserFileNotFoundError
 from difareli.evaluation.metrics import DEFAULT_RULE, RULES
 
 PER_IMAGE_CSV = "metrics_per_image.csv"
@@ -302,7 +302,7 @@ def read_runs(run_dirs: Iterable[str | Path], filename: str = PER_IMAGE_CSV, dro
     for d in dirs:
         path = d / filename
         if not path.is_file():
-            raise FileNotFoundError(f"no {filename} in run dir {d}")
+            raise UserFileNotFoundError(f"no {filename} in run dir {d}")
         by_dir[d], bad = read_records_checked(path, drop_bad_rows, bad_row_fix=TABLE_BAD_ROW_FIX)
         dropped += bad
     runs = [_run_of(d) for d in dirs]

@@ -58,14 +58,15 @@ def compare_to_baselines(store: EncodingStore | str | Path, checkpoint: Any, sam
                          out_dir: str | Path, *, pairs: int | None, runtime: Mapping[str, Any] | None = None,
                          protocols: Sequence[str] = PROTOCOLS, oracle_light: bool = False,
                          oracle_shadow: bool = False, grid_pairs: int = 0, save_images: bool = False,
-                         progress: bool = False, reuse: bool = False) -> Comparison:
+                         progress: bool = False, reuse: bool = False, model_name: str | None = None) -> Comparison:
     """Benchmark identity, the Lambertian ratio image and ``checkpoint`` (a path, a shipped name or a loaded
     checkpoint, relit with ``sampler`` under ``runtime``) on at most ``pairs`` pairs per protocol of ``store``.
 
     Target lights are fitted to the light-source images and the target c is what a user has (the benchmark's
     defaults), unless ``oracle_light`` / ``oracle_shadow``; the card facts say which. Each method's run is written
     under ``out_dir/<method name>`` (resumable, as :func:`~difareli.evaluation.benchmark.run_benchmark` is); ``reuse``: a
-    method's finished run there with the same settings is read back instead of relit again."""
+    method's finished run there with the same settings is read back instead of relit again. ``model_name`` names the
+    model's row (``<model_name>/<sampler>``; default: its config's variant name)."""
     from difareli.evaluation.baselines import DiffusionMethod, Identity, LambertianRatio
     from difareli.evaluation.benchmark import finished_run, run_benchmark
     from difareli.lighting.light_fit import LightFit
@@ -73,7 +74,7 @@ def compare_to_baselines(store: EncodingStore | str | Path, checkpoint: Any, sam
     start = time.perf_counter()
     store = store if isinstance(store, EncodingStore) else EncodingStore.open(store)
     fit = LightFit()  # one estimator: every row is scored under the same fitted target lights
-    model = DiffusionMethod(checkpoint, sampler, runtime=runtime)
+    model = DiffusionMethod(checkpoint, sampler, runtime=runtime, model_name=model_name)
     runs, seconds = {}, {}
     for method in (Identity(), LambertianRatio(estimator=fit), model):
         t0 = time.perf_counter()

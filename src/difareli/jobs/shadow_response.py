@@ -111,7 +111,7 @@ def otsu_threshold(values: np.ndarray, bins: int = 256) -> float:
     v = np.asarray(values, dtype=np.float64).reshape(-1)
     v = v[np.isfinite(v)]
     if v.size == 0 or v.max() == v.min():
-        raise ValueError("Otsu's threshold needs at least two distinct finite values")
+        raise errors.UserError("Otsu's threshold needs at least two distinct finite values")
     hist, edges = np.histogram(v, bins=bins)
     p = hist / hist.sum()
     centres = (edges[:-1] + edges[1:]) / 2

@@ -27,6 +27,7 @@ import numpy as np
 from difareli.lighting import sh
 from difareli.lighting.albedo import synthfaces_mean_skin_albedo
 from difareli.data.encodings import PART_INDEX, known_normals
+from difareli.errors import UserError
 
 
 def face_normals(arrays: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
@@ -66,7 +67,7 @@ class LightFit:
             m &= np.isin(np.asarray(arrays["masks"]), [PART_INDEX[p] for p in self.parts])
         m &= (img.max(-1) < 254.5 / 255) & (img.min(-1) > 0.5 / 255)
         if m.sum() < self.min_pixels:
-            raise ValueError(f"light fit: only {int(m.sum())} usable face pixels (need {self.min_pixels})")
+            raise UserError(f"light fit: only {int(m.sum())} usable face pixels (need {self.min_pixels})")
         return img[m], normal[m]
 
     def __call__(self, arrays: Mapping[str, np.ndarray]) -> np.ndarray:
@@ -98,6 +99,6 @@ def light_fit_from_config(cfg: Mapping[str, Any] | None) -> LightFit:
     parts: Sequence[str] = tuple(cfg.get("parts") or ())
     unknown = [p for p in parts if p not in PART_INDEX]
     if unknown:
-        raise ValueError(f"light_fit.parts: unknown parts {unknown}; choose from {list(PART_INDEX)}")
+        raise UserError(f"light_fit.parts: unknown parts {unknown}; choose from {list(PART_INDEX)}")
     return LightFit(albedo=albedo, parts=tuple(parts), robust_iters=int(cfg.get("robust_iters", 2)),
                     min_pixels=int(cfg.get("min_pixels", 30)))

@@ -15,6 +15,8 @@ import math
 import numpy as np
 import torch
 
+from difareli.errors import UserError
+
 #: c_k of SPEC 3, exact values.
 SH_CONSTANTS = np.array(
     [1 / math.sqrt(4 * math.pi)]
@@ -104,7 +106,7 @@ def directional_light(direction, intensity=1.0) -> np.ndarray:
     d = _f64(direction)
     norm = np.linalg.norm(d)
     if d.shape != (3,) or not norm > 0:
-        raise ValueError(f"direction must be a non-zero 3-vector, got {d!r}")
+        raise UserError(f"direction must be a non-zero 3-vector, got {d!r}")
     rgb = np.broadcast_to(_f64(intensity), (3,))
     return light_from_radiance(real_sh(d / norm)[:, None] * rgb[None, :])
 
@@ -139,10 +141,10 @@ def sh_rotation_matrix(R) -> np.ndarray:
     """
     R = _f64(R)
     if R.shape[-2:] != (3, 3):
-        raise ValueError(f"rotation must have shape (..., 3, 3), got {R.shape}")
+        raise UserError(f"rotation must have shape (..., 3, 3), got {R.shape}")
     eye = np.broadcast_to(np.eye(3), R.shape)
     if not np.allclose(np.swapaxes(R, -1, -2) @ R, eye, atol=1e-6):
-        raise ValueError("rotation matrix is not orthogonal (R^T R != I)")
+        raise UserError("rotation matrix is not orthogonal (R^T R != I)")
     t = np.einsum("...ai,kab,...bj->...kij", R, _Q2, R)  # R^T Q_k R
     m2 = t.reshape(*R.shape[:-2], 5, 9) @ _Q2_PINV.T
     m = np.zeros((*R.shape[:-2], 9, 9))
@@ -237,7 +239,7 @@ def project_envmap(env) -> np.ndarray:
     """DECA ``light`` (9x3) of an equirectangular HDR radiance map ``env`` (H, W, 3)."""
     env = _f64(env)
     if env.ndim != 3 or env.shape[-1] != 3:
-        raise ValueError(f"env map must be (H, W, 3), got {env.shape}")
+        raise UserError(f"env map must be (H, W, 3), got {env.shape}")
     dirs, area = envmap_directions(*env.shape[:2])
     coeffs = np.einsum("hwk,hw,hwc->kc", real_sh(dirs), area, env)
     return light_from_radiance(coeffs)
@@ -261,18 +263,18 @@ def fit(intensity, normals, albedo=1.0, weights=None, ridge: float = 0.0, basis=
     y = _f64(intensity)
     n = _f64(normals)
     if y.ndim != 2 or y.shape[1] != 3 or n.shape != y.shape:
-        raise ValueError(f"intensity and normals must both be (N, 3), got {y.shape} and {n.shape}")
+        raise UserError(f"intensity and normals must both be (N, 3), got {y.shape} and {n.shape}")
     num = y.shape[0]
     alb = np.broadcast_to(_f64(albedo), (num, 3))
     w = np.ones(num) if weights is None else np.broadcast_to(_f64(weights), (num,))
     if np.any(w < 0):
-        raise ValueError("weights must be non-negative")
+        raise UserError("weights must be non-negative")
     if ridge < 0:
-        raise ValueError("ridge must be non-negative")
+        raise UserError("ridge must be non-negative")
     sw = np.sqrt(w)
     basis = (sh_basis(n) if basis is None else _f64(basis)) * sw[:, None]  # (N, 9)
     if ridge == 0 and np.count_nonzero(sw) < 9:
-        raise ValueError(
+        raise UserError(
             f"fit needs at least 9 samples with non-zero weight for 9 SH coefficients, got {np.count_nonzero(sw)}"
         )
     out = np.empty((9, 3))
@@ -295,7 +297,7 @@ def fit(intensity, normals, albedo=1.0, weights=None, ridge: float = 0.0, basis=
         s = np.linalg.svd(a, compute_uv=False)
         rank = int(np.sum(s > 1e-9 * s[0])) if s[0] > 0 else 0
         if rank < 9:
-            raise ValueError(
+            raise UserError(
                 f"fit: normals (times albedo of channel {c}) are rank-deficient: the SH design matrix has rank "
                 f"{rank} < 9; use normals spread over more directions (not all equal or coplanar) or ridge > 0"
             )

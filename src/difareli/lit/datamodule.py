@@ -16,7 +16,7 @@ import numpy as np
 from torch.utils.data import DataLoader, Dataset
 
 from difareli.data import encodings as enc
-from difareli.errors import UserError, check_record
+from difareli.errors import UserError, UserFileNotFoundError, check_record
 from difareli.data.inputs import (MissingEncodingError, check_store_fits, image_to_tensor, input_dims,
                                   prepare_nonspatial, prepare_spatial)
 from difareli.data.store import EncodingStore
@@ -76,7 +76,7 @@ class EncodingsDataModule(L.LightningDataModule):
             e = enc.get(name)  # unknown names fail here, naming the valid ones
             if name != "image" and e.spatial != (name in self.spatial):
                 kind = "spatial" if e.spatial else "non-spatial"
-                raise ValueError(f"encoding {name!r} is {kind}; list it under the model's {kind} inputs")
+                raise UserError(f"encoding {name!r} is {kind}; list it under the model's {kind} inputs")
         self.resolution, self.batch_size, self.num_workers = resolution, batch_size, num_workers
         self.synth = dict(synth) if synth else None
         self.train_split, self.val_split = train_split, val_split
@@ -98,7 +98,7 @@ class EncodingsDataModule(L.LightningDataModule):
             self.check_store_settings()
             return
         if self.synth is None:
-            raise FileNotFoundError(
+            raise UserFileNotFoundError(
                 f"no encodings store at {self.root} (no store.json): run `difareli-synth out_dir={self.root}` or "
                 "`difareli-preprocess`, or point data.root at an existing store"
             )
@@ -145,7 +145,7 @@ class EncodingsDataModule(L.LightningDataModule):
                 )
             res = self.store.dims.get("H")
             if self.resolution is not None and res != self.resolution:
-                raise ValueError(
+                raise UserError(
                     f"data.resolution={self.resolution} but the store at {self.root} holds {res}x{res} images; "
                     f"set data.resolution={res} or point data.root at a {self.resolution}px store"
                 )

@@ -20,6 +20,7 @@ import torch.nn.functional as F
 
 from difareli.checkpoints.format import stamp, upgrade_checkpoint
 from difareli.diffusion.schedule import DiffusionSchedule
+from difareli.errors import UserError
 from difareli.nn import build_network
 
 #: The public code's optimizer (guided-diffusion TrainLoop: AdamW, constant LR, no weight decay).
@@ -35,8 +36,8 @@ def loss_config(loss: Mapping[str, Any] | None) -> dict[str, Any]:
     cfg = {**DEFAULT_LOSS, **dict(loss or {})}
     unknown = set(cfg) - set(DEFAULT_LOSS)
     if unknown or cfg["weighting"] not in LOSS_WEIGHTINGS or not float(cfg["min_snr_gamma"]) > 0:
-        raise ValueError(f"model.loss={dict(loss or {})} is invalid: weighting is one of {list(LOSS_WEIGHTINGS)}, "
-                         f"min_snr_gamma > 0, no other keys (e.g. model.loss.weighting=min_snr)")
+        raise UserError(f"model.loss={dict(loss or {})} is invalid: weighting is one of {list(LOSS_WEIGHTINGS)}, "
+                        f"min_snr_gamma > 0, no other keys (e.g. model.loss.weighting=min_snr)")
     return {"weighting": str(cfg["weighting"]), "min_snr_gamma": float(cfg["min_snr_gamma"])}
 
 
@@ -58,13 +59,13 @@ def factory_config(factory: Callable | Mapping[str, Any] | None, what: str) -> d
     else:
         is_partial = isinstance(factory, functools.partial)
         if is_partial and factory.args:
-            raise ValueError(f"model.{what}: positional arguments cannot be recorded; use keywords")
+            raise UserError(f"model.{what}: positional arguments cannot be recorded; use keywords")
         func, kwargs = (factory.func, dict(factory.keywords)) if is_partial else (factory, {})
         cfg = {"_target_": f"{func.__module__}.{func.__qualname__}", **kwargs}
     cfg["_partial_"] = True
     if "_target_" not in cfg or not _is_plain(cfg):
-        raise ValueError(f"model.{what} must be a Hydra partial ({{_target_: ..., _partial_: true}}) with plain "
-                         f"keyword values; got {factory!r}")
+        raise UserError(f"model.{what} must be a Hydra partial ({{_target_: ..., _partial_: true}}) with plain "
+                        f"keyword values; got {factory!r}")
     return cfg
 
 
@@ -89,8 +90,8 @@ class RelightingModule(L.LightningModule):
         """Set ``spatial_inputs`` / ``nonspatial_inputs``; return the input widths as ints and the spatial
         component in its one recorded form, ``{type: <name>, <options>}`` (None without spatial encodings)."""
         if input_dims is None:
-            raise ValueError(f"{type(self).__name__} needs input_dims (spatial_channels, nonspatial_dim, "
-                             "resolution): difareli-train takes them from the DataModule")
+            raise UserError(f"{type(self).__name__} needs input_dims (spatial_channels, nonspatial_dim, "
+                            "resolution): difareli-train takes them from the DataModule")
         dims = {k: int(v) for k, v in dict(input_dims).items()}
         self.spatial_inputs, self.nonspatial_inputs = list(spatial_inputs), list(nonspatial_inputs)
         spatial = {"type": spatial} if isinstance(spatial, str) else dict(spatial) if spatial is not None else None
@@ -105,8 +106,8 @@ class RelightingModule(L.LightningModule):
         mean = torch.as_tensor(list(stats["mean"]), dtype=torch.float32).reshape(-1)
         std = torch.as_tensor(list(stats["std"]), dtype=torch.float32).reshape(-1)
         if mean.numel() != dim or std.numel() != dim or not bool((std > 0).all()):
-            raise ValueError(f"nonspatial_stats needs {dim} means and {dim} positive stds (the non-spatial vector's "
-                             f"width); got {mean.numel()} and {std.numel()}")
+            raise UserError(f"nonspatial_stats needs {dim} means and {dim} positive stds (the non-spatial vector's "
+                            f"width); got {mean.numel()} and {std.numel()}")
         return mean, std
 
     def _apply(self, fn, recurse: bool = True):

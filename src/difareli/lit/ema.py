@@ -16,6 +16,8 @@ import torch
 from lightning.pytorch.callbacks import EMAWeightAveraging
 from torch import Tensor
 
+from difareli.errors import UserError
+
 
 def warmup_decay(decay: float, n_averaged: int) -> float:
     """The decay of the update after ``n_averaged`` updates: ``min(decay, (1 + n) / (10 + n))``."""
@@ -25,7 +27,7 @@ def warmup_decay(decay: float, n_averaged: int) -> float:
 def ema_warmup_avg_fn(decay: float):
     """``AveragedModel``'s ``avg_fn`` for an EMA whose decay warms up (see :func:`warmup_decay`)."""
     if not 0.0 <= decay <= 1.0:
-        raise ValueError(f"EMA decay must lie in [0, 1], got {decay}")
+        raise UserError(f"EMA decay must lie in [0, 1], got {decay}")
 
     @torch.no_grad()
     def update(ema_param: Tensor, current_param: Tensor, num_averaged: Tensor) -> Tensor:

@@ -36,6 +36,7 @@ from difareli.diffusion.spec import SamplerSpec, as_spec
 from difareli.data.inputs import condition_tensors, image_to_tensor, read_record, relight_reads
 from difareli.lit.logging import log_image
 from difareli.relight.relightable import OnePassRelightable, Relightable, model_inputs
+from difareli.errors import UserError
 
 PROTOCOLS = {"same_subject": "same", "different_subject": "different"}
 
@@ -79,9 +80,9 @@ class RelightMetrics(L.Callback):
         self.spec: SamplerSpec = as_spec(sampler, steps=steps)  # a bad sampler fails before training
         self.rule = metrics.check_rule(rule)
         if precision not in ("auto", "fp32", "bf16"):
-            raise ValueError(f"callbacks.relight_metrics.precision={precision!r} is not auto, fp32 or bf16")
+            raise UserError(f"callbacks.relight_metrics.precision={precision!r} is not auto, fp32 or bf16")
         if every_n_steps is not None and (not isinstance(every_n_steps, int) or every_n_steps < 1):
-            raise ValueError(f"callbacks.relight_metrics.every_n_steps={every_n_steps!r} must be null or an int >= 1")
+            raise UserError(f"callbacks.relight_metrics.every_n_steps={every_n_steps!r} must be null or an int >= 1")
         self.pairs, self.every_n_steps, self.precision = int(pairs), every_n_steps, precision
         self.grid, self.enabled, self.extras = bool(grid), bool(enabled), bool(extras)
         self.scorer = None  # difareli.evaluation.extras.PairExtras of the store, made at fit start

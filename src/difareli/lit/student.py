@@ -64,8 +64,8 @@ class StudentModule(RelightingModule):
         super().__init__()
         dims, spatial = self._inputs(input_dims, spatial_inputs, nonspatial_inputs, spatial)
         if not enc.light_dependent(self.spatial_inputs + self.nonspatial_inputs):
-            raise ValueError(f"a student needs light-dependent inputs (e.g. shading, shadow_map) to know the target; "
-                             f"got {self.spatial_inputs + self.nonspatial_inputs}")
+            raise UserError(f"a student needs light-dependent inputs (e.g. shading, shadow_map) to know the target; "
+                            f"got {self.spatial_inputs + self.nonspatial_inputs}")
         mean, std = self._check_stats(nonspatial_stats, dims["nonspatial_dim"])
         self.save_hyperparameters({
             "name": name, "preset": preset, "spatial": spatial, "spatial_inputs": self.spatial_inputs,
@@ -86,8 +86,8 @@ class StudentModule(RelightingModule):
         # Non-spatial widths of shape / identity are the producers' (S = 53, D = 128), as the store records.
         self._ns_dep = _slices(self.nonspatial_inputs, {**hw, **enc.PRODUCER_DIMS})
         if self._ns_dep and max(self._ns_dep) >= dims["nonspatial_dim"]:
-            raise ValueError(f"light-dependent non-spatial inputs of {self.nonspatial_inputs} lie beyond the "
-                             f"{dims['nonspatial_dim']}-wide vector: list them before shape / identity")
+            raise UserError(f"light-dependent non-spatial inputs of {self.nonspatial_inputs} lie beyond the "
+                            f"{dims['nonspatial_dim']}-wide vector: list them before shape / identity")
         sc = dims["spatial_channels"] + len(self._sp_dep) if spatial is not None else 0
         nd = dims["nonspatial_dim"] + len(self._ns_dep)
         overrides = {"image_size": dims["resolution"], "adagn_scale_plus_one": bool(adagn_scale_plus_one),

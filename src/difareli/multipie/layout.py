@@ -43,9 +43,9 @@ class Image:
         """An image from its file name (``001_01_01_051_07.png``, with or without ``.png``)."""
         m = _NAME.match(Path(str(name)).name)
         if m is None:
-            raise ValueError(f"{name!r} is not a Multi-PIE image name <subject>_<session>_<recording>_051_<illum>.png")
+            raise UserError(f"{name!r} is not a Multi-PIE image name <subject>_<session>_<recording>_051_<illum>.png")
         if m["camera"] != "051":
-            raise ValueError(f"{name!r} is from camera {m['camera']}; only the frontal camera 051 (05_1) is read")
+            raise UserError(f"{name!r} is from camera {m['camera']}; only the frontal camera 051 (05_1) is read")
         return cls(m["subject"], m["session"], m["recording"], m["illum"])
 
     @property

@@ -25,6 +25,8 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from difareli.errors import MissingError, UserError
+
 from .unet import SpatialConditioning, UNet, UNetConfig, build_encoder
 
 __all__ = ["SPATIAL_COMPONENTS", "ConcatSpatial", "Modulator", "SpatialConditioning", "register_spatial",
@@ -39,7 +41,7 @@ def register_spatial(name: str) -> Callable[[type[SpatialConditioning]], type[Sp
 
     def register(cls: type[SpatialConditioning]) -> type[SpatialConditioning]:
         if name in SPATIAL_COMPONENTS and SPATIAL_COMPONENTS[name] is not cls:
-            raise ValueError(f"spatial type {name!r} is already registered by {SPATIAL_COMPONENTS[name].__name__}")
+            raise UserError(f"spatial type {name!r} is already registered by {SPATIAL_COMPONENTS[name].__name__}")
         SPATIAL_COMPONENTS[name] = cls
         cls.type_name = name
         return cls
@@ -53,29 +55,29 @@ def resolve_spatial(spec: str | Mapping[str, Any] | None, channels: int
     name, or a mapping ``{type: <name>, <option>: <value>, ...}``; checks the options against ``build``."""
     if spec is None or spec == "none":
         if channels:
-            raise ValueError(f"model.spatial is null but the spatial inputs have {channels} channels; "
-                             "set model.spatial.type or model.spatial_inputs=[]")
+            raise UserError(f"model.spatial is null but the spatial inputs have {channels} channels; "
+                            "set model.spatial.type or model.spatial_inputs=[]")
         return None, {}
     options = {"type": spec} if isinstance(spec, str) else dict(spec)
     kind = options.pop("type", None)
     if kind not in SPATIAL_COMPONENTS:
-        raise KeyError(f"unknown spatial type {kind!r} (model.spatial.type); known: {sorted(SPATIAL_COMPONENTS)} "
-                       "or model.spatial=null")
+        raise MissingError(f"unknown spatial type {kind!r} (model.spatial.type); known: {sorted(SPATIAL_COMPONENTS)} "
+                           "or model.spatial=null")
     cls = SPATIAL_COMPONENTS[kind]
     if channels <= 0:
-        raise ValueError(f"spatial type {kind!r} needs spatial inputs (model.spatial_inputs), got 0 channels")
+        raise UserError(f"spatial type {kind!r} needs spatial inputs (model.spatial_inputs), got 0 channels")
     accepted = [p for p in inspect.signature(cls.build).parameters if p not in ("unet", "channels")]
     unknown = sorted(set(options) - set(accepted))
     if unknown:
-        raise ValueError(f"spatial type {kind!r} has no option(s) {unknown}; its options: {accepted}")
+        raise UserError(f"spatial type {kind!r} has no option(s) {unknown}; its options: {accepted}")
     return cls, options
 
 
 def _check_spatial(name: str, spatial: Tensor | None, channels: int) -> Tensor:
     if spatial is None:
-        raise ValueError(f"{name} needs a spatial input with {channels} channels, got None")
+        raise UserError(f"{name} needs a spatial input with {channels} channels, got None")
     if spatial.ndim != 4 or spatial.shape[1] != channels:
-        raise ValueError(f"{name} expects spatial [B, {channels}, H, W], got {tuple(spatial.shape)}")
+        raise UserError(f"{name} expects spatial [B, {channels}, H, W], got {tuple(spatial.shape)}")
     return spatial
 
 
@@ -103,8 +105,8 @@ class Modulator(SpatialConditioning):
 
     def validate(self, unet: UNet, image_channels: int) -> None:
         if self.level_channels != unet.encoder_channels:
-            raise ValueError(f"Modulator level widths {self.level_channels} do not match the UNet's "
-                             f"{unet.encoder_channels}")
+            raise UserError(f"Modulator level widths {self.level_channels} do not match the UNet's "
+                            f"{unet.encoder_channels}")
 
     @property
     def num_levels(self) -> int:
@@ -148,8 +150,8 @@ class ConcatSpatial(SpatialConditioning):
 
     def validate(self, unet: UNet, image_channels: int) -> None:
         if unet.in_channels != image_channels + self.in_channels:
-            raise ValueError(f"ConcatSpatial adds {self.in_channels} channels to {image_channels}, but the UNet "
-                             f"takes {unet.in_channels}")
+            raise UserError(f"ConcatSpatial adds {self.in_channels} channels to {image_channels}, but the UNet "
+                            f"takes {unet.in_channels}")
 
     def prepare(self, spatial: Tensor | None) -> Tensor:
         return _check_spatial("ConcatSpatial", spatial, self.in_channels)

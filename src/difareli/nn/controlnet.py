@@ -25,6 +25,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
+from difareli.errors import UserError
+
 from .conditioning import _check_spatial, register_spatial
 from .unet import SpatialConditioning, UNet, build_encoder, zero_module
 
@@ -82,11 +84,11 @@ class ControlNet(SpatialConditioning):
 
     def validate(self, unet: UNet, image_channels: int) -> None:
         if self.level_channels != unet.encoder_channels:
-            raise ValueError(f"ControlNet level widths {self.level_channels} do not match the UNet's "
-                             f"{unet.encoder_channels}")
+            raise UserError(f"ControlNet level widths {self.level_channels} do not match the UNet's "
+                            f"{unet.encoder_channels}")
         if unet.in_channels != image_channels:
-            raise ValueError(f"ControlNet adds nothing to x_t, but the UNet takes {unet.in_channels} channels "
-                             f"for {image_channels} image channels")
+            raise UserError(f"ControlNet adds nothing to x_t, but the UNet takes {unet.in_channels} channels "
+                            f"for {image_channels} image channels")
 
     def prepare(self, spatial: Tensor | None) -> Tensor:
         """The t-independent part, once per condition: the hint features (CN) or the raw hint (CN-mod)."""

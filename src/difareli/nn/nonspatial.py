@@ -26,6 +26,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from difareli.errors import UserError
+
 from .unet import GroupNorm32, LayerFactory, TimestepBlock, UNetConfig, zero_module
 
 NONSPATIAL_COMPONENTS: dict[str, type[NonSpatialConditioning]] = {}
@@ -88,7 +90,7 @@ class ContextTokens(nn.Module):
 
     def forward(self, vector: Tensor) -> Tensor:
         if vector.ndim != 2 or vector.shape[1] != sum(self.widths):
-            raise ValueError(f"expected a non-spatial vector [B, {sum(self.widths)}], got {tuple(vector.shape)}")
+            raise UserError(f"expected a non-spatial vector [B, {sum(self.widths)}], got {tuple(vector.shape)}")
         parts = vector.split(self.widths, dim=1)
         tokens = torch.cat([p(x).view(x.shape[0], self.per_input, self.context_dim)
                             for p, x in zip(self.proj, parts)], dim=1)
@@ -105,7 +107,7 @@ class CrossAttentionBlock(TimestepBlock):
     def __init__(self, channels: int, context_dim: int, num_heads: int, groups: int = 32):
         super().__init__()
         if channels % num_heads:
-            raise ValueError(f"{channels} channels not divisible by {num_heads} cross-attention heads")
+            raise UserError(f"{channels} channels not divisible by {num_heads} cross-attention heads")
         self.num_heads = num_heads
         self.norm = GroupNorm32(groups, channels)
         self.q = nn.Conv1d(channels, channels, 1)
@@ -115,7 +117,7 @@ class CrossAttentionBlock(TimestepBlock):
     def forward(self, h: Tensor, emb: Tensor | None = None, nonspatial: Tensor | None = None) -> Tensor:
         if nonspatial is None or nonspatial.ndim != 3:
             got = None if nonspatial is None else tuple(nonspatial.shape)
-            raise ValueError(f"cross-attention needs context tokens [B, N, C], got {got}")
+            raise UserError(f"cross-attention needs context tokens [B, N, C], got {got}")
         b, c, hh, ww = h.shape
         flat = h.reshape(b, c, hh * ww)
         ctx = nonspatial.to(h.dtype)
@@ -141,7 +143,7 @@ class CrossAttentionNonSpatial(NonSpatialConditioning):
         self.context_dim = int(context_dim) if context_dim else 4 * cfg.base_channels
         self.num_heads = int(num_heads) if num_heads else cfg.num_heads
         if int(tokens_per_input) < 1:
-            raise ValueError(f"nonspatial.tokens_per_input must be >= 1, got {tokens_per_input}")
+            raise UserError(f"nonspatial.tokens_per_input must be >= 1, got {tokens_per_input}")
         self.tokens = ContextTokens(self.widths, self.context_dim, tokens_per_input) if self.widths else None
 
     def block_layer(self, cfg: UNetConfig) -> LayerFactory | None:
@@ -160,8 +162,8 @@ def build_nonspatial(spec: str | Mapping[str, Any] | None, widths: Sequence[int]
     options = {"type": spec or "adagn"} if not isinstance(spec, Mapping) else dict(spec)
     kind = options.pop("type", None) or "adagn"
     if kind not in NONSPATIAL_COMPONENTS:
-        raise ValueError(f"unknown model.nonspatial.type {kind!r}; known: {sorted(NONSPATIAL_COMPONENTS)}")
+        raise UserError(f"unknown model.nonspatial.type {kind!r}; known: {sorted(NONSPATIAL_COMPONENTS)}")
     try:
         return NONSPATIAL_COMPONENTS[kind](widths, cfg=cfg, **options)
     except TypeError as e:  # an unknown option: name it
-        raise ValueError(f"model.nonspatial ({kind}): {e}") from None
+        raise UserError(f"model.nonspatial ({kind}): {e}") from None

@@ -12,6 +12,8 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
+from difareli.errors import MissingError
+
 from .unet import UNetConfig
 
 PRESETS: dict[str, dict[str, Any]] = {
@@ -31,11 +33,11 @@ PRESETS: dict[str, dict[str, Any]] = {
 def get_config(preset: str, overrides: dict[str, Any] | None = None) -> UNetConfig:
     """The :class:`UNetConfig` of a named preset, with field overrides (plain values) applied."""
     if preset not in PRESETS:
-        raise KeyError(f"unknown UNet preset {preset!r}; known: {sorted(PRESETS)}")
+        raise MissingError(f"unknown UNet preset {preset!r}; known: {sorted(PRESETS)}")
     values = dict(PRESETS[preset])
     for key, value in (overrides or {}).items():
         if key not in UNetConfig.__dataclass_fields__:
-            raise KeyError(f"unknown UNet option {key!r}; known: {sorted(UNetConfig.__dataclass_fields__)}")
+            raise MissingError(f"unknown UNet option {key!r}; known: {sorted(UNetConfig.__dataclass_fields__)}")
         # Hydra hands over ListConfig/DictConfig; keep the config plain so checkpoints and asdict() stay simple
         values[key] = list(value) if isinstance(value, Sequence) and not isinstance(value, str) else value
     return UNetConfig(**values)

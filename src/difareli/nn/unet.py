@@ -24,6 +24,8 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 from torch.utils.checkpoint import checkpoint
 
+from difareli.errors import UserError
+
 
 @dataclass
 class UNetConfig:
@@ -133,7 +135,7 @@ class AdaGN(TimestepBlock):
         out = t_s * self.norm(h) + t_b
         if self.mlp is not None:
             if nonspatial is None:
-                raise ValueError("this network has non-spatial (AdaGN MLP3) conditioning; pass a non-spatial vector")
+                raise UserError("this network has non-spatial (AdaGN MLP3) conditioning; pass a non-spatial vector")
             out = out * self.mlp(nonspatial)[..., None, None]
         return out
 
@@ -218,12 +220,12 @@ class AttentionBlock(nn.Module):
         super().__init__()
         if cfg.num_head_channels > 0:
             if channels % cfg.num_head_channels:
-                raise ValueError(f"{channels} channels not divisible by num_head_channels={cfg.num_head_channels}")
+                raise UserError(f"{channels} channels not divisible by num_head_channels={cfg.num_head_channels}")
             self.num_heads = channels // cfg.num_head_channels
         else:
             self.num_heads = cfg.num_heads
         if channels % self.num_heads:
-            raise ValueError(f"{channels} channels not divisible by num_heads={self.num_heads}")
+            raise UserError(f"{channels} channels not divisible by num_heads={self.num_heads}")
         self.norm = GroupNorm32(cfg.norm_groups, channels)
         self.qkv = nn.Conv1d(channels, 3 * channels, 1)
         self.proj_out = zero_module(nn.Conv1d(channels, channels, 1))

@@ -45,6 +45,7 @@ from PIL import Image
 
 from difareli.data import encodings as E
 from difareli.data.store import EncodingStore
+from difareli.errors import UserError, UserFileNotFoundError
 
 log = logging.getLogger(__name__)
 
@@ -74,7 +75,7 @@ def bisenet_to_parts(labels: np.ndarray) -> np.ndarray:
     """Map a BiSeNet 19-class label map onto ``MASK_PARTS`` indices (uint8, same shape)."""
     labels = np.asarray(labels)
     if labels.size and int(labels.max()) >= len(BISENET_CLASSES):
-        raise ValueError(f"face-parsing label {int(labels.max())} outside the 19 BiSeNet classes")
+        raise UserError(f"face-parsing label {int(labels.max())} outside the 19 BiSeNet classes")
     return BISENET_LUT[labels]
 
 
@@ -90,11 +91,11 @@ def read_anno(path: str | os.PathLike) -> dict[str, np.ndarray]:
             try:
                 vec = np.array(parts[1:], dtype=np.float64)
             except ValueError as e:
-                raise ValueError(f"{path}:{lineno}: not '<name> <numbers...>': {e}") from None
+                raise UserError(f"{path}:{lineno}: not '<name> <numbers...>': {e}") from None
             if length is None:
                 length = len(vec)
             if len(vec) != length or length == 0:
-                raise ValueError(f"{path}:{lineno}: {len(vec)} values, expected {length} like the first line")
+                raise UserError(f"{path}:{lineno}: {len(vec)} values, expected {length} like the first line")
             out[parts[0]] = vec
     return out
 
@@ -104,12 +105,12 @@ def _param_file(params_dir: Path, set_name: str, key: str, prefix: str) -> dict[
     # DECA run with --index writes chunks "<prefix>-<start>-<end>-<set>-<key>-anno.txt"; merge them.
     paths = [exact] if exact.is_file() else sorted(params_dir.glob(f"*-{set_name}-{key}-anno.txt"))
     if not paths:
-        raise FileNotFoundError(f"missing {exact} (the '{key}' parameters, produced by {_PARAM_PRODUCER[key]})")
+        raise UserFileNotFoundError(f"missing {exact} (the '{key}' parameters, produced by {_PARAM_PRODUCER[key]})")
     merged: dict[str, np.ndarray] = {}
     for p in paths:
         for name, vec in read_anno(p).items():
             if name in merged and not np.array_equal(merged[name], vec):
-                raise ValueError(f"image {name!r} has conflicting '{key}' values across {[str(q) for q in paths]}")
+                raise UserError(f"image {name!r} has conflicting '{key}' values across {[str(q) for q in paths]}")
             merged[name] = vec
     return merged
 
@@ -143,7 +144,7 @@ def _load_shading(path: Path) -> np.ndarray:
     if arr.ndim == 3 and arr.shape[0] == 3 and arr.shape[-1] != 3:
         arr = arr.transpose(1, 2, 0)  # CHW from a tool other than DiFaReli's DECA script
     if arr.ndim != 3 or arr.shape[-1] != 3:
-        raise ValueError(f"{path}: shading render has shape {arr.shape}, expected HxWx3 (or 3xHxW)")
+        raise UserError(f"{path}: shading render has shape {arr.shape}, expected HxWx3 (or 3xHxW)")
     return arr.astype(np.float32)
 
 
@@ -186,13 +187,13 @@ def import_difareli(
     """
     src = Path(src_root)
     if images_dir is None and ("image" in (encodings or ()) or "background" in (encodings or ())):
-        raise ValueError("encodings 'image'/'background' need images_dir (the aligned images DiFaReli processed)")
+        raise UserError("encodings 'image'/'background' need images_dir (the aligned images DiFaReli processed)")
     wanted = [n for n in (encodings or _DEFAULT) if images_dir is not None or n not in ("image", "background")]
     for n in wanted:
         E.get(n)
     unknown = [n for n in wanted if n not in _DEFAULT]
     if unknown:
-        raise ValueError(f"the DiFaReli importer cannot produce {unknown}; it makes {list(_DEFAULT)}")
+        raise UserError(f"the DiFaReli importer cannot produce {unknown}; it makes {list(_DEFAULT)}")
 
     params_dir = src / "params" / set_name
     keys = []
@@ -208,28 +209,29 @@ def import_difareli(
         keys.append("shadow")
     for k in keys:
         if k not in _PARAM_PRODUCER:
-            raise ValueError(f"unknown DiFaReli parameter {k!r} in shape_parts; known: {sorted(_PARAM_PRODUCER)}")
+            raise UserError(f"unknown DiFaReli parameter {k!r} in shape_parts; known: {sorted(_PARAM_PRODUCER)}")
     params = {k: _param_file(params_dir, set_name, k, prefix) for k in keys}
     if "light" in params and any(len(v) != 27 for v in params["light"].values()):
-        raise ValueError(f"{params_dir}: DECA light vectors must have 27 values (9 SH x RGB)")
+        raise UserError(f"{params_dir}: DECA light vectors must have 27 values (9 SH x RGB)")
 
     need_masks = any(n in wanted for n in ("masks", "face_mask", "background"))
     seg_dir = src / "face_segment" / set_name / "anno"
     if need_masks and not seg_dir.is_dir():
-        raise FileNotFoundError(f"missing {seg_dir} (face-parsing label maps, produced by {_PRODUCERS['masks']})")
+        raise UserFileNotFoundError(f"missing {seg_dir} (face-parsing label maps, produced by {_PRODUCERS['masks']})")
     if "shading" in wanted:
         if shading_dir is None:
             cands = [src / "rendered_images" / d / set_name for d in _SHADING_DIRS]
             shading_dir = next((c for c in cands if c.is_dir()), None)
             if shading_dir is None:
-                raise FileNotFoundError(f"missing {cands[0]} (or {cands[1]}): unclipped DECA shading renders "
-                                        f"(.npy), produced by {_PRODUCERS['shading']}")
+                raise UserFileNotFoundError(f"missing {cands[0]} (or {cands[1]}): unclipped DECA shading renders "
+                                            f"(.npy), produced by {_PRODUCERS['shading']}")
         shading_dir = Path(shading_dir)
     seg_files = _listing(seg_dir) if need_masks else {}
     shade_files = _listing(shading_dir) if "shading" in wanted else {}
     img_files = _listing(Path(images_dir)) if images_dir is not None else {}
     if images_dir is not None and not img_files:
-        raise FileNotFoundError(f"images_dir {images_dir} is missing or empty (the aligned images DiFaReli processed)")
+        raise UserFileNotFoundError(f"images_dir {images_dir} is missing or empty (the aligned images DiFaReli "
+                                    "processed)")
 
     # The image list: names in the first parameter file, else the files of the first spatial source
     # (``anno_<stem>.png`` counts as ``<stem>.png``, as DiFaReli's loader does).
@@ -261,16 +263,16 @@ def import_difareli(
                 problems.append(f"no image {name!r} (or {stem}.png/.jpg) in {images_dir}")
         if problems:
             if strict:
-                raise FileNotFoundError(f"image {name!r} of set {set_name!r}: " + "; ".join(problems))
+                raise UserFileNotFoundError(f"image {name!r} of set {set_name!r}: " + "; ".join(problems))
             report_missing[name] = "; ".join(problems)
         else:
             sources[name] = paths
     if not sources:
-        raise ValueError(f"no complete images to import from {src} set {set_name!r}")
+        raise UserError(f"no complete images to import from {src} set {set_name!r}")
 
     rids = {name: _record_id(os.path.splitext(name)[0]) for name in sources}
     if len(set(rids.values())) != len(rids):
-        raise ValueError("image names collide after turning them into record ids (same stem, different extension?)")
+        raise UserError("image names collide after turning them into record ids (same stem, different extension?)")
 
     # Store dims from the data: S and D from the parameter vectors, H and W from `size` or the first record.
     first = next(iter(sources))
@@ -329,8 +331,8 @@ def _load_spatial(paths: dict[str, Path], hw: tuple[int, int] | None) -> dict[st
         return {k: _resize(v, hw, kinds[k]) for k, v in out.items()}
     sizes = {k: v.shape[:2] for k, v in out.items()}
     if len(set(sizes.values())) > 1:
-        raise ValueError(f"spatial inputs differ in size {sizes} ({ {k: str(p) for k, p in paths.items()} }); "
-                         "pass size= to resize them to one resolution")
+        raise UserError(f"spatial inputs differ in size {sizes} ({ {k: str(p) for k, p in paths.items()} }); "
+                        "pass size= to resize them to one resolution")
     return out
 
 
@@ -341,8 +343,8 @@ def _record_arrays(name: str, params: dict, paths: dict[str, Path], wanted: Iter
     if size is None and spatial:
         got = next(iter(spatial.values())).shape[:2]
         if got != hw:
-            raise ValueError(f"image {name!r}: inputs are {got[0]}x{got[1]} but the store is {hw[0]}x{hw[1]}; "
-                             "pass size= to resize")
+            raise UserError(f"image {name!r}: inputs are {got[0]}x{got[1]} but the store is {hw[0]}x{hw[1]}; "
+                            "pass size= to resize")
     arrays: dict[str, np.ndarray] = {}
     if "light" in wanted:
         arrays["light"] = params["light"][name].reshape(9, 3)

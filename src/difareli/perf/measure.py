@@ -27,6 +27,7 @@ import torch
 from difareli.configs import read_yaml
 from difareli.runtime.inference_copy import to_channels_last
 from difareli.data.inputs import Condition, input_dims
+from difareli.errors import UserError
 
 #: The model variant of the GPU report and the training benchmark (the paper's DiFaReli++).
 DEFAULT_VARIANT = "difareli_pp"
@@ -57,7 +58,7 @@ def _compose(folder: str, name: str, overrides: Mapping[str, str]) -> dict[str, 
         elif isinstance(entry, str):  # a parent config merged in place: `- difareli_pp`, `- /model/x@_here_`
             path, _, package = entry.partition("@")
             if package not in ("", "_here_"):
-                raise ValueError(f"{folder}/{name}.yaml: defaults entry {entry!r}: only @_here_ is supported")
+                raise UserError(f"{folder}/{name}.yaml: defaults entry {entry!r}: only @_here_ is supported")
             parent_folder, _, parent = _resolve(path, here).rpartition("/")
             part = _compose(parent_folder, parent, overrides)
         elif isinstance(entry, Mapping) and len(entry) == 1:  # a group option at its package: `- spatial: modulator`
@@ -71,7 +72,7 @@ def _compose(folder: str, name: str, overrides: Mapping[str, str]) -> dict[str, 
             group_folder = _resolve(key.partition("@")[0], here)
             part = {package: _compose(group_folder, str(option), {})}
         else:
-            raise ValueError(f"{folder}/{name}.yaml: unsupported defaults entry {entry!r}")
+            raise UserError(f"{folder}/{name}.yaml: unsupported defaults entry {entry!r}")
         out = _merge(out, part)
     return out
 
@@ -104,7 +105,7 @@ def _plain_partial(value: Any) -> Any:
     if not (isinstance(value, Mapping) and "_target_" in value):
         return value
     if not value.get("_partial_"):
-        raise ValueError(f"a model option may name a class only as a partial (_partial_: true); got {dict(value)}")
+        raise UserError(f"a model option may name a class only as a partial (_partial_: true); got {dict(value)}")
     kwargs = {k: v for k, v in value.items() if k not in ("_target_", "_partial_")}
     return functools.partial(_locate(value["_target_"]), **kwargs)
 
@@ -121,7 +122,7 @@ def build_model(model: str | Mapping[str, Any], preset: str | None = None, resol
     cfg = variant_config(model) if isinstance(model, str) else dict(model)
     target = cfg.get("_target_")
     if not target:
-        raise ValueError(f"model config {cfg.get('name', model)!r} has no _target_ (the module class to build)")
+        raise UserError(f"model config {cfg.get('name', model)!r} has no _target_ (the module class to build)")
     preset = preset or cfg.get("preset") or "tiny"  # tiny: the modules' own default
     res = int(resolution or get_config(preset).image_size)
     kwargs = {k: _plain_partial(v) for k, v in cfg.items() if not (k.startswith("_") and k.endswith("_"))}

@@ -43,6 +43,7 @@ from difareli.perf.measure import random_condition
 from difareli.relight.core import relight
 from difareli.runtime.core import Runtime
 from difareli.data.store import EncodingStore
+from difareli.errors import MissingError, UserError
 
 #: Error columns (present only when cases carry a reference or a ground truth).
 ERROR_COLUMNS = ("ref/mse", "ref/dssim", "gt/mse", "gt/dssim")
@@ -131,8 +132,8 @@ def store_cases(store: EncodingStore, model, records: Iterable[str] | None = Non
                           gt=image_to_tensor(store.read(tid, ["image"])["image"])[None].to(device), mask=mask,
                           inputs=note, target_seconds=target_seconds))
     if not cases:
-        raise ValueError(f"no record of {ids[:5]}{'...' if len(ids) > 5 else ''} in {store.root} has another record "
-                         "of the same subject to relight toward (the benchmark's target and ground truth)")
+        raise UserError(f"no record of {ids[:5]}{'...' if len(ids) > 5 else ''} in {store.root} has another record "
+                        "of the same subject to relight toward (the benchmark's target and ground truth)")
     return cases
 
 
@@ -180,10 +181,10 @@ def benchmark(model, cases: Sequence[Case], samplers: Mapping[str, Mapping[str, 
     the ground truth; ``outputs[(sampler, steps)]`` holds the relit images (one per case).
     """
     if not cases:
-        raise ValueError("no cases to benchmark")
+        raise UserError("no cases to benchmark")
     if reference is not None and reference_config is None:
         if reference[0] not in samplers:
-            raise KeyError(f"reference sampler {reference[0]!r} is not among the samplers {sorted(samplers)}")
+            raise MissingError(f"reference sampler {reference[0]!r} is not among the samplers {sorted(samplers)}")
         reference_config = samplers[reference[0]]
     runtime = runtime or Runtime(device=str(cases[0].x0.device))
     passes = 3 if mean_matching else 2

@@ -33,6 +33,7 @@ import numpy as np
 import torch
 
 from difareli.data.encodings import PART_INDEX
+from difareli.errors import UserError
 
 #: Parts of the ``masks`` label map blended back by default (the model relights them; the background keeps the
 #: photo's own light, since only the crop's share of it was seen).
@@ -62,7 +63,7 @@ def part_mask(labels: np.ndarray, parts: Sequence[str] = DEFAULT_PARTS) -> np.nd
     """Bool (H, W): pixels of the label map ``labels`` (indices into ``MASK_PARTS``) in ``parts``."""
     unknown = [p for p in parts if p not in PART_INDEX]
     if unknown:
-        raise ValueError(f"unknown mask parts {unknown}; the parts are {list(PART_INDEX)}")
+        raise UserError(f"unknown mask parts {unknown}; the parts are {list(PART_INDEX)}")
     return np.isin(np.asarray(labels), [PART_INDEX[p] for p in parts])
 
 
@@ -103,9 +104,9 @@ class Compositor:
 
     def __post_init__(self):
         if self.mode not in MODES:
-            raise ValueError(f"composite mode must be one of {MODES}, got {self.mode!r}")
+            raise UserError(f"composite mode must be one of {MODES}, got {self.mode!r}")
         if self.aligned.shape[:2] != self.labels.shape[:2]:
-            raise ValueError(f"aligned crop {self.aligned.shape} and masks {self.labels.shape} differ in size")
+            raise UserError(f"aligned crop {self.aligned.shape} and masks {self.labels.shape} differ in size")
 
     @property
     def size(self) -> int:
@@ -148,7 +149,7 @@ class Compositor:
         single = relit.ndim == 3
         relit = relit[None] if single else relit
         if relit.shape[1:] != self.aligned.shape:
-            raise ValueError(f"relit crops {relit.shape[1:]} differ from the aligned crop {self.aligned.shape}")
+            raise UserError(f"relit crops {relit.shape[1:]} differ from the aligned crop {self.aligned.shape}")
         out = np.broadcast_to(self.photo, (len(relit), *self.photo.shape)).copy()
         window = photo_window(self.quad, self.photo.shape[:2])
         if window is None:

@@ -18,6 +18,7 @@ from difareli.diffusion.relight import Inversion, SamplerSpec, decode, invert
 from difareli.data.inputs import Condition
 from difareli.relight.relightable import DiffusionRelightable, OnePassRelightable, Relightable
 from difareli.runtime.core import Runtime
+from difareli.errors import UserError
 
 
 def _denoiser(model: DiffusionRelightable, cond: Any, runtime: Runtime | None):
@@ -68,7 +69,7 @@ def relight(model: Relightable, x0: Tensor, source: Condition, targets: Conditio
         with runtime.autocast():  # a one-pass model written without the runtime argument
             return model.relight_once(*args).float()
     if spec is None:
-        raise ValueError(f"{type(model).__name__} is a diffusion model: relighting it needs a sampler spec")
+        raise UserError(f"{type(model).__name__} is a diffusion model: relighting it needs a sampler spec")
     if inversion is None:
         inversion = invert_image(model, x0, source, spec, runtime=runtime, mean_matching=mean_matching,
                                  progress=progress)

@@ -169,7 +169,7 @@ def prepare_photo(rgb: np.ndarray, encodings: Sequence[str], *, size: int,
     from difareli.estimators.loading import BadInput
 
     if border not in BORDERS:
-        raise ValueError(f"border must be one of {BORDERS}, got {border!r}")
+        raise UserError(f"border must be one of {BORDERS}, got {border!r}")
     rgb = np.ascontiguousarray(np.asarray(rgb)[..., :3])
     names = [*encodings, *(["masks"] if composite else [])]
     start = time.perf_counter()

@@ -17,6 +17,8 @@ import numpy as np
 from .raycast import GBuffer, Scene
 from .shadow import DEFAULT_EPS
 
+from difareli.errors import UserError
+
 
 def cosine_directions(rays: int) -> np.ndarray:
     """``(rays, 3)`` stratified cosine-weighted unit directions around +z (Fibonacci spiral on the disk)."""
@@ -39,7 +41,7 @@ def ambient_occlusion(scene: Scene, gbuffer: GBuffer, rays: int = 16, max_distan
                       seed: int = 0, eps: float = DEFAULT_EPS) -> np.ndarray:
     """AO ``(H, W)`` float32 in [0, 1] of the visible surface (1 off-mesh); see the module docstring."""
     if rays < 1:
-        raise ValueError(f"rays must be >= 1, got {rays}")
+        raise UserError(f"rays must be >= 1, got {rays}")
     hit = gbuffer.hit.reshape(-1)
     idx = np.flatnonzero(hit)
     out = np.ones(hit.shape, dtype=np.float32)

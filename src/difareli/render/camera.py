@@ -13,6 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from difareli.errors import UserError
+
 #: Direction of every primary ray (toward -z, away from the viewer).
 RAY_DIRECTION = np.array([0.0, 0.0, -1.0])
 
@@ -27,14 +29,14 @@ class OrthoCamera:
 
     def __post_init__(self):
         if not np.isfinite(self.scale) or self.scale == 0:
-            raise ValueError(f"OrthoCamera scale must be finite and non-zero, got {self.scale}")
+            raise UserError(f"OrthoCamera scale must be finite and non-zero, got {self.scale}")
 
     @classmethod
     def from_array(cls, cam) -> "OrthoCamera":
         """Camera from the 3-vector ``cam`` encoding ``(s, tx, ty)``."""
         cam = np.asarray(cam, dtype=np.float64).reshape(-1)
         if cam.shape != (3,):
-            raise ValueError(f"cam must have 3 entries (s, tx, ty), got shape {cam.shape}")
+            raise UserError(f"cam must have 3 entries (s, tx, ty), got shape {cam.shape}")
         return cls(float(cam[0]), float(cam[1]), float(cam[2]))
 
     def to_array(self) -> np.ndarray:

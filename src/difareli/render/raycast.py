@@ -20,6 +20,8 @@ import trimesh
 
 from .camera import RAY_DIRECTION, OrthoCamera
 
+from difareli.errors import UserError
+
 #: Primary rays start this far (relative to the mesh scale) in front of the nearest vertex.
 _RAY_START_MARGIN = 0.05
 #: Rays per intersector call.
@@ -29,7 +31,7 @@ _RAY_CHUNK = 65536
 def _make_intersector(mesh: trimesh.Trimesh, backend: str):
     """Embree intersector if available (or requested), else trimesh's pure-Python one, with a warning."""
     if backend not in ("auto", "embree", "python"):
-        raise ValueError(f"backend must be 'auto', 'embree' or 'python', got {backend!r}")
+        raise UserError(f"backend must be 'auto', 'embree' or 'python', got {backend!r}")
     if backend in ("auto", "embree"):
         if trimesh.ray.has_embree:
             from trimesh.ray.ray_pyembree import RayMeshIntersector
@@ -74,14 +76,14 @@ class Scene:
     def __init__(self, mesh: trimesh.Trimesh, labels=None, *, vertex_normals=None, backend: str = "auto"):
         faces = np.asarray(mesh.faces, dtype=np.int64)
         if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
-            raise ValueError(f"Scene needs a non-empty triangle mesh, got faces of shape {faces.shape}")
+            raise UserError(f"Scene needs a non-empty triangle mesh, got faces of shape {faces.shape}")
         if labels is None:
             labels = np.ones(len(faces), dtype=np.int32)
         labels = np.asarray(labels)
         if labels.shape != (len(faces),) or not np.issubdtype(labels.dtype, np.integer):
-            raise ValueError(f"labels must be ints of shape ({len(faces)},), got {labels.dtype} {labels.shape}")
+            raise UserError(f"labels must be ints of shape ({len(faces)},), got {labels.dtype} {labels.shape}")
         if labels.min() < 0:
-            raise ValueError("labels must be non-negative (0 is background)")
+            raise UserError("labels must be non-negative (0 is background)")
         self.mesh = mesh
         self.labels = labels.astype(np.int32)
         # Plain float64 copies: trimesh's cached properties re-hash arrays on each access.
@@ -91,7 +93,7 @@ class Scene:
         if vertex_normals is not None:
             vn = np.asarray(vertex_normals, dtype=np.float64)
             if vn.shape != self.vertices.shape:
-                raise ValueError(f"vertex_normals must have shape {self.vertices.shape}, got {vn.shape}")
+                raise UserError(f"vertex_normals must have shape {self.vertices.shape}, got {vn.shape}")
             self.vertex_normals = _unit(vn)[0]
         #: Length of the bounding-box diagonal; offsets (ray starts, shadow eps) are relative to it.
         self.scale = float(np.linalg.norm(np.ptp(self.vertices, axis=0))) or 1.0
@@ -265,7 +267,7 @@ def interpolate_vertex_attribute(scene: Scene, gbuffer: GBuffer, values) -> np.n
     ``(H, W, C)`` (or ``(H, W)``), 0 off-mesh. E.g. per-vertex albedo."""
     values = np.asarray(values, dtype=np.float64)
     if values.shape[0] != len(scene.vertices):
-        raise ValueError(f"values must have one row per vertex ({len(scene.vertices)}), got {values.shape}")
+        raise UserError(f"values must have one row per vertex ({len(scene.vertices)}), got {values.shape}")
     scalar = values.ndim == 1
     vals = values[:, None] if scalar else values.reshape(len(values), -1)
     H, W = gbuffer.shape

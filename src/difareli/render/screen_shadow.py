@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from difareli.errors import UserError
 from difareli.render.camera import OrthoCamera
 
 #: How the march reads the surface between pixel centres (see the module doc).
@@ -90,7 +91,7 @@ def march_shadows(depth: np.ndarray, hit: np.ndarray, cam: OrthoCamera, directio
     so N maps (a video's targets) cost about as much array work as their rays, not N times the per-step overhead.
     """
     if sample not in SAMPLES:
-        raise ValueError(f"sample={sample!r}: use one of {SAMPLES}")
+        raise UserError(f"sample={sample!r}: use one of {SAMPLES}")
     dirs = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
     dirs = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
     h, w = depth.shape

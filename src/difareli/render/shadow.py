@@ -14,6 +14,8 @@ import numpy as np
 
 from .raycast import GBuffer, Scene
 
+from difareli.errors import UserError
+
 #: Shadow-ray origins are lifted off the surface by this fraction of the mesh scale (bounding-box
 #: diagonal) along the facet normal, well above embree's float32 resolution, to avoid self-hits ("acne").
 DEFAULT_EPS = 1e-4
@@ -22,10 +24,10 @@ DEFAULT_EPS = 1e-4
 def _unit_direction(direction) -> np.ndarray:
     d = np.asarray(direction, dtype=np.float64).reshape(-1)
     if d.shape != (3,):
-        raise ValueError(f"direction must be a 3-vector, got shape {d.shape}")
+        raise UserError(f"direction must be a 3-vector, got shape {d.shape}")
     norm = np.linalg.norm(d)
     if not np.isfinite(norm) or norm == 0:
-        raise ValueError(f"direction must be finite and non-zero, got {d}")
+        raise UserError(f"direction must be finite and non-zero, got {d}")
     return d / norm
 
 

@@ -28,6 +28,7 @@ import torch
 import torch.utils._pytree as pytree
 from torch import Tensor
 
+from difareli.errors import UserError
 from difareli.hardware import auto_precision
 from difareli.runtime.inference_copy import forget, inference_copy, to_channels_last
 
@@ -54,29 +55,29 @@ class Runtime:
 
     def __post_init__(self) -> None:
         if not isinstance(self.device, str) or not _DEVICE_RE.match(self.device):
-            raise ValueError(f"runtime.device={self.device!r} is not one of auto, cpu, cuda, cuda:N")
+            raise UserError(f"runtime.device={self.device!r} is not one of auto, cpu, cuda, cuda:N")
         if self.precision == "auto":  # resolved here, so every reader sees fp32 / bf16
             if self.device.startswith("cuda") and not torch.cuda.is_available():
-                raise ValueError(f"runtime.device={self.device!r} but CUDA is not available here; use device=cpu")
+                raise UserError(f"runtime.device={self.device!r} but CUDA is not available here; use device=cpu")
             object.__setattr__(self, "precision", auto_precision(self.torch_device))
         if self.precision not in PRECISIONS:
-            raise ValueError(f"runtime.precision={self.precision!r} is not one of {', '.join(PRECISIONS)}, auto")
+            raise UserError(f"runtime.precision={self.precision!r} is not one of {', '.join(PRECISIONS)}, auto")
         for key in ("compile", "cuda_graphs"):
             if not isinstance(getattr(self, key), bool):
-                raise ValueError(f"runtime.{key}={getattr(self, key)!r} must be true or false")
+                raise UserError(f"runtime.{key}={getattr(self, key)!r} must be true or false")
         if self.device.startswith("cuda") and not torch.cuda.is_available():
-            raise ValueError(f"runtime.device={self.device!r} but CUDA is not available here; use device=cpu or auto")
+            raise UserError(f"runtime.device={self.device!r} but CUDA is not available here; use device=cpu or auto")
         if self.memory_format == "auto":
             # Measured on a CPU (AMX bf16): channels-last bf16 passes 1.34x faster at ffhq128 (oneDNN reorders NCHW
             # inputs inside every convolution); fp32 passes were 4% slower, so only bf16 turns it on.
             cl = self.torch_device.type == "cpu" and self.precision == "bf16"
             object.__setattr__(self, "memory_format", "channels_last" if cl else "contiguous")
         if self.memory_format not in MEMORY_FORMATS:
-            raise ValueError(f"runtime.memory_format={self.memory_format!r} is not one of auto, "
-                             f"{', '.join(MEMORY_FORMATS)}")
+            raise UserError(f"runtime.memory_format={self.memory_format!r} is not one of auto, "
+                            f"{', '.join(MEMORY_FORMATS)}")
         if self.precision == "fp16" and self.torch_device.type != "cuda":
-            raise ValueError("runtime.precision=fp16 needs CUDA (CPU float16 autocast is not supported here); "
-                             "use precision=bf16 or fp32 on CPU")
+            raise UserError("runtime.precision=fp16 needs CUDA (CPU float16 autocast is not supported here); "
+                            "use precision=bf16 or fp32 on CPU")
 
     @classmethod
     def from_config(cls, cfg: Mapping | None) -> "Runtime":
@@ -84,10 +85,10 @@ class Runtime:
         if cfg is None:
             return cls()
         if not isinstance(cfg, Mapping):
-            raise ValueError(f"runtime config must be a mapping of {', '.join(_FIELDS)}, got {type(cfg).__name__}")
+            raise UserError(f"runtime config must be a mapping of {', '.join(_FIELDS)}, got {type(cfg).__name__}")
         unknown = sorted(set(map(str, cfg)) - set(_FIELDS))
         if unknown:
-            raise ValueError(f"unknown runtime key(s) {unknown}; known: {', '.join(_FIELDS)}")
+            raise UserError(f"unknown runtime key(s) {unknown}; known: {', '.join(_FIELDS)}")
         return cls(**{str(k): v for k, v in cfg.items()})
 
     # ------------------------------------------------------------------ device and precision

@@ -29,6 +29,7 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from difareli.data.encodings import PART_INDEX
+from difareli.errors import UserError
 from difareli.render.face_model import PIVOT, FaceModel, FaceParams, pose_points
 
 SKULL_CENTRE = np.array([0.0, 0.05, 0.0])
@@ -255,7 +256,7 @@ def build_head(params: FaceParams | None = None, accessories: AccessoryParams | 
     model = t.model
     if params is None or accessories is None:
         if rng is None:
-            raise ValueError("build_head needs an rng when params or accessories are not given")
+            raise UserError("build_head needs an rng when params or accessories are not given")
         params = params if params is not None else model.sample_params(rng)
         accessories = accessories if accessories is not None else sample_accessories(rng)
     a = accessories

@@ -16,6 +16,7 @@ import yaml
 from difareli.data.store import EncodingStore
 from difareli.synth.effects import REALISM_PRESETS
 from difareli.synth.config import auto_estimation_resolution
+from difareli.errors import UserError
 
 #: Always written, in this order (a reader compares stores by these first).
 _ALWAYS = ("subjects", "lights", "resolution", "seed", "realism", "inputs")
@@ -37,9 +38,9 @@ def synth_command(store_dir: str | Path, meta: dict[str, Any] | None = None) -> 
     if meta is None:
         meta = EncodingStore.open(store_dir).store_meta
     if meta.get("generator") != "synthfaces" or meta.get("synthfaces_version") is None:
-        raise ValueError(f"{store_dir}: the store header names no difareli-synth settings (generator "
-                         f"{meta.get('generator')!r}, version {meta.get('synthfaces_version')!r}); state its "
-                         "command yourself")
+        raise UserError(f"{store_dir}: the store header names no difareli-synth settings (generator "
+                        f"{meta.get('generator')!r}, version {meta.get('synthfaces_version')!r}); state its "
+                        "command yourself")
     default = _cli_defaults()
     words = [f"out_dir={store_dir}"] + [f"{k}={meta[k]}" for k in _ALWAYS]
     words += [f"{k}={meta[k]}" for k in _IF_CHANGED if k in meta and meta[k] != default[k]]

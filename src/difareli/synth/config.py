@@ -7,6 +7,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field
 
 from difareli.data.encodings import SHADOW_C_HI, SHADOW_C_LO, SHADOW_S_MIN
+from difareli.errors import UserError
 from difareli.synth import effects as fx_mod
 
 ENCODINGS = ("image", "light", "shape", "cam", "identity", "shadow", "background", "masks", "shadow_map",
@@ -31,7 +32,7 @@ def auto_estimation_resolution(resolution: int) -> int:
     return -(-AUTO_ESTIMATION // int(resolution)) * int(resolution)
 
 
-class ConfigError(ValueError):
+class ConfigError(UserError):
     """An invalid SynthFaces configuration, or one that does not match the existing store."""
 
 

@@ -25,6 +25,7 @@ from typing import Mapping
 import numpy as np
 
 from difareli.data.encodings import PART_INDEX
+from difareli.errors import UserError
 
 #: The realism presets: ``lambertian`` is SynthFaces v1 (bit-identical images for the same seed).
 REALISM_PRESETS: dict[str, dict[str, bool]] = {
@@ -60,16 +61,16 @@ class Effects:
     def resolve(cls, realism: str, overrides: Mapping[str, object] | None = None) -> "Effects":
         """The preset ``realism`` with ``overrides`` (``None`` values keep the preset's)."""
         if realism not in REALISM_PRESETS:
-            raise ValueError(f"realism={realism!r} is invalid: use one of {', '.join(REALISM_PRESETS)}")
+            raise UserError(f"realism={realism!r} is invalid: use one of {', '.join(REALISM_PRESETS)}")
         known = {f.name for f in fields(cls)}
         values = dict(REALISM_PRESETS[realism])
         for k, v in dict(overrides or {}).items():
             if k not in known:
-                raise ValueError(f"effects.{k} is not an effect: use {', '.join(sorted(known))}")
+                raise UserError(f"effects.{k} is not an effect: use {', '.join(sorted(known))}")
             if v is None:
                 continue
             if not isinstance(v, (bool, np.bool_)):
-                raise ValueError(f"effects.{k}={v!r} is invalid: use true or false")
+                raise UserError(f"effects.{k}={v!r} is invalid: use true or false")
             values[k] = bool(v)
         return cls(**values)
 

@@ -27,6 +27,7 @@ import numpy as np
 
 from difareli.lighting import sh
 from difareli.data.encodings import FACE_PARTS, FOREGROUND_PARTS, NUM_MASK_PARTS, PART_INDEX
+from difareli.errors import UserError
 
 _SHADOW = None
 _PIPELINES: dict[int, object] = {}
@@ -49,7 +50,7 @@ class FrameAligner:
     def __call__(self, rgb: np.ndarray) -> dict:
         h, w = rgb.shape[:2]
         if (h, w) != (self.size, self.size):
-            raise ValueError(f"FrameAligner({self.size}) got a {h}x{w} image")
+            raise UserError(f"FrameAligner({self.size}) got a {h}x{w} image")
         quad = np.array([[0, 0], [0, h], [w, h], [w, 0]], dtype=np.float64)
         return {"image": rgb, "quad": quad, "faces": 1, "box": None, "notes": []}
 
@@ -136,7 +137,7 @@ def estimate_all(image: np.ndarray, est_image: np.ndarray | None = None) -> tupl
     try:
         got, meta, ctx = pipeline(big.shape[0]).process(np.ascontiguousarray(big))
     except BadInput as e:
-        raise ValueError(f"photo estimators: {e}") from None
+        raise UserError(f"photo estimators: {e}") from None
     H, W = image.shape[:2]
     cam = np.asarray(got["cam"], np.float32)
     gb = render_gbuffer(ctx["scene"], OrthoCamera(*cam.tolist()), H, W)

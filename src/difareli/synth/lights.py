@@ -17,6 +17,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from difareli.errors import UserError
 from difareli.lighting import sh
 
 #: Categories and their sampling weights (see :func:`sample_light`).
@@ -126,7 +127,7 @@ def sample_light(rng: np.random.Generator, category: str | None = None) -> Light
         p = np.array([CATEGORIES[n] for n in names])
         category = names[rng.choice(len(names), p=p / p.sum())]
     if category not in CATEGORIES:
-        raise ValueError(f"unknown light category {category!r}; known: {', '.join(CATEGORIES)}")
+        raise UserError(f"unknown light category {category!r}; known: {', '.join(CATEGORIES)}")
     white = np.ones(3)
     az, el = rng.uniform(-75, 75), rng.uniform(-15, 60)
     if category == "hard":

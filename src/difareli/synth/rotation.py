@@ -31,6 +31,7 @@ from difareli.synth.config import SynthConfig
 from difareli.synth.subject import build_subject, shade
 from difareli.synth.blas import single_thread_blas
 from difareli.synth.lights import Light, add_suns, extra_sun_rng, light_rng, sample_light
+from difareli.errors import UserError
 
 #: Exact per-frame target encodings returned with the frames.
 TARGETS = ("light", "shading", "shadow", "shadow_map")
@@ -59,8 +60,8 @@ def synth_config(store: EncodingStore) -> SynthConfig:
     """The generator configuration stored in a SynthFaces store's header."""
     meta = store.store_meta
     if meta.get("generator") != "synthfaces":
-        raise ValueError(f"store {store.root} is not a SynthFaces store (header generator="
-                         f"{meta.get('generator')!r}); ground-truth light rotations need SynthFaces records")
+        raise UserError(f"store {store.root} is not a SynthFaces store (header generator="
+                        f"{meta.get('generator')!r}); ground-truth light rotations need SynthFaces records")
     names = {f.name for f in dataclasses.fields(SynthConfig)}
     return SynthConfig(**{k: v for k, v in meta.items() if k in names})
 
@@ -72,8 +73,8 @@ def record_source(store: EncodingStore, record_id: str) -> tuple[SynthConfig, in
     try:
         k, j = int(str(meta["subject"]).lstrip("s")), int(meta["light_index"])
     except (KeyError, ValueError):
-        raise ValueError(f"record {record_id!r} of {store.root} has no SynthFaces subject/light_index in its "
-                         "meta.json") from None
+        raise UserError(f"record {record_id!r} of {store.root} has no SynthFaces subject/light_index in its "
+                        "meta.json") from None
     group = int(meta.get("light_group", sp.light_group(k, cfg.light_group_size)))
     light = sample_light(light_rng(cfg.seed, group, j))
     if cfg.fx.multi_sun:
@@ -99,9 +100,9 @@ def rotation_matrices(axis: str, frames: int = 60) -> tuple[np.ndarray, np.ndarr
     """``(angles in degrees (N,), rotations (N, 3, 3))``: 360 degrees about ``axis`` in ``frames`` steps,
     starting at 0 (the same angles as ``targets.rotation_lights``)."""
     if axis not in AXES:
-        raise ValueError(f"rotation axis must be one of {AXES}, got {axis!r}")
+        raise UserError(f"rotation axis must be one of {AXES}, got {axis!r}")
     if int(frames) < 1:
-        raise ValueError(f"frames={frames} must be >= 1")
+        raise UserError(f"frames={frames} must be >= 1")
     angles = np.linspace(0.0, 360.0, int(frames), endpoint=False)
     return angles, (sh.rotation_yaw(angles) if axis == "yaw" else sh.rotation_roll(angles))
 

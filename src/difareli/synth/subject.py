@@ -54,6 +54,7 @@ from difareli.synth import effects as fx_mod
 from difareli.synth.appearance import albedo_image, sample_appearance, sample_background
 from difareli.synth.config import GEOMETRY_GT, IDENTITY_DIM, S_MIN, SynthConfig
 from difareli.synth.lights import Light
+from difareli.errors import UserError
 
 _FACE_IDX = np.array([PART_INDEX[p] for p in FACE_PARTS])
 _FG_IDX = np.array([PART_INDEX[p] for p in FOREGROUND_PARTS])
@@ -130,7 +131,7 @@ def _cast_list(cast, n: int, hit: np.ndarray) -> list[np.ndarray]:
     else:
         maps = list(cast)
     if len(maps) != n:
-        raise ValueError(f"{len(maps)} cast-shadow maps for {n} suns")
+        raise UserError(f"{len(maps)} cast-shadow maps for {n} suns")
     return [m & hit for m in maps]
 
 

@@ -12,6 +12,8 @@ import functools
 
 import numpy as np
 
+from difareli.errors import UserError
+
 #: Rec. 709 luminance weights of linear RGB.
 LUMA = np.array([0.2126, 0.7152, 0.0722])
 
@@ -39,7 +41,7 @@ def rgb2lab_u8(rgb: np.ndarray) -> np.ndarray:
     result, tested; twice as fast on 20,000 pixels)."""
     rgb = np.asarray(rgb)
     if rgb.dtype != np.uint8 or rgb.shape[-1:] != (3,):
-        raise ValueError(f"rgb2lab_u8 needs uint8 RGB (..., 3), got {rgb.dtype} {rgb.shape}")
+        raise UserError(f"rgb2lab_u8 needs uint8 RGB (..., 3), got {rgb.dtype} {rgb.shape}")
     lin, matrix, white = _lab_tables()
     xyz = (lin[rgb] @ matrix) / white
     f = np.cbrt(xyz)
@@ -56,7 +58,7 @@ def median_mask(mask: np.ndarray, size: int) -> np.ndarray:
     import torch
 
     if size % 2 == 0 or size < 1:
-        raise ValueError(f"median window must be odd and positive, got {size}")
+        raise UserError(f"median window must be odd and positive, got {size}")
     m = np.asarray(mask, dtype=bool)
     x = torch.from_numpy(m.reshape(-1, 1, *m.shape[-2:]).astype(np.float32))
     return (kornia.filters.median_blur(x, (size, size), border_type="constant") > 0.5).numpy().reshape(m.shape)
