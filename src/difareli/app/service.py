@@ -249,7 +249,7 @@ class Service:
         try:
             src = relighter.source(st, rid)
         except KeyError as e:  # the store lacks an encoding this model reads
-            raise RequestError(f"checkpoint={ckpt}: {str(e).strip(chr(34) + chr(39))}") from None
+            raise RequestError(f"checkpoint={ckpt}: {e}") from None
         arrays = dict(src.arrays)
         if "face_mask" not in arrays and st.available("face_mask"):
             arrays["face_mask"] = np.asarray(st.read(rid, ["face_mask"])["face_mask"])

@@ -27,6 +27,7 @@ from typing import Mapping
 import numpy as np
 import torch
 
+from difareli.errors import UserError
 from difareli.lighting import sh
 from difareli.data.encodings import known_normals
 from difareli.utils.imageops import LUMA
@@ -115,7 +116,7 @@ def measure(relit: np.ndarray, gt: np.ndarray, arrays: Mapping[str, np.ndarray],
     from difareli.evaluation import metrics
 
     if relit.shape != gt.shape:
-        raise ValueError(f"relit frames {relit.shape} and ground truth {gt.shape} differ in shape")
+        raise UserError(f"relit frames {relit.shape} and ground truth {gt.shape} differ in shape")
     mask = np.asarray(arrays["face_mask"], bool)
     to_t = lambda f: torch.from_numpy(_unit(f)).permute(0, 3, 1, 2)  # noqa: E731
     m = torch.from_numpy(np.broadcast_to(mask, relit.shape[:3]).copy())

@@ -120,7 +120,7 @@ class Relighter:
         if missing:
             fix = (f"{redo} writes them (at the checkpoint's {self.resolution} px)" if redo else
                    "use a store that has them (difareli-synth writes every encoding)")
-            raise KeyError(f"relighting with checkpoint={self.checkpoint} needs encoding(s) {missing}, which "
+            raise errors.MissingError(f"relighting with checkpoint={self.checkpoint} needs encoding(s) {missing}, which "
                            f"the store at {store.root} does not have; {fix}")
         line = photos.resolution_warning(self.checkpoint, self.resolution, f"the store {store.root}",
                                          int(store.dims.get("H", 0)), f"preprocess at {self.resolution} px: {redo}"
@@ -198,7 +198,7 @@ class Relighter:
         :class:`Source`: the model's encodings present and finite; ``key`` caches its inversion."""
         missing = [n for n in self.needed_encodings() if n not in arrays]
         if missing:
-            raise KeyError(f"{what} lacks encoding(s) {missing}, which relighting with this model reads")
+            raise errors.MissingError(f"{what} lacks encoding(s) {missing}, which relighting with this model reads")
         # Non-finite inputs would decode to a black image without a word: stop here, naming what is wrong.
         for name in self.needed_encodings():
             errors.check_finite(arrays[name], f"{what}, encoding {name!r}")
@@ -242,7 +242,7 @@ class Relighter:
 
     def _spec(self) -> SamplerSpec:
         if self.spec is None:
-            raise ValueError("this model is a diffusion model: give the Relighter a sampler")
+            raise errors.UserError("this model is a diffusion model: give the Relighter a sampler")
         return self.spec
 
     def check_inputs(self, source: Source, targets: Targets) -> None:

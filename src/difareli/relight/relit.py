@@ -1,61 +1,66 @@
-"""What one relight request gives back: :class:`Relit` (the relit crops, the seconds per stage, the source and its
-targets), and the whole photos for a photo source (:meth:`Relit.composite`).
+"""What one relight request gives back: :class:`Relit`, the relit crops (N, H, W, 3) uint8 with the seconds per
+stage, the source and its targets, and the whole photos for a photo source (:meth:`Relit.composite`).
 
-A :class:`Relit` indexes, iterates, converts (``np.asarray``) and answers array attributes (``shape``, ``dtype``)
-as its images (N, H, W, 3) uint8, so code that reads a relight as an array keeps working; new code reads
-``.images``, ``.seconds`` and ``.composite()``.
+A :class:`Relit` *is* its images (an ``ndarray`` subclass, as ``np.ma`` arrays are), so code that reads a relight
+as an array keeps working; arithmetic and reductions on it give plain arrays and scalars.
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
 from typing import Any, Sequence
 
 import numpy as np
 
 
-@dataclass
-class Relit:
-    """The relights of one source under N targets: ``images`` (N, H, W, 3) uint8, ``seconds`` per stage
-    (``invert``: 0 when the inversion was reused; ``decode``; ``composite`` once composited), the source (with its
-    photo, if any) and the targets they were made under."""
+class Relit(np.ndarray):
+    """The relights of one source under N targets (N, H, W, 3) uint8, with ``seconds`` per stage (``invert``: 0 when
+    the inversion was reused; ``decode``; ``composite`` once composited), the ``source`` (with its photo, if any)
+    and the ``targets`` they were made under."""
 
-    images: np.ndarray
     seconds: dict[str, float]
     source: Any
     targets: Any
-    notes: list[str] = field(default_factory=list)
 
-    def __len__(self) -> int:
-        return len(self.images)
+    def __new__(cls, images: np.ndarray, seconds: dict[str, float] | None = None, source: Any = None,
+                targets: Any = None) -> "Relit":
+        obj = np.asarray(images).view(cls)
+        obj.seconds, obj.source, obj.targets = dict(seconds or {}), source, targets
+        return obj
 
-    def __getitem__(self, i):
-        return self.images[i]
+    def __array_finalize__(self, obj) -> None:
+        # A slice or view (relit[0]) keeps what it was made under.
+        if obj is None:
+            return
+        self.seconds = getattr(obj, "seconds", {})
+        self.source = getattr(obj, "source", None)
+        self.targets = getattr(obj, "targets", None)
 
-    def __iter__(self):
-        return iter(self.images)
+    def __array_wrap__(self, arr, context=None, return_scalar=False):
+        # Computed values (relit == 255, relit.mean()) are plain numbers, not relights.
+        arr = np.asarray(arr).view(np.ndarray)
+        return arr[()] if arr.ndim == 0 else arr
 
-    def __array__(self, dtype=None, copy=None):
-        return self.images if dtype is None else self.images.astype(dtype)
+    def __reduce__(self):
+        return (Relit, (self.images, self.seconds, None, None))
 
-    def __getattr__(self, name: str):
-        # Only for names a Relit lacks (dtype, shape, astype, mean ...): answered by its images.
-        if name == "images" or name.startswith("__"):
-            raise AttributeError(name)
-        return getattr(self.images, name)
+    @property
+    def images(self) -> np.ndarray:
+        """The relit crops as a plain array."""
+        return self.view(np.ndarray)
 
     def composite(self, mode: str = "ratio", feather: float = 0.03, parts: Sequence[str] | None = None, *,
                   onto: np.ndarray | None = None, images: np.ndarray | None = None) -> np.ndarray:
         """The relit crops put back into the whole photo (N, H, W, 3) uint8 (:mod:`difareli.relight.composite`);
         ``onto``: composite into this image instead of the original photo (another face of it already relit);
-        ``images``: composite these crops (e.g. a video's frames) instead of :attr:`images`. A UserError for a
-        source that is not a photo."""
+        ``images``: composite these crops (e.g. a video's frames) instead of these. A UserError for a source that
+        is not a photo."""
         from difareli.errors import UserError
 
         prepared = getattr(self.source, "photo", None)
         if prepared is None:
-            raise UserError(f"{self.source.what} is not a photo: only a photo's relights composite back into it")
+            what = getattr(self.source, "what", "this source")
+            raise UserError(f"{what} is not a photo: only a photo's relights composite back into it")
         start = time.perf_counter()
         comp = prepared.compositor(mode, feather, list(parts) if parts else None)
         if onto is not None:  # the gain of this face goes onto the photo so far (faces do not overlap)

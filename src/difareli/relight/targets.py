@@ -21,7 +21,8 @@ from difareli.render.camera import OrthoCamera
 from difareli.render.screen_shadow import march_shadows
 from difareli.data import encodings
 from difareli.data.encodings import normalise_c
-from difareli.errors import TARGET_LIGHT_MAX_ABS, UserError, check_finite, check_light, check_number
+from difareli.errors import (TARGET_LIGHT_MAX_ABS, UserError, UserFileNotFoundError, check_finite, check_light,
+                             check_number)
 
 
 @dataclass(frozen=True)
@@ -40,16 +41,16 @@ class Targets:
         arr = np.asarray(lights, dtype=np.float64)
         arr = arr[None] if arr.ndim == 2 else arr
         if arr.ndim != 3 or arr.shape[1:] != (9, 3) or len(arr) == 0:
-            raise ValueError(f"{what}: expected one or more 9x3 SH lights, got shape {arr.shape}")
+            raise UserError(f"{what}: expected one or more 9x3 SH lights, got shape {arr.shape}")
         checked = np.stack([check_light(l, f"{what} light {i}", TARGET_LIGHT_MAX_ABS) for i, l in enumerate(arr)])
         cs = [None] * len(checked) if shadows is None else list(shadows)
         if len(cs) != len(checked):
-            raise ValueError(f"{what}: {len(checked)} target lights but {len(cs)} shadow values")
+            raise UserError(f"{what}: {len(checked)} target lights but {len(cs)} shadow values")
         cs = [check_number(c, f"{what} shadow strength {i}") for i, c in enumerate(cs)]
         if maps is not None:
             maps = check_finite(np.asarray(maps, dtype=np.float32), f"{what} shadow maps")
             if maps.ndim != 3 or len(maps) != len(checked) or maps.min() < 0 or maps.max() > 1:
-                raise ValueError(f"{what}: {len(checked)} target lights need {len(checked)} shadow maps (N, H, W) "
+                raise UserError(f"{what}: {len(checked)} target lights need {len(checked)} shadow maps (N, H, W) "
                                  f"with values in [0, 1]; got shape {maps.shape}")
         return cls(checked, tuple(None if c is None else float(c) for c in cs), maps)
 
@@ -78,7 +79,7 @@ def load_sh_file(path: str | Path) -> np.ndarray:
     """A 9x3 SH light from ``.npy`` (9x3 or 27) or a text file of 27 numbers (row-major 9x3)."""
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"target light file {path} does not exist")
+        raise UserFileNotFoundError(f"target light file {path} does not exist")
     try:
         arr = np.load(path, allow_pickle=False) if path.suffix == ".npy" else np.loadtxt(path, dtype=np.float64)
         arr = np.asarray(arr, dtype=np.float64).reshape(-1)
@@ -95,7 +96,7 @@ def load_envmap(path: str | Path) -> np.ndarray:
     """An equirectangular HDR radiance map HxWx3 (``.npy``, or ``.hdr``/``.exr`` through imageio)."""
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"environment map {path} does not exist")
+        raise UserFileNotFoundError(f"environment map {path} does not exist")
     if path.suffix == ".npy":
         try:
             env = np.load(path, allow_pickle=False)
@@ -108,13 +109,13 @@ def load_envmap(path: str | Path) -> np.ndarray:
         try:
             env = iio.imread(path)
         except Exception as e:  # imageio raises plugin-specific errors
-            raise ValueError(f"cannot read environment map {path} ({e}); save it as a float HxWx3 .npy") from e
+            raise UserError(f"cannot read environment map {path} ({e}); save it as a float HxWx3 .npy") from e
     if np.asarray(env).dtype.kind not in "biuf":
         raise UserError(f"environment map {path} holds {np.asarray(env).dtype} values, not numbers")
     env = check_finite(np.asarray(env, dtype=np.float64), f"environment map {path}", max_abs=1e30,
                        fix="save finite radiance values")
     if env.ndim != 3 or env.shape[2] < 3 or env.shape[1] != 2 * env.shape[0]:
-        raise ValueError(f"environment map {path} has shape {env.shape}; expected equirectangular HxWx3 with W = 2H")
+        raise UserError(f"environment map {path} has shape {env.shape}; expected equirectangular HxWx3 with W = 2H")
     return env[..., :3]
 
 
@@ -125,7 +126,7 @@ def target_lights(source_light: np.ndarray, *, light: str | None = None, other_l
     given = {k: v for k, v in dict(light=light, record=other_light, yaw=yaw, roll=roll, envmap=envmap).items()
              if v is not None}
     if len(given) != 1:
-        raise ValueError(f"give exactly one target (target.light, target.record, target.yaw, target.roll, "
+        raise UserError(f"give exactly one target (target.light, target.record, target.yaw, target.roll, "
                          f"target.envmap); got {sorted(given) or 'none'}")
     if light is not None:
         return load_sh_file(light)
@@ -146,7 +147,7 @@ def rotation_lights(source_light: np.ndarray, axis: str, frames: int = 60) -> np
         return sh.yaw(source_light, angles)
     if axis == "roll":
         return sh.roll(source_light, angles)
-    raise ValueError(f"rotation axis must be 'yaw' or 'roll', got {axis!r}")
+    raise UserError(f"rotation axis must be 'yaw' or 'roll', got {axis!r}")
 
 
 def rotation_targets(source: Mapping[str, np.ndarray], axis: str, frames: int, *, store=None,
@@ -249,7 +250,7 @@ def render_shadow(arrays: Mapping[str, np.ndarray], light: np.ndarray, shadow: f
 def render_shadow_map(arrays: Mapping[str, np.ndarray], light: np.ndarray, shadow: float | None = None) -> np.ndarray:
     """DiFaReli++'s shadow map toward ``light`` with strength ``shadow`` (a logit c')."""
     if shadow is None:
-        raise ValueError("a target shadow map needs a shadow strength: give target.shadow or a 'shadow' encoding")
+        raise UserError("a target shadow map needs a shadow strength: give target.shadow or a 'shadow' encoding")
     return target_shadow_map(arrays, light, shadow)
 
 
