@@ -145,3 +145,17 @@ def test_empty_mask_is_nan_and_bad_shapes_raise(pair):
         M.masked_mse(a, b, torch.ones(1, 90, 96))
     with pytest.raises(ValueError):
         M.dssim(a, b[..., :90], torch.ones(1, 96, 96))
+
+
+def test_unit_tensor_maps_uint8_images_to_unit_nchw():
+    """One home for uint8 -> metric input: 0 -> 0, 255 -> 1, channels first, one image or a batch."""
+    import numpy as np
+
+    from difareli.evaluation.metrics import unit_tensor
+
+    img = np.zeros((4, 5, 3), np.uint8)
+    img[1, 2] = (255, 51, 0)
+    t = unit_tensor(img)
+    assert t.shape == (1, 3, 4, 5) and t.dtype == torch.float64
+    assert t[0, :, 1, 2].tolist() == [1.0, 0.2, 0.0] and float(t.sum()) == 1.2
+    assert unit_tensor(np.stack([img, img])).shape == (2, 3, 4, 5)

@@ -391,12 +391,11 @@ def reconstruction_error(recon: np.ndarray, arrays: Mapping[str, np.ndarray]) ->
     """MSE and DSSIM of the self-relight against the input, on the face mask ([0, 1] units)."""
     import torch
 
-    from difareli.evaluation.metrics import dssim, masked_mse
+    from difareli.evaluation.metrics import dssim, masked_mse, unit_tensor
 
-    to_t = lambda a: torch.from_numpy(np.asarray(a, np.float64) / 255.0).permute(2, 0, 1)[None]
     mask = np.array(arrays["face_mask"], bool) if "face_mask" in arrays else np.ones(recon.shape[:2], bool)
     m = torch.from_numpy(mask)[None]
-    pred, target = to_t(recon), to_t(arrays["image"])
+    pred, target = unit_tensor(recon), unit_tensor(arrays["image"])
     return {"mse": round(float(masked_mse(pred, target, m)[0]), 5), "dssim": round(float(dssim(pred, target, m)[0]), 5),
             "region": "face mask" if "face_mask" in arrays else "whole crop"}
 

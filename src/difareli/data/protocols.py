@@ -20,6 +20,9 @@ from difareli.utils.fileio import write_text_atomic
 SPLITS = ("train", "val", "test")
 SPLITS_FILE = "splits.json"
 PROTOCOLS_FILE = "protocols.json"
+#: The two protocols (SPEC 11), in table order, and the short names metric keys use (``val/dssim/same``):
+#: (i) ``same_subject``, the light taken from the same person; (ii) ``different_subject``, from another person.
+PROTOCOLS = {"same_subject": "same", "different_subject": "different"}
 
 
 def record_id(subject: int, light: int) -> str:

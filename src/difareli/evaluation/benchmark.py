@@ -55,10 +55,9 @@ from difareli.data import encodings
 from difareli.utils.fileio import RESUME, append_text, atomic_path, folder_lock, on_full_disk, write_json_atomic, \
     write_text_atomic
 from difareli.data.store import CorruptRecordError, EncodingStore
-from difareli.data.protocols import PROTOCOLS_FILE
+from difareli.data.protocols import PROTOCOLS, PROTOCOLS_FILE
 
 #: protocols.json key -> the ``protocol`` column of the per-image CSV (tables.PROTOCOL_LABELS).
-PROTOCOLS = {"same_subject": "same", "different_subject": "different"}
 LIGHT_CSV = "light_estimation.csv"
 #: Rows scored so far, appended one by one: a killed run resumes from them (removed when the run completes).
 PARTIAL_CSV = ".metrics_per_image.partial.csv"
@@ -156,17 +155,12 @@ def load_pairs(store: EncodingStore, protocols: Sequence[str], limit: int | None
     return out
 
 
-def _to_tensor(img: np.ndarray) -> torch.Tensor:
-    """uint8 HxWx3 -> float64 1x3xHxW in [0, 1]."""
-    return torch.from_numpy(np.asarray(img, dtype=np.float64) / 255.0).permute(2, 0, 1)[None]
-
-
 def score(pred: np.ndarray, target: np.ndarray, face_mask: np.ndarray, rule: str | None = None,
           scorer=None) -> dict[str, float]:
     """DSSIM / MSE / LPIPS of one uint8 image against the ground truth on the mask under ``rule``; through
     ``scorer`` (a :func:`metrics.relight_metrics` collection, which also accumulates the score) when given."""
     scorer = scorer if scorer is not None else metrics.relight_metrics(rule)
-    scorer.update(_to_tensor(pred), _to_tensor(target), torch.from_numpy(np.array(face_mask, dtype=bool))[None])
+    scorer.update(metrics.unit_tensor(pred), metrics.unit_tensor(target), torch.from_numpy(np.array(face_mask, dtype=bool))[None])
     return {k: float(m.last[0]) for k, m in scorer.items()}
 
 

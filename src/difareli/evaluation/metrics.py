@@ -26,6 +26,7 @@ torchmetrics ``Metric`` s over these per-image scores with summed states, so the
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from torch import Tensor
 from torchmetrics import Metric, MetricCollection
@@ -59,6 +60,12 @@ def describe(rule: str | None) -> str:
     """One line stating a rule, for tables, CSVs and model cards: ``rule: paper (...)``."""
     rule = check_rule(rule)
     return f"rule: {rule} ({RULE_NOTES[rule]})"
+
+
+def unit_tensor(images) -> Tensor:
+    """uint8 images (H, W, 3) or (N, H, W, 3) -> float64 [N, 3, H, W] in [0, 1]: what every metric here reads."""
+    a = np.asarray(images, dtype=np.float64) / 255.0
+    return torch.from_numpy(a[None] if a.ndim == 3 else a).permute(0, 3, 1, 2)
 
 
 def from_signed(x: Tensor) -> Tensor:

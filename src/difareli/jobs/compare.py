@@ -18,10 +18,10 @@ from typing import Any
 
 from difareli.evaluation import tables
 from difareli.evaluation.benchmark import BenchmarkResult
+from difareli.data.protocols import PROTOCOLS
 from difareli.data.store import EncodingStore
 
 #: Both evaluation protocols: (i) relit toward the same subject's other light, (ii) toward another subject's light.
-PROTOCOLS = ("same_subject", "different_subject")
 
 
 @dataclass

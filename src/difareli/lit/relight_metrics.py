@@ -34,11 +34,11 @@ from difareli.evaluation import metrics
 from difareli.utils import viz
 from difareli.diffusion.spec import SamplerSpec, as_spec
 from difareli.data.inputs import condition_tensors, image_to_tensor, read_record, relight_reads
+from difareli.data.protocols import PROTOCOLS
 from difareli.lit.logging import log_image
 from difareli.relight.relightable import OnePassRelightable, Relightable, model_inputs
 from difareli.errors import UserError
 
-PROTOCOLS = {"same_subject": "same", "different_subject": "different"}
 
 
 def validation_pairs(store, split: str, n: int) -> list[dict[str, str]]:
@@ -133,7 +133,7 @@ class RelightMetrics(L.Callback):
         gt = store.read(pair["target"], ["image", "face_mask"])
         return {"pair": dict(pair), "lights": lights, "x0": image_to_tensor(arrays["image"])[None],
                 "source": condition_tensors(model, [arrays]), "targets": condition_tensors(model, targets),
-                "gt": torch.from_numpy(np.asarray(gt["image"], np.float64) / 255.0).permute(2, 0, 1)[None],
+                "gt": metrics.unit_tensor(gt["image"]),
                 "mask": torch.from_numpy(np.array(gt["face_mask"], dtype=bool))[None]}
 
     # -------------------------------------------------------------------------------------------- evaluation
@@ -167,7 +167,7 @@ class RelightMetrics(L.Callback):
             out = relight(pl_module, case["x0"].to(dev), to(case["source"]), to(case["targets"]),
                           None if isinstance(pl_module, OnePassRelightable) else self.spec, runtime=runtime)
             images = [viz.to_uint8(x.clamp(-1, 1)) for x in out]  # scored as saved, like difareli-benchmark
-            relit = torch.from_numpy(np.stack(images).astype(np.float64) / 255.0).permute(0, 3, 1, 2).to(dev)
+            relit = metrics.unit_tensor(np.stack(images)).to(dev)
             for k, proto in enumerate(PROTOCOLS.values()):
                 scores[proto].update(relit[k:k + 1], case["gt"].to(dev), case["mask"].to(dev))
                 if self.scorer is not None:  # the benchmark's extra scores of the same uint8 image

@@ -28,10 +28,10 @@ from typing import Iterable, Mapping, Sequence
 
 import numpy as np
 
+from difareli.data.protocols import PROTOCOLS
 from difareli.errors import UserError
 from difareli.multipie.layout import Image
 
-PROTOCOLS = ("same_subject", "different_subject")
 
 
 @dataclass(frozen=True)
