@@ -26,3 +26,27 @@ def test_relight_each_equals_one_at_a_time(tiny_checkpoint, synth_store, one_thr
     assert np.abs(both.astype(int) - alone.astype(int)).max() <= 1  # batched convolutions round differently
     with pytest.raises(ValueError, match="one target per source"):
         r.relight_each(sources, Targets.of(lights[:2], [-3.0, -2.0]))
+
+
+def test_implausible_target_lights_are_said_in_terms_of_the_light():
+    """A light with a negative ambient, or 50x the source's own, is named as the light's fault (not the sampler's);
+    the source's own light is not flagged; no normals: nothing judged."""
+    import numpy as np
+
+    from difareli.lighting import sh
+    from difareli.relight.relighter import implausible_lights
+
+    yy, xx = np.mgrid[-1:1:32j, -1:1:32j]
+    zz = np.sqrt(np.clip(1 - xx ** 2 - yy ** 2, 0, None))
+    normal = np.stack([xx, yy, zz], -1)
+    normal[zz == 0] = 0  # off the face: unknown normals
+    own = sh.directional_light([0.3, 0.2, 1.0], 1.0)
+    own[0] += 0.8  # an ambient term
+    dark = own.copy()
+    dark[0] = -2.0  # negative ambient: negative irradiance over most of the face
+    arrays = {"normal": normal, "light": own}
+    said = implausible_lights(arrays, np.stack([own, dark, 50 * own]))
+    assert set(said) == {1, 2}
+    assert "negative irradiance" in said[1] and "ambient" in said[1]
+    assert "50x brighter" in said[2] and "scale the light down" in said[2]
+    assert implausible_lights({"light": own}, np.stack([dark])) == {}

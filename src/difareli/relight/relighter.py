@@ -62,6 +62,37 @@ class Source:
 
 #: Share of clipped values above which a relit image is reported as saturated (a warning, not an error).
 SATURATED_SHARE = 0.5
+#: A target light is said to be implausible for a face when its irradiance is negative on more than this share of
+#: the face's known normals (an SH light whose ambient term is too small or negative) ...
+NEGATIVE_SHARE = 0.25
+#: ... or when its mean irradiance on the face is over this many times the source's own (an absurd ambient).
+BRIGHTER_MAX = 10.0
+
+
+def implausible_lights(arrays: Mapping[str, np.ndarray], lights: np.ndarray) -> dict[int, str]:
+    """Target lights a face cannot be lit with, judged on the source's stored normals: index -> why, in terms of
+    the light (negative irradiance on much of the face, or far brighter than the source's own light). Empty
+    without normals (a model that reads no shading)."""
+    from difareli.data.encodings import known_normals
+    from difareli.lighting import sh
+
+    if "normal" not in arrays or "light" not in arrays:
+        return {}
+    normal = np.asarray(arrays["normal"], np.float64)
+    n = normal[known_normals(normal)]
+    if len(n) == 0:
+        return {}
+    own = float(sh.irradiance(np.asarray(arrays["light"], np.float64), n).mean())
+    out = {}
+    for k, light in enumerate(np.asarray(lights, np.float64)):
+        e = sh.irradiance(light, n).mean(axis=-1)  # (M,) grey irradiance per face pixel
+        if (e < 0).mean() > NEGATIVE_SHARE:
+            out[k] = (f"target light {k} gives negative irradiance on {(e < 0).mean():.0%} of the face (its ambient, "
+                      "SH band 0, is too small or negative): give a light with a larger ambient term")
+        elif own > 0 and e.mean() > BRIGHTER_MAX * own:
+            out[k] = (f"target light {k} is {e.mean() / own:.0f}x brighter on the face than the source's own light: "
+                      "the relight saturates; scale the light down")
+    return out
 
 
 class Relighter:
@@ -245,11 +276,12 @@ class Relighter:
             raise errors.UserError("this model is a diffusion model: give the Relighter a sampler")
         return self.spec
 
-    def check_inputs(self, source: Source, targets: Targets) -> None:
+    def check_inputs(self, source: Source, targets: Targets) -> set[int]:
         """The one check of a request at the door, each bound once: the source's encodings (present and finite:
         checked when the :class:`Source` was made), the targets (lights and shadows: checked by
-        :meth:`Targets.of`), what only the pair can tell (given target maps at the source's resolution) and the
-        sampler a diffusion model needs. A UserError naming the input."""
+        :meth:`Targets.of`), what only the pair can tell (given target maps at the source's resolution; a target
+        light this face cannot be lit with: :func:`implausible_lights`, warned about and returned as target indices)
+        and the sampler a diffusion model needs. A UserError naming the input."""
         if not isinstance(source, Source) or not isinstance(targets, Targets):
             raise errors.UserError(f"relight takes a Source (Relighter.source / photo_source / source_from_arrays) "
                                    f"and Targets (Targets.of); got {type(source).__name__}, {type(targets).__name__}")
@@ -259,13 +291,17 @@ class Relighter:
                                    "give maps at the source's resolution")
         if self.spec is None and not isinstance(self.model, OnePassRelightable):
             raise errors.UserError(f"checkpoint={self.checkpoint} is a diffusion model: give the Relighter a sampler")
+        implausible = implausible_lights(source.arrays, targets.lights)
+        for why in implausible.values():
+            warnings.warn(f"relight of {source.what}: {why}", RuntimeWarning, stacklevel=3)
+        return set(implausible)
 
     def relight(self, source: Source, targets: Targets) -> Relit:
         """``source`` relit under the N ``targets`` (lights and shadow logits c'): :meth:`check_inputs`, one
         inversion (cached per source key, reused across targets and calls), then batched decodes of
         ``batch_size`` targets; a grey source comes back grey. A :class:`Relit` (images (N, H, W, 3) uint8,
         seconds per stage), indexable as its images."""
-        self.check_inputs(source, targets)
+        blamed = self.check_inputs(source, targets)
         arrays = source.arrays
         start = time.perf_counter()
         inv = self.inversion(source)
@@ -281,7 +317,7 @@ class Relighter:
                         runtime=self.runtime, mean_matching=self.mean_matching, inversion=inv)
             errors.check_finite(x.float().cpu().numpy(), f"relight of {source.what}",
                                 fix="the model produced NaN/Inf; try precision=fp32 or another checkpoint")
-            self._warn_if_saturated(x, source.what, first)
+            self._warn_if_saturated(x, source.what, first, blamed=blamed)
             out.extend(viz.to_uint8(xi.clamp(-1, 1)) for xi in x)
         images = np.stack(out)
         seconds["decode"] = time.perf_counter() - start
@@ -316,10 +352,11 @@ class Relighter:
             out.extend(viz.to_uint8(xi.clamp(-1, 1)) for xi in x)
         return np.stack(out)
 
-    def _warn_if_saturated(self, x: Tensor, what: str, start: int) -> None:
-        # A sampler unstable at its step count (UniPC at 3-5 steps here) decodes to saturated noise, not an error.
+    def _warn_if_saturated(self, x: Tensor, what: str, start: int, blamed: set[int] = frozenset()) -> None:
+        # A sampler unstable at its step count (UniPC at 3-5 steps here) decodes to saturated noise, not an error;
+        # a target light already said to be implausible (check_inputs) is the cause there, not the sampler.
         clipped = (x.float().abs() >= 0.999).float().mean(dim=(1, 2, 3))
-        bad = [start + i for i, f in enumerate(clipped.tolist()) if f > SATURATED_SHARE]
+        bad = [start + i for i, f in enumerate(clipped.tolist()) if f > SATURATED_SHARE and start + i not in blamed]
         if bad:
             warnings.warn(f"relight of {what}: {len(bad)} image(s) (first: target {bad[0]}) have over "
                           f"{SATURATED_SHARE:.0%} of their values clipped ({self.describe()}): the sampler may be "
