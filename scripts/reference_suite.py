@@ -44,6 +44,7 @@ def main() -> None:
     ap.add_argument("--out", required=True, help="folder of the benchmark runs (resumed), one sub-folder per store")
     ap.add_argument("--models", nargs="*", default=None, help="shipped names (default: all of them)")
     ap.add_argument("--ship", action="store_true", help="also write src/difareli/checkpoints/suite.md")
+    ap.add_argument("--note", default="", help="a paragraph after the tables (where and how it was measured)")
     ap.add_argument("--cards", action="store_true",
                     help="also write each shipped card's paired comparisons (its <name>.md and <name>/README.md)")
     a = ap.parse_args()
@@ -56,7 +57,8 @@ def main() -> None:
     sections = [section(store, a.models or zoo.available(), a.pairs, out / Path(store).name, claims)
                 for store in a.store]
     command = f"python scripts/reference_suite.py --store {' '.join(a.store)} --pairs {a.pairs} --out <folder>"
-    text = "\n".join([*sections, "Reproduce:", "", "```bash", *store_cmd, command, "```", ""])
+    text = "\n".join([*sections, *([a.note, ""] if a.note else []), "Reproduce:", "", "```bash", *store_cmd, command,
+                      "```", ""])
     if a.cards:
         for name, lines in claims.items():
             write_card_claims(name, lines, [*store_cmd, command])
