@@ -152,12 +152,14 @@ def test_relight_cli_writes_crop_and_full_photo_with_an_identity_model(tmp_path,
 
     from difareli.cli.relight import run
     from difareli.relight.relighter import Relighter
+    from difareli.relight.relit import Relit
 
     photo = tmp_path / "astronaut.png"
     iio.imwrite(photo, data.astronaut())
     # Frame i: the input times 1 - 0.2 i (frame 0 and the single relight: the input itself).
-    monkeypatch.setattr(Relighter, "relight", lambda self, source, targets: np.stack(
-        [(np.asarray(source.arrays["image"]) * (1 - 0.2 * i)).astype(np.uint8) for i in range(len(targets))]))
+    monkeypatch.setattr(Relighter, "relight", lambda self, source, targets: Relit(np.stack(
+        [(np.asarray(source.arrays["image"]) * (1 - 0.2 * i)).astype(np.uint8) for i in range(len(targets))]),
+        {"decode": 0.0}, source, targets))
     cfg = compose_train(tmp_path, ["checkpoint=difareli_pp-synth64", f"image={photo}", "target.yaw=45",
                                    "video.axis=yaw", "video.frames=3", "progress=false", "runtime.device=cpu"],
                         config_name="relight")

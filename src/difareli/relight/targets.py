@@ -132,7 +132,7 @@ def target_lights(source_light: np.ndarray, *, light: str | None = None, other_l
         return load_sh_file(light)
     if other_light is not None:
         return np.asarray(other_light, np.float64)
-    src = np.asarray(source_light, np.float64)
+    src = check_finite(np.asarray(source_light, np.float64), "the source record's light")
     if yaw is not None:
         return sh.yaw(src, check_number(yaw, "target.yaw", allow_none=False))
     if roll is not None:
