@@ -5,13 +5,16 @@ import os
 # Before torch loads OpenMP: idle threads sleep instead of spinning, so a test beside another busy process (a
 # benchmark, a training, the other tests' subprocesses) is not slowed many times over by threads waiting hot.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+# One thread per test process (and the CLI subprocesses tests start): the suite's tensors are small, and on a
+# 2-core machine that is busy with anything else a second thread made tiny trainings 4-20x slower (measured:
+# a 10-step resume test took 244 s beside a benchmark and a training).
+os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 import torch  # noqa: E402
 
-# Two cores: keep intra-op threads modest so parallel helpers/tests do not oversubscribe.
-torch.set_num_threads(max(1, min(2, os.cpu_count() or 1)))
+torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
 
 
 @pytest.fixture

@@ -68,6 +68,7 @@ def test_missing_encoding_names_encoding_and_path(tmp_path, synth_store):
     assert "masks" in str(e.value) and str(tmp_path / "partial") in str(e.value)
 
 
+@pytest.mark.slow  # 200 training steps: a minute quiet, many under load
 def test_overfit_eight_images_loss_falls_tenfold(synth_store, tmp_path):
     """A tiny model memorises 8 SynthFaces images: the eps-loss at fixed (t, noise) falls at least 10x."""
     import lightning as L
