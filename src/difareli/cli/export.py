@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import sys
 
+from difareli.cli.argv import argv_or_help
 from difareli.errors import UserError, cli_entry
 
 USAGE = "usage: difareli-export <checkpoint: .ckpt file or shipped name> <folder> [verify=true|false]"
@@ -55,9 +56,8 @@ def verify_folder(checkpoint: str, folder: str) -> int:
 
 @cli_entry("export")
 def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
-    if not argv or argv[0] in ("-h", "--help"):
-        print(__doc__)
+    argv = argv_or_help(argv, __doc__)
+    if argv is None:
         return 0
     from difareli.checkpoints.export import export_folder
 

@@ -19,6 +19,7 @@ passive_openmp()  # before torch loads: idle OpenMP threads sleep (docs/scaling_
 
 import sys
 
+from difareli.cli.argv import argv_or_help
 from difareli.errors import UserError, cli_entry
 
 KEYS = ("official", "config", "out", "encoder", "step", "ema", "shape_parts", "store", "verify")
@@ -55,9 +56,8 @@ def _bool(value: str, key: str) -> bool:
 
 @cli_entry("import-checkpoint")
 def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
-    if not argv or argv[0] in ("-h", "--help"):
-        print(__doc__)
+    argv = argv_or_help(argv, __doc__)
+    if argv is None:
         return 0
     from difareli.official import weights as official
     from difareli.errors import check_int
