@@ -12,6 +12,8 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
+from difareli.evaluation.video import video_format
+
 from difareli.lighting import sh
 from difareli.cli.relight import run
 from difareli.relight.relighter import Relighter
@@ -67,7 +69,8 @@ def test_rotation_video_gif_and_contact_sheet(ckpt, depth_store, tmp_path):
     cfg = compose(tmp_path, [f"checkpoint={ckpt}", f"store={depth_store}", "video.axis=yaw", "video.frames=12",
                              "sampler.steps=5"])
     written = run(cfg)
-    assert set(written) == {"video", "sheet"} and written["video"].suffix == ".gif"
+    # format=auto: MP4 where imageio's ffmpeg plugin is installed, else GIF
+    assert set(written) == {"video", "sheet"} and written["video"].suffix == f".{video_format()}"
     frames = iio.imread(written["video"], index=None)
     assert frames.shape[0] == 12 and frames.shape[1:3] == (32, 32)
     assert len({f.tobytes() for f in frames}) > 1  # the light moves

@@ -18,11 +18,10 @@ from difareli import errors
 from difareli.relight import batch, photo
 from difareli.utils import viz
 from difareli.cli import common
-from difareli.relight.composite import write_gif
 from difareli.relight.relighter import Relighter, Source
 from difareli.data.store import EncodingStore
 from difareli.relight.targets import Targets, rotation_targets, target_lights
-from difareli.evaluation.video import rotation_video, write_video
+from difareli.evaluation.video import describe_file, rotation_video, video_format, write_video
 
 
 def read_source(cfg: DictConfig, relighter: Relighter, store: EncodingStore | None) -> Source:
@@ -107,8 +106,9 @@ def run(cfg: DictConfig) -> dict[str, Path]:
         quarter = len(targets) // 4
         print(f"video: frame 0 light {photo.describe_light(targets.lights[0])}"
               + (f"; frame {quarter}: {photo.describe_light(targets.lights[quarter])}" if quarter else ""))
+        fmt = video_format(cfg.video.format, "video.format")
         video = rotation_video(relighter, source, targets, out_dir, f"rotation_{cfg.video.axis}", fps=cfg.video.fps,
-                               fmt=cfg.video.format)
+                               fmt=fmt)
         print(f"{len(video.frames)} frames in {video.seconds:.1f} s ({video.seconds / len(video.frames):.2f} s/frame, "
               f"{relighter.describe()})")
         # rotation_video's sheet has no captions: written again with each frame's light angle.
@@ -117,11 +117,10 @@ def run(cfg: DictConfig) -> dict[str, Path]:
         written.update(video.paths)
         if source.photo is not None:  # every frame back into the whole photo
             frames = video.relit.composite(c.mode, c.feather, parts)
-            path = out_dir / f"rotation_{cfg.video.axis}_composite.{cfg.video.format}"
-            written["video_composite"] = (write_gif(frames, path, cfg.video.fps) if cfg.video.format == "gif"
-                                          else write_video(frames, path, cfg.video.fps))
+            written["video_composite"] = write_video(
+                frames, out_dir / f"rotation_{cfg.video.axis}_composite.{fmt}", cfg.video.fps)
     for k, p in written.items():
-        print(f"{k}: {p}")
+        print(f"{k}: {describe_file(p)}")
     return written
 
 
@@ -129,6 +128,7 @@ def validate(cfg: DictConfig) -> None:
     """Config values and input files, checked before any work."""
     common.validate_relight(cfg, frames=("video.frames", cfg.video.frames, 1), fps=("video.fps", cfg.video.fps),
                             envmap=("target.envmap", cfg.target.envmap))
+    video_format(cfg.video.format, "video.format")
     if (cfg.image is None) == (cfg.store is None):
         raise errors.UserError("give the source as either store=<encodings store> (and record=) or image=<photo>; "
                                f"got store={cfg.store} image={cfg.image}")

@@ -70,7 +70,7 @@ def run(cfg: DictConfig) -> dict[str, Path]:
         shadows = [c] * len(angles)
     print(f"{rid}: {what}; {c_note}")
 
-    ext = cfg.format
+    ext = vid.video_format(cfg.format)  # auto: mp4 where the encoder exists, else gif
     # Every output is staged and published at the end: a rerun into a finished folder never leaves it mixing runs.
     with staged_outputs(cfg.out_dir, OUTPUTS, last="summary.json") as out:
         if cfg.oracle_maps:  # each frame's exact cast-shadow map (the ground truth's), not the one the march makes
@@ -127,8 +127,7 @@ def validate(cfg: DictConfig) -> None:
     errors.check_int(cfg.sheet_columns, "sheet_columns", 1)
     if cfg.rotation.axis not in ("yaw", "roll"):
         raise errors.UserError(f"rotation.axis={cfg.rotation.axis!r} is not a rotation axis; use yaw or roll")
-    if cfg.format not in ("gif", "mp4"):
-        raise errors.UserError(f"format={cfg.format!r} is not a video format; use gif or mp4")
+    vid.video_format(cfg.format)
 
 
 @hydra.main(version_base="1.3", config_path=common.CONFIG_PATH, config_name="video")

@@ -112,7 +112,7 @@ def run_demo(checkpoint: Any, out_dir: str | Path, *, sampler: Mapping[str, Any]
     source = relighter.source(store, first)
     targets, why = rotation_targets(source.arrays, "yaw", frames, store=store)
     res.notes.append(f"rotation video of {first}, shadow strength: {why}")
-    video = rotation_video(relighter, source, targets, out, "rotation_yaw", fps=20, zoom=2, fmt=video_format())
+    video = rotation_video(relighter, source, targets, out, "rotation_yaw", fps=20, zoom=2, fmt="auto")
     # rotation_video's sheet has no captions: written again with each frame's light angle.
     viz.save_png(viz.contact_sheet(video.frames, viz.rotation_captions("yaw", len(video.frames))),
                  video.paths["sheet"])
@@ -153,13 +153,6 @@ def relight_photo(relighter: Relighter, path: Path, resolution: int) -> Path:
     strip = viz.grid(_zoom([[arrays["image"], *relit]], 2),
                      col_labels=["input", "yaw -60°", "yaw -30°", "yaw +30°", "yaw +60°"])
     return viz.save_png(strip, path)
-
-
-def video_format() -> str:
-    """``mp4`` where imageio's ffmpeg plugin is installed (a 60-frame rotation is a few tens of kB), else ``gif``."""
-    import importlib.util
-
-    return "mp4" if importlib.util.find_spec("imageio_ffmpeg") is not None else "gif"
 
 
 def directionality(light: np.ndarray) -> float:
