@@ -68,7 +68,12 @@ def test_names_resolve_and_errors_list_them(tiny_checkpoint, tmp_path, monkeypat
     assert "mini-synth32" in zoo.card("mini-synth32")
 
 
-@pytest.mark.parametrize("name", zoo.available())
+# A diffusion model at its default sampler (UniPC-50) on 12 relights is about a minute: the slow tier; the
+# one-pass student stays in the default run.
+SHIPPED = [pytest.param(n, marks=pytest.mark.slow) if "DiffusionModule" in zoo.card(n) else n for n in zoo.available()]
+
+
+@pytest.mark.parametrize("name", SHIPPED)
 def test_shipped_checkpoint_changes_the_light_of_an_unseen_face(name, tmp_path):
     card = zoo.card(name)
     for piece in ("| steps |", "| hardware |", "| precision |", "## Benchmark", "Basel Face Model"):

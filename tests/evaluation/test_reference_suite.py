@@ -22,6 +22,7 @@ ROOT = CONF.parent  # conf/ sits at the top of the repository
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 
+@pytest.mark.slow  # the script end to end in a subprocess; the formatting is tested below on built records
 def test_suite_tables_every_model_beside_the_baselines_at_the_default_sampler(tiny_checkpoint, synth_store,
                                                                              tmp_path):
     ckpt = tiny_checkpoint("difareli_pp")
