@@ -29,6 +29,7 @@ import os
 import re
 import signal
 import sys
+import warnings
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
@@ -129,6 +130,8 @@ def cli_entry(name: str) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
     def wrap(fn):
         @functools.wraps(fn)
         def task(*args, **kwargs):
+            # A warning is one line named by the command, like its errors (not Python's file:line and source).
+            warnings.formatwarning = lambda message, category, *_, **__: f"{prog}: warning: {message}\n"
             if threading_main():
                 signal.signal(signal.SIGTERM, _on_sigterm)
             try:

@@ -323,3 +323,23 @@ def test_store_cli_verify(synth_store, tmp_path, capsys):
     with pytest.raises(SystemExit) as e:
         main(["verify", str(tmp_path / "none")])
     assert e.value.code == 2 and "difareli-store: no encoding store at" in capsys.readouterr().err
+
+
+def test_a_command_prints_a_warning_as_one_line_named_by_it(capsys):
+    """Inside a console script a RuntimeWarning is `difareli-<name>: warning: <message>`, not file:line + source."""
+    import warnings
+
+    from difareli.errors import cli_entry
+
+    @cli_entry("probe")
+    def task():
+        with warnings.catch_warnings():
+            warnings.simplefilter("always")
+            warnings.warn("target light 0 is far too bright", RuntimeWarning)
+
+    formatwarning = warnings.formatwarning
+    try:
+        task()
+    finally:
+        warnings.formatwarning = formatwarning
+    assert capsys.readouterr().err == "difareli-probe: warning: target light 0 is far too bright\n"

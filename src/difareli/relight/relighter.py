@@ -64,7 +64,7 @@ class Source:
 SATURATED_SHARE = 0.5
 #: A target light is said to be implausible for a face when its irradiance is negative on more than this share of
 #: the face's known normals (an SH light whose ambient term is too small or negative) ...
-NEGATIVE_SHARE = 0.25
+NEGATIVE_SHARE = 0.5
 #: ... or when its mean irradiance on the face is over this many times the source's own (an absurd ambient).
 BRIGHTER_MAX = 10.0
 
