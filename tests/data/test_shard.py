@@ -75,6 +75,7 @@ def _same_tree(a: Path, b: Path) -> list[str]:
     return sorted(diff)
 
 
+@pytest.mark.slow  # two writer processes at once
 def test_two_concurrent_shard_writers_equal_the_unsharded_store(tmp_path):
     n = 300
     _write_shard(str(tmp_path / "ref"), None, n, None)

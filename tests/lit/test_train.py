@@ -129,6 +129,7 @@ def test_checkpoint_round_trip_weights_only(synth_store, tmp_path):
     torch.testing.assert_close(loaded.stats["std"], model.ns_std)
 
 
+@pytest.mark.slow  # two training runs (4 steps, then resumed to 6, with validation)
 def test_resume_continues_from_last_step(synth_store, tmp_path):
     base = [*_cpu_overrides(synth_store), "model=difareli", "trainer.limit_val_batches=1",
             "trainer.val_check_interval=2", "logger=[]"]
@@ -142,6 +143,7 @@ def test_resume_continues_from_last_step(synth_store, tmp_path):
     assert torch.equal(out["model"].ns_mean, load_checkpoint(last).stats["mean"])
 
 
+@pytest.mark.slow  # two training runs
 def test_init_from_fine_tunes_from_the_weights_at_step_zero(synth_store, tmp_path):
     """init_from starts a new run (step 0, fresh optimizer) from another run's weights and its normalisation;
     with the learning rate at zero the fine-tuned network is the initial one exactly."""

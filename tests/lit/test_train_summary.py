@@ -33,6 +33,7 @@ def test_a_finished_run_names_its_steps_checkpoint_and_the_relight_command(synth
     assert line.endswith(f"next: relight: difareli-relight checkpoint={ckpt} store={synth_store} target.yaw=45")
 
 
+@pytest.mark.slow  # two training runs, the first cut by its time limit
 def test_a_run_cut_by_max_time_says_so_and_its_resume_command_goes_on(synth_store, tmp_path, capsys):
     # A zero time limit stops the run whatever the machine's speed: the line must not call it done.
     first = compose_train(tmp_path / "a", [*_base(synth_store), "trainer.max_steps=1", "trainer.val_check_interval=1"])
