@@ -194,6 +194,7 @@ def test_tables_notebook(jupyter_path, tmp_path, monkeypatch):
         assert (out / name).is_file(), name
 
 
+@pytest.mark.slow  # a notebook kernel: the default run has to finish in minutes at load 4
 def test_tables_notebook_without_runs_explains(jupyter_path, tmp_path, monkeypatch):
     nb, text = execute("benchmark_tables.ipynb", tmp_path, {"DIFARELI_OUT": str(tmp_path / "out")}, jupyter_path,
                        monkeypatch)

@@ -168,6 +168,7 @@ def _fit(store: Path, out: Path, extra: list[str]):
     return cfg, train(cfg)
 
 
+@pytest.mark.slow  # a training run: the default run has to finish in minutes at load 4
 def test_sample_grid_callback_in_a_tiny_fit(synth_store, tmp_path):
     cfg, out = _fit(synth_store, tmp_path, ["sampler=unipc", "sampler.steps=3", "callbacks.sample_grid.num_images=3",
                                              "callbacks.sample_grid.every_n_validations=1"])

@@ -185,6 +185,7 @@ def test_model_config_trains_one_step_and_relights_with_every_sampler(model, syn
         assert out.shape == (1, 3, 32, 32) and torch.isfinite(out).all(), name
 
 
+@pytest.mark.slow  # Hydra multiruns: the default run has to finish in minutes at load 4
 def test_table_multiruns_compose_with_one_row_per_config(tmp_path):
     for n, expected in ((4, 5), (2, 8)):
         models, labels, caption = table_rows(n)

@@ -215,6 +215,7 @@ def test_ema_warmup_forgets_the_initialisation_and_reaches_the_decay():
     assert kept < 0.05 < 0.999 ** 500  # the initialisation's share at step 500: warm-up vs fixed decay (61%)
 
 
+@pytest.mark.slow  # a training run: the default run has to finish in minutes at load 4
 def test_ema_warmup_trains_through_the_config(synth_store, tmp_path):
     from difareli.lit.ema import EMA
 
@@ -226,6 +227,7 @@ def test_ema_warmup_trains_through_the_config(synth_store, tmp_path):
     assert len(ema) == 1 and ema[0].warmup and int(ema[0]._average_model.n_averaged) == 3
 
 
+@pytest.mark.slow  # a training run with validation: the default run has to finish in minutes at load 4
 def test_min_snr_weighting_matches_its_formula_and_val_loss_stays_l_simple(synth_store, tmp_path):
     """Min-SNR-gamma (Hang et al. 2023) for eps-prediction: per-sample error times min(SNR_t, gamma) / SNR_t,
     recomputed here from the schedule's alpha-bar table; validation keeps the unweighted L_simple."""
@@ -263,6 +265,7 @@ def test_min_snr_weighting_matches_its_formula_and_val_loss_stays_l_simple(synth
             loss_config(bad)
 
 
+@pytest.mark.slow  # two training runs: the default run has to finish in minutes at load 4
 def test_wall_seconds_are_logged_at_each_validation_and_continue_on_resume(synth_store, tmp_path):
     import csv as csv_
 

@@ -131,6 +131,7 @@ def test_drawn_protocols_follow_their_rule(tree):
     assert len(protocols.draw(images, 0, 10_000, 0)) == 2 * len({i.recording_key for i in images})  # all (i, j)
 
 
+@pytest.mark.slow  # three console commands end to end: the default run has to finish in minutes at load 4
 def test_fake_tree_through_multipie_benchmark_and_table(tree, tmp_path):
     from difareli.cli.benchmark import run as bench
     from difareli.cli.multipie import run
