@@ -46,7 +46,7 @@ def thumbnail(rgb: np.ndarray, side: int = THUMB) -> np.ndarray:
 
 def listing() -> list[dict]:
     """What ``GET /api/examples`` answers: each example's name, description, size and thumbnail (data URL)."""
-    from .service import png_data_url
+    from difareli.utils.viz import png_data_url
 
     out = []
     for name, (_, about) in EXAMPLES.items():

@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from difareli.data import encodings
+from difareli.utils.viz import png_data_url
 from difareli.lighting import sh
 from difareli.diffusion.spec import DEFAULT_SAMPLER, PRESETS
 from difareli.data.encodings import SHADOW_C_HI, SHADOW_C_LO
@@ -43,13 +44,6 @@ DEFAULT = PRESETS[DEFAULT_SAMPLER]
 MAX_UPLOAD_BYTES = 32 * 2 ** 20
 MAX_ROTATION = 360.0
 RELIGHT_FIELDS = ("id", "checkpoint", "sampler", "steps", "light", "shadow")
-
-
-def png_data_url(image: np.ndarray) -> str:
-    """A uint8 image as a ``data:image/png;base64,...`` URL."""
-    import imageio.v3 as iio
-
-    return "data:image/png;base64," + base64.b64encode(iio.imwrite("<bytes>", image, extension=".png")).decode()
 
 
 def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -19,48 +19,11 @@ import hashlib
 import json
 import os
 from pathlib import Path
-from typing import Any
 
-import torch
-
-from difareli.checkpoints.format import FORMAT_KEY, MODULE_KEY
+# The folder's layout and its reader live below the loaders (checkpoints/folder.py); re-exported here.
+from difareli.checkpoints.folder import (  # noqa: F401
+    CARD, CONFIG, CONFIG_KEYS, FOLDER_FORMAT, FOLDER_VERSION, WEIGHTS, is_folder, read_folder)
 from difareli.errors import UserError
-
-WEIGHTS, CONFIG, CARD = "model.safetensors", "config.json", "README.md"
-#: ``config.json``'s ``format``: what wrote the folder, so another folder with a config.json is never mistaken.
-FOLDER_FORMAT = "difareli-weights-folder"
-FOLDER_VERSION = 1
-#: Checkpoint keys config.json carries (besides the state dict, which goes to model.safetensors).
-CONFIG_KEYS = ("hyper_parameters", "global_step", "epoch", MODULE_KEY, FORMAT_KEY, "pytorch-lightning_version",
-               "model_card")
-
-
-def is_folder(path: str | Path) -> bool:
-    """Whether ``path`` is a weights folder (a directory holding :data:`WEIGHTS` and :data:`CONFIG`)."""
-    p = Path(path)
-    return p.is_dir() and (p / WEIGHTS).is_file() and (p / CONFIG).is_file()
-
-
-def read_folder(folder: str | Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:
-    """The checkpoint dict of a weights folder (``state_dict`` from safetensors, the rest from JSON); no pickle."""
-    from safetensors.torch import load_file
-
-    folder = Path(folder)
-    try:
-        config = json.loads((folder / CONFIG).read_text())
-    except (OSError, ValueError) as e:
-        raise UserError(f"{folder / CONFIG}: unreadable ({e}); export the folder again: difareli-export "
-                        f"<checkpoint> {folder}") from None
-    if not isinstance(config, dict) or config.get("format") != FOLDER_FORMAT:
-        raise UserError(f"{folder / CONFIG} is not a difareli weights folder's config (no \"format\": "
-                        f"\"{FOLDER_FORMAT}\"); make one with difareli-export <checkpoint> <folder>")
-    if int(config.get("version", 0)) > FOLDER_VERSION:
-        raise UserError(f"{folder} is a weights folder of version {config.get('version')}, newer than this "
-                        f"difareli reads ({FOLDER_VERSION}); load it with the difareli version that wrote it")
-    device = str(torch.device(map_location)) if not isinstance(map_location, str) else map_location
-    ckpt = {k: config[k] for k in CONFIG_KEYS if k in config}
-    ckpt["state_dict"] = load_file(folder / WEIGHTS, device=device)
-    return ckpt
 
 
 def _sha256(path: Path) -> str:

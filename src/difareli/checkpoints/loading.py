@@ -18,7 +18,7 @@ import lightning as L
 import torch
 
 from difareli.checkpoints import zoo
-from difareli.checkpoints.export import is_folder, read_folder
+from difareli.checkpoints.folder import is_folder, read_folder
 from difareli.errors import UserError, load_torch_file
 from difareli.checkpoints.format import MODULE_KEY, upgrade_checkpoint
 

@@ -17,7 +17,7 @@ from typing import Any
 
 import torch
 
-from difareli.checkpoints.export import is_folder
+from difareli.checkpoints.folder import is_folder
 from difareli.checkpoints.format import SLIM_KEYS
 from difareli.errors import UserError, UserFileNotFoundError, check_file, load_torch_file
 from difareli.utils.fileio import torch_save_atomic, write_text_atomic

@@ -24,8 +24,7 @@ from typing import Sequence
 import numpy as np
 
 from difareli.errors import UserError
-from difareli.evaluation.records import BETTER, METRIC_LABELS, Record
-from difareli.evaluation.tables import _protocol_key, protocol_label
+from difareli.evaluation.records import BETTER, METRIC_LABELS, Record, _protocol_key, protocol_label
 
 #: The strata ``difareli-table strata=`` takes; ``protocol`` is every table's own grouping.
 STRATA = ("protocol", "light_category", "shadow_share")

@@ -324,3 +324,20 @@ def read_runs(run_dirs: Iterable[str | Path], filename: str = PER_IMAGE_CSV, dro
             where[key] = d / filename
             records.append(r)
     return records, dropped, named, where
+
+
+PROTOCOL_LABELS = {"same": "(i) same subject", "different": "(ii) different subject"}
+
+
+def _protocol_key(p: str) -> tuple[int, str, str]:
+    # A stratified protocol is "<protocol> | <stratum>" (difareli.evaluation.paired.stratify): by protocol first.
+    base, _, stratum = p.partition(" | ")
+    order = list(PROTOCOL_LABELS)
+    return (order.index(base), "", stratum) if base in order else (len(order), base, stratum)
+
+
+def protocol_label(p: str) -> str:
+    """A protocol's printed label (a stratified one keeps its stratum, after a comma: a pipe would split a Markdown
+    table's cell)."""
+    base, sep, stratum = p.partition(" | ")
+    return PROTOCOL_LABELS.get(base, base) + (f", {stratum}" if sep else "")

@@ -33,22 +33,7 @@ from difareli.evaluation.records import (  # noqa: F401
     BAD_ROW_FIX, BETTER, COLUMNS, EXTRA_METRICS, LEGACY_RULE, METRIC_LABELS, METRICS, PER_IMAGE_CSV, STRATA,
     TABLE_BAD_ROW_FIX, Record, Stat, TableError, extra_columns, header, mean_se, read_records, read_records_checked,
     read_runs, record_row, write_records)
-
-PROTOCOL_LABELS = {"same": "(i) same subject", "different": "(ii) different subject"}
-
-
-def _protocol_key(p: str) -> tuple[int, str, str]:
-    # A stratified protocol is "<protocol> | <stratum>" (difareli.evaluation.paired.stratify): by protocol first.
-    base, _, stratum = p.partition(" | ")
-    order = list(PROTOCOL_LABELS)
-    return (order.index(base), "", stratum) if base in order else (len(order), base, stratum)
-
-
-def protocol_label(p: str) -> str:
-    """A protocol's printed label (a stratified one keeps its stratum, after a comma: a pipe would split a Markdown
-    table's cell)."""
-    base, sep, stratum = p.partition(" | ")
-    return PROTOCOL_LABELS.get(base, base) + (f", {stratum}" if sep else "")
+from difareli.evaluation.records import PROTOCOL_LABELS, _protocol_key, protocol_label  # noqa: F401
 
 
 @dataclass

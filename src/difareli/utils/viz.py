@@ -133,3 +133,10 @@ def save_png(image: np.ndarray, path: str | Path) -> Path:
     with atomic_path(path) as tmp:
         iio.imwrite(tmp, image, extension=path.suffix or ".png")
     return path
+
+
+def png_data_url(image: np.ndarray) -> str:
+    """A uint8 image as a ``data:image/png;base64,...`` URL (what the app's page shows)."""
+    import base64
+
+    return "data:image/png;base64," + base64.b64encode(iio.imwrite("<bytes>", image, extension=".png")).decode()
