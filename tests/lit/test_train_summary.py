@@ -21,6 +21,7 @@ def _last_line(capsys) -> str:
     return capsys.readouterr().out.strip().splitlines()[-1]
 
 
+@pytest.mark.slow  # a training run: the default run has to finish in minutes at load 4
 def test_a_finished_run_names_its_steps_checkpoint_and_the_relight_command(synth_store, tmp_path, capsys):
     cfg = compose_train(tmp_path / "run", [*_base(synth_store), "trainer.max_steps=2",
                                            "trainer.val_check_interval=2"])

@@ -147,6 +147,7 @@ def test_bench_train_script_reports_the_built_models_parameters():
     assert row["images_per_s"] > 0 and row["step_GFLOP"] > 0
 
 
+@pytest.mark.slow  # a profiled training step: the default run has to finish in minutes at load 4
 def test_profile_train_step_accounts_for_the_step():
     """Every category is a share of the profiled step: convolutions are there, nothing is negative, and the self
     times add up to no more than the threads could spend in the wall time (and to a good share of it)."""

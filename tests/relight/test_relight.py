@@ -338,7 +338,8 @@ def test_few_steps_relight_checkpoint(name, pp_model, depth_store):
 BF16_BOUND = 0.1
 
 
-@pytest.mark.parametrize("name", ["ddim", pytest.param("unipc_bh2", marks=pytest.mark.slow)])  # ddim fast, both slow
+@pytest.mark.slow  # two full relights per sampler; bf16 against fp32 stays fast in tests/runtime/test_runtime.py
+@pytest.mark.parametrize("name", ["ddim", "unipc_bh2"])
 def test_bf16_autocast_matches_float32_checkpoint(name, pp_model, depth_store):
     store = EncodingStore.open(depth_store)
     r = Relighter(pp_model, {**SAMPLERS[name], "steps": 10}, device="cpu")
