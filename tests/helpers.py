@@ -35,3 +35,19 @@ def tiny_cpu_overrides(store: Path, batch_size: int = 4) -> list[str]:
     """Train overrides for a tiny model on a 32-px test store, on the CPU, without a sample grid."""
     return [f"data.root={store}", "data.resolution=32", "data.synth=null", "data.num_workers=0",
             f"data.batch_size={batch_size}", "model.preset=tiny", "trainer=cpu", "sample_grid=false"]
+
+
+def failing_save(monkeypatch, err: OSError, at: int = 1) -> None:
+    """``np.save`` whose ``at``-th call writes a partial header, then fails with ``err`` (a disk filling mid-array)."""
+    import numpy as np
+
+    real, calls = np.save, []
+
+    def save(f, arr, **kw):
+        calls.append(1)
+        if len(calls) == at:
+            f.write(b"\x93NUMPY partial")
+            raise err
+        return real(f, arr, **kw)
+
+    monkeypatch.setattr(np, "save", save)

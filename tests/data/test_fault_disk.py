@@ -10,7 +10,6 @@ import shutil
 import subprocess
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from difareli import errors
@@ -23,7 +22,7 @@ from difareli.data import protocols as sp
 from difareli.synth.config import ENCODINGS
 from difareli.synth.generator import generate
 
-from tests.helpers import compose_train
+from tests.helpers import compose_train, failing_save
 
 ENOSPC = OSError(errno.ENOSPC, "No space left on device")
 RESUME = "free space and rerun the same command to resume (what was already written is complete and kept)"
@@ -66,17 +65,7 @@ def test_synth_on_a_full_disk_names_the_file_and_keeps_the_records_written(tmp_p
     from difareli.cli.synth import run
 
     out = tmp_path / "store"
-    real, calls = np.save, []
-    fail_at = 2 * len(ENCODINGS) + 6  # the third record's sixth encoding
-
-    def full(f, arr, **kw):
-        calls.append(1)
-        if len(calls) == fail_at:
-            f.write(b"\x93NUMPY partial")
-            raise ENOSPC
-        return real(f, arr, **kw)
-
-    monkeypatch.setattr(np, "save", full)
+    failing_save(monkeypatch, ENOSPC, at=2 * len(ENCODINGS) + 6)  # the third record's sixth encoding
     code, err = _cli("synth", run, _synth_cfg(out), monkeypatch, capsys)
     monkeypatch.undo()
     third = out / "records" / sp.record_id(1, 0) / f"{ENCODINGS[5]}.npy"

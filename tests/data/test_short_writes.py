@@ -15,6 +15,7 @@ from difareli.errors import UserError, user_message
 from difareli.utils.fileio import RESUME, is_no_space, save_npy_atomic
 
 from tests.data.test_store import DIMS, NAMES, record
+from tests.helpers import failing_save
 
 
 def numpy_short_write() -> OSError:
@@ -35,20 +36,6 @@ def full_disk(kind: str) -> OSError:
 
 def reason(kind: str) -> str:
     return "No space left on device" if kind == "enospc" else "short write: 3072 requested and 0 written"
-
-
-def failing_save(monkeypatch, err: OSError, at: int = 1) -> None:
-    """``np.save`` whose ``at``-th call writes a partial header, then fails with ``err``."""
-    real, calls = np.save, []
-
-    def save(f, arr, **kw):
-        calls.append(1)
-        if len(calls) == at:
-            f.write(b"\x93NUMPY partial")
-            raise err
-        return real(f, arr, **kw)
-
-    monkeypatch.setattr(np, "save", save)
 
 
 def test_numpy_short_write_is_a_full_disk():
