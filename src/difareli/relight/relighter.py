@@ -329,8 +329,9 @@ class Relighter:
         that relight a whole store (teacher pairs, shadow maps, measurements)."""
         if len(sources) != len(targets):
             raise errors.UserError(f"{len(sources)} sources but {len(targets)} targets: give one target per source")
-        for s in sources:
-            self.check_inputs(s, targets)
+        for k, s in enumerate(sources):  # each source with its own target (not every light against every face)
+            self.check_inputs(s, Targets(targets.lights[k:k + 1], targets.shadows[k:k + 1],
+                                         None if targets.maps is None else targets.maps[k:k + 1]))
         out = []
         for start in range(0, len(sources), self.batch_size):
             chunk = sources[start:start + self.batch_size]
