@@ -2,7 +2,7 @@
 
     python scripts/bench_official.py --official <your checkout of diffusion-face-relighting/difareli_code>
         [--config ffhq128 | tiny64 | <official YAML>] [--steps 20] [--rounds 2] [--threads 2]
-        [--modes fp32 bf16 compile bf16+compile auto] [--json out.json]
+        [--modes fp32 bf16 fp32+compile bf16+compile auto] [--json out.json]
     python scripts/bench_official.py --trained difareli_pp-synth64 --store <store> [--sampler ddim --steps 20]
 
 The official code is not shipped here: point ``--official`` at a checkout (its ``guided_diffusion`` and ``config``
@@ -40,9 +40,6 @@ ROOT = Path(__file__).resolve().parents[1]
 TINY64 = {"image_size": 64, "num_channels": 32, "channel_mult": "1,2,2", "num_res_blocks": 1,
           "attention_resolutions": "8", "num_heads": 2}
 # Each mode names its precision: the runtime's default is "auto" (bf16 where the hardware has it).
-MODES = {"fp32": {"precision": "fp32"}, "bf16": {"precision": "bf16"},
-         "compile": {"precision": "fp32", "compile": True}, "bf16+compile": {"precision": "bf16", "compile": True},
-         "auto": {"precision": "auto"}}
 
 
 def official_config(checkout: Path, which: str, steps: int, work: Path):
@@ -211,7 +208,8 @@ def main() -> int:
     p.add_argument("--steps", type=int, default=20)
     p.add_argument("--rounds", type=int, default=2)
     p.add_argument("--threads", type=int, default=2)
-    p.add_argument("--modes", nargs="+", default=["fp32", "bf16", "compile", "bf16+compile"], choices=list(MODES))
+    p.add_argument("--modes", nargs="+", default=["fp32", "bf16", "fp32+compile", "bf16+compile"],
+                   help="runtime modes, <precision>[+compile][+cuda_graphs] or auto (Runtime.from_mode)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--busy-wait", action="store_true", help="keep the environment's OpenMP wait policy")
     p.add_argument("--json", default=None)
@@ -287,7 +285,7 @@ def main() -> int:
     runners = {"official": lambda: official_relight(models, diffusion, cfg, x0, src, tgt)}
     compile_s = {}
     for mode in args.modes:
-        rt = Runtime(device="cpu", **MODES[mode])
+        rt = Runtime.from_mode(mode, "cpu")
         start = time.perf_counter()  # warm-up: one denoiser call (compiles once per mode)
         with torch.no_grad(), rt.autocast():  # the condition in the dtype relight() makes it (bf16 under bf16)
             cond = model.condition(src[0], src[2])

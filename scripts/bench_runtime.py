@@ -1,7 +1,7 @@
 """Seconds per relight of one checkpoint under several runtimes, side by side in one process (issue 9).
 
     python scripts/bench_runtime.py --checkpoint <ckpt> --store <store> [--sampler unipc --steps 20]
-        [--modes fp32 bf16 compile] [--repeats 3] [--records 2]
+        [--modes fp32 bf16 fp32+compile] [--repeats 3] [--records 2]
 
 Each mode is a :class:`difareli.runtime.core.Runtime`; every relight goes through :class:`difareli.relight.relighter.Relighter`
 (the record read, inversion + mean-matching self-decode + decode of one target, the inversion cache cleared each
@@ -27,9 +27,6 @@ from difareli.data.store import EncodingStore
 from difareli.relight.targets import Targets
 
 # Each mode names its precision: the runtime's default is "auto" (bf16 where the hardware has it).
-MODES = {"fp32": {"precision": "fp32"}, "bf16": {"precision": "bf16"},
-         "compile": {"precision": "fp32", "compile": True}, "bf16+compile": {"precision": "bf16", "compile": True},
-         "cuda_graphs": {"precision": "fp32", "cuda_graphs": True}}
 
 
 def main() -> None:
@@ -38,7 +35,8 @@ def main() -> None:
     p.add_argument("--store", required=True)
     p.add_argument("--sampler", default="unipc")
     p.add_argument("--steps", type=int, default=20)
-    p.add_argument("--modes", nargs="+", default=["fp32", "bf16", "compile"], choices=list(MODES))
+    p.add_argument("--modes", nargs="+", default=["fp32", "bf16", "fp32+compile"],
+                   help="runtime modes, <precision>[+compile][+cuda_graphs] (Runtime.from_mode)")
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--records", type=int, default=2)
     p.add_argument("--device", default="auto")
@@ -52,7 +50,7 @@ def main() -> None:
     ckpt = load_checkpoint(args.checkpoint)
     relighters, targets = {}, {}
     for mode in args.modes:
-        r = Relighter(ckpt, spec, runtime=Runtime(device=args.device, **MODES[mode]))
+        r = Relighter(ckpt, spec, runtime=Runtime.from_mode(mode, args.device))
         targets = targets or {rid: Targets.of(sh.yaw(np.asarray(r.read(store, rid)["light"], np.float64), 60.0))
                               for rid in ids}
         r.relight(r.source(store, ids[0]), targets[ids[0]])  # warm-up: compile, allocate

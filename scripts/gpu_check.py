@@ -32,11 +32,8 @@ from difareli.relight.core import invert_image, relight  # noqa: E402
 from difareli.hardware import peak_flops  # noqa: E402
 from difareli.runtime.core import Runtime, count_flops  # noqa: E402
 
-# Each mode names its precision: the runtime's default is "auto" (bf16 where the hardware has it).
-MODES = {"fp32": {"precision": "fp32"}, "bf16": {"precision": "bf16"},
-         "cuda_graphs": {"precision": "bf16", "cuda_graphs": True},
-         "compile": {"precision": "bf16", "compile": True},
-         "compile_graphs": {"precision": "bf16", "compile": True, "cuda_graphs": True}}
+# Runtime modes (Runtime.from_mode): each name says its precision.
+MODES = ("fp32", "bf16", "bf16+cuda_graphs", "bf16+compile", "bf16+compile+cuda_graphs")
 STAGES = ("unet", "relight", "train")
 FULL = dict(sizes=[("ffhq128", 128), ("ffhq256", 256)], batches=[1, 16], iters={1: 20, 16: 5}, warmup=3,
             relight=("ffhq256", 256), ddim_steps=1000, unipc_steps=20, frames=60,
@@ -44,7 +41,7 @@ FULL = dict(sizes=[("ffhq128", 128), ("ffhq256", 256)], batches=[1, 16], iters={
             modes=list(MODES), compile_estimate_s=120)
 SMALL = dict(sizes=[("tiny", 32)], batches=[1, 2], iters={1: 3, 2: 2}, warmup=1, relight=("tiny", 32), ddim_steps=4,
              unipc_steps=3, frames=3, train=dict(preset="tiny", res=32, batch=2, precision="bf16-mixed", steps=1,
-                                                 warmup=1), modes=["fp32", "bf16", "cuda_graphs"], compile_estimate_s=300)
+                                                 warmup=1), modes=["fp32", "bf16", "bf16+cuda_graphs"], compile_estimate_s=300)
 
 
 def untrained(preset: str, res: int, device: torch.device):
@@ -110,7 +107,7 @@ def check(args) -> dict:
                       "cuda": torch.version.cuda, "python": platform.python_version(), "small": small,
                       "threads": torch.get_num_threads(), "peak_bf16_TFLOPs": None if peak is None else peak / 1e12,
                       "peak_source": peak_how, "cudnn_benchmark": torch.backends.cudnn.benchmark,
-                      "modes": {m: MODES[m] for m in modes}, "cuda_graphs_active": dev.type == "cuda"},
+                      "modes": {m: Runtime.from_mode(m, str(dev)).mode() for m in modes}, "cuda_graphs_active": dev.type == "cuda"},
               "flops": [], "unet": [], "relight": {}, "train": None, "skipped": []}
     models = {}
     for preset, res in plan["sizes"]:  # ------------------------------------------- FLOPs, then eager/graph modes
@@ -146,7 +143,7 @@ def unet_modes(report: dict, plan: dict, models: dict, dev: torch.device, modes:
                 if "compile" in mode and left() < plan["compile_estimate_s"]:
                     report["skipped"].append(f"unet {mode} {preset}@{res} batch {b}: {left():.0f} s of budget left")
                     continue
-                ms, setup = unet_ms(module, Runtime(device=str(dev), **MODES[mode]), b, res, plan["iters"][b],
+                ms, setup = unet_ms(module, Runtime.from_mode(mode, str(dev)), b, res, plan["iters"][b],
                                     plan["warmup"])
                 tflops = gflop * b / ms  # GFLOP per ms = TFLOP/s
                 report["unet"].append({"preset": preset, "resolution": res, "batch": b, "mode": mode,
@@ -157,14 +154,14 @@ def unet_modes(report: dict, plan: dict, models: dict, dev: torch.device, modes:
 def relights(report: dict, plan: dict, dev: torch.device, modes: list) -> None:
     preset, res = plan["relight"]
     module = untrained(preset, res, dev)
-    best = "cuda_graphs" if "cuda_graphs" in modes and dev.type == "cuda" else "bf16"
-    rt_best = Runtime(device=str(dev), **MODES[best])
+    best = "bf16+cuda_graphs" if "bf16+cuda_graphs" in modes and dev.type == "cuda" else "bf16"
+    rt_best = Runtime.from_mode(best, str(dev))
     warm = SamplerSpec(name="ddim", steps=2)
     unipc = SamplerSpec(name="unipc", steps=plan["unipc_steps"], options=(("order", 2),))
     relight_s(module, rt_best, warm, res, 1)  # graph capture / first-call costs out of the timed runs
     rows = []
-    for mode in [m for m in ("fp32", "bf16", "cuda_graphs") if m in modes]:
-        rt = Runtime(device=str(dev), **MODES[mode])
+    for mode in [m for m in ("fp32", "bf16", "bf16+cuda_graphs") if m in modes]:
+        rt = Runtime.from_mode(mode, str(dev))
         relight_s(module, rt, warm, res, 1)
         rows.append({"mode": mode, **relight_s(module, rt, unipc, res, 1)})
     report["relight"] = {"preset": preset, "resolution": res, "unipc": rows}
@@ -220,7 +217,7 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--small", action="store_true", help="toy sizes (automatic without CUDA)")
     p.add_argument("--cpu", action="store_true", help="run on the CPU even when CUDA is available")
-    p.add_argument("--modes", nargs="*", choices=list(MODES), help=f"default: all on CUDA, {SMALL['modes']} small")
+    p.add_argument("--modes", nargs="*", choices=MODES, help=f"default: all on CUDA, {SMALL['modes']} small")
     p.add_argument("--budget", type=float, default=400.0, help="seconds; compile modes are skipped past it")
     p.add_argument("--sizes", nargs="*", help="preset:resolution pairs replacing the plan's (e.g. tiny:64)")
     p.add_argument("--batches", nargs="*", type=int, help="UNet batch sizes replacing the plan's")

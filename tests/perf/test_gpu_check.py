@@ -35,7 +35,7 @@ def report(tmp_path_factory):
 def test_report_has_every_section(report):
     assert set(report) == {"env", "flops", "unet", "relight", "train", "skipped"}
     assert report["env"]["small"] is True and report["env"]["device"] == "cpu"
-    assert {(u["mode"], u["batch"]) for u in report["unet"]} == {(m, b) for m in ("fp32", "bf16", "cuda_graphs")
+    assert {(u["mode"], u["batch"]) for u in report["unet"]} == {(m, b) for m in ("fp32", "bf16", "bf16+cuda_graphs")
                                                                  for b in (1, 2)}
     assert set(report["relight"]) == {"preset", "resolution", "unipc", "ddim", "rotation"}
     assert report["relight"]["rotation"]["targets"] == 3 and report["relight"]["ddim"]["passes"] == 3 * 4

@@ -36,6 +36,8 @@ PRECISIONS = {"fp32": None, "bf16": torch.bfloat16, "fp16": torch.float16}
 #: The Lightning ``Trainer(precision=...)`` matching each inference precision (training benchmarks).
 LIGHTNING_PRECISION = {"fp32": "32-true", "bf16": "bf16-mixed", "fp16": "16-mixed"}
 MEMORY_FORMATS = ("contiguous", "channels_last")
+#: The switches a runtime mode's name may add to its precision (:meth:`Runtime.from_mode`), in spelling order.
+MODE_FLAGS = ("compile", "cuda_graphs")
 _DEVICE_RE = re.compile(r"^(auto|cpu|cuda(:\d+)?)$")
 
 # network -> compiled callable; network -> {graph key: _Graph}. Weak keys: a dropped network drops its caches.
@@ -90,6 +92,22 @@ class Runtime:
         if unknown:
             raise UserError(f"unknown runtime key(s) {unknown}; known: {', '.join(_FIELDS)}")
         return cls(**{str(k): v for k, v in cfg.items()})
+
+    @classmethod
+    def from_mode(cls, mode: str, device: str = "auto") -> "Runtime":
+        """A named mode, ``<precision>[+compile][+cuda_graphs]`` (e.g. ``fp32``, ``bf16+compile``,
+        ``bf16+compile+cuda_graphs``, ``auto``): the one spelling the benchmarks and checks share, so a mode's name
+        always says its precision."""
+        precision, *flags = str(mode).split("+")
+        unknown = [f for f in flags if f not in MODE_FLAGS]
+        if precision not in (*PRECISIONS, "auto") or unknown or len(set(flags)) != len(flags):
+            raise UserError(f"runtime mode {mode!r}: give <precision>[+compile][+cuda_graphs], precision one of "
+                            f"{', '.join(PRECISIONS)}, auto (e.g. bf16+compile)")
+        return cls(device=device, precision=precision, **{f: True for f in flags})
+
+    def mode(self) -> str:
+        """This runtime's mode name (:meth:`from_mode`'s spelling)."""
+        return "+".join([self.precision, *(f for f in MODE_FLAGS if getattr(self, f))])
 
     # ------------------------------------------------------------------ device and precision
     @property
