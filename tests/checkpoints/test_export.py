@@ -56,6 +56,7 @@ def test_shipped_names_load_from_their_folders_without_pickle(monkeypatch):
 def test_relight_from_folder_equals_relight_from_checkpoint(tmp_path):
     from difareli.data.store import EncodingStore
     from difareli.evaluation.baselines import DiffusionMethod
+    from difareli.evaluation.pairs import StoredFace
     from difareli.lighting.light_fit import LightFit
     from difareli.synth.generator import generate
 
@@ -67,7 +68,7 @@ def test_relight_from_folder_equals_relight_from_checkpoint(tmp_path):
     out = []
     for ckpt in (str(zoo.SHIPPED_DIR / "difareli_pp-synth64.ckpt"), str(tmp_path / "w")):
         m = DiffusionMethod(ckpt, {"name": "unipc", "steps": 10}, runtime={"device": "cpu", "precision": "fp32"})
-        out.append(torch.from_numpy(m.relight(store, src, light, None)))
+        out.append(torch.from_numpy(m.relight(StoredFace(store, src), light, None)))
     assert torch.equal(out[0], out[1]) and out[0].float().std() > 1  # an image, identical to the bit
 
 

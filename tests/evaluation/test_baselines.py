@@ -5,7 +5,8 @@ import pytest
 
 from difareli.lighting import sh
 from difareli.evaluation.baselines import (DiffusionMethod, Identity, LambertianRatio, Method, Oracle, build_method,
-                                irradiance_error, ratio_relight)
+                                           ratio_relight)
+from difareli.evaluation.pairs import StoredFace, irradiance_error
 from difareli.lighting.albedo import synthfaces_mean_skin_albedo
 from difareli.lighting.light_fit import LightFit
 from difareli.data.encodings import PART_INDEX
@@ -110,10 +111,11 @@ def test_identity_oracle_and_factory(synth_store):
     store = EncodingStore.open(synth_store)
     a, b = store.ids(split="test")[:2]
     light = np.zeros((9, 3))
-    np.testing.assert_array_equal(Identity().relight(store, a, light), store.read(a, ["image"])["image"])
-    np.testing.assert_array_equal(Oracle().relight(store, a, light, target_id=b), store.read(b, ["image"])["image"])
-    with pytest.raises(ValueError, match="target_id"):
-        Oracle().relight(store, a, light)
+    source, target = StoredFace(store, a), StoredFace(store, b)
+    np.testing.assert_array_equal(Identity().relight(source, light), store.read(a, ["image"])["image"])
+    np.testing.assert_array_equal(Oracle().relight(source, light, target=target), store.read(b, ["image"])["image"])
+    with pytest.raises(ValueError, match="the oracle needs the ground-truth record"):  # no target: refused
+        Oracle().relight(source, light)
     m = build_method({"_target_": "difareli.evaluation.baselines.LambertianRatio", "name": None, "min_shading": 0.1},
                      name_suffix="+gt-light")
     assert m.name == "lambertian+gt-light" and m.estimator is None and m.min_shading == 0.1

@@ -7,7 +7,8 @@ import pytest
 
 from difareli.evaluation import tables
 from difareli.evaluation.baselines import Identity, Oracle
-from difareli.evaluation.benchmark import load_pairs, run_benchmark
+from difareli.evaluation.benchmark import run_benchmark
+from difareli.evaluation.pairs import StoredFace, load_pairs
 from difareli.data.store import EncodingStore
 
 from tests.helpers import compose_train
@@ -34,6 +35,27 @@ def test_load_pairs_limit_spreads_over_the_list(store):
     assert two == [full["different_subject"][0], full["different_subject"][n - 1]]
     with pytest.raises(ValueError, match="unknown protocol"):
         load_pairs(store, ["nope"])
+
+
+def test_a_method_is_given_the_input_and_the_ground_truth_as_stored_faces(store, tmp_path):
+    """run_benchmark hands a Method each pair's input record as a StoredFace (its store, id, encodings) and the
+    ground-truth record as ``target``; a StoredFace reads each encoding from the store once."""
+    seen = []
+
+    class Recording(Identity):
+        def relight(self, source, target_light, target_shadow=None, target=None):
+            seen.append((source, target))
+            return super().relight(source, target_light, target_shadow, target)
+
+    res = run_benchmark(store, Recording("recording"), ["same_subject"], tmp_path, limit=2, progress=False,
+                        grid_pairs=0, save_images=False)
+    pairs = load_pairs(store, ["same_subject"], limit=2)["same_subject"]
+    assert [(s.id, t.id) for s, t in seen] == [(p.source, p.target) for p in pairs]
+    assert all(isinstance(f, StoredFace) and f.store is store for pair in seen for f in pair)
+    np.testing.assert_array_equal(seen[0][0].image, store.read(pairs[0].source, ["image"])["image"])
+    assert [r.status for r in res.records] == ["ok", "ok"]
+    face = StoredFace(store, pairs[0].source)
+    assert face.read(["image"])["image"] is face.image and set(face.read()) == set(store.encodings)
 
 
 def test_oracle_scores_exactly_zero(store, tmp_path):

@@ -68,6 +68,7 @@ def _independent(ckpt, store, pairs, sampler):
     call), its LightFit and target c, benchmark.score."""
     from difareli.evaluation.baselines import DiffusionMethod
     from difareli.evaluation.benchmark import score
+    from difareli.evaluation.pairs import StoredFace
     from difareli.lighting.light_fit import LightFit
     from difareli.relight.targets import target_shadow_of
 
@@ -76,7 +77,8 @@ def _independent(ckpt, store, pairs, sampler):
     for p in pairs:
         gt = store.read(p["target"], ["image", "face_mask"])
         for k in ("same", "different"):
-            relit = method.relight(store, p["source"], fit.from_store(store, p[k]), target_shadow_of(store, p[k])[0])
+            relit = method.relight(StoredFace(store, p["source"]), fit.from_store(store, p[k]),
+                                   target_shadow_of(store, p[k])[0])
             out[k].append(score(relit, gt["image"], gt["face_mask"]))
     return {f"val/{m}/{k}": float(np.mean([s[m] for s in v])) for k, v in out.items()
             for m in ("dssim", "mse", "lpips")}

@@ -223,7 +223,7 @@ def test_config_rejects_unknown_presets_and_effects():
 # ------------------------------------------------------------------------------------------ store + oracle
 def test_v2_store_oracle_reads_exact_lights_and_v1_stores_stay_readable(tmp_path):
     from difareli.evaluation.baselines import LambertianRatio
-    from difareli.evaluation.benchmark import Lights
+    from difareli.evaluation.pairs import Lights, StoredFace
     from difareli.data.store import EncodingStore
 
     root = tmp_path / "v2"
@@ -234,7 +234,7 @@ def test_v2_store_oracle_reads_exact_lights_and_v1_stores_stay_readable(tmp_path
     rec = store.read(rid, ["light", "light_gt", "shadow", "shadow_gt"])
     np.testing.assert_array_equal(Lights(store, None).get(rid), rec["light_gt"])
     assert Lights(store, None).shadow(rid) == float(rec["shadow_gt"][0])
-    np.testing.assert_array_equal(LambertianRatio(estimator=None).source_light(store, rid), rec["light_gt"])
+    np.testing.assert_array_equal(LambertianRatio(estimator=None).source_light(StoredFace(store, rid)), rec["light_gt"])
     # The same records under a v1 header (v1 had no *_gt encodings) read unchanged.
     header = json.loads((root / "store.json").read_text())
     header["schema_version"] = 1

@@ -155,7 +155,7 @@ def figure(run_dirs: dict[str, Path], store_root: str, protocols: list[str], lim
     benchmarked pairs (the benchmark's selection for ``limit``), the ground truth."""
     import imageio.v3 as iio
 
-    from difareli.evaluation.benchmark import load_pairs
+    from difareli.evaluation.pairs import load_pairs
     from difareli.data.store import EncodingStore
 
     store = EncodingStore.open(store_root)

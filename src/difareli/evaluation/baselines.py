@@ -1,58 +1,38 @@
 """Relighting methods behind one interface, for benchmarks: classical baselines and the diffusion model.
 
-A :class:`Method` has a ``name``, ``relight(store, source_id, target_light, target_shadow, target_id=None)
--> uint8 HxWx3`` and two declarations the benchmark reads: ``needs_light`` (it uses the target light, so a run
-under ground-truth lights is marked) and ``needs_light_fit`` (it fits a source light with ``estimator``, whose
-error the benchmark reports). ``target_id`` (the ground-truth record) is only for the oracle. Methods are built
-from ``conf/method/*.yaml`` ``_target_`` configs by :func:`build_method`.
+A :class:`Method` has a ``name``, ``relight(source, target_light, target_shadow=None, target=None) -> uint8
+HxWx3`` and two declarations the benchmark reads: ``needs_light`` (it uses the target light, so a run under
+ground-truth lights is marked) and ``needs_light_fit`` (it fits a source light with ``estimator``, whose error the
+benchmark reports). ``source`` is the input record as a :class:`~difareli.evaluation.pairs.StoredFace` (its store,
+its id, its encodings read once); ``target``, the ground-truth record as one, is only for the oracle. Methods are
+built from ``conf/method/*.yaml`` ``_target_`` configs by :func:`build_method`.
 
 Target (and source) lights "as a user gets them" come from :class:`difareli.lighting.light_fit.LightFit`.
 """
 
 from __future__ import annotations
 
-import math
 from typing import Any, Mapping, Protocol, runtime_checkable
 
 import numpy as np
 
 from difareli.lighting import sh
 from difareli.lighting.light_fit import LightFit, face_normals
-from difareli.data.store import EncodingStore
 from difareli.errors import UserError
-
-
-def exact_light_name(store: EncodingStore) -> str:
-    """The encoding holding a record's exact light: ``light_gt`` in SynthFaces v2 stores, else ``light``."""
-    return "light_gt" if store.available("light_gt") else "light"
-
-
-def irradiance_error(estimate: np.ndarray, truth: np.ndarray, normals: np.ndarray,
-                     mask: np.ndarray) -> tuple[float, float]:
-    """Relative irradiance error ``|E_est - E_gt| / |E_gt|`` over the masked pixels (all channels), and the
-    same after the best scalar scale of ``E_est`` (the part an albedo-scale error cannot explain)."""
-    n = np.asarray(normals, dtype=np.float64)[mask]
-    e, g = sh.irradiance(estimate, n), sh.irradiance(truth, n)
-    norm = float(np.linalg.norm(g))
-    if norm == 0 or n.size == 0:
-        return math.nan, math.nan
-    k = float((e * g).sum() / max((e * e).sum(), 1e-30))
-    return float(np.linalg.norm(e - g)) / norm, float(np.linalg.norm(k * e - g)) / norm
-
-
-# ------------------------------------------------------------------------------------------------ methods
+from difareli.evaluation.pairs import StoredFace, exact_light_name
 
 
 @runtime_checkable
 class Method(Protocol):
-    """What the benchmark runs: a name and one relit uint8 image per (source record, target light)."""
+    """What the benchmark runs: a name and one relit uint8 image per (source record, target light); ``target``
+    (the ground truth) is given for the oracle alone."""
 
     name: str
     needs_light: bool
     needs_light_fit: bool
 
-    def relight(self, store: EncodingStore, source_id: str, target_light: np.ndarray,
-                target_shadow: float | None = None, target_id: str | None = None) -> np.ndarray: ...
+    def relight(self, source: StoredFace, target_light: np.ndarray, target_shadow: float | None = None,
+                target: StoredFace | None = None) -> np.ndarray: ...
 
 
 class Identity:
@@ -63,22 +43,23 @@ class Identity:
     def __init__(self, name: str | None = None):
         self.name = name or "identity"
 
-    def relight(self, store, source_id, target_light, target_shadow=None, target_id=None) -> np.ndarray:
-        return np.array(store.read(source_id, ["image"])["image"])
+    def relight(self, source, target_light, target_shadow=None, target=None) -> np.ndarray:
+        return np.array(source.image)
 
 
 class Oracle:
-    """The ground-truth render of the pair: scores exactly 0, a check on the metric pipeline."""
+    """The ground-truth render of the pair (the ``target`` the benchmark gives it; refused without one): scores
+    exactly 0, a check on the metric pipeline."""
 
     needs_light, needs_light_fit = False, False
 
     def __init__(self, name: str | None = None):
         self.name = name or "oracle"
 
-    def relight(self, store, source_id, target_light, target_shadow=None, target_id=None) -> np.ndarray:
-        if target_id is None:
-            raise UserError("the oracle needs the ground-truth record (target_id)")
-        return np.array(store.read(target_id, ["image"])["image"])
+    def relight(self, source, target_light, target_shadow=None, target=None) -> np.ndarray:
+        if target is None:
+            raise UserError("the oracle needs the ground-truth record (target)")
+        return np.array(target.image)
 
 
 class LambertianRatio:
@@ -96,19 +77,17 @@ class LambertianRatio:
     def __init__(self, name: str | None = None, estimator: LightFit | None = None, min_shading: float = 0.05):
         self.name, self.estimator, self.min_shading = name or "lambertian", estimator, float(min_shading)
 
-    def source_light(self, store: EncodingStore, source_id: str) -> np.ndarray:
-        """The fitted source light, or (no estimator: the oracle) the exact one: ``light_gt`` where the store
-        has it (SynthFaces v2, whose ``light`` is itself estimated), else ``light``."""
+    def source_light(self, source: StoredFace) -> np.ndarray:
+        """The source light fitted to ``source``, or (no estimator: the oracle) the exact one: ``light_gt`` where
+        the store has it (SynthFaces v2, whose ``light`` is itself estimated), else ``light``."""
         if self.estimator is not None:
-            return self.estimator.from_store(store, source_id)
-        name = exact_light_name(store)
-        return np.asarray(store.read(source_id, [name])[name], dtype=np.float64)
+            return self.estimator.from_store(source.store, source.id)
+        name = exact_light_name(source.store)
+        return np.asarray(source.read([name])[name], dtype=np.float64)
 
-    def relight(self, store, source_id, target_light, target_shadow=None, target_id=None,
-                source_light: np.ndarray | None = None) -> np.ndarray:
-        a = store.read(source_id, ["image", "normal"])
-        light_s = self.source_light(store, source_id) if source_light is None else source_light
-        return ratio_relight(a["image"], a["normal"], light_s, target_light, self.min_shading)
+    def relight(self, source, target_light, target_shadow=None, target=None) -> np.ndarray:
+        a = source.read(["image", "normal"])
+        return ratio_relight(a["image"], a["normal"], self.source_light(source), target_light, self.min_shading)
 
 
 def ratio_relight(image: np.ndarray, normal: np.ndarray, source_light: np.ndarray, target_light: np.ndarray,
@@ -130,8 +109,8 @@ def ratio_relight(image: np.ndarray, normal: np.ndarray, source_light: np.ndarra
 class DiffusionMethod:
     """A trained DiFaReli/DiFaReli++ checkpoint through :class:`difareli.relight.relighter.Relighter`.
 
-    The input is inverted with its own stored encodings (once per record, cached) and decoded under the
-    target light and shadow strength. Default name: ``<model>/<sampler>-<steps>``, e.g. ``difareli_pp/ddim-20``.
+    The input (the source's record, read from its store by :meth:`Relighter.source`) is inverted with its own
+    stored encodings (once per record, cached) and decoded under the target light and shadow strength. Default name: ``<model>/<sampler>-<steps>``, e.g. ``difareli_pp/ddim-20``.
     """
 
     needs_light, needs_light_fit = True, False
@@ -173,11 +152,11 @@ class DiffusionMethod:
 
         check_store_fits(self.relighter.config, store, self.relighter.checkpoint)
 
-    def relight(self, store, source_id, target_light, target_shadow=None, target_id=None) -> np.ndarray:
+    def relight(self, source, target_light, target_shadow=None, target=None) -> np.ndarray:
         from difareli.relight.targets import Targets
 
-        source = self.relighter.source(store, source_id)
-        return self.relighter.relight(source, Targets.of([target_light], [target_shadow], source.what))[0]
+        record = self.relighter.source(source.store, source.id)  # what this model reads of it, checked
+        return self.relighter.relight(record, Targets.of([target_light], [target_shadow], record.what))[0]
 
 
 #: What :func:`build_method` may hand a method's constructor, if its signature asks for it.

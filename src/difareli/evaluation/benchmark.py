@@ -13,6 +13,7 @@ light and c instead (``light_gt``/``shadow_gt`` in SynthFaces v2 stores, whose `
 metric rule (``rule``: :data:`difareli.evaluation.metrics.RULES`, default ``paper``, the authors' evaluator) and the data set.
 Scores go through the torchmetrics ``Metric`` s of :func:`difareli.evaluation.metrics.relight_metrics`. A store without exact
 lights (``"exact_lights": false`` in ``protocols.json``: Multi-PIE) gets no light-estimation errors and no oracle.
+The pairs, the records a method is given and the pairs' lights: :mod:`difareli.evaluation.pairs`.
 
 Beyond DSSIM / MSE / LPIPS (:mod:`difareli.evaluation.extras`), each row carries the identity cosines of
 the relit face (vs the input, vs the ground truth), the lighting error of the relit image against the target light
@@ -46,18 +47,18 @@ from difareli.evaluation import metrics
 from difareli.evaluation import tables
 from difareli.evaluation.extras import PairExtras
 from difareli.utils import viz
-from difareli.relight.targets import target_shadow_of
 from difareli.data import shard as sharding
 from difareli.data import provenance
-from difareli.evaluation.baselines import Method, exact_light_name, irradiance_error
+from difareli.evaluation.baselines import Method
 from difareli.lighting.light_fit import LightFit
 from difareli.data import encodings
 from difareli.utils.fileio import RESUME, append_text, atomic_path, folder_lock, on_full_disk, write_json_atomic, \
     write_text_atomic
 from difareli.data.store import CorruptRecordError, EncodingStore
-from difareli.data.protocols import PROTOCOLS, PROTOCOLS_FILE
+from difareli.data.protocols import PROTOCOLS
+from difareli.evaluation.pairs import Lights, Pair, StoredFace, load_pairs, protocols_doc
 
-#: protocols.json key -> the ``protocol`` column of the per-image CSV (tables.PROTOCOL_LABELS).
+#: The light-estimation errors of a run (where the store holds exact lights).
 LIGHT_CSV = "light_estimation.csv"
 #: Rows scored so far, appended one by one: a killed run resumes from them (removed when the run completes).
 PARTIAL_CSV = ".metrics_per_image.partial.csv"
@@ -112,49 +113,6 @@ def _append_row(out_dir: Path, r: tables.Record, extra: Sequence[str] = ()) -> N
     append_text(path, buf.getvalue())
 
 
-@dataclass(frozen=True)
-class Pair:
-    """One protocol pair: relight ``source`` with the light of ``light_source``; ground truth ``target``."""
-
-    protocol: str
-    source: str
-    light_source: str
-    target: str
-
-    @property
-    def id(self) -> str:
-        # (source, light source) is unique within a protocol; the target follows from them.
-        return f"{self.source}__{self.light_source}"
-
-
-def protocols_doc(store: EncodingStore) -> dict:
-    """The store's ``protocols.json`` (written by difareli-synth or difareli-multipie)."""
-    path = Path(store.root) / PROTOCOLS_FILE
-    if not path.is_file():
-        raise errors.UserFileNotFoundError(f"{path} missing: benchmarks need a store with evaluation pairs "
-                                           "(difareli-synth or difareli-multipie writes it)")
-    return json.loads(path.read_text())
-
-
-def load_pairs(store: EncodingStore, protocols: Sequence[str], limit: int | None = None) -> dict[str, list[Pair]]:
-    """The pairs of each protocol from the store's ``protocols.json``; ``limit`` keeps at most that many,
-    evenly spaced over the list (so a small run still covers several subjects and lights)."""
-    path = Path(store.root) / PROTOCOLS_FILE
-    doc = protocols_doc(store)
-    out: dict[str, list[Pair]] = {}
-    for p in protocols:
-        if p not in PROTOCOLS:
-            raise errors.UserError(f"unknown protocol {p!r}; choose from {list(PROTOCOLS)}")
-        rows = doc.get(p, [])
-        if not rows:
-            raise errors.UserError(f"{path} has no pairs for protocol {p!r} (a test split with light groups of >= 2 "
-                                   "subjects is needed for different_subject)")
-        if limit is not None and 0 < limit < len(rows):
-            rows = [rows[i] for i in np.unique(np.linspace(0, len(rows) - 1, int(limit)).round().astype(int))]
-        out[p] = [Pair(p, r["source"], r["light_source"], r["target"]) for r in rows]
-    return out
-
-
 def score(pred: np.ndarray, target: np.ndarray, face_mask: np.ndarray, rule: str | None = None,
           scorer=None) -> dict[str, float]:
     """DSSIM / MSE / LPIPS of one uint8 image against the ground truth on the mask under ``rule``; through
@@ -162,38 +120,6 @@ def score(pred: np.ndarray, target: np.ndarray, face_mask: np.ndarray, rule: str
     scorer = scorer if scorer is not None else metrics.relight_metrics(rule)
     scorer.update(metrics.unit_tensor(pred), metrics.unit_tensor(target), torch.from_numpy(np.array(face_mask, dtype=bool))[None])
     return {k: float(m.last[0]) for k, m in scorer.items()}
-
-
-class Lights:
-    """Target (and source) lights per record, estimated once each; errors against the stored light."""
-
-    def __init__(self, store: EncodingStore, estimator: LightFit | None):
-        self.store, self.estimator = store, estimator
-        self.shadow_note = ""
-        self._cache: dict[str, np.ndarray] = {}
-
-    def get(self, record_id: str) -> np.ndarray:
-        if self.estimator is None:
-            name = exact_light_name(self.store)
-            return np.asarray(self.store.read(record_id, [name])[name], dtype=np.float64)
-        if record_id not in self._cache:
-            self._cache[record_id] = self.estimator.from_store(self.store, record_id)
-        return self._cache[record_id]
-
-    def shadow(self, record_id: str, oracle: bool = False) -> float | None:
-        """The cast-shadow strength c' a user has for the target given by ``record_id``'s image, or the exact
-        one (``oracle``, or oracle lights); :func:`targets.target_shadow_of` states the policy."""
-        c, self.shadow_note = target_shadow_of(self.store, record_id, oracle=oracle or self.estimator is None)
-        return c
-
-    def error(self, estimate: np.ndarray, truth_id: str, on_id: str) -> tuple[float, float]:
-        """:func:`irradiance_error` of ``estimate`` vs ``truth_id``'s light on ``on_id``'s face normals."""
-        a = self.store.read(on_id, ["normal", "face_mask"])
-        n = np.asarray(a["normal"], dtype=np.float64)
-        mask = np.asarray(a["face_mask"], dtype=bool) & (np.linalg.norm(n, axis=-1) > 0.5)
-        name = exact_light_name(self.store)
-        truth = np.asarray(self.store.read(truth_id, [name])[name], dtype=np.float64)
-        return irradiance_error(estimate, truth, n, mask)
 
 
 @dataclass
@@ -258,9 +184,9 @@ def run_benchmark(store: EncodingStore, method: Method, protocols: Sequence[str]
             settings.pop("score_mask")  # rows of a run from before the option: scored on face_mask, resumable
         provenance.ensure(out_dir, settings, "benchmark rows", name=SETTINGS,
                           has_results=(out_dir / PARTIAL_CSV).is_file() or (out_dir / tables.PER_IMAGE_CSV).is_file())
-        return _run(store, method, protocols, out_dir, limit=limit, oracle_light=oracle_light,
-                    oracle_shadow=oracle_shadow, estimator=estimator, grid_pairs=grid_pairs, save_images=save_images,
-                    progress=progress, shard=shard, rule=rule, score_mask=score_mask)
+        run, result = _start(store, method, out_dir, oracle_light=oracle_light, oracle_shadow=oracle_shadow,
+                             estimator=estimator, save_images=save_images, rule=rule, score_mask=score_mask)
+        return _run(run, result, protocols, limit=limit, shard=shard, grid_pairs=grid_pairs, progress=progress)
 
 
 def finished_run(store: EncodingStore, method: Method, protocols: Sequence[str], out_dir: str | Path, *,
@@ -307,88 +233,53 @@ def run_settings(store: EncodingStore, method: Method, protocols: Sequence[str],
             "oracle_shadow": bool(oracle_shadow), "rule": rule, "score_mask": score_mask, "shard": shard}
 
 
-def _run(store: EncodingStore, method: Method, protocols: Sequence[str], out_dir: Path, *, limit: int | None,
-         oracle_light: bool, oracle_shadow: bool, estimator: LightFit | None, grid_pairs: int, save_images: bool,
-         progress: bool, shard: str | None, rule: str, score_mask: str = DEFAULT_MASK) -> BenchmarkResult:
-    doc = protocols_doc(store)
-    exact = bool(doc.get("exact_lights", True))
-    if oracle_light and not exact:
-        raise errors.UserError(f"oracle_light=true but {store.root} holds no exact lights (a "
-                               f"{doc.get('dataset', 'photo')} store); drop oracle_light")
-    estimator = estimator or LightFit()
-    lights = Lights(store, None if oracle_light else estimator)
-    # Methods that fit their source light (the Lambertian baseline) are scored on it too (unless lights are oracle).
-    source_fit = method.needs_light_fit and getattr(method, "estimator", None) is not None
-    result = BenchmarkResult(records=[], provenance={
-        "target light": "exact (oracle_light)" if oracle_light else "fitted to the light-source image (LightFit)",
-        "target maps": getattr(method, "target_maps", "none (the method reads no light-dependent map)"),
-        "data set": str(doc.get("dataset", "synthfaces")), "metrics rule": rule, "score mask": score_mask})
-    extras = PairExtras(store, score_mask, fit=estimator)
-    columns = [*extras.metrics(), *extras.strata()]
-    result.provenance.update({**extras.provenance(), "store": f"{store.root} ({provenance.store_identity(store)})"})
-    result.notes = list(extras.notes)
-    done = _scored_so_far(out_dir, method.name, rule)
+@dataclass
+class _Run:
+    """What every pair of one run shares. ``columns``: the extra CSV columns; ``exact``: the store holds exact
+    lights; ``source_fit``: the method's own source-light fit (its error is measured too)."""
+
+    store: EncodingStore
+    method: Method
+    out_dir: Path
+    rule: str
+    score_mask: str
+    lights: Lights
+    extras: PairExtras
+    columns: list[str]
+    oracle_shadow: bool
+    exact: bool
+    source_fit: LightFit | None
+    save_images: bool
+
+
+def _run(run: _Run, result: BenchmarkResult, protocols: Sequence[str], *, limit: int | None, shard: str | None,
+         grid_pairs: int, progress: bool) -> BenchmarkResult:
+    """Every pair relit and scored (or resumed from the partial CSV), then the run's outputs written."""
+    store, method, out_dir, score_mask = run.store, run.method, run.out_dir, run.score_mask
+    done = _scored_so_far(out_dir, method.name, run.rule)
     for proto, pairs in load_pairs(store, protocols, limit).items():
-        pairs = sharding.select(pairs, shard, key=lambda p: p.id)
         short = PROTOCOLS[proto]
-        grid_rows = []
-        scorer = metrics.relight_metrics(rule)  # this run's scores of the protocol (rows resumed are not in it)
-        for pair in tqdm(pairs, desc=f"{method.name} {proto}", disable=not progress):
-            light = lights.get(pair.target if oracle_light else pair.light_source)
-            shadow = lights.shadow(pair.target if oracle_light or oracle_shadow else pair.light_source,
-                                   oracle=oracle_shadow)
-            result.provenance.setdefault("target c", lights.shadow_note)
-            if not oracle_light and exact:
-                rel, free = lights.error(light, pair.target, pair.target)
-                result.light_errors.append({"protocol": short, "record_id": pair.id, "light": "target",
-                                            "from": pair.light_source, "rel_error": rel, "rel_error_gain_free": free})
-            if source_fit and exact:
-                rel, free = lights.error(method.estimator.from_store(store, pair.source), pair.source, pair.source)
-                result.light_errors.append({"protocol": short, "record_id": pair.id, "light": "source",
-                                            "from": pair.source, "rel_error": rel, "rel_error_gain_free": free})
-            gt = store.read(pair.target, ["image", score_mask])
+        grid_rows: list[list[np.ndarray]] = []
+        scorer = metrics.relight_metrics(run.rule)  # this run's scores of the protocol (rows resumed are not in it)
+        for pair in tqdm(sharding.select(pairs, shard, key=lambda p: p.id), desc=f"{method.name} {proto}",
+                         disable=not progress):
+            light, shadow = run.lights.for_pair(pair, oracle_shadow=run.oracle_shadow)
+            result.provenance.setdefault("target c", run.lights.shadow_note)
+            if run.exact:  # the fitted lights' errors
+                result.light_errors += [{"protocol": short, **e}
+                                        for e in run.lights.errors(pair, light, run.source_fit)]
             png = out_dir / "relit" / proto / f"{pair.id}.png"
+            want_grid = len(grid_rows) < grid_pairs
             prev = done.get((short, pair.id))
-            if prev is not None and (len(grid_rows) >= grid_pairs or prev.status != "ok" or png.is_file()):
-                result.records.append(prev)  # scored before the run was killed: not redone
-                if len(grid_rows) < grid_pairs and prev.status == "ok":
-                    src, lsrc = (store.read(r, ["image"])["image"] for r in (pair.source, pair.light_source))
-                    grid_rows.append([np.asarray(src), np.asarray(lsrc), _read_png(png), np.asarray(gt["image"])])
-                continue
-            start = time.perf_counter()
-            # Only a bad pair is a failed row, reported as failed, never a score: a non-finite input or result, or
-            # a record whose file is corrupt. Other user errors (a missing record or encoding, an image too small
-            # to score, a method's wrong output) hold for every pair: they stop the run with their message.
-            try:
-                errors.check_record(store.read(pair.source), pair.source, store.root)
-                errors.check_light(light, f"target light of pair {pair.id}")
-                errors.check_number(shadow, f"target shadow of pair {pair.id}")
-                relit = errors.check_output(method.relight(store, pair.source, light, shadow, target_id=pair.target),
-                                            f"{method.name} relight of pair {pair.id}")
-                seconds = time.perf_counter() - start
-                if relit.shape != gt["image"].shape or relit.dtype != np.uint8:
-                    raise errors.UserError(f"{method.name} returned {relit.dtype} {relit.shape}; expected uint8 "
-                                           f"{gt['image'].shape}")
-                s = score(relit, gt["image"], gt[score_mask], rule, scorer)
-                errors.check_finite(list(s.values()), f"scores of pair {pair.id} (is its {score_mask} empty?)")
-            except (errors.NonFiniteError, CorruptRecordError) as e:
-                print(f"FAILED {proto} {pair.id}: {e}", file=sys.stderr)
-                ex, info = extras.empty(pair.target)
-                rec = tables.Record(method.name, short, pair.id, math.nan, math.nan, math.nan,
-                                    time.perf_counter() - start, status="failed", rule=rule, extra=ex, info=info)
-                result.records.append(rec)
-                _append_row(out_dir, rec, columns)
-                continue
-            ex, info = extras(relit, pair.source, pair.target, light)
-            rec = tables.Record(method.name, short, pair.id, s["dssim"], s["mse"], s["lpips"], seconds, rule=rule,
-                                extra=ex, info=info)
+            if prev is not None and (not want_grid or prev.status != "ok" or png.is_file()):
+                # scored before the run was killed: not redone
+                rec, relit = prev, _read_png(png) if want_grid and prev.status == "ok" else None
+            else:
+                rec, relit = _relight_and_score(run, pair, light, shadow, scorer)
+                _keep(run, rec, relit, png)
             result.records.append(rec)
-            if save_images:
-                viz.save_png(relit, png)
-            _append_row(out_dir, rec, columns)  # after the image: a resumed run finds both
-            if len(grid_rows) < grid_pairs:
-                src, lsrc = (store.read(r, ["image"])["image"] for r in (pair.source, pair.light_source))
-                grid_rows.append([np.asarray(src), np.asarray(lsrc), relit, np.asarray(gt["image"])])
+            if want_grid and relit is not None:
+                grid_rows.append(_grid_row(store, pair, relit))
         result.metric_stats[short] = {k: m.stat() for k, m in scorer.items()}
         if grid_rows:
             result.paths[f"comparison_{proto}"] = viz.save_png(viz.grid(grid_rows), out_dir / f"comparison_{proto}.png")
@@ -396,6 +287,73 @@ def _run(store: EncodingStore, method: Method, protocols: Sequence[str], out_dir
                                       + ("" if score_mask == DEFAULT_MASK else f", scored on {score_mask}")))
     (out_dir / PARTIAL_CSV).unlink(missing_ok=True)
     return result
+
+
+def _start(store: EncodingStore, method: Method, out_dir: Path, *, oracle_light: bool, oracle_shadow: bool,
+           estimator: LightFit | None, save_images: bool, rule: str, score_mask: str) -> tuple[_Run, BenchmarkResult]:
+    """The run's shared inputs and its result so far: what it states about its inputs, no rows yet."""
+    doc = protocols_doc(store)
+    exact = bool(doc.get("exact_lights", True))
+    if oracle_light and not exact:
+        raise errors.UserError(f"oracle_light=true but {store.root} holds no exact lights (a "
+                               f"{doc.get('dataset', 'photo')} store); drop oracle_light")
+    estimator = estimator or LightFit()
+    extras = PairExtras(store, score_mask, fit=estimator)
+    result = BenchmarkResult(records=[], provenance={
+        "target light": "exact (oracle_light)" if oracle_light else "fitted to the light-source image (LightFit)",
+        "target maps": getattr(method, "target_maps", "none (the method reads no light-dependent map)"),
+        "data set": str(doc.get("dataset", "synthfaces")), "metrics rule": rule, "score mask": score_mask})
+    result.provenance.update({**extras.provenance(), "store": f"{store.root} ({provenance.store_identity(store)})"})
+    result.notes = list(extras.notes)
+    # Methods that fit their source light (the Lambertian baseline) are scored on it too.
+    source_fit = getattr(method, "estimator", None) if method.needs_light_fit else None
+    run = _Run(store, method, out_dir, rule, score_mask, Lights(store, None if oracle_light else estimator), extras,
+               [*extras.metrics(), *extras.strata()], oracle_shadow, exact, source_fit, save_images)
+    return run, result
+
+
+def _relight_and_score(run: _Run, pair: Pair, light: np.ndarray, shadow: float | None,
+                       scorer) -> tuple[tables.Record, np.ndarray | None]:
+    """One pair relit by the method and scored: its row and relit image, or (a bad pair) its failed row and None."""
+    source, target = StoredFace(run.store, pair.source), StoredFace(run.store, pair.target)
+    name, short = run.method.name, PROTOCOLS[pair.protocol]
+    gt = target.read(["image", run.score_mask])
+    start = time.perf_counter()
+    # Only a bad pair is a failed row, reported as failed, never a score: a non-finite input or result, or
+    # a record whose file is corrupt. Other user errors (a missing record or encoding, an image too small
+    # to score, a method's wrong output) hold for every pair: they stop the run with their message.
+    try:
+        errors.check_record(source.read(), pair.source, run.store.root)
+        errors.check_light(light, f"target light of pair {pair.id}")
+        errors.check_number(shadow, f"target shadow of pair {pair.id}")
+        relit = errors.check_output(run.method.relight(source, light, shadow, target=target),
+                                    f"{name} relight of pair {pair.id}")
+        seconds = time.perf_counter() - start
+        if relit.shape != gt["image"].shape or relit.dtype != np.uint8:
+            raise errors.UserError(f"{name} returned {relit.dtype} {relit.shape}; expected uint8 {gt['image'].shape}")
+        s = score(relit, gt["image"], gt[run.score_mask], run.rule, scorer)
+        errors.check_finite(list(s.values()), f"scores of pair {pair.id} (is its {run.score_mask} empty?)")
+    except (errors.NonFiniteError, CorruptRecordError) as e:
+        print(f"FAILED {pair.protocol} {pair.id}: {e}", file=sys.stderr)
+        ex, info = run.extras.empty(pair.target)
+        return tables.Record(name, short, pair.id, math.nan, math.nan, math.nan, time.perf_counter() - start,
+                             status="failed", rule=run.rule, extra=ex, info=info), None
+    ex, info = run.extras(relit, pair.source, pair.target, light)
+    return tables.Record(name, short, pair.id, s["dssim"], s["mse"], s["lpips"], seconds, rule=run.rule,
+                         extra=ex, info=info), relit
+
+
+def _keep(run: _Run, rec: tables.Record, relit: np.ndarray | None, png: Path) -> None:
+    """A newly scored pair's relit PNG (if the run saves images), then its row in the partial CSV."""
+    if relit is not None and run.save_images:
+        viz.save_png(relit, png)
+    _append_row(run.out_dir, rec, run.columns)  # after the image: a resumed run finds both
+
+
+def _grid_row(store: EncodingStore, pair: Pair, relit: np.ndarray) -> list[np.ndarray]:
+    """One line of ``comparison_<protocol>.png``: input | light source | relit | ground truth."""
+    return [np.asarray(store.read(r, ["image"])["image"]) for r in (pair.source, pair.light_source)] + \
+        [relit, np.asarray(store.read(pair.target, ["image"])["image"])]
 
 
 def write_outputs(result: BenchmarkResult, out_dir: Path, caption: str | None = None) -> dict[str, Path]:

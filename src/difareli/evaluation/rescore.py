@@ -14,8 +14,10 @@ from difareli.data import provenance
 from difareli.data import shard as sharding
 from difareli.data.store import EncodingStore
 from difareli.evaluation import metrics, tables
-from difareli.evaluation.benchmark import (PROTOCOLS, SETTINGS, BenchmarkResult, Lights, _read_png, _recorded,
-                                           check_score_mask, load_pairs, score, write_outputs)
+from difareli.data.protocols import PROTOCOLS
+from difareli.evaluation.benchmark import (SETTINGS, BenchmarkResult, _read_png, _recorded, check_score_mask, score,
+                                           write_outputs)
+from difareli.evaluation.pairs import Lights, load_pairs
 from difareli.evaluation.extras import PairExtras
 from difareli.lighting.light_fit import LightFit
 from difareli.utils.fileio import on_full_disk, write_json_atomic
