@@ -14,7 +14,7 @@ Reading checks every row: a malformed row (wrong field count, a cut last line), 
 scored row, or a file with no rows is a :class:`TableError` naming the file and line, or with ``drop_bad_rows`` the
 row is left out and named.
 
-Issue 43 added optional columns, each present only when the run computed it: the metrics of
+Optional columns, each present only when the run computed it: the metrics of
 :data:`EXTRA_METRICS` (identity cosines, lighting error, shadow adherence; empty where undefined, e.g. a target
 shadow too small to score) and the strata of :data:`STRATA` (the target light's category, the target shadow's share
 of the face). Mean ± SE tables of these records: :mod:`difareli.evaluation.tables` (which re-exports every name here).
