@@ -20,8 +20,7 @@ from difareli.lighting import sh
 from difareli.checkpoints import zoo
 from difareli.app.envmaps import ENVMAPS, envmap_light
 from difareli.app.server import serve_in_thread
-from difareli.app.service import Service, light_toward, rotation_between, shadow_logit
-from difareli.data.encodings import SHADOW_C_HI, SHADOW_C_LO, normalise_c
+from difareli.app.service import Service
 
 from tests.helpers import compose_train
 
@@ -30,31 +29,6 @@ HAS_ESTIMATORS = all(importlib.util.find_spec(m) for m in ("mediapipe", "dlib"))
 SHIPPED = "difareli_pp-synth64" in zoo.available()
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 CHROMEDRIVER = shutil.which("chromedriver")
-
-
-# ------------------------------------------------------------------ light math (no model)
-def test_light_toward_points_the_dominant_direction_where_asked(rng):
-    for _ in range(20):
-        light = sh.directional_light(rng.normal(size=3), [1.0, 0.9, 0.8]) + rng.normal(scale=0.05, size=(9, 3))
-        light[0] += 0.8  # some ambient, as the fitted photo lights have
-        d = rng.normal(size=3)
-        d /= np.linalg.norm(d)
-        out = light_toward(light, d)
-        np.testing.assert_allclose(sh.dominant_direction(out), d, atol=1e-6)
-        np.testing.assert_allclose(out[0], light[0], atol=1e-9)  # a rotation keeps the ambient
-        np.testing.assert_allclose(np.linalg.norm(out[1:4]), np.linalg.norm(light[1:4]), rtol=1e-9)
-    a = np.array([0.0, 0.0, 1.0])
-    for b in (a, -a, np.array([1.0, 0, 0])):
-        r = rotation_between(a, b)
-        np.testing.assert_allclose(r @ a, b, atol=1e-12)
-        np.testing.assert_allclose(r @ r.T, np.eye(3), atol=1e-12)
-        assert np.linalg.det(r) == pytest.approx(1.0)
-
-
-def test_shadow_strength_is_the_normalised_c():
-    assert shadow_logit(0.0) == pytest.approx(SHADOW_C_LO) and shadow_logit(1.0) == pytest.approx(SHADOW_C_HI)
-    assert float(normalise_c(shadow_logit(0.37))) == pytest.approx(0.37)
-    assert shadow_logit(5.0) == pytest.approx(SHADOW_C_HI)  # clipped
 
 
 def test_envmaps_light_from_their_bright_side():

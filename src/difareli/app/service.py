@@ -31,7 +31,6 @@ from difareli.data import encodings
 from difareli.utils.viz import png_data_url
 from difareli.lighting import sh
 from difareli.diffusion.spec import DEFAULT_SAMPLER, PRESETS
-from difareli.data.encodings import SHADOW_C_HI, SHADOW_C_LO
 
 from . import checks
 from .cache import LRU, CancelScope, attach
@@ -44,35 +43,6 @@ DEFAULT = PRESETS[DEFAULT_SAMPLER]
 MAX_UPLOAD_BYTES = 32 * 2 ** 20
 MAX_ROTATION = 360.0
 RELIGHT_FIELDS = ("id", "checkpoint", "sampler", "steps", "light", "shadow")
-
-
-def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """The 3x3 rotation taking unit vector ``a`` to unit vector ``b`` about their common normal (Rodrigues)."""
-    a, b = np.asarray(a, np.float64) / np.linalg.norm(a), np.asarray(b, np.float64) / np.linalg.norm(b)
-    v, c = np.cross(a, b), float(a @ b)
-    if np.linalg.norm(v) < 1e-9:
-        if c > 0:
-            return np.eye(3)
-        axis = np.cross(a, [1.0, 0, 0] if abs(a[0]) < 0.9 else [0, 1.0, 0])  # half turn about any normal
-        axis /= np.linalg.norm(axis)
-        return 2 * np.outer(axis, axis) - np.eye(3)
-    k = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
-    return np.eye(3) + k + k @ k / (1 + c)
-
-
-def light_toward(light: np.ndarray, direction) -> np.ndarray:
-    """The source's own ``light`` turned so that its dominant direction is ``direction`` (camera space: x right,
-    y up, z toward the viewer): the same ambient, colour and strength the model saw, from a new side."""
-    d = np.asarray(direction, np.float64)
-    if d.shape != (3,) or not np.isfinite(d).all() or not np.abs(d).max() > 0:
-        raise RequestError(f"light.direction={np.asarray(direction).tolist()!r} is not a finite non-zero 3-vector")
-    d = d / np.abs(d).max()  # the norm of 1e154-sized components overflows to inf (and turned the light a half turn)
-    return sh.rotate(light, rotation_between(sh.dominant_direction(light), d))
-
-
-def shadow_logit(strength: float) -> float:
-    """Shadow strength in [0, 1] (the shadow map's normalised c) -> the logit c'."""
-    return SHADOW_C_LO + float(np.clip(strength, 0.0, 1.0)) * (SHADOW_C_HI - SHADOW_C_LO)
 
 
 @dataclass
@@ -274,7 +244,7 @@ class Service:
         own = np.asarray(arrays["light"], np.float64)
         if kind == "direction":
             checks.only(light, ("kind", "direction"), "light.")
-            return light_toward(own, checks.direction(light.get("direction", [0.0, 0.0, 1.0])))
+            return sh.light_toward(own, checks.direction(light.get("direction", [0.0, 0.0, 1.0])))
         checks.only(light, ("kind", "name", "rotation"), "light.")
         name = checks.choice(light, "name", ENVMAPS, where="light.")
         rotation = checks.number(light, "rotation", -MAX_ROTATION, MAX_ROTATION, default=0.0, where="light.")
@@ -305,7 +275,7 @@ class Service:
                                                                                          ckpt))
             light = self.target_light(s.source.arrays, request.get("light") or {})
         arrays = s.source.arrays
-        c = shadow_logit(float(strength)) if strength is not None else encodings.shadow_logit(arrays)
+        c = encodings.denormalise_c(float(strength)) if strength is not None else encodings.shadow_logit(arrays)
         own_c = encodings.shadow_logit(arrays)
         # The reconstruction (the source relit under its own light) joins the first decode's batch, then is cached.
         key = (id(relighter), s.id)
@@ -407,9 +377,6 @@ __all__ = [
     "RequestError",
     "Service",
     "decode_upload",
-    "light_toward",
     "png_data_url",
     "reconstruction_error",
-    "rotation_between",
-    "shadow_logit",
 ]

@@ -48,6 +48,12 @@ def normalise_c(c, c_range=None):
     return np.clip((np.asarray(c, dtype=np.float64) - lo) / (hi - lo), 0.0, 1.0)
 
 
+def denormalise_c(strength, c_range=None) -> float:
+    """A shadow strength in [0, 1] (clipped) -> the logit c, the inverse of :func:`normalise_c` on its range."""
+    lo, hi = (SHADOW_C_LO, SHADOW_C_HI) if c_range is None else (float(c_range[0]), float(c_range[1]))
+    return lo + float(np.clip(strength, 0.0, 1.0)) * (hi - lo)
+
+
 def store_c_range(meta: Mapping[str, Any] | None) -> tuple[float, float] | None:
     """The c range a store's header records (``meta[C_RANGE_KEY]``: ``{"lo", "hi", ...}``), or None (fixed range).
     Also accepts a record's arrays, where readers put it as a 2-vector under the same key."""

@@ -214,6 +214,30 @@ def dominant_direction(light, channel_weights=RGB_MEAN, eps: float = 1e-12) -> n
     return np.where(norm > eps, b1 / np.maximum(norm, eps), frontal)
 
 
+def rotation_between(a, b) -> np.ndarray:
+    """The 3x3 rotation taking unit vector ``a`` to unit vector ``b`` about their common normal (Rodrigues)."""
+    a, b = _f64(a) / np.linalg.norm(a), _f64(b) / np.linalg.norm(b)
+    v, c = np.cross(a, b), float(a @ b)
+    if np.linalg.norm(v) < 1e-9:
+        if c > 0:
+            return np.eye(3)
+        axis = np.cross(a, [1.0, 0, 0] if abs(a[0]) < 0.9 else [0, 1.0, 0])  # half turn about any normal
+        axis /= np.linalg.norm(axis)
+        return 2 * np.outer(axis, axis) - np.eye(3)
+    k = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    return np.eye(3) + k + k @ k / (1 + c)
+
+
+def light_toward(light, direction) -> np.ndarray:
+    """``light`` turned so that its dominant direction is ``direction`` (camera space: x right, y up, z toward the
+    viewer): the same ambient, colour and strength, from a new side."""
+    d = _f64(direction)
+    if d.shape != (3,) or not np.isfinite(d).all() or not np.abs(d).max() > 0:
+        raise UserError(f"light direction {np.asarray(direction).tolist()!r} is not a finite non-zero 3-vector")
+    d = d / np.abs(d).max()  # the norm of 1e154-sized components overflows to inf (and turned the light a half turn)
+    return rotate(light, rotation_between(dominant_direction(light), d))
+
+
 # ---------------------------------------------------------------------------------------------------------
 # Equirectangular env maps (docs/architecture.md): row 0 = +y, theta from +y, phi = 0 at +z, pi/2 at +x.
 
