@@ -1,4 +1,5 @@
-"""The check before relighting (issue 44): measures that move the right way and a verdict with its fix."""
+"""The check before relighting: measures that move the right way, a verdict with its fix, and the rule that
+calibrates its limits (scripts/calibrate_photo_check.py)."""
 
 from __future__ import annotations
 
@@ -9,8 +10,8 @@ import pytest
 
 from difareli.relight import photo, photo_check
 
-pytestmark = pytest.mark.skipif(not all(importlib.util.find_spec(m) for m in ("mediapipe", "dlib")),
-                                reason="needs the photo estimators")
+needs_estimators = pytest.mark.skipif(not all(importlib.util.find_spec(m) for m in ("mediapipe", "dlib")),
+                                      reason="needs the photo estimators")
 ENC = ["image", "shading", "shape", "identity", "light", "normal"]
 
 
@@ -21,6 +22,7 @@ def astronaut():
     return skimage.data.astronaut()
 
 
+@needs_estimators
 def test_a_good_photo_is_ok_and_a_small_one_is_not(astronaut):
     import cv2
 
@@ -28,17 +30,21 @@ def test_a_good_photo_is_ok_and_a_small_one_is_not(astronaut):
     assert good.ok, good.line()
     assert 70 < good.measures["face_px"] < 110 and good.measures["past_edge"] == 0
     assert good.line().startswith("astronaut: will relight well")
-    small = cv2.resize(astronaut, (160, 160), interpolation=cv2.INTER_AREA)
+    limit = photo_check.LIMITS["face_px"][0]
+    side = round(512 * 0.75 * limit / good.measures["face_px"])  # the face at 3/4 of the limit
+    small = cv2.resize(astronaut, (side, side), interpolation=cv2.INTER_AREA)
     bad = photo_check.check(photo.prepare_photo(small, ENC, size=64), "small")
-    assert bad.measures["face_px"] < 32 and not bad.ok
+    assert bad.measures["face_px"] < limit and not bad.ok
     assert "face_px" in bad.line() and "larger photo" in bad.line()
 
 
+@needs_estimators
 def test_tight_crop_and_far_codes_are_flagged(astronaut):
     tight = np.ascontiguousarray(astronaut[100:240, 150:300])
     prepared = photo.prepare_photo(tight, ENC, size=64)
     res = photo_check.check(prepared, "tight")
-    assert res.measures["past_edge"] > 0.35 and any("past_edge" in p for p in res.problems)
+    assert res.measures["past_edge"] > photo_check.LIMITS["past_edge"][0]
+    assert any("past_edge" in p for p in res.problems)
     full = photo.prepare_photo(astronaut, ENC, size=64)
     ident = full.arrays["identity"].astype(np.float64)
     stats = {"identity": (ident, np.full_like(ident, 0.01))}  # a store of this face: z = 0
@@ -46,3 +52,20 @@ def test_tight_crop_and_far_codes_are_flagged(astronaut):
     stats = {"identity": (ident + 0.5, np.full_like(ident, 0.01))}
     far = photo_check.check(full, "far", stats)
     assert far.measures["code_z"] > 40 and any("code_z" in p for p in far.problems)
+
+
+def test_choose_limit_is_where_the_final_run_of_worse_bins_begins():
+    values = np.arange(40.0)
+    dssim = np.where(values < 20, 0.1, 0.3)
+    # Bins of 8 from the good end; the third (16..23) holds 4 good and 4 bad photos: median 0.2 > 0.1 + 0.05.
+    assert photo_check.choose_limit(values, dssim, 0.1, margin=0.05, bin_size=8) == 15.5
+    # Lower is worse (face_px): bad below 20, sorted 39..0, the third bin (23..16) again the first over.
+    low = np.where(values < 20, 0.3, 0.1)
+    assert photo_check.choose_limit(values, low, 0.1, margin=0.05, worse="lower", bin_size=8) == 23.5
+    # One noisy bad bin among good ones is not a limit: the run must reach the worst bin.
+    noisy = dssim.copy()
+    noisy[:8] = 0.3
+    assert photo_check.choose_limit(values, noisy, 0.1, margin=0.05, bin_size=8) == 15.5
+    # Nothing worse, or everything worse: no limit within the data.
+    assert photo_check.choose_limit(values, np.full(40, 0.1), 0.1, margin=0.05) is None
+    assert photo_check.choose_limit(values, np.full(40, 0.3), 0.1, margin=0.05) is None

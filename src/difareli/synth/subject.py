@@ -80,13 +80,18 @@ class Subject:
     sss: np.ndarray | None = None       # HxW bool, where the subsurface wrap applies (effects.subsurface)
 
 
-def build_subject(k: int, cfg: SynthConfig) -> Subject:
-    """Sample and render subject ``k`` (geometry, appearance, camera); deterministic in ``(cfg.seed, k)``."""
+def build_subject(k: int, cfg: SynthConfig, pose: tuple[float, float, float] | None = None) -> Subject:
+    """Sample and render subject ``k`` (geometry, appearance, camera); deterministic in ``(cfg.seed, k)``;
+    ``pose``: (yaw, pitch, roll) degrees in place of the sampled head pose (the other draws stay the same)."""
+    import dataclasses
+
     from difareli.synth.accessories import build_head, default_camera, sample_accessories
     from difareli.render.face_model import FaceModel
 
     rng = np.random.default_rng([cfg.seed, k])
     params = FaceModel.load().sample_params(rng)
+    if pose is not None:  # after the draw, so the random stream (and so the rest of the subject) is unchanged
+        params = dataclasses.replace(params, pose=np.asarray(pose, np.float64))
     accessories = sample_accessories(rng)
     appearance = sample_appearance(rng)
     background = sample_background(rng)
