@@ -3,7 +3,7 @@
 that hold a raw-difference version (``difareli-shadow-maps maker=difference ... records_split=<split>`` writes
 ``shadow_map@diffraw-<hash>``); no relighting.
 
-    python scripts/difference_map_rules.py --store data/unseen_v3_s4242 --split val
+    python scripts/difference_map_rules.py --store data/unseen_v3_s4242 --split val [--version difference]
 """
 
 from __future__ import annotations
@@ -25,9 +25,17 @@ def main() -> None:
     ap.add_argument("--store", required=True)
     ap.add_argument("--split", default="val")
     ap.add_argument("--shadowed", type=float, default=0.04, help="only records whose visible shadow covers this share")
+    ap.add_argument("--version", default=None, help="the maps whose raw differences to read (e.g. difference; "
+                    "default: the first raw-difference version holding the split's records)")
     a = ap.parse_args()
     store = EncodingStore.open(a.store)
     raws = [k for k in store.derived if k.startswith("shadow_map@diffraw-")]
+    if a.version is not None:
+        name = f"shadow_map@{a.version}"
+        if name not in store.derived or "raw" not in store.derived[name]:
+            raise SystemExit(f"--version {a.version}: {a.store} has no difference maps of that name "
+                             f"({', '.join(k for k in store.derived if k.startswith('shadow_map@'))})")
+        raws = [store.derived[name]["raw"]]
     ids = [r for r in store.ids(split=a.split) if any((store.records_dir / r / f"{k}.npy").is_file() for k in raws)]
     ids = shadowed_records(store, ids, a.shadowed)
     if not ids:
