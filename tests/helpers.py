@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 from pathlib import Path
 
 from hydra import compose, initialize_config_dir
@@ -11,6 +12,10 @@ from omegaconf import DictConfig, open_dict
 from difareli.configs import CONFIG_DIR
 
 CONF = CONFIG_DIR
+#: The photo estimators (DIFARELI_PREPROCESS=1 bash scripts/install.sh): difareli-synth's default inputs=estimated
+#: and the real-photo pipeline need them; the README's plain install has none, and tests that need them skip there.
+HAS_ESTIMATORS = all(importlib.util.find_spec(m) for m in ("mediapipe", "cv2", "dlib"))
+NO_ESTIMATORS = "needs the photo estimators (DIFARELI_PREPROCESS=1 bash scripts/install.sh)"
 
 
 def compose_train(out_dir: Path, overrides: list[str], config_name: str = "train") -> DictConfig:

@@ -17,7 +17,7 @@ from difareli.data import shard
 from difareli.evaluation import tables
 from difareli.data.store import EncodingStore
 
-from tests.helpers import compose_train
+from tests.helpers import HAS_ESTIMATORS, NO_ESTIMATORS, compose_train
 
 SRC = str(Path(__file__).resolve().parents[2] / "src")
 
@@ -101,6 +101,7 @@ def _synth(out: Path, *extra: str) -> subprocess.Popen:
 
 
 @pytest.mark.slow  # three fresh interpreters importing the renderer: ~15 s idle, ~50 s on the loaded 2-core CI
+@pytest.mark.skipif(not HAS_ESTIMATORS, reason=NO_ESTIMATORS)  # synth's default inputs=estimated
 def test_synth_two_concurrent_shards_byte_identical_to_unsharded(tmp_path):
     """difareli-synth shard=0/2 and shard=1/2 at once into one out_dir == one unsharded run, byte for byte."""
     procs = [_synth(tmp_path / "sharded", f"shard={i}/2") for i in (0, 1)] + [_synth(tmp_path / "ref")]

@@ -17,6 +17,7 @@ import torch
 
 from difareli.evaluation import tables as T
 from difareli.errors import UserError
+from tests.helpers import HAS_ESTIMATORS, NO_ESTIMATORS
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -179,6 +180,7 @@ def _children(pid: int) -> list[int]:
 
 @pytest.mark.slow
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+@pytest.mark.skipif(not HAS_ESTIMATORS, reason=NO_ESTIMATORS)  # synth's default inputs=estimated
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM])
 def test_killed_synth_leaves_no_worker_and_a_consistent_store(tmp_path, sig):
     from difareli.data.store import EncodingStore

@@ -17,7 +17,7 @@ from difareli.multipie import build, layout, protocols
 from difareli.multipie.layout import Image
 from difareli.data.store import EncodingStore
 
-from tests.helpers import compose_train
+from tests.helpers import HAS_ESTIMATORS, NO_ESTIMATORS, compose_train
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 BIN = Path(sys.executable).parent  # the console scripts of this environment
@@ -213,6 +213,7 @@ def test_wrong_root_exits_2_naming_the_layout(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.skipif(not HAS_ESTIMATORS, reason=NO_ESTIMATORS)
 def test_real_estimators_on_rendered_tree(tmp_path):
     """The photo estimators on 256 px SynthFaces renders laid out as Multi-PIE, a faceless image among them;
     then the benchmark and the table with the published rows."""
