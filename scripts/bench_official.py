@@ -39,8 +39,6 @@ ROOT = Path(__file__).resolve().parents[1]
 #: tiny-64: our ``tiny`` preset at 64 px in official terms (the official YAML keys, set on its config object).
 TINY64 = {"image_size": 64, "num_channels": 32, "channel_mult": "1,2,2", "num_res_blocks": 1,
           "attention_resolutions": "8", "num_heads": 2}
-# Each mode names its precision: the runtime's default is "auto" (bf16 where the hardware has it).
-
 
 def official_config(checkout: Path, which: str, steps: int, work: Path):
     """(the official yacs config, the YAML path our importer reads) for ``ffhq128`` / ``tiny64`` / a YAML."""

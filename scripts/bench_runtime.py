@@ -26,8 +26,6 @@ from difareli.runtime.core import Runtime
 from difareli.data.store import EncodingStore
 from difareli.relight.targets import Targets
 
-# Each mode names its precision: the runtime's default is "auto" (bf16 where the hardware has it).
-
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])

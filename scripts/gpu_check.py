@@ -107,7 +107,7 @@ def check(args) -> dict:
                       "cuda": torch.version.cuda, "python": platform.python_version(), "small": small,
                       "threads": torch.get_num_threads(), "peak_bf16_TFLOPs": None if peak is None else peak / 1e12,
                       "peak_source": peak_how, "cudnn_benchmark": torch.backends.cudnn.benchmark,
-                      "modes": {m: Runtime.from_mode(m, str(dev)).mode() for m in modes}, "cuda_graphs_active": dev.type == "cuda"},
+                      "modes": list(modes), "cuda_graphs_active": dev.type == "cuda"},
               "flops": [], "unet": [], "relight": {}, "train": None, "skipped": []}
     models = {}
     for preset, res in plan["sizes"]:  # ------------------------------------------- FLOPs, then eager/graph modes

@@ -64,7 +64,8 @@ def main() -> None:
     sampler = got[0]["sampler"]
     head = (f"{len(a.records)} records of {a.store} ({', '.join(a.records)}), 60-frame yaw rotations, "
             f"sampler {sampler['name']}-{sampler['steps']}; means over the records\n\n"
-            "| model | target maps | shadow IoU vs GT | map IoU | map adherence | DSSIM | LPIPS | shadow IoU per record |\n"
+            "| model | target maps | shadow IoU vs GT | map IoU | map adherence | DSSIM | LPIPS "
+            "| shadow IoU per record |\n"
             "|---|---|---:|---:|---:|---:|---:|---|\n")
     text = head + "\n".join(rows) + "\n"
     out.mkdir(parents=True, exist_ok=True)

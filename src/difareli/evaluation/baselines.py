@@ -110,7 +110,8 @@ class DiffusionMethod:
     """A trained DiFaReli/DiFaReli++ checkpoint through :class:`difareli.relight.relighter.Relighter`.
 
     The input (the source's record, read from its store by :meth:`Relighter.source`) is inverted with its own
-    stored encodings (once per record, cached) and decoded under the target light and shadow strength. Default name: ``<model>/<sampler>-<steps>``, e.g. ``difareli_pp/ddim-20``.
+    stored encodings (once per record, cached) and decoded under the target light and shadow strength. Default
+    name: ``<model>/<sampler>-<steps>``, e.g. ``difareli_pp/ddim-20``.
     """
 
     needs_light, needs_light_fit = True, False
