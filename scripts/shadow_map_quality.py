@@ -11,6 +11,11 @@ on average for
   (``targets.target_shadow_map``, stored normals applied after it as ``targets.cast_shadows`` does) on the exact
   depth toward the key sun's direction from the record's header (empty without a sun, as the upper bound): what
   the screen-space march itself loses against mesh ray casting, with no light or geometry estimation error,
+- ``ray-marched on the exact depth toward every exact sun, visibly shadowed`` (SynthFaces stores with suns in
+  their headers): the relight's maker given the record's exact light as suns (``lighting.suns.Suns.from_header``:
+  key, fill, rim, the ambient being ``light_gt`` less theirs), each pixel kept when the suns it cannot see carry
+  more than ``render.visible.MARCH_VISIBLE`` of its light or it is in the key sun's cast shadow: what
+  ``difareli-shadow-maps maker=march light=exact`` trains on,
 - ``key sun, exact mesh (upper bound)`` (SynthFaces v3 stores): the subject re-built and its exact mesh ray cast
   toward the exact key-sun direction; equal to the GT on single-sun records, whose score is printed apart,
 - ``whole face (baseline)``: every mesh pixel (the exact mesh where ``depth_gt`` is stored), the score of a map
@@ -40,12 +45,14 @@ from difareli.utils import viz
 from difareli.evaluation.metrics import binary_scores
 from difareli.data.store import EncodingStore
 from difareli.lighting import sh
+from difareli.lighting.suns import Suns
 from difareli.relight.targets import target_shadow_map
 
 #: The row of a map covering every mesh pixel: scored, not drawn in the figure.
 BASELINE = "whole face (baseline)"
 UPPER = "key sun, exact mesh (upper bound)"
 KEY_MARCH = "ray-marched on the exact depth toward the exact key sun"
+SUNS_MARCH = "ray-marched on the exact depth toward every exact sun, visibly shadowed"
 
 
 class KeySun:
@@ -126,6 +133,9 @@ def maps_of(store: EncodingStore, rid: str, versions: dict[str, str], light_name
     if key_sun is not None:
         g = {k: a[f"{k}_gt"] for k in ("depth", "normal", "cam")} if exact_geo else a
         out[KEY_MARCH] = key_sun_march(g, store.meta(rid))
+        suns = Suns.from_header(store.meta(rid), a["light_gt"]) if "light_gt" in a else None
+        out[SUNS_MARCH] = (target_shadow_map(g, suns, 0.0, (-10.0, 10.0)) > 0 if suns is not None
+                           else np.zeros_like(out[KEY_MARCH]))
         out[UPPER], _ = key_sun(rid)
     out[BASELINE] = a[mesh] != 0  # every mesh pixel: the IoU a map earns by covering all
     return out

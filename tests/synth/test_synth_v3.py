@@ -10,37 +10,11 @@ import numpy as np
 import pytest
 
 from difareli.data import encodings
-from difareli.utils.imageops import LUMA
 from difareli.data.store import EncodingStore
 from difareli.synth import generator as gen
 from difareli.synth import config as synth_config
-from difareli.synth import subject as synth_subject
 from difareli.synth.c_norm import finalise
 from difareli.synth.estimated import mode_downsample
-
-
-def test_visible_fraction_in_closed_form():
-    """A flat patch facing the key sun: ambient E_a, key sun E_k (cast on the left half), fill E_f (cast on the top
-    rows). The share removed is E_k / (E_a + E_k + E_f) under the key's shadow, E_f / (...) under the fill's."""
-    hit = np.ones((4, 4), bool)
-    hit[3, 3] = False
-    e_a, e_k, e_f = np.full((4, 4, 3), 0.2), np.full((4, 4, 3), 0.6), np.full((4, 4, 3), 0.1)
-    key = np.zeros((4, 4), bool)
-    key[:, :2] = True
-    fill = np.zeros((4, 4), bool)
-    fill[0, :] = True
-    frac, vis = synth_subject.visible_shadow(e_a + e_k + e_f, [e_k, e_f], [key & hit, fill & hit], key & hit, hit, 0.25)
-    y = lambda e: float(e[0, 0] @ LUMA)  # noqa: E731
-    total = y(e_a) + y(e_k) + y(e_f)
-    np.testing.assert_allclose(frac[1, 0], y(e_k) / total, rtol=1e-6)           # key only: 0.667
-    np.testing.assert_allclose(frac[0, 3], y(e_f) / total, rtol=1e-6)           # fill only: 0.111, not visible
-    np.testing.assert_allclose(frac[0, 0], (y(e_k) + y(e_f)) / total, rtol=1e-6)
-    assert frac[2, 3] == 0 and frac[3, 3] == 0                                  # unshadowed; off the mesh
-    want = key.copy()
-    want[3, 3] = False
-    np.testing.assert_array_equal(vis, want)  # the weak fill's shadow is not "visibly shadowed"
-    _, vis_low = synth_subject.visible_shadow(e_a + e_k + e_f, [e_k, e_f], [key, fill], np.zeros_like(key), hit, 0.1)
-    assert vis_low[0, 3] and not vis_low[2, 3]  # a lower threshold admits it; the key mask is not needed for it
 
 
 def test_every_store_records_the_visible_shadow(synth_store):

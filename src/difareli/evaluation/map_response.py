@@ -10,7 +10,7 @@ images are linear, so the unshadowed pixel is ``Y / (1 - f)``). A model that dra
 a ratio near 1; one that ignores its map, 0.
 
 The maps tried (``MAPS``): ``exact`` (the visible shadows times the exact c), ``march_exact`` (the relight's own
-maker toward the exact light with the exact c) and ``march_fitted`` (toward the stored, fitted light with the
+maker toward the exact light, i.e. the suns the record's header names, with the exact c) and ``march_fitted`` (toward the stored, fitted light with the
 stored c: what a relight of a photo has).
 """
 
@@ -23,6 +23,7 @@ import torch
 
 from difareli.data import encodings
 from difareli.data.inputs import condition_tensors, image_to_tensor, read_record
+from difareli.lighting.suns import Suns
 from difareli.relight.core import invert_image, relight
 from difareli.relight.targets import target_shadow_map
 from difareli.utils import imageops
@@ -44,14 +45,17 @@ def shadowed_records(store, ids, share: float = SHADOWED_SHARE) -> list[str]:
     return out
 
 
-def make_map(arrays, kind: str) -> np.ndarray:
-    """The map ``kind`` of one record (float32 HxW, binary times the normalised c)."""
+def make_map(arrays, kind: str, header=None) -> np.ndarray:
+    """The map ``kind`` of one record (float32 HxW, binary times the normalised c); ``header`` (``store.meta``):
+    the suns ``march_exact`` marches toward (else the SH ``light_gt``)."""
     rng = encodings.store_c_range(arrays)
     if kind == "exact":
         c = encodings.shadow_logit(arrays, "shadow_gt")
         return (np.asarray(arrays["shadow_visible_gt"], bool) * encodings.normalise_c(c, rng)).astype(np.float32)
     light, c = ("light_gt", "shadow_gt") if kind == "march_exact" else ("light", "shadow")
-    return target_shadow_map(arrays, np.asarray(arrays[light], np.float64), encodings.shadow_logit(arrays, c), rng)
+    sh_light = np.asarray(arrays[light], np.float64)
+    suns = Suns.from_header(header, sh_light) if kind == "march_exact" and header else None
+    return target_shadow_map(arrays, sh_light if suns is None else suns, encodings.shadow_logit(arrays, c), rng)
 
 
 def real_removal(arrays) -> float:
@@ -81,7 +85,7 @@ def respond(relighter, store, rid: str, kinds=MAPS) -> list[RecordResponse]:
     own = condition_tensors(model, [arrays], device)
     inv = invert_image(model, x0, own, relighter.spec, runtime=relighter.runtime,
                        mean_matching=relighter.mean_matching) if relighter.spec is not None else None
-    maps = [make_map(arrays, k) for k in kinds]
+    maps = [make_map(arrays, k, store.meta(rid)) for k in kinds]
     targets = [{**arrays, "shadow_map": m * on} for m in maps for on in (1.0, 0.0)]
     x = relight(model, x0, own, condition_tensors(model, targets, device), relighter.spec, runtime=relighter.runtime,
                 inversion=None if inv is None else inv.expand(len(targets)))

@@ -1,13 +1,15 @@
 """Training shadow maps of the kind a relight is tested with, written as derived versions of ``shadow_map``.
 
 A relight's target map is made by one maker (:func:`difareli.relight.targets.shadow_maker`: the depth-map march
-toward the target light's dominant direction, times the normalised c). A DiFaReli++ trained on maps made another
+toward the target light's suns, an SH light's being one along its dominant direction, times the normalised c). A DiFaReli++ trained on maps made another
 way (SynthFaces' mesh rays toward a fitted light: IoU 0.31 with the march for the same record and light) is tested
 out of its training distribution, and one trained on maps that disagree with its images learns to ignore them.
 ``difareli-shadow-maps maker=march`` writes every record's map with that same maker:
 
-- ``light=exact`` (default): toward the record's exact light (``light_gt``) with its exact c (``shadow_gt``), where
-  the store has them (SynthFaces v2/v3), so the map agrees with the image it is paired with;
+- ``light=exact`` (default): toward the record's exact light with its exact c (``shadow_gt``), where the store has
+  them (SynthFaces v2/v3), so the map agrees with the image it is paired with: the suns its header names (key,
+  fill, rim; ambient = ``light_gt`` less theirs) weighed by the share of light each takes
+  (``render.visible.visible_march``), else the SH ``light_gt``;
 - ``light=fitted``: toward the stored (fitted) light with the stored c, as a user's photo would have them.
 
 ``maker=visible`` writes the exact upper bound instead: SynthFaces v3's visibly-shadowed mask
@@ -28,6 +30,7 @@ from tqdm.auto import tqdm
 from difareli import errors
 from difareli.data import derived, encodings
 from difareli.data.inputs import read_record
+from difareli.lighting.suns import Suns
 from difareli.relight.targets import shadow_maker, target_shadow_map
 from difareli.utils.fileio import folder_lock
 
@@ -68,13 +71,16 @@ def check(store, method: str, light: str) -> None:
                                f"{', '.join(gone)}; use {hint}")
 
 
-def make_map(arrays, method: str, light: str, c_range) -> np.ndarray:
-    """One record's map (float32 HxW) from its arrays (as :func:`difareli.data.inputs.read_record` gives them)."""
+def make_map(arrays, method: str, light: str, c_range, header=None) -> np.ndarray:
+    """One record's map (float32 HxW) from its arrays (as :func:`difareli.data.inputs.read_record` gives them);
+    ``header``: the record's header (``store.meta``), whose suns the exact light is marched toward."""
     light_name, c_name = _names(method, light)
     c = encodings.shadow_logit(arrays, c_name)
     if method == "visible":
         return (np.asarray(arrays["shadow_visible_gt"], bool) * encodings.normalise_c(c, c_range)).astype(np.float32)
-    return target_shadow_map(arrays, np.asarray(arrays[light_name], dtype=np.float64), c, c_range)
+    sh_light = np.asarray(arrays[light_name], dtype=np.float64)
+    suns = Suns.from_header(header, sh_light) if light == "exact" and header else None
+    return target_shadow_map(arrays, suns if suns is not None else sh_light, c, c_range)
 
 
 def compute(store, *, method: str = "march", light: str = "exact", version: str | None = None,
@@ -99,5 +105,5 @@ def compute(store, *, method: str = "march", light: str = "exact", version: str 
         start, written = time.perf_counter(), 0
         for rid in tqdm(todo, desc=f"{method} maps", disable=not progress):
             arrays = read_record(store, rid, reads)
-            written += derived.write(store, rid, name, make_map(arrays, method, light, c_range))
+            written += derived.write(store, rid, name, make_map(arrays, method, light, c_range, store.meta(rid)))
     return MapsReport(name, written, len(ids), time.perf_counter() - start, prov)

@@ -17,8 +17,10 @@ from typing import Mapping
 import numpy as np
 
 from difareli.lighting import sh
+from difareli.lighting.suns import Suns
 from difareli.render.camera import OrthoCamera
 from difareli.render.screen_shadow import march_shadows
+from difareli.render.visible import MARCH_VISIBLE, visible_march
 from difareli.data import encodings
 from difareli.data.encodings import normalise_c
 from difareli.errors import (TARGET_LIGHT_MAX_ABS, UserError, UserFileNotFoundError, check_finite, check_light,
@@ -180,8 +182,9 @@ def shadow_maker() -> dict:
 
     params = inspect.signature(march_shadows).parameters
     settings = {k: v.default for k, v in params.items() if v.default is not inspect.Parameter.empty and k != "normal"}
-    return {"name": "march", "toward": "dominant direction",
-            "attached": "n.d <= 0 is not cast (stored normals where known, else from the depth)", **settings}
+    return {"name": "march", "toward": "every sun of the light (an SH light: one along its dominant direction)",
+            "attached": "n.d <= 0 is not cast (stored normals where known, else from the depth)",
+            "visible": MARCH_VISIBLE, **settings}
 
 
 def check_maker(trained_on: Mapping | None, what: str = "this model") -> str | None:
@@ -217,13 +220,20 @@ def cast_shadows(arrays: Mapping[str, np.ndarray], lights) -> np.ndarray:
     return march_shadows(depth, depth != 0, cam, dirs, normal=normal)
 
 
-def target_shadow_map(arrays: Mapping[str, np.ndarray], light: np.ndarray, c: float, c_range=None) -> np.ndarray:
-    """Binary cast-shadow map toward ``light``'s dominant direction, ray-marched on the stored depth, times
-    the normalised shadow strength ``c`` (the ``shadow_map`` encoding's definition). ``c_range``: the store's
-    c range (``encodings.store_c_range``), else the one the arrays carry under ``encodings.C_RANGE_KEY``
-    (SynthFaces v3 readers put it there), else the fixed range."""
-    marched = arrays.get(CASTS_KEY, {}).get(sh.dominant_direction(light).tobytes())
-    cast = marched if marched is not None else cast_shadows(arrays, [light])[0]
+def target_shadow_map(arrays: Mapping[str, np.ndarray], light: "np.ndarray | Suns", c: float,
+                      c_range=None) -> np.ndarray:
+    """Binary cast-shadow map ray-marched on the stored depth, times the normalised shadow strength ``c`` (the
+    ``shadow_map`` encoding's definition). ``light``: an SH light (the map toward its dominant direction) or its
+    suns (``lighting.suns.Suns``, e.g. a SynthFaces header's: the visibly shadowed pixels under them,
+    ``render.visible.visible_march``). ``c_range``: the store's c range (``encodings.store_c_range``), else the
+    one the arrays carry under ``encodings.C_RANGE_KEY`` (SynthFaces v3 readers put it there), else the fixed
+    range."""
+    if isinstance(light, Suns):
+        cam = OrthoCamera(*np.asarray(arrays["cam"], dtype=np.float64).tolist())
+        cast = visible_march(arrays["depth"], np.asarray(arrays["normal"], np.float64), cam, light)
+    else:
+        marched = arrays.get(CASTS_KEY, {}).get(sh.dominant_direction(light).tobytes())
+        cast = marched if marched is not None else cast_shadows(arrays, [light])[0]
     c_range = c_range if c_range is not None else encodings.store_c_range(arrays)
     return (cast * normalise_c(c, c_range)).astype(np.float32)
 

@@ -50,6 +50,7 @@ from difareli.lighting import sh
 from difareli.data.encodings import FACE_PARTS, FOREGROUND_PARTS, PART_INDEX, normalise_c
 from difareli.utils.imageops import LUMA
 from difareli.render import OrthoCamera, Scene, cast_shadows, render_gbuffer
+from difareli.render.visible import visible_shadow
 from difareli.synth import effects as fx_mod
 from difareli.synth.appearance import albedo_image, sample_appearance, sample_background
 from difareli.synth.config import GEOMETRY_GT, IDENTITY_DIM, S_MIN, SynthConfig
@@ -138,19 +139,6 @@ def _cast_list(cast, n: int, hit: np.ndarray) -> list[np.ndarray]:
     if len(maps) != n:
         raise UserError(f"{len(maps)} cast-shadow maps for {n} suns")
     return [m & hit for m in maps]
-
-
-def visible_shadow(e_open: np.ndarray, sun_terms: list, casts: list, key: np.ndarray, hit: np.ndarray,
-                   threshold: float) -> tuple[np.ndarray, np.ndarray]:
-    """(fraction, visible): per pixel, the share of its unshadowed irradiance ``e_open`` that the cast shadows
-    remove (``sum_i cast_i Y(sun_i) / Y(e_open)``, 0 off the mesh) and ``fraction > threshold | key`` (the key
-    sun's own cast mask) on the mesh."""
-    den = np.maximum(e_open @ LUMA, 1e-6)
-    frac = np.zeros(hit.shape, np.float64)
-    for sun, c in zip(sun_terms, casts):
-        frac += c * ((sun @ LUMA) / den)
-    frac = np.where(hit, np.clip(frac, 0.0, 1.0), 0.0)
-    return frac.astype(np.float32), hit & ((frac > threshold) | key)
 
 
 def shade(subject: Subject, light: Light, cast, cfg: SynthConfig,

@@ -1,0 +1,72 @@
+"""A light as directional suns plus an ambient SH: what a cast shadow needs to know of a light.
+
+An SH light (9x3) says how bright every normal is, not which directions a ray could be blocked from; a cast
+shadow needs both. :class:`Suns` keeps them: the directions and RGB irradiances of the suns (the first is the
+key) and the ambient SH left when their SH is removed, so ``ambient + sum(directional_light(sun))`` is the full
+SH light. SynthFaces writes its lights this way in each record's header (``sun_dir``, ``sun_rgb``,
+``extra_suns``); an SH light on its own becomes one sun along its dominant direction carrying all the light
+(:meth:`Suns.of_sh`), under which "visibly shadowed" is simply "cast" (``render.visible``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Mapping
+
+import numpy as np
+
+from difareli.errors import UserError
+from difareli.lighting import sh
+
+
+@dataclass(frozen=True)
+class Suns:
+    """``dirs`` (K, 3) unit vectors toward each sun (the key first), ``rgbs`` (K, 3) their irradiance on a surface
+    facing them, ``ambient`` (9, 3) the SH of the rest of the light."""
+
+    dirs: np.ndarray
+    rgbs: np.ndarray
+    ambient: np.ndarray
+
+    def __post_init__(self):
+        dirs = np.asarray(self.dirs, np.float64).reshape(-1, 3)
+        rgbs = np.asarray(self.rgbs, np.float64).reshape(-1, 3)
+        norms = np.linalg.norm(dirs, axis=1)
+        if len(dirs) == 0 or len(dirs) != len(rgbs) or not np.all(norms > 0) or not np.all(np.isfinite(rgbs)):
+            raise UserError(f"suns: give K >= 1 non-zero directions and K finite RGB irradiances, got {len(dirs)} "
+                            f"directions and {len(rgbs)} irradiances")
+        object.__setattr__(self, "dirs", dirs / norms[:, None])
+        object.__setattr__(self, "rgbs", rgbs)
+        object.__setattr__(self, "ambient", np.asarray(self.ambient, np.float64).reshape(9, 3))
+
+    @classmethod
+    def of_sh(cls, light) -> "Suns":
+        """One sun along ``light``'s dominant direction carrying all of it (no ambient): an SH light's own."""
+        return cls(sh.dominant_direction(light)[None], np.ones((1, 3)), np.zeros((9, 3)))
+
+    @classmethod
+    def from_header(cls, meta: Mapping, light) -> "Suns | None":
+        """The suns a SynthFaces record's header names (``sun_dir`` / ``sun_rgb``, then ``extra_suns``; dark ones
+        left out), the ambient being the SH ``light`` (the record's exact ``light_gt``) less theirs; None when
+        the header names no lit sun."""
+        suns = [(meta["sun_dir"], meta["sun_rgb"])] if "sun_dir" in meta else []
+        suns += [(e["dir"], e["rgb"]) for e in meta.get("extra_suns", [])]
+        suns = [(np.asarray(d, np.float64), np.asarray(c, np.float64)) for d, c in suns if np.any(np.asarray(c) > 0)]
+        if not suns:
+            return None
+        ambient = np.asarray(light, np.float64) - sum(sh.directional_light(d, c) for d, c in suns)
+        return cls(np.stack([d for d, _ in suns]), np.stack([c for _, c in suns]), ambient)
+
+    def sh(self) -> np.ndarray:
+        """The full SH light (9x3): the ambient plus every sun's SH projection."""
+        return self.ambient + sum(sh.directional_light(d, c) for d, c in zip(self.dirs, self.rgbs))
+
+    def terms(self, normal: np.ndarray) -> list[np.ndarray]:
+        """Each sun's unshadowed irradiance ``rgb * max(0, n.d)`` at ``normal`` (...x3), one ...x3 array per sun."""
+        n = np.asarray(normal, np.float64)
+        return [np.maximum(n @ d, 0.0)[..., None] * c for d, c in zip(self.dirs, self.rgbs)]
+
+    def irradiance(self, normal: np.ndarray) -> np.ndarray:
+        """The unshadowed irradiance (...x3) at ``normal``: the ambient's SH irradiance plus every sun's term."""
+        n = np.asarray(normal, np.float64)
+        return sh.irradiance(self.ambient, n) + sum(self.terms(n))
