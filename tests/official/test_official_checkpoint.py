@@ -20,6 +20,7 @@ import torch
 import torch.nn.functional as F
 
 from difareli.official import weights as official
+from difareli.official.config import PARAM_WIDTHS, read_config
 from difareli.cli.import_checkpoint import main as cli_main
 from difareli.errors import UserError
 from difareli.lit import load_checkpoint
@@ -194,7 +195,7 @@ def official_eps(unet, mod, x, t, img, cond, new_order=False):
 
 # ---------------------------------------------------------------------------------------------- fixtures
 def write_run(tmp_path: Path, *, new_order=False, selector=SELECTOR, drop=None, seed=0) -> tuple[Path, Path, dict]:
-    cond = sum(official.PARAM_WIDTHS[p] for p in selector)
+    cond = sum(PARAM_WIDTHS[p] for p in selector)
     unet, mod = random_state(official_layout(True, cond), seed), random_state(official_layout(False), seed + 1)
     if drop:
         del unet[drop]
@@ -209,7 +210,7 @@ def write_run(tmp_path: Path, *, new_order=False, selector=SELECTOR, drop=None, 
 
 def inputs(b: int, seed: int = 5):
     g = torch.Generator().manual_seed(seed)
-    parts = {k: torch.randn(b, w, generator=g) for k, w in official.PARAM_WIDTHS.items()}
+    parts = {k: torch.randn(b, w, generator=g) for k, w in PARAM_WIDTHS.items()}
     x, img = torch.randn(b, 3, RES, RES, generator=g), torch.randn(b, 6, RES, RES, generator=g)
     ours = torch.cat([parts["shape"], parts["exp"], parts["pose"], parts["cam"], parts["faceemb"], parts["shadow"]], 1)
     return x, img, parts, ours
@@ -237,7 +238,7 @@ def test_imported_network_is_the_official_one(tmp_path, new_order):
 
 def test_mapped_network_equals_ours_loaded_normally(tmp_path):
     _, cfg, sd = write_run(tmp_path)
-    ckpt, module = official.convert(sd["unet"], sd["mod"], official.read_config(cfg))
+    ckpt, module = official.convert(sd["unet"], sd["mod"], read_config(cfg))
     torch.save(ckpt, tmp_path / "ours.ckpt")
     loaded = load_checkpoint(tmp_path / "ours.ckpt").model
     x, img, _, ours = inputs(2)

@@ -6,9 +6,9 @@ Layout::
     <root>/records/<record_id>/<encoding>.npy   one file per encoding, read with np.load(mmap_mode="r")
     <root>/records/<record_id>/meta.json        per-record metadata (split, subject, source, ...)
 
-Writes are atomic per record: the files go to ``records/.tmp-<record_id>-<pid>/`` and the folder is renamed
-into place with one ``os.rename``, so a killed run never leaves a partial record and a rerun resumes by
-skipping what exists. Reads are lazy: only the requested encodings are opened, as read-only memmaps.
+Writes are atomic per record (:mod:`difareli.data.records`: a scratch folder renamed into place), so a killed
+run never leaves a partial record and a rerun resumes by skipping what exists. Reads are lazy: only the requested
+encodings are opened, as read-only memmaps. :mod:`difareli.data.verify` checks the records against the header.
 Torch-free on purpose (numpy + json only) so DataLoader workers and CLI tools import it cheaply.
 """
 
@@ -17,73 +17,29 @@ from __future__ import annotations
 import bisect
 import json
 import os
-import re
-import shutil
 import warnings
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
 import numpy as np
 
-from difareli.utils.fileio import RESUME, fsync_dir, is_no_space, no_space, write_text_atomic
+from difareli.utils.fileio import fsync_dir, write_text_atomic
 from difareli.data import encodings as enc
-from difareli.errors import MissingError, UserError, UserFileNotFoundError, check_light
+from difareli.data import records
+# validate_record_id, META and RECORDS are also named from here (tests, readers of the layout).
+from difareli.data.records import META, RECORDS, is_record_id, validate_record_id
+from difareli.data.verify import problems as verify_problems
+from difareli.errors import MissingError, UserError, UserFileNotFoundError
 
 HEADER = "store.json"
 #: Schema versions this code reads. v2 only appended encodings (SynthFaces v2's ``*_gt`` block) and changed none,
 #: so a v1 store reads unchanged (it simply lacks the v2 encodings; ``available`` says so).
 READABLE_VERSIONS = (1, enc.SCHEMA_VERSION)
-RECORDS = "records"
-META = "meta.json"
-_TMP = ".tmp-"
-_OLD = ".old-"
-_ID_RE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.+=-]{0,199}$")
 
 
 class CorruptRecordError(UserError):
     """One record's stored file is unreadable or of the wrong shape or kind: that record is bad, not the store
     (the benchmark scores such a pair as a failed row)."""
-
-
-def validate_record_id(record_id: str) -> str:
-    """Return ``record_id`` if it is a safe folder name, else raise ValueError saying why."""
-    if not isinstance(record_id, str) or not _ID_RE.match(record_id):
-        raise UserError(
-            f"invalid record id {record_id!r}: use 1-200 characters from [A-Za-z0-9_.+=-], "
-            "not starting with '.' or '-' (no '/', no spaces)"
-        )
-    return record_id
-
-
-def _json_default(obj: Any) -> Any:
-    # numpy scalars/arrays sneak into meta from generators; store them as plain JSON values.
-    if isinstance(obj, (np.generic, np.ndarray)):
-        return obj.tolist()
-    if isinstance(obj, Path):
-        return str(obj)
-    raise TypeError(f"{type(obj).__name__} is not JSON-serialisable")
-
-
-def _pid_alive(pid: int) -> bool:
-    if pid == os.getpid():
-        return False  # our own leftovers (e.g. from a failed write) are stale too
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
-def _split_scratch(name: str) -> tuple[str, str, int] | None:
-    """Parse ``.tmp-<id>-<pid>`` / ``.old-<id>-<pid>`` into (kind, id, pid)."""
-    for prefix in (_TMP, _OLD):
-        if name.startswith(prefix):
-            rid, _, pid = name[len(prefix):].rpartition("-")
-            if rid and pid.isdigit():
-                return prefix, rid, int(pid)
-    return None
 
 
 class EncodingStore:
@@ -184,19 +140,7 @@ class EncodingStore:
 
     def clean_scratch(self) -> list[str]:
         """Remove ``.tmp-*`` folders of dead writers; restore records whose overwrite was interrupted."""
-        removed = []
-        for entry in os.scandir(self.records_dir):
-            parsed = _split_scratch(entry.name)
-            if parsed is None or _pid_alive(parsed[2]):
-                continue  # a live writer (another process on this host) still owns it
-            kind, rid, _ = parsed
-            final = self.records_dir / rid
-            if kind == _OLD and not final.exists():
-                # Killed between "rename old away" and "rename new in": the old record is still whole.
-                os.rename(entry.path, final)
-            else:
-                shutil.rmtree(entry.path, ignore_errors=True)
-            removed.append(entry.name)
+        removed = records.clean_scratch(self.records_dir)
         if removed:
             self.refresh()
         return removed
@@ -244,38 +188,12 @@ class EncodingStore:
         ``arrays`` must hold exactly the header's encodings, each valid for the schema and the store's dims.
         """
         validate_record_id(record_id)
-        final = self.records_dir / record_id
-        if final.exists() and not overwrite:
+        if (self.records_dir / record_id).exists() and not overwrite:
             return False
         checked = self._validate_arrays(record_id, arrays)
-        try:
-            meta_text = json.dumps(dict(meta or {}), indent=1, sort_keys=True, default=_json_default)
-        except TypeError as e:
-            raise UserError(f"record {record_id!r}: meta is not JSON-serialisable: {e}") from None
-
-        tmp = self.records_dir / f"{_TMP}{record_id}-{os.getpid()}"
-        if tmp.exists():
-            shutil.rmtree(tmp)
-        file = final
-        try:
-            tmp.mkdir()
-            for name, arr in checked.items():
-                file = final / f"{name}.npy"
-                with open(tmp / file.name, "wb") as f:
-                    np.save(f, arr, allow_pickle=False)
-                    self._sync(f)
-            file = final / META
-            with open(tmp / META, "w") as f:
-                f.write(meta_text + "\n")
-                self._sync(f)
-            if self.durable:
-                fsync_dir(tmp)
-            written = self._commit(tmp, final, overwrite)
-        except BaseException as e:
-            shutil.rmtree(tmp, ignore_errors=True)  # a full disk or a kill leaves no partial record
-            if is_no_space(e):
-                raise no_space(file, e, RESUME) from None
-            raise
+        meta_text = records.dump_meta(record_id, meta)
+        written = records.write_atomic(self.records_dir, record_id, checked, meta_text, overwrite=overwrite,
+                                       durable=self.durable)
         if written:
             if self._ids is not None and record_id not in self._ids:
                 bisect.insort(self._ids, record_id)
@@ -301,35 +219,6 @@ class EncodingStore:
                 raise UserError(f"record {record_id!r}: {e}") from None
         return out
 
-    def _sync(self, f) -> None:
-        if self.durable:
-            f.flush()
-            os.fsync(f.fileno())
-
-    def _commit(self, tmp: Path, final: Path, overwrite: bool) -> bool:
-        old = None
-        if final.exists():
-            if not overwrite:
-                shutil.rmtree(tmp)  # another writer finished it meanwhile
-                return False
-            old = self.records_dir / f"{_OLD}{final.name}-{os.getpid()}"
-            os.rename(final, old)
-        try:
-            os.rename(tmp, final)
-        except OSError:
-            if old is not None:
-                os.rename(old, final)
-                raise
-            if final.exists():  # lost a race with a concurrent writer of the same id: theirs stands
-                shutil.rmtree(tmp, ignore_errors=True)
-                return False
-            raise
-        if self.durable:
-            fsync_dir(self.records_dir)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
-        return True
-
     # ------------------------------------------------------------------ reading
     def has(self, record_id: str) -> bool:
         """Whether a completed record with this id exists."""
@@ -337,7 +226,7 @@ class EncodingStore:
         return (self.records_dir / record_id).is_dir()
 
     def __contains__(self, record_id: object) -> bool:
-        return isinstance(record_id, str) and _ID_RE.match(record_id) is not None and self.has(record_id)
+        return is_record_id(record_id) and self.has(record_id)
 
     def refresh(self) -> None:
         """Forget the cached listing and index (after other processes wrote records)."""
@@ -435,70 +324,8 @@ class EncodingStore:
         return meta
 
     def verify(self, ids: Iterable[str] | None = None, *, check_values: bool = False) -> list[str]:
-        """Problems found (empty if healthy): missing/unreadable files, wrong shapes or dtypes, bad meta.
-
-        Only headers are read by default; ``check_values`` also loads every array and checks finiteness.
-        """
-        problems = []
+        """Problems found (empty if healthy): missing/unreadable files, wrong shapes or dtypes, bad meta
+        (:func:`difareli.data.verify.problems`). Only headers are read unless ``check_values``, which also loads
+        every array and checks finiteness."""
         self.refresh()
-        splits_used = self._splits_used()  # once: whether every record must name its split
-        for rid in self.ids() if ids is None else ids:
-            path = self.records_dir / rid
-            if not path.is_dir():
-                problems.append(f"{rid}: record folder missing")
-                continue
-            problems += self._verify_meta(rid, path / META, splits_used)
-            for name in self.encodings:
-                file = path / f"{name}.npy"
-                if not file.is_file():
-                    problems.append(f"{rid}: missing encoding {name!r} ({file.name})")
-                    continue
-                try:
-                    arr = np.load(file, mmap_mode="r", allow_pickle=False)
-                    want = enc.get(name).resolve(self.dims)
-                    if arr.shape != want or arr.dtype != np.dtype(enc.get(name).dtype):
-                        problems.append(f"{rid}: {name} has shape {arr.shape} {arr.dtype}, schema wants {want} "
-                                        f"{enc.get(name).dtype}")
-                    elif check_values:
-                        enc.get(name).validate(np.asarray(arr), self.dims)
-                        if name.startswith("light"):  # what every relight checks (errors.check_light)
-                            check_light(np.asarray(arr), f"{name}")
-                except (OSError, ValueError, EOFError) as e:  # EOFError: an empty (truncated) file
-                    problems.append(f"{rid}: {name} unreadable ({type(e).__name__}: {e})")
-            for derived in self.derived:  # a derived version may cover one split; where present it must be whole
-                file = path / f"{derived}.npy"
-                base = derived.partition("@")[0]
-                if file.is_file() and base in enc.ENCODINGS:
-                    try:
-                        arr = np.load(file, mmap_mode="r", allow_pickle=False)
-                        if arr.shape != enc.get(base).resolve(self.dims):
-                            problems.append(f"{rid}: derived {derived} has shape {arr.shape}, schema wants "
-                                            f"{enc.get(base).resolve(self.dims)}")
-                    except (OSError, ValueError, EOFError) as e:
-                        problems.append(f"{rid}: derived {derived} unreadable ({type(e).__name__}: {e})")
-        return problems
-
-    def _splits_used(self) -> bool:
-        """Whether any record of the store names its split (then every record must)."""
-        for rid in self._all_ids():
-            try:
-                if "split" in json.loads((self.records_dir / rid / META).read_text()):
-                    return True
-            except (OSError, ValueError, TypeError):
-                continue
-            return False  # the first readable record decides (records of one store are written alike)
-        return False
-
-    def _verify_meta(self, rid: str, path: Path, splits_used: bool) -> list[str]:
-        """Problems of one record's meta: unreadable, not an object, or without the keys readers select by."""
-        try:
-            meta = json.loads(path.read_text())
-        except (OSError, ValueError) as e:
-            return [f"{rid}: {META} unreadable ({type(e).__name__}: {e})"]
-        if not isinstance(meta, dict):
-            return [f"{rid}: {META} holds {type(meta).__name__}, not an object"]
-        synth = self.store_meta.get("generator") == "synthfaces"
-        need = (["split", "subject", "light_index"] if synth else []) + (["split"] if splits_used else [])
-        need = list(dict.fromkeys(need))
-        missing = [k for k in need if k not in meta]
-        return [f"{rid}: {META} lacks {missing} (the record drops out of every split and protocol)"] if missing else []
+        return verify_problems(self, ids, check_values=check_values)

@@ -8,8 +8,7 @@ What the official code writes, read from that repository (nothing of it is copie
   ``<img_model.name>_ema_<rate>_<step>.pt`` (the UNet, ``ImgCond``) and ``<img_cond_model.name>_ema_...pt`` (the
   Modulator, ``ImgEncoder``), beside ``..._model<step>.pt`` (raw weights) and ``opt<step>.pt``. They hold only
   tensors, so they load with ``torch.load(weights_only=True)``;
-- the networks are built from a yacs config (``config/base_config.py`` defaults, merged with
-  ``config/difareli/difareli_{64,128,256}.yaml``); :data:`DEFAULTS` holds the defaults of the keys read here;
+- the networks are built from a yacs config, read by :func:`difareli.official.config.read_config`;
 - ``UNetModel_SpatialCondition_Hadamart``: guided-diffusion names (``input_blocks`` / ``middle_block`` /
   ``output_blocks``, ``in_layers`` / ``emb_layers`` / ``out_layers`` / ``skip_connection``), the AdaGN MLP3 as
   ``cond_proj_layers``, and a parameter-free ``HadamartLayer`` (``x * tanh(m)``) as layer 0 of every input block
@@ -18,8 +17,8 @@ What the official code writes, read from that repository (nothing of it is copie
 - attention with ``use_new_attention_order=False`` (the default) lays the qkv rows out per head, ``[q_h, k_h,
   v_h]`` for each head h; ours (the "new" order) lays out ``[q, k, v]`` over all heads;
 - the non-spatial vector ``cond_params`` is the concatenation of ``param_model.params_selector`` (minus
-  ``rmv_params``) with the widths of :data:`PARAM_WIDTHS`, raw (no normalisation); the Modulator reads
-  ``img_cond_model.in_image`` concatenated in that order.
+  ``rmv_params``) with the widths of :data:`~difareli.official.config.PARAM_WIDTHS`, raw (no normalisation); the
+  Modulator reads ``img_cond_model.in_image`` concatenated in that order.
 
 Mapping: :func:`convert` renames (Hadamart layers dropped, so later layer indices shift by one), reorders the
 legacy q/k/v rows, and permutes the first MLP3 columns from the official vector order to ours (``shape`` holds
@@ -29,150 +28,20 @@ our network must be filled with the right shape, else the file is refused naming
 
 from __future__ import annotations
 
-import copy
 import re
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from difareli.checkpoints.format import OFFICIAL_REPO as REPO
 from difareli.checkpoints.format import is_official
 from difareli.errors import UserError, check_file
+# read_config and PARAM_WIDTHS are also named from here (scripts/bench_official.py, docs/official_code.md).
+from difareli.official.config import DEFAULTS, PARAM_ENCODING, PARAM_WIDTHS, OfficialConfig, read_config
 from difareli.utils.fileio import torch_save_atomic
 
-#: The defaults (``config/base_config.py``) of the keys this module reads.
-DEFAULTS: dict[str, dict[str, Any]] = {
-    "img_model": {"name": "Img", "arch": "UNet", "image_size": 128, "num_channels": 128, "in_channels": 3,
-                  "out_channels": 3, "num_res_blocks": 2, "num_heads": 4, "num_heads_upsample": -1,
-                  "num_head_channels": -1, "attention_resolutions": "16,8", "channel_mult": "", "dropout": 0.0,
-                  "use_scale_shift_norm": True, "resblock_updown": False, "use_new_attention_order": False,
-                  "condition_proj_dim": 512, "conditioning": False, "hadamart_prep": None,
-                  "cond_layer_selector": None, "apply_dpm_cond_img": False, "in_image": ["raw"]},
-    "img_cond_model": {"name": "ImgEncoder", "apply": False, "arch": "EncoderUNet", "in_image": ["raw"],
-                       "image_size": 128, "num_channels": 128, "num_res_blocks": 2, "num_heads": 4,
-                       "num_head_channels": -1, "attention_resolutions": "16,8", "channel_mult": "", "dropout": 0.0,
-                       "resblock_updown": False, "use_new_attention_order": False, "override_cond": "",
-                       "prep_image": [None]},
-    "param_model": {"params_selector": ["shape", "pose", "exp", "cam", "light", "faceemb"], "rmv_params": []},
-    "relighting": {"use_SH": False, "num_SH": 9},
-    "diffusion": {"diffusion_steps": 1000, "noise_schedule": "linear", "learn_sigma": False, "predict_xstart": False,
-                  "rescale_timesteps": False},
-}
-#: Width of each non-spatial parameter in ``cond_params`` (base_config's ``params_dict``).
-PARAM_WIDTHS = {"shape": 100, "pose": 6, "exp": 50, "cam": 3, "light": 27, "faceemb": 512, "shadow": 1}
-#: Our encoding holding each official parameter (DECA shape/pose/exp live in ``shape``, in the store's layout).
-PARAM_ENCODING = {"shape": "shape", "pose": "shape", "exp": "shape", "cam": "cam", "light": "light",
-                  "faceemb": "identity", "shadow": "shadow"}
-#: Our encoding for each Modulator input image (with its channels).
-IMAGE_ENCODING = {"deca_masked_face_images_woclip": "shading", "faceseg_nohead": "background"}
 #: ``shape``'s part order in a store written by ``difareli.official.importers`` (its default ``shape_parts``).
 STORE_SHAPE_PARTS = ("shape", "exp", "pose")
-#: The official channel multipliers by image size when ``channel_mult`` is empty (``script_util.create_model``).
-CHANNEL_MULT = {64: [1, 2, 3, 4], 128: [1, 1, 2, 3, 4], 256: [1, 1, 2, 2, 4, 4]}
-_ARCH = ("UNetCond_SpatialCondition_Hadamart", "EncoderUNet_SpatialCondition")
-#: Architecture keys the Modulator must share with the UNet (ours mirrors the UNet's first half).
-_SHARED = ("image_size", "num_channels", "num_res_blocks", "num_heads", "num_head_channels", "attention_resolutions",
-           "channel_mult", "resblock_updown", "use_new_attention_order")
-_LISTS = ("attention_resolutions", "channel_mult")
-
-
-@dataclass
-class OfficialConfig:
-    """What an official YAML says about the networks, in our terms."""
-
-    path: Path
-    cfg: dict[str, Any]
-    net: dict[str, Any]             # UNetConfig fields
-    spatial_inputs: list[str]
-    selector: list[str]             # official non-spatial parameters, in cond_params order
-    unet_name: str
-    encoder_name: str
-
-    @property
-    def nonspatial_inputs(self) -> list[str]:
-        return list(dict.fromkeys(PARAM_ENCODING[p] for p in self.selector))
-
-
-def _merged(raw: Mapping[str, Any]) -> dict[str, Any]:
-    cfg = copy.deepcopy(DEFAULTS)
-    for section, values in raw.items():
-        if isinstance(values, Mapping):
-            cfg.setdefault(str(section), {}).update(values)
-    return cfg
-
-
-def _ints(value: Any) -> list[int]:
-    """``"16,8"`` (the YAML files), ``(16, 8)`` or ``16`` (yacs' literal_eval of a dumped config) -> ints."""
-    items = value if isinstance(value, (list, tuple)) else str(value).split(",")
-    return [int(float(v)) for v in items]
-
-
-def read_config(path: str | Path) -> OfficialConfig:
-    """The official YAML (``config/difareli/difareli_128.yaml`` or a run's merged config), validated for import."""
-    import yaml
-
-    p = check_file(path, "config")
-    try:
-        raw = yaml.safe_load(p.read_text())
-    except (yaml.YAMLError, UnicodeDecodeError) as e:
-        raise UserError(f"config={p} is not readable YAML ({str(e).splitlines()[0]}); give the official YAML the "
-                        "checkpoint was trained with, e.g. config/difareli/difareli_128.yaml") from None
-    if not isinstance(raw, Mapping) or not isinstance(raw.get("img_model"), Mapping):
-        raise UserError(f"config={p} is not an official DiFaReli config (no img_model section); give the YAML the "
-                        "checkpoint was trained with, e.g. config/difareli/difareli_128.yaml")
-    cfg = _merged(raw)
-    m, e, d = cfg["img_model"], cfg["img_cond_model"], cfg["diffusion"]
-
-    def need(ok: bool, key: str, value: Any, what: str) -> None:
-        if not ok:
-            raise UserError(f"config={p}: {key}={value!r} {what}; only the DiFaReli Modulator model of {REPO} "
-                            "(config/difareli/*.yaml) imports")
-
-    need(m["arch"] == _ARCH[0], "img_model.arch", m["arch"], f"is not {_ARCH[0]}")
-    need(bool(e["apply"]) and e["arch"] == _ARCH[1], "img_cond_model.arch", e["arch"], f"(apply={e['apply']}) is not "
-         f"an applied {_ARCH[1]}")
-    need(e["override_cond"] == "spatial_latent", "img_cond_model.override_cond", e["override_cond"],
-         "is not spatial_latent")
-    need(str(m["hadamart_prep"]).lower() == "tanh", "img_model.hadamart_prep", m["hadamart_prep"],
-         "is not Tanh (ours gates with tanh(m))")
-    need(m["cond_layer_selector"] in (None, "all"), "img_model.cond_layer_selector", m["cond_layer_selector"],
-         "modulates only some levels (ours modulates all)")
-    need(bool(m["use_scale_shift_norm"]), "img_model.use_scale_shift_norm", m["use_scale_shift_norm"],
-         "is not true (ours: (1 + t_s) GN(h) + t_b)")
-    need(not m["apply_dpm_cond_img"] and list(m["in_image"]) == ["raw"], "img_model.apply_dpm_cond_img",
-         m["apply_dpm_cond_img"], "feeds images to the UNet itself")
-    need(m["num_heads_upsample"] in (-1, m["num_heads"]), "img_model.num_heads_upsample", m["num_heads_upsample"],
-         "differs from num_heads")
-    need((m["in_channels"], m["out_channels"]) == (3, 3) and not d["learn_sigma"] and not d["predict_xstart"],
-         "img_model.out_channels", m["out_channels"], "(or learn_sigma / predict_xstart) is not eps on RGB")
-    need(d["noise_schedule"] == "linear" and int(d["diffusion_steps"]) == 1000 and not d["rescale_timesteps"],
-         "diffusion.noise_schedule", d["noise_schedule"], "(with 1000 steps, unrescaled) is not the linear schedule")
-    for key in _SHARED:
-        same = (lambda v: _ints(v) if v not in ("", None, ()) else v) if key in _LISTS else (lambda v: v)
-        need(same(e.get(key, m[key])) == same(m[key]), f"img_cond_model.{key}", e.get(key),
-             f"differs from img_model.{key}={m[key]!r} (ours mirrors the UNet's first half)")
-    images = list(e["in_image"])
-    preps = list(e.get("prep_image") or [None] * len(images))
-    bad = [i for i in images if i not in IMAGE_ENCODING] + [str(x) for x in preps if x is not None]
-    need(not bad, "img_cond_model.in_image", images, f"has inputs without a difareli encoding ({bad}); known: "
-         f"{sorted(IMAGE_ENCODING)}, no prep_image")
-    selector = [s for s in cfg["param_model"]["params_selector"] if s not in cfg["param_model"]["rmv_params"]]
-    if not m["conditioning"]:
-        selector = []
-    unknown = [s for s in selector if s not in PARAM_WIDTHS]
-    need(not unknown, "param_model.params_selector", selector, f"names {unknown}, which have no difareli encoding")
-    need(int(cfg["relighting"]["num_SH"]) == 9, "relighting.num_SH", cfg["relighting"]["num_SH"], "is not 9")
-    size = int(m["image_size"])
-    mult = _ints(m["channel_mult"]) if m["channel_mult"] not in ("", None, ()) else CHANNEL_MULT.get(size)
-    need(mult is not None, "img_model.image_size", size, f"has no default channel_mult here ({sorted(CHANNEL_MULT)})")
-    net = {"base_channels": int(m["num_channels"]), "channel_mult": mult, "num_res_blocks": int(m["num_res_blocks"]),
-           "attention_resolutions": _ints(m["attention_resolutions"]), "image_size": size,
-           "num_heads": int(m["num_heads"]), "num_head_channels": int(m["num_head_channels"]),
-           "dropout": float(m["dropout"]), "resblock_updown": bool(m["resblock_updown"]), "norm_groups": 32,
-           "adagn_hidden": int(m["condition_proj_dim"])}
-    return OfficialConfig(p, cfg, net, [IMAGE_ENCODING[i] for i in images], selector, str(m["name"]),
-                          str(e["name"]))
 
 
 # ---------------------------------------------------------------------------------------------- files
