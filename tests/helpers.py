@@ -12,10 +12,27 @@ from omegaconf import DictConfig, open_dict
 from difareli.configs import CONFIG_DIR
 
 CONF = CONFIG_DIR
+
+
+def _installed(*modules: str) -> bool:
+    # find_spec, not import: deciding a skip must not pay for importing mediapipe (seconds) in every worker.
+    return all(importlib.util.find_spec(m) for m in modules)
+
+
 #: The photo estimators (DIFARELI_PREPROCESS=1 bash scripts/install.sh): difareli-synth's default inputs=estimated
 #: and the real-photo pipeline need them; the README's plain install has none, and tests that need them skip there.
-HAS_ESTIMATORS = all(importlib.util.find_spec(m) for m in ("mediapipe", "cv2", "dlib"))
+#: (cv2 comes with mediapipe, which requires opencv-contrib-python.)
+HAS_ESTIMATORS = _installed("mediapipe", "cv2", "dlib")
 NO_ESTIMATORS = "needs the photo estimators (DIFARELI_PREPROCESS=1 bash scripts/install.sh)"
+#: The companions below name the other subsets of that install that some tests need.
+#: mediapipe alone: face landmarks and the BFM fit on them, without identity.
+HAS_MEDIAPIPE = _installed("mediapipe")
+#: OpenCV alone: the photo crop and the composite's blending use it, without the estimators.
+HAS_CV2 = _installed("cv2")
+#: dlib with its face-recognition model files (face_recognition_models): what DlibIdentity loads.
+HAS_DLIB_MODELS = _installed("dlib", "face_recognition_models")
+#: The estimators and the face_recognition package, the reference the identity estimator is compared with.
+HAS_FACE_RECOGNITION = HAS_ESTIMATORS and _installed("face_recognition")
 
 
 def compose_train(out_dir: Path, overrides: list[str], config_name: str = "train") -> DictConfig:

@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import base64
-import importlib.util
 import json
 import os
 import shutil
@@ -22,10 +21,9 @@ from difareli.app.envmaps import ENVMAPS, envmap_light
 from difareli.app.server import serve_in_thread
 from difareli.app.service import Service
 
-from tests.helpers import compose_train
+from tests.helpers import HAS_ESTIMATORS, compose_train
 
 pytestmark = pytest.mark.usefixtures("one_thread")
-HAS_ESTIMATORS = all(importlib.util.find_spec(m) for m in ("mediapipe", "dlib"))
 SHIPPED = "difareli_pp-synth64" in zoo.available()
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 CHROMEDRIVER = shutil.which("chromedriver")

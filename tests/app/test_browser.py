@@ -8,7 +8,6 @@ estimators are missing."""
 from __future__ import annotations
 
 import base64
-import importlib.util
 import os
 import shutil
 from pathlib import Path
@@ -22,12 +21,13 @@ from difareli.app.server import serve_in_thread
 from difareli.app.service import Service
 from difareli.checkpoints import zoo
 
+from tests.helpers import HAS_ESTIMATORS
+
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("one_thread")]
 STUDENT = "difareli_pp_ss-synth64"
 CHROMIUM = next((p for p in (shutil.which("chromium"), shutil.which("chromium-browser"), "/usr/bin/chromium")
                  if p and os.access(p, os.X_OK)), None)
 CHROMEDRIVER = shutil.which("chromedriver")
-HAS_ESTIMATORS = all(importlib.util.find_spec(m) for m in ("mediapipe", "dlib"))
 
 
 def _png(data_url: str) -> np.ndarray:

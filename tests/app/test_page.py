@@ -5,7 +5,6 @@ notice) and the endpoints behind them, over loopback: /api/examples, /api/preset
 from __future__ import annotations
 
 import base64
-import importlib.util
 import re
 from importlib import resources
 
@@ -22,10 +21,10 @@ from difareli.checkpoints import zoo
 from difareli.lighting import sh
 
 from tests.app.test_app_hostile import raw
+from tests.helpers import HAS_ESTIMATORS
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 STUDENT = "difareli_pp_ss-synth64"  # one network pass: a relight takes a fraction of a second
-HAS_ESTIMATORS = all(importlib.util.find_spec(m) for m in ("mediapipe", "dlib"))
 
 
 def _png(data_url: str) -> np.ndarray:

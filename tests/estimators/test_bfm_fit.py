@@ -11,6 +11,8 @@ from difareli.render import OrthoCamera
 from difareli.synth.accessories import default_camera
 from difareli.render.face_model import SHAPE_DIM, FaceModel, FaceParams, rotation_matrix
 
+from tests.helpers import HAS_FACE_RECOGNITION, HAS_MEDIAPIPE, NO_ESTIMATORS
+
 S = 256
 
 
@@ -62,7 +64,8 @@ def test_ridge_keeps_noisy_fits_near_the_mean_face():
 # ------------------------------------------------------------------ photos (mediapipe needed)
 @pytest.fixture(scope="module")
 def astronaut_ctx():
-    pytest.importorskip("mediapipe")
+    if not HAS_MEDIAPIPE:
+        pytest.skip(NO_ESTIMATORS)
     import skimage.data
 
     from difareli.estimators.align import FaceAligner
@@ -118,11 +121,10 @@ def _photos(folder):
         (folder / "grace_hopper.jpg").write_bytes(f.read())
 
 
+@pytest.mark.skipif(not HAS_FACE_RECOGNITION, reason=NO_ESTIMATORS)
 def test_preprocessed_store_relights_with_a_synthfaces_checkpoint(tiny_checkpoint, tmp_path):
     # The acceptance: photos preprocessed at 32 px (FaceMesh runs on an upsampled crop) have S = 53 like
     # SynthFaces, so a checkpoint trained on SynthFaces relights them.
-    pytest.importorskip("mediapipe")
-    pytest.importorskip("face_recognition")
     import imageio.v3 as iio
 
     from difareli.cli.preprocess import build_pipeline

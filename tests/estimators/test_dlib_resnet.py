@@ -8,10 +8,16 @@ import warnings
 import numpy as np
 import pytest
 
-dlib = pytest.importorskip("dlib")
+from tests.helpers import HAS_DLIB_MODELS, NO_ESTIMATORS
+
+if not HAS_DLIB_MODELS:
+    pytest.skip(NO_ESTIMATORS, allow_module_level=True)
+
+import dlib  # noqa: E402
+
 with warnings.catch_warnings():  # face_recognition_models imports the deprecated pkg_resources
     warnings.simplefilter("ignore")
-    frm = pytest.importorskip("face_recognition_models")
+    import face_recognition_models as frm  # noqa: E402
 
 from difareli.estimators.dlib_resnet import face_descriptors, load, read_dlib_resnet  # noqa: E402
 from difareli.estimators.identity import DlibIdentity  # noqa: E402

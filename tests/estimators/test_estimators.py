@@ -6,8 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-mp = pytest.importorskip("mediapipe")
-pytest.importorskip("face_recognition")
+from tests.helpers import HAS_FACE_RECOGNITION, NO_ESTIMATORS
+
+if not HAS_FACE_RECOGNITION:
+    pytest.skip(NO_ESTIMATORS, allow_module_level=True)
 
 from difareli.lighting import sh  # noqa: E402
 from difareli.data.encodings import PART_INDEX  # noqa: E402

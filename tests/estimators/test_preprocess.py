@@ -16,6 +16,8 @@ from PIL import Image
 
 from difareli.estimators.loading import BadInput, load_image, record_ids, sanitise_id
 
+from tests.helpers import HAS_FACE_RECOGNITION, NO_ESTIMATORS
+
 REPO = Path(__file__).resolve().parents[2]
 
 
@@ -55,8 +57,8 @@ def test_record_ids_are_sanitised_and_unique():
 
 
 # ------------------------------------------------------------------ the pipeline (mediapipe needed)
-mp = pytest.importorskip("mediapipe")
-pytest.importorskip("face_recognition")
+if not HAS_FACE_RECOGNITION:
+    pytest.skip(NO_ESTIMATORS, allow_module_level=True)
 
 
 def _photos(folder: Path) -> None:

@@ -13,7 +13,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-pytest.importorskip("mediapipe")
+from tests.helpers import HAS_MEDIAPIPE, NO_ESTIMATORS
+
+if not HAS_MEDIAPIPE:
+    pytest.skip(NO_ESTIMATORS, allow_module_level=True)
 
 from difareli.lighting import sh  # noqa: E402
 from difareli.estimators import light as light_mod  # noqa: E402

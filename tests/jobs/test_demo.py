@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 
 import imageio.v3 as iio
@@ -11,10 +10,9 @@ import pytest
 
 from difareli.checkpoints import zoo
 
-from tests.helpers import compose_train
+from tests.helpers import HAS_ESTIMATORS, compose_train
 
 pytestmark = pytest.mark.usefixtures("one_thread")
-HAS_ESTIMATORS = all(importlib.util.find_spec(m) for m in ("mediapipe", "dlib"))
 
 
 def test_demo_writes_grid_video_and_table(tiny_checkpoint, tmp_path):

@@ -3,8 +3,6 @@ blended with a feathered mask; an identity relight gives back the photo."""
 
 from __future__ import annotations
 
-import importlib.util
-
 import imageio.v3 as iio
 import numpy as np
 import pytest
@@ -13,9 +11,8 @@ from difareli.checkpoints import zoo
 from difareli.relight.composite import Compositor, crop_to_photo, feathered, part_mask
 from difareli.data.encodings import PART_INDEX
 
-from tests.helpers import compose_train
+from tests.helpers import HAS_CV2, HAS_ESTIMATORS, compose_train
 
-HAS_ESTIMATORS = all(importlib.util.find_spec(m) for m in ("mediapipe", "dlib"))
 SIZE = 64
 
 
@@ -47,7 +44,8 @@ def disk_labels(size: int = SIZE, radius: float = 0.3) -> np.ndarray:
 def aligned_of(photo: np.ndarray, quad: np.ndarray) -> np.ndarray:
     from difareli.estimators.align import warp_quad
 
-    pytest.importorskip("cv2")
+    if not HAS_CV2:
+        pytest.skip("needs OpenCV (the photo extras: DIFARELI_PREPROCESS=1 bash scripts/install.sh)")
     return warp_quad(photo, quad, SIZE)
 
 

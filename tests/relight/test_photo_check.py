@@ -3,15 +3,14 @@ calibrates its limits (scripts/calibrate_photo_check.py)."""
 
 from __future__ import annotations
 
-import importlib.util
-
 import numpy as np
 import pytest
 
 from difareli.relight import photo, photo_check
 
-needs_estimators = pytest.mark.skipif(not all(importlib.util.find_spec(m) for m in ("mediapipe", "dlib")),
-                                      reason="needs the photo estimators")
+from tests.helpers import HAS_ESTIMATORS
+
+needs_estimators = pytest.mark.skipif(not HAS_ESTIMATORS, reason="needs the photo estimators")
 ENC = ["image", "shading", "shape", "identity", "light", "normal"]
 
 

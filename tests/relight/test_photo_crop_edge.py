@@ -3,8 +3,6 @@ composite's mask does not fade at the photo's edge; forehead skin above FaceMesh
 
 from __future__ import annotations
 
-import importlib.util
-
 import numpy as np
 import pytest
 
@@ -12,9 +10,10 @@ from difareli.data.encodings import PART_INDEX
 from difareli.estimators.align import inside_photo, warp_quad
 from difareli.relight.composite import Compositor
 
-HAS_ESTIMATORS = all(importlib.util.find_spec(m) for m in ("mediapipe", "dlib"))
+from tests.helpers import HAS_CV2, HAS_ESTIMATORS
+
 # The alignment warp is OpenCV's, which only the photo extras install (the README's plain install has none).
-needs_cv2 = pytest.mark.skipif(importlib.util.find_spec("cv2") is None,
+needs_cv2 = pytest.mark.skipif(not HAS_CV2,
                                reason="needs OpenCV (the photo extras: DIFARELI_PREPROCESS=1 bash scripts/install.sh)")
 S = 64
 

@@ -5,7 +5,6 @@ third-party noise silenced, the install's last pip steps."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
 import subprocess
@@ -21,12 +20,12 @@ from difareli.checkpoints import zoo
 from difareli.errors import UserError
 from difareli.estimators.light import SkinSHLight, describe_light, is_grey, light_direction
 
-from tests.helpers import compose_train
+from tests.helpers import HAS_DLIB_MODELS, HAS_ESTIMATORS, compose_train
 
 REPO = Path(__file__).resolve().parents[2]
-HAS_ESTIMATORS = all(importlib.util.find_spec(m) for m in ("mediapipe", "dlib", "face_recognition_models"))
 SHIPPED = "difareli_pp-synth64" in zoo.available()
-needs_estimators = pytest.mark.skipif(not HAS_ESTIMATORS, reason="photo estimators not installed (DIFARELI_PREPROCESS=1)")
+needs_estimators = pytest.mark.skipif(not (HAS_ESTIMATORS and HAS_DLIB_MODELS),
+                                      reason="photo estimators not installed (DIFARELI_PREPROCESS=1)")
 needs_shipped = pytest.mark.skipif(not SHIPPED, reason="no shipped checkpoint")
 
 

@@ -4,7 +4,6 @@ student: skip lines, the CSV, the exit status, resuming after a kill, face=all o
 from __future__ import annotations
 
 import csv
-import importlib.util
 import os
 import signal
 import subprocess
@@ -15,8 +14,9 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
-pytestmark = pytest.mark.skipif(not all(importlib.util.find_spec(m) for m in ("mediapipe", "dlib")),
-                                reason="needs the photo estimators")
+from tests.helpers import HAS_ESTIMATORS
+
+pytestmark = pytest.mark.skipif(not HAS_ESTIMATORS, reason="needs the photo estimators")
 CKPT = "difareli_pp_ss-synth64"
 
 

@@ -16,6 +16,8 @@ from difareli.synth import config as synth_config
 from difareli.synth.c_norm import finalise
 from difareli.synth.estimated import mode_downsample
 
+from tests.helpers import HAS_FACE_RECOGNITION, NO_ESTIMATORS
+
 
 def test_every_store_records_the_visible_shadow(synth_store):
     s = EncodingStore.open(synth_store)
@@ -109,9 +111,8 @@ def test_mode_downsample_keeps_the_majority_label():
 
 
 @pytest.mark.slow
+@pytest.mark.skipif(not HAS_FACE_RECOGNITION, reason=NO_ESTIMATORS)
 def test_v3_store_estimates_every_input(tmp_path):
-    pytest.importorskip("mediapipe")
-    pytest.importorskip("face_recognition")
     rep = gen.generate(str(tmp_path / "v3"), 2, 2, 64, seed=0, realism="full", inputs="estimated")
     store = EncodingStore.open(tmp_path / "v3")
     assert rep.written == 4 and store.store_meta[encodings.C_RANGE_KEY]["state"] == "final"
