@@ -46,6 +46,8 @@ from difareli.evaluation.metrics import binary_scores
 from difareli.data.store import EncodingStore
 from difareli.lighting import sh
 from difareli.lighting.suns import Suns
+from difareli.render.camera import OrthoCamera
+from difareli.render.visible import visible_march
 from difareli.relight.targets import target_shadow_map
 
 #: The row of a map covering every mesh pixel: scored, not drawn in the figure.
@@ -110,7 +112,7 @@ def gt_name(store: EncodingStore) -> str:
 
 
 def maps_of(store: EncodingStore, rid: str, versions: dict[str, str], light_name: str,
-            key_sun: KeySun | None = None) -> dict[str, np.ndarray]:
+            key_sun: KeySun | None = None, cuts: tuple[float, ...] = ()) -> dict[str, np.ndarray]:
     """The binary maps of one record: GT, then each method."""
     gt = gt_name(store)
     lights = [light_name] + (["light_gt"] if light_name != "light_gt" and store.available("light_gt") else [])
@@ -136,6 +138,11 @@ def maps_of(store: EncodingStore, rid: str, versions: dict[str, str], light_name
         suns = Suns.from_header(store.meta(rid), a["light_gt"]) if "light_gt" in a else None
         out[SUNS_MARCH] = (target_shadow_map(g, suns, 0.0, (-10.0, 10.0)) > 0 if suns is not None
                            else np.zeros_like(out[KEY_MARCH]))
+        cam = OrthoCamera(*np.asarray(g["cam"], np.float64).tolist())
+        for cut in cuts:  # the same maker at other cuts on the share of light (choosing MARCH_VISIBLE)
+            out[f"{SUNS_MARCH} at {cut:g}"] = (visible_march(g["depth"], np.asarray(g["normal"], np.float64), cam,
+                                                             suns, cut) if suns is not None
+                                               else np.zeros_like(out[KEY_MARCH]))
         out[UPPER], _ = key_sun(rid)
     out[BASELINE] = a[mesh] != 0  # every mesh pixel: the IoU a map earns by covering all
     return out
@@ -165,6 +172,9 @@ def main(argv=None) -> None:
     ap.add_argument("--region", choices=("all", "face"), default="all",
                     help="face: GT and every map restricted to the exact face parts (face_mask_gt, else face_mask), "
                          "where the difference recipe's maps live")
+    ap.add_argument("--visible", type=float, nargs="*", default=[],
+                    help="also score the march toward every sun at these cuts on the share of light (e.g. on the "
+                         "val split: 0.05 0.1 0.15 0.2 0.25 0.3)")
     ap.add_argument("--figure-rows", type=int, default=8)
     ap.add_argument("--out", default=".")
     args = ap.parse_args(argv)
@@ -186,7 +196,7 @@ def main(argv=None) -> None:
     out.mkdir(parents=True, exist_ok=True)
     rows, fig, per, pooled = [], [], {}, {}
     for rid in ids:
-        m = maps_of(store, rid, versions, args.light, key_sun)
+        m = maps_of(store, rid, versions, args.light, key_sun, tuple(args.visible))
         if args.region == "face":
             face = np.asarray(store.read(rid, [fm])[fm], bool)
             m = {k: v & face for k, v in m.items()}
