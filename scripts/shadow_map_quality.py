@@ -44,7 +44,6 @@ from difareli.data import derived
 from difareli.utils import viz
 from difareli.evaluation.metrics import binary_scores
 from difareli.data.store import EncodingStore
-from difareli.lighting import sh
 from difareli.lighting.suns import Suns
 from difareli.render.camera import OrthoCamera
 from difareli.render.visible import visible_march
@@ -87,12 +86,12 @@ class KeySun:
 
 def key_sun_march(g: dict, meta: dict) -> np.ndarray:
     """The march on the geometry ``g`` (depth, normal, cam) toward a record's key sun (``sun_dir`` in its header),
-    as the relighting targets make it (``target_shadow_map``: a directional light's dominant direction is its
-    own); an empty map without a sun, as :class:`KeySun`."""
+    as the relighting targets make it (``target_shadow_map`` given that one sun and no ambient: its cast map); an
+    empty map without a sun, as :class:`KeySun`."""
     if not np.any(np.asarray(meta["sun_rgb"]) > 0):
         return np.zeros(np.shape(g["depth"]), bool)
-    light = sh.directional_light(np.asarray(meta["sun_dir"], dtype=np.float64), 1.0)
-    return target_shadow_map(g, light, 0.0, (-10.0, 10.0)) > 0
+    key = Suns(np.asarray(meta["sun_dir"], dtype=np.float64)[None], np.ones((1, 3)), np.zeros((9, 3)))
+    return target_shadow_map(g, key, 0.0, (-10.0, 10.0)) > 0  # one sun, no ambient: its cast map
 
 
 def parse_versions(specs: list[str]) -> dict[str, str]:

@@ -7,7 +7,7 @@ import pytest
 
 from difareli.errors import UserError
 from difareli.lighting import sh
-from difareli.lighting.suns import Suns
+from difareli.lighting.suns import Suns, sun_direction
 from difareli.synth.lights import add_suns, extra_sun_rng, light_rng, sample_light
 
 
@@ -40,8 +40,35 @@ def test_no_lit_sun_and_bad_suns():
         Suns(np.ones((2, 3)), np.ones((1, 3)), np.zeros((9, 3)))
 
 
-def test_of_sh_points_along_the_dominant_direction():
+def test_of_sh_is_one_sun_toward_the_radiance_peak_carrying_all_the_light():
     light = sh.directional_light(np.array([0.3, 0.4, 0.866]), 2.0)
     suns = Suns.of_sh(light)
-    np.testing.assert_allclose(suns.dirs[0], sh.dominant_direction(light))
-    assert not suns.ambient.any()
+    np.testing.assert_array_equal(suns.dirs[0], sun_direction(light))
+    assert _angle(suns.dirs[0], np.array([0.3, 0.4, 0.866])) < 0.3
+    assert not suns.ambient.any() and len(suns.dirs) == 1
+
+
+def _angle(a, b) -> float:
+    return float(np.degrees(np.arccos(np.clip(a @ b / np.linalg.norm(a) / np.linalg.norm(b), -1, 1))))
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_sun_direction_finds_a_sun_where_band_1_is_pulled_away(seed):
+    """A sun's band-limited radiance peaks at the sun (to the grid's refinement); a uniform ambient does not move
+    it; a weaker second sun pulls band 1 (the mean direction) much further than the peak; rotating the light
+    rotates the peak; a flat light has none (+z)."""
+    rng = np.random.default_rng(seed)
+    d = rng.normal(size=3)
+    d /= np.linalg.norm(d)
+    alone = sh.directional_light(d, 1.0)
+    assert _angle(sun_direction(alone), d) < 0.3
+    ambient = np.zeros((9, 3))
+    ambient[0] = 0.5
+    assert _angle(sun_direction(alone + ambient), d) < 0.3
+    fill = np.cross(d, rng.normal(size=3))
+    fill /= np.linalg.norm(fill)  # 90 degrees from the sun
+    both = alone + ambient + sh.directional_light(fill, 0.4)
+    assert _angle(sun_direction(both), d) < 10.0 < _angle(sh.dominant_direction(both), d)
+    R = sh.rotation_yaw(37.0) @ sh.rotation_roll(-21.0)
+    assert _angle(sun_direction(sh.rotate(both, R)), R @ sun_direction(both)) < 0.3
+    np.testing.assert_array_equal(sun_direction(ambient), [0.0, 0.0, 1.0])

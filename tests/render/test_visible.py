@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from difareli.lighting import sh
-from difareli.lighting.suns import Suns
+from difareli.lighting.suns import Suns, sun_direction
 from difareli.render.camera import OrthoCamera
 from difareli.render.screen_shadow import march_shadows, pixel_world_xy
 from difareli.render.visible import MARCH_VISIBLE, visible_march, visible_shadow
@@ -87,5 +87,5 @@ def test_an_sh_light_alone_gives_the_march_itself():
         light = rng.normal(size=(9, 3)) * 0.3
         light[0] += 1.0
         suns = Suns.of_sh(light)
-        want = march_shadows(depth, depth != 0, CAM, sh.dominant_direction(light)[None], normal=normal)[0]
+        want = march_shadows(depth, depth != 0, CAM, sun_direction(light)[None], normal=normal)[0]
         np.testing.assert_array_equal(visible_march(depth, normal, CAM, suns), want)

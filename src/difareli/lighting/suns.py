@@ -4,8 +4,9 @@ An SH light (9x3) says how bright every normal is, not which directions a ray co
 shadow needs both. :class:`Suns` keeps them: the directions and RGB irradiances of the suns (the first is the
 key) and the ambient SH left when their SH is removed, so ``ambient + sum(directional_light(sun))`` is the full
 SH light. SynthFaces writes its lights this way in each record's header (``sun_dir``, ``sun_rgb``,
-``extra_suns``); an SH light on its own becomes one sun along its dominant direction carrying all the light
-(:meth:`Suns.of_sh`), under which "visibly shadowed" is simply "cast" (``render.visible``).
+``extra_suns``); an SH light on its own becomes one sun carrying all the light (:meth:`Suns.of_sh`), under which
+"visibly shadowed" is simply "cast" (``render.visible``), along the direction its radiance peaks
+(:func:`sun_direction`).
 """
 
 from __future__ import annotations
@@ -17,6 +18,41 @@ import numpy as np
 
 from difareli.errors import UserError
 from difareli.lighting import sh
+
+
+def _fibonacci_sphere(n: int) -> np.ndarray:
+    k = np.arange(n) + 0.5
+    polar, azimuth = np.arccos(1 - 2 * k / n), np.pi * (1 + 5 ** 0.5) * k
+    return np.stack([np.cos(azimuth) * np.sin(polar), np.sin(azimuth) * np.sin(polar), np.cos(polar)], -1)
+
+
+_GRID = _fibonacci_sphere(2048)  # about 4.5 degrees apart
+_GRID_Y = sh.real_sh(_GRID)
+
+
+def sun_direction(light, channel_weights=sh.RGB_MEAN, refine: int = 3) -> np.ndarray:
+    """Unit direction (3,) toward the peak of ``light``'s 9-term radiance: where a sun in it most likely is.
+
+    Band 1 alone (``sh.dominant_direction``) is the light's mean direction, pulled toward the ambient's gradient
+    and every other sun: on SynthFaces' exact SH lights it lies 16.6 degrees (median) from the key sun, the peak
+    5.9 (20 and 42 on the fitted ones), and the march toward the peak scores IoU 0.471 instead of 0.383 against
+    the visible shadows (val split of an unseen store: docs/shadow_maps.md). Found on a 2,048-direction grid, then
+    ``refine`` times on a 9x9 grid of half the spacing around the best; a flat radiance (no peak) gives +z,
+    the frontal light, as ``sh.dominant_direction`` does."""
+    rad = sh.radiance_from_light(light) @ np.asarray(channel_weights, np.float64)  # (9,)
+    f = _GRID_Y @ rad
+    if f.max() - f.min() <= 1e-9 * max(abs(f).max(), 1e-12):
+        return np.array([0.0, 0.0, 1.0])
+    best, step = _GRID[np.argmax(f)], 0.08
+    offsets = np.linspace(-1.0, 1.0, 9)
+    for _ in range(refine):
+        t1 = np.cross(best, [0.0, 0.0, 1.0] if abs(best[2]) < 0.9 else [1.0, 0.0, 0.0])
+        t1 /= np.linalg.norm(t1)
+        t2 = np.cross(best, t1)
+        cand = best + step * (offsets[:, None, None] * t1 + offsets[None, :, None] * t2).reshape(-1, 3)
+        cand /= np.linalg.norm(cand, axis=1, keepdims=True)
+        best, step = cand[np.argmax(sh.real_sh(cand) @ rad)], step / 2
+    return best
 
 
 @dataclass(frozen=True)
@@ -41,8 +77,9 @@ class Suns:
 
     @classmethod
     def of_sh(cls, light) -> "Suns":
-        """One sun along ``light``'s dominant direction carrying all of it (no ambient): an SH light's own."""
-        return cls(sh.dominant_direction(light)[None], np.ones((1, 3)), np.zeros((9, 3)))
+        """One sun toward ``light``'s radiance peak (:func:`sun_direction`) carrying all of it (no ambient): an SH
+        light's own."""
+        return cls(sun_direction(light)[None], np.ones((1, 3)), np.zeros((9, 3)))
 
     @classmethod
     def from_header(cls, meta: Mapping, light) -> "Suns | None":

@@ -4,7 +4,7 @@ A target light comes from a 9x3 SH file, another record's light, a yaw/roll rota
 light, or an equirectangular HDR environment map. Retargeting re-renders what depends on the light: the
 shading reference (from the stored normals), the light itself (for variants that take it as a vector),
 DiFaReli's shadow scalar c', and DiFaReli++'s shadow map, ray-marched on the stored depth toward the target's
-dominant direction (the input's own map is used for inversion only).
+radiance peak (the input's own map is used for inversion only).
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from typing import Mapping
 import numpy as np
 
 from difareli.lighting import sh
-from difareli.lighting.suns import Suns
+from difareli.lighting.suns import Suns, sun_direction
 from difareli.render.camera import OrthoCamera
 from difareli.render.screen_shadow import march_shadows
 from difareli.render.visible import MARCH_VISIBLE, visible_march
@@ -174,15 +174,15 @@ CASTS_KEY = "_cast_shadows"
 
 def shadow_maker() -> dict:
     """The one shadow-map maker, described: what made a relight's target maps (and the training maps of
-    ``difareli-shadow-maps maker=march``): the depth-map march toward the light's dominant direction, with the
-    march's settings (its defaults, read from its signature, so a change of them is a change of maker). A store
-    records it beside maps it made, a checkpoint the maker of the maps it trained on; a relight warns when the two
-    differ (:func:`check_maker`)."""
+    ``difareli-shadow-maps maker=march``): the depth-map march toward the light's suns (an SH light: its radiance
+    peak), with the march's settings (its defaults, read from its signature, so a change of them is a change of
+    maker). A store records it beside maps it made, a checkpoint the maker of the maps it trained on; a relight
+    warns when the two differ (:func:`check_maker`)."""
     import inspect
 
     params = inspect.signature(march_shadows).parameters
     settings = {k: v.default for k, v in params.items() if v.default is not inspect.Parameter.empty and k != "normal"}
-    return {"name": "march", "toward": "every sun of the light (an SH light: one along its dominant direction)",
+    return {"name": "march", "toward": "every sun of the light (an SH light: one toward its radiance peak)",
             "attached": "n.d <= 0 is not cast (stored normals where known, else from the depth)",
             "visible": MARCH_VISIBLE, **settings}
 
@@ -208,13 +208,13 @@ def _describe(maker: Mapping) -> str:
 
 
 def cast_shadows(arrays: Mapping[str, np.ndarray], lights) -> np.ndarray:
-    """Binary cast-shadow maps (N, H, W) toward each light's dominant direction, ray-marched on the stored depth
-    in one batched march; a point turned away from the light (known normal, n.d <= 0) is in attached, not cast,
+    """Binary cast-shadow maps (N, H, W) toward each light's radiance peak (``lighting.suns.sun_direction``),
+    ray-marched on the stored depth in one batched march; a point turned away from the light (known normal, n.d <= 0) is in attached, not cast,
     shadow."""
     depth = np.asarray(arrays["depth"], dtype=np.float64)
     normal = np.asarray(arrays["normal"], dtype=np.float64)
     cam = OrthoCamera(*np.asarray(arrays["cam"], dtype=np.float64).tolist())
-    dirs = np.stack([sh.dominant_direction(light) for light in lights])
+    dirs = np.stack([sun_direction(light) for light in lights])
     # The stored normals decide which points face the light where they are known (the march estimates them from
     # the depth elsewhere): on v3's test split 0.463 -> 0.484 IoU toward the key sun, against filtering afterwards.
     return march_shadows(depth, depth != 0, cam, dirs, normal=normal)
@@ -223,7 +223,7 @@ def cast_shadows(arrays: Mapping[str, np.ndarray], lights) -> np.ndarray:
 def target_shadow_map(arrays: Mapping[str, np.ndarray], light: "np.ndarray | Suns", c: float,
                       c_range=None) -> np.ndarray:
     """Binary cast-shadow map ray-marched on the stored depth, times the normalised shadow strength ``c`` (the
-    ``shadow_map`` encoding's definition). ``light``: an SH light (the map toward its dominant direction) or its
+    ``shadow_map`` encoding's definition). ``light``: an SH light (the map toward its radiance peak) or its
     suns (``lighting.suns.Suns``, e.g. a SynthFaces header's: the visibly shadowed pixels under them,
     ``render.visible.visible_march``). ``c_range``: the store's c range (``encodings.store_c_range``), else the
     one the arrays carry under ``encodings.C_RANGE_KEY`` (SynthFaces v3 readers put it there), else the fixed
@@ -232,7 +232,7 @@ def target_shadow_map(arrays: Mapping[str, np.ndarray], light: "np.ndarray | Sun
         cam = OrthoCamera(*np.asarray(arrays["cam"], dtype=np.float64).tolist())
         cast = visible_march(arrays["depth"], np.asarray(arrays["normal"], np.float64), cam, light)
     else:
-        marched = arrays.get(CASTS_KEY, {}).get(sh.dominant_direction(light).tobytes())
+        marched = arrays.get(CASTS_KEY, {}).get(sun_direction(light).tobytes())
         cast = marched if marched is not None else cast_shadows(arrays, [light])[0]
     c_range = c_range if c_range is not None else encodings.store_c_range(arrays)
     return (cast * normalise_c(c, c_range)).astype(np.float32)
@@ -285,7 +285,7 @@ def retarget_many(arrays: Mapping[str, np.ndarray], names: list[str], pairs) -> 
     marched = [n for n in names if encodings.get(n).light_dependent and "depth" in encodings.get(n).needs]
     if marched and len(pairs) > 1 and "depth" in arrays:
         lights = [np.asarray(light, dtype=np.float64) for light, _ in pairs]
-        keys = [sh.dominant_direction(light).tobytes() for light in lights]
+        keys = [sun_direction(light).tobytes() for light in lights]
         arrays = {**arrays, CASTS_KEY: dict(zip(keys, cast_shadows(arrays, lights)))}
     return [retarget(arrays, names, light, shadow) for light, shadow in pairs]
 
