@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from difareli.lighting import sh
 from difareli.lighting.suns import Suns
 from difareli.render.camera import OrthoCamera
 from difareli.render.screen_shadow import depth_normals, march_shadows
@@ -57,5 +56,5 @@ def visible_march(depth: np.ndarray, normal: np.ndarray | None, cam: OrthoCamera
         normal = np.asarray(normal, np.float64)
         n = np.where((np.linalg.norm(normal, axis=-1) > 0.5)[..., None], normal, n)
     terms = suns.terms(n)
-    e_open = sh.irradiance(suns.ambient, n) + sum(terms)
+    e_open = suns.irradiance(n)
     return visible_shadow(e_open, terms, casts, casts[0], hit, threshold)[1]
