@@ -8,8 +8,9 @@ A model offers the :mod:`difareli.relight.relightable` interfaces (diffusion or 
   preprocessed in memory, or in-memory encodings; read and checked once: :meth:`Relighter.source`,
   :meth:`Relighter.photo_source`, :meth:`Relighter.source_from_arrays`), then ``relight(source, targets)``
   -> :class:`~difareli.relight.relit.Relit` (images, seconds per stage, whole photos by ``composite()``),
-  the inversion cached and reused across targets; ``relight_each`` for many sources at once. Grey sources
-  come back grey; what a request gets wrong is said once, at :meth:`Relighter.check_inputs`.
+  the inversion cached and reused across targets; ``relight_many`` for many sources at once, each under its own
+  targets sharing its inversion (uint8 or float), ``relight_each`` its case of one target each. Grey sources
+  come back grey from ``relight``; what a request gets wrong is said once, at :meth:`Relighter.check_inputs`.
 The :class:`~difareli.runtime.core.Runtime` decides device, precision, compile and CUDA graphs.
 """
 
@@ -324,34 +325,55 @@ class Relighter:
         return Relit(photos.grey_like(images) if source.grey else images, seconds, source, targets)
 
     def relight_each(self, sources: Sequence[Source], targets: Targets) -> np.ndarray:
-        """Source ``i`` under target ``i`` for many sources at once (N, H, W, 3) uint8: ``batch_size`` sources
-        inverted in one batch and decoded in one batch (a one-pass model: one pass per batch). The door for jobs
-        that relight a whole store (teacher pairs, shadow maps, measurements)."""
+        """Source ``i`` under target ``i`` for many sources at once (N, H, W, 3) uint8: :meth:`relight_many` with
+        one target each. The door for jobs that relight a whole store under one light per record (teacher pairs)."""
         if len(sources) != len(targets):
             raise errors.UserError(f"{len(sources)} sources but {len(targets)} targets: give one target per source")
-        for k, s in enumerate(sources):  # each source with its own target (not every light against every face)
-            self.check_inputs(s, Targets(targets.lights[k:k + 1], targets.shadows[k:k + 1],
-                                         None if targets.maps is None else targets.maps[k:k + 1]))
+        one = [Targets(targets.lights[k:k + 1], targets.shadows[k:k + 1],
+                       None if targets.maps is None else targets.maps[k:k + 1]) for k in range(len(targets))]
+        return self.relight_many(sources, one)[:, 0]
+
+    def relight_many(self, sources: Sequence[Source], targets: Sequence[Targets], *,
+                     as_float: bool = False) -> np.ndarray:
+        """Source ``i`` under each of its own K targets ``targets[i]`` (S, K, H, W, 3), every source with K targets:
+        :meth:`check_inputs` per pair, then ``batch_size`` sources inverted in one batch and their targets decoded in
+        one batch of ``batch_size`` x K, each inversion shared by its source's targets (a one-pass model: one pass
+        per source). uint8, or ``as_float``: float32 in [0, 1], unrounded (differences of relights, which a uint8
+        step would change). For jobs over many records: no inversion is cached, a grey source is not made grey."""
+        if len(sources) != len(targets):
+            raise errors.UserError(f"{len(sources)} sources but {len(targets)} sets of targets: give one per source")
+        for s, t in zip(sources, targets):  # each source with its own targets (not every light against every face)
+            self.check_inputs(s, t)
+        k = {len(t) for t in targets}
+        if len(k) != 1:
+            raise errors.UserError(f"relight_many takes sources with as many targets each; got {sorted(k) or 'none'}")
+        k = k.pop()
         out = []
         for start in range(0, len(sources), self.batch_size):
-            chunk = sources[start:start + self.batch_size]
+            chunk, sets = sources[start:start + self.batch_size], targets[start:start + self.batch_size]
             x0 = torch.stack([image_to_tensor(s.arrays["image"]) for s in chunk]).to(self.device)
             src = condition_tensors(self.model, [s.arrays for s in chunk], self.device)
-            tgt = [targets.retarget(s.arrays, self.model_inputs, start + k, start + k + 1)[0]
-                   for k, s in enumerate(chunk)]
+            tgt = condition_tensors(self.model, [a for s, t in zip(chunk, sets)
+                                                 for a in t.retarget(s.arrays, self.model_inputs)], self.device)
             if isinstance(self.model, OnePassRelightable):  # its source condition is per image: one pass each
-                x = torch.cat([relight(self.model, x0[k:k + 1], tuple(None if v is None else v[k:k + 1] for v in src),
-                                       condition_tensors(self.model, [a], self.device), runtime=self.runtime)
-                               for k, a in enumerate(tgt)])
+                x = torch.cat([relight(self.model, x0[i:i + 1], tuple(None if v is None else v[i:i + 1] for v in src),
+                                       tuple(None if v is None else v[i * k:(i + 1) * k] for v in tgt),
+                                       runtime=self.runtime) for i in range(len(chunk))])
             else:
-                x = relight(self.model, x0, src, condition_tensors(self.model, tgt, self.device), self.spec,
-                            runtime=self.runtime, mean_matching=self.mean_matching)
+                inv = invert_image(self.model, x0, src, self._spec(), runtime=self.runtime,
+                                   mean_matching=self.mean_matching)
+                inv = Inversion(inv.x_T.repeat_interleave(k, 0), inv.spec,  # source-major, as the targets
+                                None if inv.offsets is None else inv.offsets.repeat_interleave(k, 1))
+                x = relight(self.model, x0, src, tgt, self.spec, runtime=self.runtime, inversion=inv)
             what = f"relight of {', '.join(s.what for s in chunk[:2])}{' ...' if len(chunk) > 2 else ''}"
             errors.check_finite(x.float().cpu().numpy(), what,
                                 fix="the model produced NaN/Inf; try runtime.precision=fp32 or another checkpoint")
-            self._warn_if_saturated(x, what, start)
-            out.extend(viz.to_uint8(xi.clamp(-1, 1)) for xi in x)
-        return np.stack(out)
+            self._warn_if_saturated(x, what, start * k)
+            if as_float:
+                out.append(((x.float().clamp(-1, 1) + 1) / 2).permute(0, 2, 3, 1).cpu().numpy())
+            else:
+                out.append(np.stack([viz.to_uint8(xi.clamp(-1, 1)) for xi in x]))
+        return np.concatenate(out).reshape(len(sources), k, *out[0].shape[1:])
 
     def _warn_if_saturated(self, x: Tensor, what: str, start: int, blamed: set[int] = frozenset()) -> None:
         # A sampler unstable at its step count (UniPC at 3-5 steps here) decodes to saturated noise, not an error;
