@@ -19,13 +19,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import torch
 
 from difareli.data import encodings
-from difareli.data.inputs import condition_tensors, image_to_tensor, read_record
+from difareli.data.inputs import read_record
 from difareli.lighting.suns import Suns
-from difareli.relight.core import invert_image, relight
-from difareli.relight.targets import target_shadow_map
+from difareli.relight.targets import Targets, target_shadow_map
 from difareli.utils import imageops
 
 MAPS = ("exact", "march_exact", "march_fitted")
@@ -76,20 +74,16 @@ class RecordResponse:
     map_share: float       # share of the face the map covers
 
 
-@torch.no_grad()
 def respond(relighter, store, rid: str, kinds=MAPS) -> list[RecordResponse]:
-    """The darkening of each map ``kinds`` on record ``rid`` (one inversion, 2 decodes per map in one batch)."""
-    model, device = relighter.model, relighter.device
+    """The darkening of each map ``kinds`` on record ``rid``: the record under its own light (re-rendered, as every
+    relight's targets are) with each map and with it zeroed, through :meth:`Relighter.relight_many` (one inversion,
+    every decode in one batch; float luminance)."""
     arrays = read_record(store, rid, list(dict.fromkeys([*relighter.needed_encodings(), "image", *READS])))
-    x0 = image_to_tensor(arrays["image"])[None].to(device)
-    own = condition_tensors(model, [arrays], device)
-    inv = invert_image(model, x0, own, relighter.spec, runtime=relighter.runtime,
-                       mean_matching=relighter.mean_matching) if relighter.spec is not None else None
+    source = relighter.source_from_arrays(arrays, f"record {rid!r} of {store.root}")
     maps = [make_map(arrays, k, store.meta(rid)) for k in kinds]
-    targets = [{**arrays, "shadow_map": m * on} for m in maps for on in (1.0, 0.0)]
-    x = relight(model, x0, own, condition_tensors(model, targets, device), relighter.spec, runtime=relighter.runtime,
-                inversion=None if inv is None else inv.expand(len(targets)))
-    y = imageops.luminance(((x.float().clamp(-1, 1) + 1) / 2).permute(0, 2, 3, 1).cpu().numpy().astype(np.float64))
+    given = np.stack([m * on for m in maps for on in (1.0, 0.0)])
+    targets = Targets.of([arrays["light"]] * len(given), None, f"own light of record {rid!r}", maps=given)
+    y = imageops.luminance(relighter.relight_many([source], [targets], as_float=True)[0].astype(np.float64))
     face = np.asarray(arrays["face_mask"], bool)
     real = real_removal(arrays)
     out = []

@@ -1,10 +1,10 @@
 """DiFaReli++'s difference-method shadow maps from a trained DiFaReli (paper Sec. IV-A).
 
 For every record: relight it with its own light at the largest and at the smallest shadow strength of the
-training split (``c_max``, ``c_min``), through the relighting core (any sampler; records inverted in batches,
-both targets decoded in one batch). The **difference** is ``Y(relit at c_min) - Y(relit at c_max)`` (Rec. 709
-luminance, images in [0, 1]): positive where the stronger shadow darkened the face. Then, by the authors' recipe
-(XezXey/guided-diffusion ``experiment_scripts/TPAMI/cast_shadows/gen_smooth_sdiff/``):
+training split (``c_max``, ``c_min``), through the relight door ``Relighter.relight_many`` (any sampler; records
+inverted in batches, both targets decoded in one batch). The **difference** is ``Y(relit at c_min) - Y(relit at
+c_max)`` (Rec. 709 luminance, images in [0, 1], not rounded): positive where the stronger shadow darkened the face.
+Then, by the authors' recipe (XezXey/guided-diffusion ``experiment_scripts/TPAMI/cast_shadows/gen_smooth_sdiff/``):
 
 Then (:mod:`difareli.jobs.shadow_response`): each record's difference is **centred** (its face median subtracted:
 raising c also brightens the lit skin, a global change that is not a shadow), cut at a threshold **relative** to
@@ -39,20 +39,18 @@ from dataclasses import dataclass
 from typing import Any, Mapping, Sequence
 
 import numpy as np
-import torch
 from tqdm.auto import tqdm
 
 from difareli import errors
 from difareli.data import derived
 from difareli.data import encodings
-from difareli.diffusion.relight import Inversion
+from difareli.utils import imageops
 from difareli.utils.fileio import folder_lock
-from difareli.data.inputs import condition_tensors, image_to_tensor, read_record, relight_reads
-from difareli.relight.relightable import OnePassRelightable, model_inputs
-from difareli.relight.core import invert_image, relight
-from difareli.relight.targets import retarget
+from difareli.relight.relightable import model_inputs
+from difareli.relight.relighter import Relighter
+from difareli.relight.targets import Targets
 from difareli.jobs.shadow_response import (RECIPE_THRESHOLD, RELATIVE, Response, centred, check_centre,  # noqa: F401
-                                           check_threshold, check_two_modes, finish_map, judge, luminance, measure,
+                                           check_threshold, check_two_modes, finish_map, judge, measure,
                                            median_size, otsu_threshold)
 
 #: Records relit before the DiFaReli's response to c is first judged (about 64 x 2,000 face pixels).
@@ -144,31 +142,13 @@ def keep_mask(store, rid: str, zero_parts: Sequence[str]) -> np.ndarray | None:
     return keep
 
 
-@torch.no_grad()
-def relight_pairs(model, records: Sequence[Mapping[str, np.ndarray]], c_min: float, c_max: float, spec, *,
-                  runtime=None, mean_matching: bool = True, device="cpu") -> np.ndarray:
-    """Differences ``Y(relit at c_min) - Y(relit at c_max)`` (B, H, W) of records relit with their own light.
-
-    A diffusion model inverts the B images in one batch and decodes the 2B targets in one batch."""
-    names = model_inputs(model)
-    x0 = torch.stack([image_to_tensor(a["image"]) for a in records]).to(device)
-    targets = [retarget(a, names, np.asarray(a["light"]), c) for a in records for c in (c_max, c_min)]
-    tcond = condition_tensors(model, targets, device)
-    if isinstance(model, OnePassRelightable):  # one pass per record (its source condition is batch 1)
-        out = [relight(model, x0[i:i + 1], condition_tensors(model, [a], device),
-                       tuple(None if v is None else v[2 * i:2 * i + 2] for v in tcond), runtime=runtime)
-               for i, a in enumerate(records)]
-        relit = torch.cat(out)
-    else:
-        inv = invert_image(model, x0, condition_tensors(model, records, device), spec, runtime=runtime,
-                           mean_matching=mean_matching)
-        pairs = Inversion(inv.x_T.repeat_interleave(2, 0), inv.spec,
-                          None if inv.offsets is None else inv.offsets.repeat_interleave(2, 1))
-        relit = relight(model, x0, None, tcond, spec, runtime=runtime, inversion=pairs)
-    errors.check_finite(relit.float().cpu().numpy(), "relit images of the difference method",
-                        fix="the model produced NaN/Inf; try precision=fp32 or another checkpoint")
-    y = luminance(relit)
-    return y[1::2] - y[0::2]
+def relight_pairs(relighter: Relighter, sources: Sequence, c_min: float, c_max: float) -> np.ndarray:
+    """Differences ``Y(relit at c_min) - Y(relit at c_max)`` (B, H, W) of sources (``Relighter.source``) relit with
+    their own light, through :meth:`Relighter.relight_many` (one inversion per record, shared by its two c) in
+    float: the maps are cut near 0.02, where a uint8 step (0.004) would move them."""
+    targets = [Targets.of([s.arrays["light"]] * 2, [c_max, c_min], f"own light of {s.what}") for s in sources]
+    y = imageops.luminance(relighter.relight_many(sources, targets, as_float=True).astype(np.float64))
+    return y[:, 1] - y[:, 0]
 
 
 @dataclass
@@ -211,6 +191,15 @@ def compute(model, store, spec, *, provenance: Mapping[str, Any], ids: Sequence[
                         zero_parts=zero_parts, min_contrast=min_contrast, min_coherence=min_coherence,
                         batch_size=batch_size, version=version, runtime=runtime, mean_matching=mean_matching,
                         device=device, progress=progress, given=c_range, check_after=check_after)
+
+
+def _relighter(model, spec, runtime, device, mean_matching: bool, batch_size: int) -> Relighter:
+    """The :class:`Relighter` of a loaded ``model``; without a ``runtime``, plain fp32 on ``device``."""
+    from difareli.checkpoints.loading import LoadedCheckpoint  # Lightning loads only when a model relights
+
+    rt = runtime if runtime is not None else {"device": str(device), "precision": "fp32"}
+    return Relighter(LoadedCheckpoint(model, {}, {}, 0), spec, runtime=rt, mean_matching=mean_matching,
+                     batch_size=batch_size)
 
 
 def _face_values(store, raw: str, ids: Sequence[str], zero_parts: Sequence[str], centre: str):
@@ -264,7 +253,7 @@ def _compute(model, store, spec, *, provenance, ids, split, c_quantile, threshol
     raw = derived.declare(store, "shadow_map", derived.content_version("diffraw", prov),
                           {**prov, "stage": "raw difference"})
     todo = derived.missing(store, raw, ids)
-    needed = relight_reads(model_inputs(model))
+    relighter = _relighter(model, spec, runtime, device, mean_matching, batch_size)
     start = time.perf_counter()
     step = provenance.get("global_step")
     early = check_after > 0 and len(ids) > check_after  # a check on part of the records, before the rest are relit
@@ -279,9 +268,8 @@ def _compute(model, store, spec, *, provenance, ids, split, c_quantile, threshol
                   f" (measured on the first {len(done)} of {len(ids)} records, before relighting the rest; "
                   f"their raw differences are kept in {raw}, which a rerun resumes)")
         chunk = todo[i:i + batch_size]
-        recs = [read_record(store, r, needed) for r in chunk]  # with the store's c range: its target maps
-        for rid, d in zip(chunk, relight_pairs(model, recs, c_min, c_max, spec, runtime=runtime,
-                                               mean_matching=mean_matching, device=device)):
+        srcs = [relighter.source(store, r) for r in chunk]  # with the store's c range: its target maps
+        for rid, d in zip(chunk, relight_pairs(relighter, srcs, c_min, c_max)):
             derived.write(store, rid, raw, d.astype(np.float32), overwrite=True)
         bar.update(len(chunk))
         bar.set_postfix(img_s=f"{2 * (i + len(chunk)) / max(time.perf_counter() - start, 1e-9):.2f}")

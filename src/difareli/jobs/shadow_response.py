@@ -28,11 +28,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import torch
 
 from difareli import errors
 from difareli.data import encodings
-from difareli.utils import imageops
 from difareli.utils.imageops import median_mask
 
 #: The authors' recipe: threshold on the grey-level difference, median size at 256 px.
@@ -136,12 +134,6 @@ def finish_map(diff: np.ndarray, threshold: float, median: int, c: float, hit: n
         if m is not None:
             binary &= np.asarray(m, bool)
     return (binary * encodings.normalise_c(c, c_range)).astype(np.float32)
-
-
-def luminance(x: torch.Tensor) -> np.ndarray:
-    """[B, 3, H, W] in [-1, 1] -> [B, H, W] Rec. 709 luminance in [0, 1] (float64)."""
-    img = ((x.float().clamp(-1, 1) + 1) / 2).cpu().numpy().astype(np.float64)
-    return imageops.luminance(np.moveaxis(img, 1, -1))
 
 
 @dataclass
