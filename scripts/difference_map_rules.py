@@ -17,7 +17,8 @@ from difareli.evaluation.map_response import shadowed_records
 from difareli.jobs import shadow_maps as sm
 from difareli.jobs import shadow_response as sr
 
-CUTS = ("fixed 0.05", "relative 0.05", "relative 0.1", "relative 0.15", "relative 0.25", "relative 0.35", "relative 0.5")
+CUTS = ("fixed 0.05", "relative 0.05", "relative 0.1", "relative 0.15", "relative 0.25", "relative 0.35",
+        "relative 0.5")
 
 
 def main() -> None:

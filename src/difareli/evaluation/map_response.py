@@ -10,8 +10,8 @@ images are linear, so the unshadowed pixel is ``Y / (1 - f)``). A model that dra
 a ratio near 1; one that ignores its map, 0.
 
 The maps tried (``MAPS``): ``exact`` (the visible shadows times the exact c), ``march_exact`` (the relight's own
-maker toward the exact light, i.e. the suns the record's header names, with the exact c) and ``march_fitted`` (toward the stored, fitted light with the
-stored c: what a relight of a photo has).
+maker toward the exact light, i.e. the suns the record's header names, with the exact c) and ``march_fitted``
+(toward the stored, fitted light with the stored c: what a relight of a photo has).
 """
 
 from __future__ import annotations

@@ -1,9 +1,10 @@
 """Training shadow maps of the kind a relight is tested with, written as derived versions of ``shadow_map``.
 
 A relight's target map is made by one maker (:func:`difareli.relight.targets.shadow_maker`: the depth-map march
-toward the target light's suns, an SH light's being one along its dominant direction, times the normalised c). A DiFaReli++ trained on maps made another
-way (SynthFaces' mesh rays toward a fitted light: IoU 0.31 with the march for the same record and light) is tested
-out of its training distribution, and one trained on maps that disagree with its images learns to ignore them.
+toward the target light's suns, an SH light's being one toward its radiance peak, times the normalised c). A
+DiFaReli++ trained on maps made another way (SynthFaces' mesh rays toward a fitted light: IoU 0.31 with the march
+for the same record and light) is tested out of its training distribution, and one trained on maps that disagree
+with its images learns to ignore them.
 ``difareli-shadow-maps maker=march`` writes every record's map with that same maker:
 
 - ``light=exact`` (default): toward the record's exact light with its exact c (``shadow_gt``), where the store has

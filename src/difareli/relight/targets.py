@@ -209,8 +209,8 @@ def _describe(maker: Mapping) -> str:
 
 def cast_shadows(arrays: Mapping[str, np.ndarray], lights) -> np.ndarray:
     """Binary cast-shadow maps (N, H, W) toward each light's radiance peak (``lighting.suns.sun_direction``),
-    ray-marched on the stored depth in one batched march; a point turned away from the light (known normal, n.d <= 0) is in attached, not cast,
-    shadow."""
+    ray-marched on the stored depth in one batched march; a point turned away from the light (known normal,
+    n.d <= 0) is in attached, not cast, shadow."""
     depth = np.asarray(arrays["depth"], dtype=np.float64)
     normal = np.asarray(arrays["normal"], dtype=np.float64)
     cam = OrthoCamera(*np.asarray(arrays["cam"], dtype=np.float64).tolist())
