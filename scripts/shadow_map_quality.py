@@ -44,7 +44,8 @@ from difareli.data import derived
 from difareli.utils import viz
 from difareli.evaluation.metrics import binary_scores
 from difareli.data.store import EncodingStore
-from difareli.lighting.suns import Suns
+from difareli.lighting import sh
+from difareli.lighting.suns import Suns, sun_direction
 from difareli.render.camera import OrthoCamera
 from difareli.render.visible import visible_march
 from difareli.relight.targets import target_shadow_map
@@ -147,6 +148,22 @@ def maps_of(store: EncodingStore, rid: str, versions: dict[str, str], light_name
     return out
 
 
+def direction_errors(store: EncodingStore, rid: str, light_names: list[str]) -> dict[str, float]:
+    """Degrees from a record's key sun (its header) to the direction each SH light is marched toward
+    (``sun_direction``: the radiance peak) and to band 1's (``sh.dominant_direction``); {} without a sun."""
+    meta = store.meta(rid)
+    if not np.any(np.asarray(meta.get("sun_rgb", 0)) > 0):
+        return {}
+    key = np.asarray(meta["sun_dir"], np.float64)
+    key /= np.linalg.norm(key)
+    out = {}
+    for name in light_names:
+        light = np.asarray(store.read(rid, [name])[name], np.float64)
+        for how, d in (("radiance peak", sun_direction(light)), ("band 1", sh.dominant_direction(light))):
+            out[f"{name}, {how}"] = float(np.degrees(np.arccos(np.clip(d @ key, -1.0, 1.0))))
+    return out
+
+
 def summary_lines(per: dict[str, list[dict]], pooled: dict[str, np.ndarray], exact_store: bool) -> list[str]:
     """Markdown rows: mean IoU / precision / recall over records, pooled IoU, records with an IoU."""
     lines = ["| method | IoU | precision | recall | pooled IoU | records with IoU |", "|---|---:|---:|---:|---:|---:|"]
@@ -191,6 +208,8 @@ def main(argv=None) -> None:
     key_sun = KeySun(store) if store.available("shadow_visible_gt") else None
     fm = "face_mask_gt" if store.available("face_mask_gt") else "face_mask"
     single: list[float] = []
+    angles: dict[str, list[float]] = {}
+    light_names = [n for n in ("light", "light_gt") if store.available(n)]
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     rows, fig, per, pooled = [], [], {}, {}
@@ -201,6 +220,8 @@ def main(argv=None) -> None:
             m = {k: v & face for k, v in m.items()}
         if key_sun is not None and key_sun(rid)[1]:
             single.append(float(binary_scores(m[UPPER][None], m["gt"][None])["iou"][0]))
+        for k, v in direction_errors(store, rid, light_names).items():
+            angles.setdefault(k, []).append(v)
         for method in [k for k in m if k != "gt"]:
             s = binary_scores(m[method][None], m["gt"][None])
             rows.append({"record": rid, "method": method, **{k: float(v[0]) for k, v in s.items()}})
@@ -223,6 +244,9 @@ def main(argv=None) -> None:
     if single:
         lines.append(f"\n{UPPER} on the {len(single)} single-sun records: IoU {np.nanmean(single):.3f} "
                      f"(records with an IoU: {int(np.isfinite(single).sum())})")
+    if angles:
+        lines.append("\nDegrees from the key sun (median over the records with one): " + "; ".join(
+            f"{k} {np.median(v):.1f}" for k, v in angles.items()))
     if "shadow_visible" in store.store_meta:
         lines.append(f"GT: shadow_visible_gt, share of a pixel's light removed > {store.store_meta['shadow_visible']} "
                      "or in the key sun's cast shadow")

@@ -35,7 +35,7 @@ def sun_direction(light, channel_weights=sh.RGB_MEAN, refine: int = 3) -> np.nda
 
     Band 1 alone (``sh.dominant_direction``) is the light's mean direction, pulled toward the ambient's gradient
     and every other sun: on SynthFaces' exact SH lights it lies 16.6 degrees (median) from the key sun, the peak
-    5.9 (20 and 42 on the fitted ones), and the march toward the peak scores IoU 0.471 instead of 0.383 against
+    6.0 (41.7 and 20.3 on the fitted ones), and the march toward the peak scores IoU 0.472 instead of 0.383 against
     the visible shadows (val split of an unseen store: docs/shadow_maps.md). Found on a 2,048-direction grid, then
     ``refine`` times on a 9x9 grid of half the spacing around the best; a flat radiance (no peak) gives +z,
     the frontal light, as ``sh.dominant_direction`` does."""
