@@ -88,6 +88,36 @@ def _bench_cfg(out, store_root, *overrides):
                          config_name="benchmark")
 
 
+def test_lambertian_source_light_is_fitted_once_per_record_and_scored_as_relit(store, tmp_path):
+    """The Lambertian baseline fits each source record's light once however many pairs it is in, and the
+    benchmark's source-light error is that very fit's (not a second fit): counted through the estimator."""
+    from difareli.evaluation.baselines import LambertianRatio
+    from difareli.evaluation.pairs import Lights
+    from difareli.lighting.light_fit import LightFit
+
+    class Counting(LightFit):
+        def __init__(self):
+            super().__init__()
+            self.calls = []
+
+        def from_store(self, st, record_id):
+            self.calls.append(record_id)
+            return super().from_store(st, record_id)
+
+    fit = Counting()
+    method = LambertianRatio(estimator=fit)
+    res = run_benchmark(store, method, BOTH, tmp_path, progress=False, grid_pairs=0, save_images=False,
+                        estimator=LightFit())
+    pairs = [p for ps in load_pairs(store, BOTH).values() for p in ps]
+    sources = {p.source for p in pairs}
+    assert len(pairs) > len(sources)  # some record is the source of several pairs: the test can tell
+    assert sorted(fit.calls) == sorted(sources)  # one fit per source record
+    lights = Lights(store, None)
+    for e in [e for e in res.light_errors if e["light"] == "source"][:4]:
+        want = lights.error(method.source_light(StoredFace(store, e["from"])), e["from"], e["from"])
+        assert e["rel_error"] == pytest.approx(want[0], rel=1e-12)
+
+
 def test_cli_identity_lambertian_and_table(synth_store, tmp_path):
     from difareli.cli.benchmark import run
     from difareli.cli.table import run as table_run

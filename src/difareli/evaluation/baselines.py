@@ -76,12 +76,17 @@ class LambertianRatio:
 
     def __init__(self, name: str | None = None, estimator: LightFit | None = None, min_shading: float = 0.05):
         self.name, self.estimator, self.min_shading = name or "lambertian", estimator, float(min_shading)
+        self._fitted: dict[tuple[str, str], np.ndarray] = {}  # (store, record) -> its fitted light
 
     def source_light(self, source: StoredFace) -> np.ndarray:
         """The source light fitted to ``source``, or (no estimator: the oracle) the exact one: ``light_gt`` where
-        the store has it (SynthFaces v2, whose ``light`` is itself estimated), else ``light``."""
+        the store has it (SynthFaces v2, whose ``light`` is itself estimated), else ``light``. A record's fit is
+        made once (a source is in many pairs, and the benchmark scores the fit it relit with)."""
         if self.estimator is not None:
-            return self.estimator.from_store(source.store, source.id)
+            key = (str(source.store.root), source.id)
+            if key not in self._fitted:
+                self._fitted[key] = self.estimator.from_store(source.store, source.id)
+            return self._fitted[key]
         name = exact_light_name(source.store)
         return np.asarray(source.read([name])[name], dtype=np.float64)
 

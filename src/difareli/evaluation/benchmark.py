@@ -36,7 +36,7 @@ import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 import torch
@@ -236,7 +236,7 @@ def run_settings(store: EncodingStore, method: Method, protocols: Sequence[str],
 @dataclass
 class _Run:
     """What every pair of one run shares. ``columns``: the extra CSV columns; ``exact``: the store holds exact
-    lights; ``source_fit``: the method's own source-light fit (its error is measured too)."""
+    lights; ``source_light``: the method's own source-light fit (its error is measured too)."""
 
     store: EncodingStore
     method: Method
@@ -248,7 +248,7 @@ class _Run:
     columns: list[str]
     oracle_shadow: bool
     exact: bool
-    source_fit: LightFit | None
+    source_light: Callable[[StoredFace], np.ndarray] | None
     save_images: bool
 
 
@@ -267,7 +267,7 @@ def _run(run: _Run, result: BenchmarkResult, protocols: Sequence[str], *, limit:
             result.provenance.setdefault("target c", run.lights.shadow_note)
             if run.exact:  # the fitted lights' errors
                 result.light_errors += [{"protocol": short, **e}
-                                        for e in run.lights.errors(pair, light, run.source_fit)]
+                                        for e in run.lights.errors(pair, light, run.source_light)]
             png = out_dir / "relit" / proto / f"{pair.id}.png"
             want_grid = len(grid_rows) < grid_pairs
             prev = done.get((short, pair.id))
@@ -305,10 +305,11 @@ def _start(store: EncodingStore, method: Method, out_dir: Path, *, oracle_light:
         "data set": str(doc.get("dataset", "synthfaces")), "metrics rule": rule, "score mask": score_mask})
     result.provenance.update({**extras.provenance(), "store": f"{store.root} ({provenance.store_identity(store)})"})
     result.notes = list(extras.notes)
-    # Methods that fit their source light (the Lambertian baseline) are scored on it too.
-    source_fit = getattr(method, "estimator", None) if method.needs_light_fit else None
+    # Methods that fit their source light (the Lambertian baseline) are scored on it too, through their own door.
+    fits = method.needs_light_fit and getattr(method, "estimator", None) is not None
+    source_light = method.source_light if fits else None
     run = _Run(store, method, out_dir, rule, score_mask, Lights(store, None if oracle_light else estimator), extras,
-               [*extras.metrics(), *extras.strata()], oracle_shadow, exact, source_fit, save_images)
+               [*extras.metrics(), *extras.strata()], oracle_shadow, exact, source_light, save_images)
     return run, result
 
 

@@ -9,7 +9,7 @@ import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable, Sequence
+from typing import Callable, Iterable, Sequence
 
 import numpy as np
 
@@ -137,14 +137,16 @@ class Lights:
         c, self.shadow_note = target_shadow_of(self.store, record_id, oracle=oracle or self.estimator is None)
         return c
 
-    def errors(self, pair: Pair, light: np.ndarray, source_fit: LightFit | None = None) -> list[dict]:
+    def errors(self, pair: Pair, light: np.ndarray,
+               source_light: Callable[[StoredFace], np.ndarray] | None = None) -> list[dict]:
         """``pair``'s rows of the light-estimation errors (all but the protocol): its target ``light``'s, if
-        fitted, and the source light ``source_fit`` fits (a method's own), if any, against the exact lights."""
+        fitted, and the source light a method fits itself (``source_light``: the method's own door, so the
+        light scored is the one it relights with, fitted once), if any, against the exact lights."""
         out = []
         if self.estimator is not None:
             out.append(("target", pair.light_source, self.error(light, pair.target, pair.target)))
-        if source_fit is not None:
-            fitted = source_fit.from_store(self.store, pair.source)
+        if source_light is not None:
+            fitted = source_light(StoredFace(self.store, pair.source))
             out.append(("source", pair.source, self.error(fitted, pair.source, pair.source)))
         return [{"record_id": pair.id, "light": which, "from": frm, "rel_error": rel, "rel_error_gain_free": free}
                 for which, frm, (rel, free) in out]
