@@ -40,6 +40,11 @@ class Inversion:
     spec: SamplerSpec
     offsets: torch.Tensor | None
 
+    def repeat_each(self, k: int) -> "Inversion":
+        """Each image's inversion repeated for its ``k`` targets, image-major (batch of B -> B x k)."""
+        off = None if self.offsets is None else self.offsets.repeat_interleave(k, 1)
+        return Inversion(self.x_T.repeat_interleave(k, 0), self.spec, off)
+
     def expand(self, n: int) -> "Inversion":
         """The same inversion repeated for ``n`` targets of one image (batch of 1 -> n)."""
         if self.x_T.shape[0] != 1:

@@ -361,9 +361,7 @@ class Relighter:
                                        runtime=self.runtime) for i in range(len(chunk))])
             else:
                 inv = invert_image(self.model, x0, src, self._spec(), runtime=self.runtime,
-                                   mean_matching=self.mean_matching)
-                inv = Inversion(inv.x_T.repeat_interleave(k, 0), inv.spec,  # source-major, as the targets
-                                None if inv.offsets is None else inv.offsets.repeat_interleave(k, 1))
+                                   mean_matching=self.mean_matching).repeat_each(k)  # source-major, as the targets
                 x = relight(self.model, x0, src, tgt, self.spec, runtime=self.runtime, inversion=inv)
             what = f"relight of {', '.join(s.what for s in chunk[:2])}{' ...' if len(chunk) > 2 else ''}"
             errors.check_finite(x.float().cpu().numpy(), what,
