@@ -46,6 +46,7 @@ from difareli.evaluation.metrics import binary_scores
 from difareli.data.store import EncodingStore
 from difareli.lighting import sh
 from difareli.lighting.suns import Suns, sun_direction
+from difareli.render import sun_fit
 from difareli.render.camera import OrthoCamera
 from difareli.render.visible import visible_march
 from difareli.relight.targets import target_shadow_map
@@ -118,8 +119,9 @@ def maps_of(store: EncodingStore, rid: str, versions: dict[str, str], light_name
     lights = [light_name] + (["light_gt"] if light_name != "light_gt" and store.available("light_gt") else [])
     mesh = "depth_gt" if store.available("depth_gt") else "depth"
     exact_geo = [f"{k}_gt" for k in ("depth", "normal", "cam")] if store.available("depth_gt") else []
+    found = [k for k in sun_fit.ENCODINGS if store.available(k)]
     a = {k: np.asarray(v) for k, v in store.read(rid, sorted({"depth", "normal", "cam", gt, "shadow_map", mesh,
-                                                                *lights, *exact_geo})).items()}
+                                                                *lights, *exact_geo, *found})).items()}
     out = {"gt": a[gt] > 0}
     for label, version in versions.items():
         name = f"shadow_map@{version}"
@@ -127,6 +129,9 @@ def maps_of(store: EncodingStore, rid: str, versions: dict[str, str], light_name
     for name in lights:  # c = 0 inside the range: only the support matters
         label = "ray-marched" if name == light_name else "ray-marched toward the exact light (oracle)"
         out[label] = target_shadow_map(a, a[name], 0.0, (-10.0, 10.0)) > 0
+        # The same light's sun found from this image's cast shadows (what a relight toward a photo's light marches).
+        sun = Suns.of_sh(a[name], sun_fit.fit_sun(a, a[name]).direction)
+        out[f"{label}, its sun found from the image's cast shadows"] = target_shadow_map(a, sun, 0.0, (-10.0, 10.0)) > 0
     if exact_geo and "light_gt" in a:  # what the estimated geometry costs: the same march on the exact one
         g = {k: a[f"{k}_gt"] for k in ("depth", "normal", "cam")}
         out["ray-marched on the exact depth toward the exact light (oracle)"] = \
@@ -157,9 +162,11 @@ def direction_errors(store: EncodingStore, rid: str, light_names: list[str]) -> 
     key = np.asarray(meta["sun_dir"], np.float64)
     key /= np.linalg.norm(key)
     out = {}
+    arrays = store.read(rid, [k for k in sun_fit.ENCODINGS if store.available(k)])
     for name in light_names:
         light = np.asarray(store.read(rid, [name])[name], np.float64)
-        for how, d in (("radiance peak", sun_direction(light)), ("band 1", sh.dominant_direction(light))):
+        for how, d in (("radiance peak", sun_direction(light)), ("band 1", sh.dominant_direction(light)),
+                       ("found from the cast shadows", sun_fit.fit_sun(arrays, light).direction)):
             out[f"{name}, {how}"] = float(np.degrees(np.arccos(np.clip(d @ key, -1.0, 1.0))))
     return out
 

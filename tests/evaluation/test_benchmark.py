@@ -25,6 +25,43 @@ def store(synth_store):
     return EncodingStore.open(synth_store)
 
 
+def test_a_method_that_reads_a_shadow_map_is_given_the_light_sources_key_sun(store, tmp_path):
+    """A method whose model reads a target shadow map is handed each pair's key sun, found from the light-source
+    record's cast shadows under its fitted light (``render.sun_fit``); ``target_sun=peak`` hands None; the choice
+    is a recorded setting (a resumed run with the other is refused) and a wrong value is one line."""
+    from types import SimpleNamespace
+
+    from difareli.errors import UserError
+    from difareli.lighting.light_fit import LightFit
+    from difareli.render import sun_fit
+
+    seen = []
+
+    class Marching(Identity):
+        relighter = SimpleNamespace(model_inputs=("shading", "shadow_map"), spec=None, model=None,
+                                    runtime=SimpleNamespace(precision="32-true"))
+
+        def relight(self, source, target_light, target_shadow=None, target=None, target_sun=None):
+            seen.append(target_sun)
+            return super().relight(source, target_light, target_shadow, target)
+
+    kw = dict(limit=2, progress=False, grid_pairs=0, save_images=False)
+    res = run_benchmark(store, Marching("marching"), ["different_subject"], tmp_path / "a", **kw)
+    pairs = load_pairs(store, ["different_subject"], limit=2)["different_subject"]
+    for pair, got in zip(pairs, seen, strict=True):
+        arrays = store.read(pair.light_source, [k for k in sun_fit.ENCODINGS if store.available(k)])
+        want = sun_fit.fit_sun(arrays, LightFit().from_store(store, pair.light_source)).direction
+        np.testing.assert_array_equal(got, want)
+    assert "cast shadows" in res.provenance["target sun"]
+    seen.clear()
+    run_benchmark(store, Marching("marching"), ["different_subject"], tmp_path / "b", target_sun="peak", **kw)
+    assert seen == [None, None]
+    with pytest.raises(UserError, match="target_sun"):  # the rows in "a" were marched toward the found suns
+        run_benchmark(store, Marching("marching"), ["different_subject"], tmp_path / "a", target_sun="peak", **kw)
+    with pytest.raises(UserError, match="target_sun='sky': use one of shadows, peak"):
+        run_benchmark(store, Marching("marching"), ["different_subject"], tmp_path / "c", target_sun="sky", **kw)
+
+
 def test_load_pairs_limit_spreads_over_the_list(store):
     full = load_pairs(store, BOTH)
     doc = json.loads((store.root / "protocols.json").read_text())
@@ -43,7 +80,8 @@ def test_a_method_is_given_the_input_and_the_ground_truth_as_stored_faces(store,
     seen = []
 
     class Recording(Identity):
-        def relight(self, source, target_light, target_shadow=None, target=None):
+        def relight(self, source, target_light, target_shadow=None, target=None, target_sun=None):
+            assert target_sun is None  # no shadow map read: no key sun fitted for it
             seen.append((source, target))
             return super().relight(source, target_light, target_shadow, target)
 

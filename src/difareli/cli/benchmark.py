@@ -17,7 +17,8 @@ from difareli.checkpoints import zoo
 from difareli.data import shard as sharding
 from difareli.evaluation.baselines import build_method
 from difareli.lighting.light_fit import light_fit_from_config
-from difareli.evaluation.benchmark import DEFAULT_MASK, BenchmarkResult, check_score_mask, run_benchmark
+from difareli.evaluation.benchmark import (DEFAULT_MASK, BenchmarkResult, check_score_mask, check_target_sun,
+                                           run_benchmark)
 from difareli.evaluation.rescore import rescore
 from difareli.cli import common
 from difareli.lit import logging as lit_logging
@@ -25,7 +26,7 @@ from difareli.data.store import EncodingStore
 
 #: The config keys that define a benchmark job; shards of one job differ only by ``shard``.
 SHARD_JOB_KEYS = ("store", "method", "sampler", "protocols", "limit", "oracle_light", "oracle_shadow",
-                  "light_fit", "versions", "metrics", "score_mask")
+                  "light_fit", "versions", "metrics", "score_mask", "target_sun")
 
 
 def run(cfg: DictConfig) -> BenchmarkResult:
@@ -61,7 +62,7 @@ def run(cfg: DictConfig) -> BenchmarkResult:
                            oracle_light=bool(cfg.oracle_light), oracle_shadow=bool(cfg.get("oracle_shadow", False)),
                            estimator=estimator, grid_pairs=int(cfg.grid_pairs),
                            save_images=bool(cfg.save_images), progress=bool(cfg.progress), shard=spec,
-                           rule=rule, score_mask=cfg.get("score_mask"))
+                           rule=rule, score_mask=cfg.get("score_mask"), target_sun=cfg.get("target_sun", "shadows"))
     if spec is not None:  # what difareli-table checks before merging shards: same job, every shard once
         job = {k: OmegaConf.to_container(cfg[k], resolve=True) if OmegaConf.is_config(cfg[k]) else cfg[k]
                for k in SHARD_JOB_KEYS if k in cfg}
@@ -90,6 +91,7 @@ def validate(cfg: DictConfig) -> None:
     errors.check_int(cfg.grid_pairs, "grid_pairs", 0)
     errors.check_int(cfg.num_threads, "num_threads", 1, allow_none=True)
     errors.check_out_dir(cfg.out_dir)
+    check_target_sun(cfg.get("target_sun", "shadows"))
     if "checkpoint" in cfg.method:  # a trained model (the diffusion method): its sampler and file
         check_sampler(cfg.sampler)
         zoo.resolve(cfg.method.get("checkpoint") or "", "method.checkpoint")

@@ -1,10 +1,12 @@
 """Relighting methods behind one interface, for benchmarks: classical baselines and the diffusion model.
 
-A :class:`Method` has a ``name``, ``relight(source, target_light, target_shadow=None, target=None) -> uint8
-HxWx3`` and two declarations the benchmark reads: ``needs_light`` (it uses the target light, so a run under
+A :class:`Method` has a ``name``, ``relight(source, target_light, target_shadow=None, target=None,
+target_sun=None) -> uint8 HxWx3`` and two declarations the benchmark reads: ``needs_light`` (it uses the target light, so a run under
 ground-truth lights is marked) and ``needs_light_fit`` (it fits a source light with ``estimator``, whose error the
 benchmark reports). ``source`` is the input record as a :class:`~difareli.evaluation.pairs.StoredFace` (its store,
-its id, its encodings read once); ``target``, the ground-truth record as one, is only for the oracle. Methods are
+its id, its encodings read once); ``target``, the ground-truth record as one, is only for the oracle;
+``target_sun`` (None: the light's radiance peak) is where a method that draws cast shadows marches the target's
+(the light's key sun found from the light-source image's cast shadows: ``render.sun_fit``). Methods are
 built from ``conf/method/*.yaml`` ``_target_`` configs by :func:`build_method`.
 
 Target (and source) lights "as a user gets them" come from :class:`difareli.lighting.light_fit.LightFit`.
@@ -32,7 +34,7 @@ class Method(Protocol):
     needs_light_fit: bool
 
     def relight(self, source: StoredFace, target_light: np.ndarray, target_shadow: float | None = None,
-                target: StoredFace | None = None) -> np.ndarray: ...
+                target: StoredFace | None = None, target_sun: np.ndarray | None = None) -> np.ndarray: ...
 
 
 class Identity:
@@ -43,7 +45,7 @@ class Identity:
     def __init__(self, name: str | None = None):
         self.name = name or "identity"
 
-    def relight(self, source, target_light, target_shadow=None, target=None) -> np.ndarray:
+    def relight(self, source, target_light, target_shadow=None, target=None, target_sun=None) -> np.ndarray:
         return np.array(source.image)
 
 
@@ -56,7 +58,7 @@ class Oracle:
     def __init__(self, name: str | None = None):
         self.name = name or "oracle"
 
-    def relight(self, source, target_light, target_shadow=None, target=None) -> np.ndarray:
+    def relight(self, source, target_light, target_shadow=None, target=None, target_sun=None) -> np.ndarray:
         if target is None:
             raise UserError("the oracle needs the ground-truth record (target)")
         return np.array(target.image)
@@ -90,7 +92,7 @@ class LambertianRatio:
         name = exact_light_name(source.store)
         return np.asarray(source.read([name])[name], dtype=np.float64)
 
-    def relight(self, source, target_light, target_shadow=None, target=None) -> np.ndarray:
+    def relight(self, source, target_light, target_shadow=None, target=None, target_sun=None) -> np.ndarray:
         a = source.read(["image", "normal"])
         return ratio_relight(a["image"], a["normal"], self.source_light(source), target_light, self.min_shading)
 
@@ -158,11 +160,12 @@ class DiffusionMethod:
 
         check_store_fits(self.relighter.config, store, self.relighter.checkpoint)
 
-    def relight(self, source, target_light, target_shadow=None, target=None) -> np.ndarray:
+    def relight(self, source, target_light, target_shadow=None, target=None, target_sun=None) -> np.ndarray:
         from difareli.relight.targets import Targets
 
         record = self.relighter.source(source.store, source.id)  # what this model reads of it, checked
-        return self.relighter.relight(record, Targets.of([target_light], [target_shadow], record.what))[0]
+        return self.relighter.relight(record, Targets.of([target_light], [target_shadow], record.what,
+                                                         suns=[target_sun]))[0]
 
 
 #: What :func:`build_method` may hand a method's constructor, if its signature asks for it.

@@ -161,9 +161,12 @@ def _pm(s: tables.Stat) -> str:
 def run_benchmark(store: EncodingStore, method: Method, protocols: Sequence[str], out_dir: str | Path, *,
                   limit: int | None = None, oracle_light: bool = False, oracle_shadow: bool = False, estimator: LightFit | None = None,
                   grid_pairs: int = 4, save_images: bool = True, progress: bool = True,
-                  shard: str | None = None, rule: str | None = None, score_mask: str | None = None) -> BenchmarkResult:
+                  shard: str | None = None, rule: str | None = None, score_mask: str | None = None,
+                  target_sun: str = "shadows") -> BenchmarkResult:
     """Relight and score every pair of ``protocols`` under the metric ``rule`` (None: ``paper``) on the target's
-    ``score_mask`` (None: ``face_mask``); write the run's outputs into ``out_dir``.
+    ``score_mask`` (None: ``face_mask``); write the run's outputs into ``out_dir``. ``target_sun``: where a
+    fitted target light's cast-shadow maps are marched, ``shadows`` (its key sun found from the light-source
+    image's cast shadows: ``render.sun_fit``) or ``peak`` (the fitted SH's radiance peak).
 
     ``shard="i/n"`` scores only that shard's pairs (by pair id, after ``limit``): the n shards' per-image
     CSVs together hold exactly the unsharded run's rows (``difareli-table`` merges them).
@@ -177,21 +180,25 @@ def run_benchmark(store: EncodingStore, method: Method, protocols: Sequence[str]
     if hasattr(method, "check_store"):  # a model that cannot read the store: one line, not a failed row per pair
         method.check_store(store)
     with folder_lock(out_dir, "benchmark"), on_full_disk(out_dir, scratch=[out_dir], fix=RESUME):
+        target_sun = check_target_sun(target_sun)
         settings = run_settings(store, method, protocols, limit=limit, oracle_light=oracle_light,
-                                oracle_shadow=oracle_shadow, rule=rule, shard=shard, score_mask=score_mask)
+                                oracle_shadow=oracle_shadow, rule=rule, shard=shard, score_mask=score_mask,
+                                target_sun=target_sun)
         recorded = _recorded(out_dir)
         if score_mask == DEFAULT_MASK and recorded and "score_mask" not in recorded:
             settings.pop("score_mask")  # rows of a run from before the option: scored on face_mask, resumable
         provenance.ensure(out_dir, settings, "benchmark rows", name=SETTINGS,
                           has_results=(out_dir / PARTIAL_CSV).is_file() or (out_dir / tables.PER_IMAGE_CSV).is_file())
         run, result = _start(store, method, out_dir, oracle_light=oracle_light, oracle_shadow=oracle_shadow,
-                             estimator=estimator, save_images=save_images, rule=rule, score_mask=score_mask)
+                             estimator=estimator, save_images=save_images, rule=rule, score_mask=score_mask,
+                             target_sun=target_sun)
         return _run(run, result, protocols, limit=limit, shard=shard, grid_pairs=grid_pairs, progress=progress)
 
 
 def finished_run(store: EncodingStore, method: Method, protocols: Sequence[str], out_dir: str | Path, *,
                  limit: int | None = None, oracle_light: bool = False, oracle_shadow: bool = False,
-                 rule: str | None = None, score_mask: str | None = None) -> BenchmarkResult | None:
+                 rule: str | None = None, score_mask: str | None = None,
+                 target_sun: str = "shadows") -> BenchmarkResult | None:
     """The completed run in ``out_dir`` when it was made with exactly these settings (its scored rows and what it
     states about its inputs), else None: what a whole suite rerun reuses instead of relighting again. A killed run
     (rows still partial) is not finished: :func:`run_benchmark` resumes it."""
@@ -200,7 +207,7 @@ def finished_run(store: EncodingStore, method: Method, protocols: Sequence[str],
         return None
     want = run_settings(store, method, protocols, limit=limit, oracle_light=oracle_light,
                         oracle_shadow=oracle_shadow, rule=metrics.check_rule(rule), shard=None,
-                        score_mask=check_score_mask(store, score_mask))
+                        score_mask=check_score_mask(store, score_mask), target_sun=check_target_sun(target_sun))
     if provenance.differences(_recorded(out_dir), provenance.plain(want)):
         return None
     try:
@@ -221,16 +228,35 @@ def _recorded(out_dir: Path) -> dict:
 
 def run_settings(store: EncodingStore, method: Method, protocols: Sequence[str], *, limit: int | None,
                  oracle_light: bool, oracle_shadow: bool, rule: str, shard: str | None,
-                 score_mask: str = DEFAULT_MASK) -> dict[str, Any]:
-    """What decides a benchmark run's rows (compared when a run resumes into the same folder)."""
+                 score_mask: str = DEFAULT_MASK, target_sun: str = "shadows") -> dict[str, Any]:
+    """What decides a benchmark run's rows (compared when a run resumes into the same folder). ``target_sun``
+    counts only where it changes a relight: fitted lights and a method that reads a shadow map."""
     relighter = getattr(method, "relighter", None)
     model = getattr(relighter, "model", None)
+    marched = {"target_sun": target_sun} if not oracle_light and _marches(method) else {}
     return {"method": method.name, "model": provenance.model_identity(model) if model is not None else None,
             "sampler": relighter.spec.to_config() if getattr(relighter, "spec", None) is not None else None,
             "precision": relighter.runtime.precision if relighter is not None else None,
             "store": provenance.store_identity(store), "versions": dict(getattr(store, "versions", {}) or {}),
             "protocols": list(protocols), "limit": limit, "oracle_light": bool(oracle_light),
-            "oracle_shadow": bool(oracle_shadow), "rule": rule, "score_mask": score_mask, "shard": shard}
+            "oracle_shadow": bool(oracle_shadow), "rule": rule, "score_mask": score_mask, "shard": shard, **marched}
+
+
+#: Where a fitted target light's cast-shadow maps are marched (``run_benchmark``'s ``target_sun``).
+TARGET_SUNS = ("shadows", "peak")
+
+
+def check_target_sun(value: str) -> str:
+    """``value`` if it is one of :data:`TARGET_SUNS`, else a one-line UserError naming them."""
+    if value not in TARGET_SUNS:
+        raise errors.UserError(f"target_sun={value!r}: use one of {', '.join(TARGET_SUNS)}")
+    return value
+
+
+def _marches(method: Method) -> bool:
+    """Whether ``method`` reads a target shadow map (its relights depend on where the map is marched)."""
+    relighter = getattr(method, "relighter", None)
+    return relighter is not None and "shadow_map" in getattr(relighter, "model_inputs", ())
 
 
 @dataclass
@@ -290,7 +316,8 @@ def _run(run: _Run, result: BenchmarkResult, protocols: Sequence[str], *, limit:
 
 
 def _start(store: EncodingStore, method: Method, out_dir: Path, *, oracle_light: bool, oracle_shadow: bool,
-           estimator: LightFit | None, save_images: bool, rule: str, score_mask: str) -> tuple[_Run, BenchmarkResult]:
+           estimator: LightFit | None, save_images: bool, rule: str, score_mask: str,
+           target_sun: str = "shadows") -> tuple[_Run, BenchmarkResult]:
     """The run's shared inputs and its result so far: what it states about its inputs, no rows yet."""
     doc = protocols_doc(store)
     exact = bool(doc.get("exact_lights", True))
@@ -308,7 +335,12 @@ def _start(store: EncodingStore, method: Method, out_dir: Path, *, oracle_light:
     # Methods that fit their source light (the Lambertian baseline) are scored on it too, through their own door.
     fits = method.needs_light_fit and getattr(method, "estimator", None) is not None
     source_light = method.source_light if fits else None
-    run = _Run(store, method, out_dir, rule, score_mask, Lights(store, None if oracle_light else estimator), extras,
+    marches = _marches(method) and not oracle_light
+    lights = Lights(store, None if oracle_light else estimator, sun_from_shadows=marches and target_sun == "shadows")
+    if marches:
+        result.provenance["target sun"] = ("found from the light-source image's cast shadows (render.sun_fit)"
+                                           if target_sun == "shadows" else "the fitted light's radiance peak")
+    run = _Run(store, method, out_dir, rule, score_mask, lights, extras,
                [*extras.metrics(), *extras.strata()], oracle_shadow, exact, source_light, save_images)
     return run, result
 
@@ -327,7 +359,8 @@ def _relight_and_score(run: _Run, pair: Pair, light: np.ndarray, shadow: float |
         errors.check_record(source.read(), pair.source, run.store.root)
         errors.check_light(light, f"target light of pair {pair.id}")
         errors.check_number(shadow, f"target shadow of pair {pair.id}")
-        relit = errors.check_output(run.method.relight(source, light, shadow, target=target),
+        relit = errors.check_output(run.method.relight(source, light, shadow, target=target,
+                                                       target_sun=run.lights.sun(pair)),
                                     f"{name} relight of pair {pair.id}")
         seconds = time.perf_counter() - start
         if relit.shape != gt["image"].shape or relit.dtype != np.uint8:

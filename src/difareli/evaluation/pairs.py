@@ -110,10 +110,11 @@ def irradiance_error(estimate: np.ndarray, truth: np.ndarray, normals: np.ndarra
 class Lights:
     """Target (and source) lights per record, estimated once each; errors against the stored light."""
 
-    def __init__(self, store: EncodingStore, estimator: LightFit | None):
-        self.store, self.estimator = store, estimator
+    def __init__(self, store: EncodingStore, estimator: LightFit | None, sun_from_shadows: bool = False):
+        self.store, self.estimator, self.sun_from_shadows = store, estimator, sun_from_shadows
         self.shadow_note = ""
         self._cache: dict[str, np.ndarray] = {}
+        self._suns: dict[str, np.ndarray | None] = {}
 
     def get(self, record_id: str) -> np.ndarray:
         """``record_id``'s light: fitted to its image by the estimator, or (none) its exact light."""
@@ -130,6 +131,21 @@ class Lights:
         oracle = self.estimator is None
         light = self.get(pair.target if oracle else pair.light_source)
         return light, self.shadow(pair.target if oracle or oracle_shadow else pair.light_source, oracle=oracle_shadow)
+
+    def sun(self, pair: Pair) -> np.ndarray | None:
+        """Where ``pair``'s target map is marched: the fitted light's key sun found from the light-source image's
+        cast shadows (``render.sun_fit``, with ``sun_from_shadows``), once per record; None (the light's radiance
+        peak) for exact lights or a store without the depth and parsing it reads."""
+        if self.estimator is None or not self.sun_from_shadows:
+            return None
+        rid = pair.light_source
+        if rid not in self._suns:
+            from difareli.render import sun_fit
+
+            have = all(self.store.available(k) for k in sun_fit.ENCODINGS if k != "masks")
+            arrays = self.store.read(rid, [k for k in sun_fit.ENCODINGS if self.store.available(k)]) if have else None
+            self._suns[rid] = None if arrays is None else sun_fit.fit_sun(arrays, self.get(rid), fit=self.estimator).direction
+        return self._suns[rid]
 
     def shadow(self, record_id: str, oracle: bool = False) -> float | None:
         """The cast-shadow strength c' a user has for the target given by ``record_id``'s image, or the exact

@@ -35,6 +35,10 @@ def face_normals(arrays: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarr
     n = np.asarray(arrays["normal"], dtype=np.float64)
     return n, known_normals(n)
 
+#: A pixel darker than the fit by more than this many robust sigmas is a cast shadow the SH cannot explain: the
+#: robust refit drops it (and ``render.sun_fit`` reads it as the shadow's evidence).
+SHADOW_SIGMAS = 2.5
+
 
 @dataclass(frozen=True)
 class LightFit:
@@ -58,14 +62,20 @@ class LightFit:
             np.asarray(self.albedo, dtype=np.float64), (3,))
         return np.asarray(a, dtype=np.float64)
 
-    def pixels(self, arrays: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-        """(intensities in [0, 1], normals), both (N, 3), of the pixels the fit uses."""
+    def region(self, arrays: Mapping[str, np.ndarray]) -> np.ndarray:
+        """The pixels (bool HxW) the fit uses: the face with a stored normal, in ``parts``, neither clipped nor
+        black."""
         img = np.asarray(arrays["image"], dtype=np.float64) / 255.0
-        normal, known = face_normals(arrays)
-        m = known & np.asarray(arrays["face_mask"], dtype=bool)
+        m = face_normals(arrays)[1] & np.asarray(arrays["face_mask"], dtype=bool)
         if self.parts and "masks" in arrays:
             m &= np.isin(np.asarray(arrays["masks"]), [PART_INDEX[p] for p in self.parts])
-        m &= (img.max(-1) < 254.5 / 255) & (img.min(-1) > 0.5 / 255)
+        return m & (img.max(-1) < 254.5 / 255) & (img.min(-1) > 0.5 / 255)
+
+    def pixels(self, arrays: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """(intensities in [0, 1], normals), both (N, 3), of the pixels the fit uses (:meth:`region`)."""
+        img = np.asarray(arrays["image"], dtype=np.float64) / 255.0
+        normal = face_normals(arrays)[0]
+        m = self.region(arrays)
         if m.sum() < self.min_pixels:
             raise UserError(f"light fit: only {int(m.sum())} usable face pixels (need {self.min_pixels})")
         return img[m], normal[m]
@@ -78,7 +88,7 @@ class LightFit:
         for _ in range(self.robust_iters):
             r = (y - albedo * sh.irradiance(light, n)).mean(-1)
             sigma = 1.4826 * np.median(np.abs(r - np.median(r)))
-            keep = r >= -2.5 * max(sigma, 1e-4)
+            keep = r >= -SHADOW_SIGMAS * max(sigma, 1e-4)
             if keep.sum() < 9 or keep.all():
                 break
             light = sh.fit(y, n, albedo, weights=keep.astype(np.float64))

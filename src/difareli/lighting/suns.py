@@ -20,13 +20,14 @@ from difareli.errors import UserError
 from difareli.lighting import sh
 
 
-def _fibonacci_sphere(n: int) -> np.ndarray:
+def fibonacci_sphere(n: int) -> np.ndarray:
+    """``n`` unit vectors (n, 3) spread evenly over the sphere (the Fibonacci lattice)."""
     k = np.arange(n) + 0.5
     polar, azimuth = np.arccos(1 - 2 * k / n), np.pi * (1 + 5 ** 0.5) * k
     return np.stack([np.cos(azimuth) * np.sin(polar), np.sin(azimuth) * np.sin(polar), np.cos(polar)], -1)
 
 
-_GRID = _fibonacci_sphere(2048)  # about 4.5 degrees apart
+_GRID = fibonacci_sphere(2048)  # about 4.5 degrees apart
 _GRID_Y = sh.real_sh(_GRID)
 
 
@@ -76,10 +77,12 @@ class Suns:
         object.__setattr__(self, "ambient", np.asarray(self.ambient, np.float64).reshape(9, 3))
 
     @classmethod
-    def of_sh(cls, light) -> "Suns":
-        """One sun toward ``light``'s radiance peak (:func:`sun_direction`) carrying all of it (no ambient): an SH
-        light's own."""
-        return cls(sun_direction(light)[None], np.ones((1, 3)), np.zeros((9, 3)))
+    def of_sh(cls, light, direction=None) -> "Suns":
+        """One sun toward ``light``'s radiance peak (:func:`sun_direction`), or toward ``direction`` where the
+        sun is known better (e.g. found from an image's cast shadows: ``render.sun_fit``), carrying all of it
+        (no ambient): an SH light's own."""
+        d = sun_direction(light) if direction is None else np.asarray(direction, np.float64)
+        return cls(d[None], np.ones((1, 3)), np.zeros((9, 3)))
 
     @classmethod
     def from_header(cls, meta: Mapping, light) -> "Suns | None":

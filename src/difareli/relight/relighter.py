@@ -329,8 +329,7 @@ class Relighter:
         one target each. The door for jobs that relight a whole store under one light per record (teacher pairs)."""
         if len(sources) != len(targets):
             raise errors.UserError(f"{len(sources)} sources but {len(targets)} targets: give one target per source")
-        one = [Targets(targets.lights[k:k + 1], targets.shadows[k:k + 1],
-                       None if targets.maps is None else targets.maps[k:k + 1]) for k in range(len(targets))]
+        one = [targets.take(k, k + 1) for k in range(len(targets))]
         return self.relight_many(sources, one)[:, 0]
 
     def relight_many(self, sources: Sequence[Source], targets: Sequence[Targets], *,

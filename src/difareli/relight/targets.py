@@ -30,16 +30,20 @@ from difareli.errors import (TARGET_LIGHT_MAX_ABS, UserError, UserFileNotFoundEr
 @dataclass(frozen=True)
 class Targets:
     """N target lights (N, 9, 3) and their shadow logits c' (``None``: the model's own rule), checked once; with
-    ``maps`` (N, H, W), the target shadow maps given instead of made (an exact or edited map, an oracle)."""
+    ``maps`` (N, H, W), the target shadow maps given instead of made (an exact or edited map, an oracle); with
+    ``suns``, per target a unit direction (3,) toward its key sun where it is known better than the light's
+    radiance peak (``None``: the peak), e.g. found from the cast shadows of the photo whose light it is
+    (``render.sun_fit``): the target map is marched toward it."""
 
     lights: np.ndarray
     shadows: tuple[float | None, ...]
     maps: np.ndarray | None = None
+    suns: tuple[np.ndarray | None, ...] | None = None
 
     @classmethod
-    def of(cls, lights, shadows=None, what: str = "target", maps=None) -> "Targets":
-        """Lights (one 9x3 or a sequence/array of them), optional shadows and optional target shadow maps,
-        checked finite and in range."""
+    def of(cls, lights, shadows=None, what: str = "target", maps=None, suns=None) -> "Targets":
+        """Lights (one 9x3 or a sequence/array of them), optional shadows, target shadow maps and key-sun
+        directions, checked finite and in range."""
         arr = np.asarray(lights, dtype=np.float64)
         arr = arr[None] if arr.ndim == 2 else arr
         if arr.ndim != 3 or arr.shape[1:] != (9, 3) or len(arr) == 0:
@@ -54,7 +58,13 @@ class Targets:
             if maps.ndim != 3 or len(maps) != len(checked) or maps.min() < 0 or maps.max() > 1:
                 raise UserError(f"{what}: {len(checked)} target lights need {len(checked)} shadow maps (N, H, W) "
                                  f"with values in [0, 1]; got shape {maps.shape}")
-        return cls(checked, tuple(None if c is None else float(c) for c in cs), maps)
+        if suns is not None:
+            suns = tuple(suns)
+            if len(suns) != len(checked):
+                raise UserError(f"{what}: {len(checked)} target lights but {len(suns)} sun directions")
+            suns = tuple(None if d is None else _unit_direction(d, f"{what} sun direction {i}")
+                         for i, d in enumerate(suns))
+        return cls(checked, tuple(None if c is None else float(c) for c in cs), maps, suns)
 
     def __len__(self) -> int:
         return len(self.lights)
@@ -65,16 +75,30 @@ class Targets:
             return list(zip(self.lights[i], self.shadows[i]))
         return self.lights[i], self.shadows[i]
 
+    def take(self, start: int, stop: int) -> "Targets":
+        """Targets ``start:stop`` (their maps and suns with them)."""
+        return Targets(self.lights[start:stop], self.shadows[start:stop],
+                       None if self.maps is None else self.maps[start:stop],
+                       None if self.suns is None else self.suns[start:stop])
+
     def retarget(self, arrays: Mapping[str, np.ndarray], names: list[str], start: int = 0, stop: int | None = None
                  ) -> list[dict[str, np.ndarray]]:
         """The encodings ``names`` of ``arrays`` under targets ``start:stop`` (:func:`retarget_many`), the given
         ``maps`` taking the place of the made shadow maps."""
         stop = len(self) if stop is None else min(stop, len(self))
-        out = retarget_many(arrays, names, self[start:stop])
+        out = retarget_many(arrays, names, self[start:stop], None if self.suns is None else self.suns[start:stop])
         if self.maps is not None and "shadow_map" in names:  # their size: Relighter.check_inputs
             for k, o in enumerate(out):
                 o["shadow_map"] = self.maps[start + k]
         return out
+
+
+def _unit_direction(d, what: str) -> np.ndarray:
+    v = check_finite(np.asarray(d, dtype=np.float64), what)
+    norm = float(np.linalg.norm(v)) if v.shape == (3,) else 0.0
+    if norm < 1e-6:
+        raise UserError(f"{what}: expected a non-zero 3-vector, got {v.tolist()}")
+    return v / norm
 
 
 def load_sh_file(path: str | Path) -> np.ndarray:
@@ -207,14 +231,20 @@ def _describe(maker: Mapping) -> str:
     return f"{maker.get('name', '?')}" + (f" ({rest})" if rest else "")
 
 
+def map_direction(light: "np.ndarray | Suns") -> np.ndarray:
+    """Where a target map is marched: an SH light's radiance peak (``lighting.suns.sun_direction``), a single
+    sun's direction."""
+    return light.dirs[0] if isinstance(light, Suns) else sun_direction(light)
+
+
 def cast_shadows(arrays: Mapping[str, np.ndarray], lights) -> np.ndarray:
-    """Binary cast-shadow maps (N, H, W) toward each light's radiance peak (``lighting.suns.sun_direction``),
-    ray-marched on the stored depth in one batched march; a point turned away from the light (known normal,
-    n.d <= 0) is in attached, not cast, shadow."""
+    """Binary cast-shadow maps (N, H, W) toward each light's :func:`map_direction` (SH lights or single
+    ``Suns``), ray-marched on the stored depth in one batched march; a point turned away from the light (known
+    normal, n.d <= 0) is in attached, not cast, shadow."""
     depth = np.asarray(arrays["depth"], dtype=np.float64)
     normal = np.asarray(arrays["normal"], dtype=np.float64)
     cam = OrthoCamera(*np.asarray(arrays["cam"], dtype=np.float64).tolist())
-    dirs = np.stack([sun_direction(light) for light in lights])
+    dirs = np.stack([map_direction(light) for light in lights])
     # The stored normals decide which points face the light where they are known (the march estimates them from
     # the depth elsewhere): on v3's test split 0.463 -> 0.484 IoU toward the key sun, against filtering afterwards.
     return march_shadows(depth, depth != 0, cam, dirs, normal=normal)
@@ -224,15 +254,15 @@ def target_shadow_map(arrays: Mapping[str, np.ndarray], light: "np.ndarray | Sun
                       c_range=None) -> np.ndarray:
     """Binary cast-shadow map ray-marched on the stored depth, times the normalised shadow strength ``c`` (the
     ``shadow_map`` encoding's definition). ``light``: an SH light (the map toward its radiance peak) or its
-    suns (``lighting.suns.Suns``, e.g. a SynthFaces header's: the visibly shadowed pixels under them,
-    ``render.visible.visible_march``). ``c_range``: the store's c range (``encodings.store_c_range``), else the
-    one the arrays carry under ``encodings.C_RANGE_KEY`` (SynthFaces v3 readers put it there), else the fixed
-    range."""
-    if isinstance(light, Suns):
+    suns (``lighting.suns.Suns``: one sun, the map toward it; several, e.g. a SynthFaces header's: the visibly
+    shadowed pixels under them, ``render.visible.visible_march``). ``c_range``: the store's c range
+    (``encodings.store_c_range``), else the one the arrays carry under ``encodings.C_RANGE_KEY`` (SynthFaces v3
+    readers put it there), else the fixed range."""
+    if isinstance(light, Suns) and len(light.dirs) > 1:
         cam = OrthoCamera(*np.asarray(arrays["cam"], dtype=np.float64).tolist())
         cast = visible_march(arrays["depth"], np.asarray(arrays["normal"], np.float64), cam, light)
-    else:
-        marched = arrays.get(CASTS_KEY, {}).get(sun_direction(light).tobytes())
+    else:  # one sun: visibly shadowed is cast (render.visible), so the plain march, batched by retarget_many
+        marched = arrays.get(CASTS_KEY, {}).get(map_direction(light).tobytes())
         cast = marched if marched is not None else cast_shadows(arrays, [light])[0]
     c_range = c_range if c_range is not None else encodings.store_c_range(arrays)
     return (cast * normalise_c(c, c_range)).astype(np.float32)
@@ -265,29 +295,42 @@ def render_shadow_map(arrays: Mapping[str, np.ndarray], light: np.ndarray, shado
 
 
 def retarget(arrays: Mapping[str, np.ndarray], names: list[str], light: np.ndarray,
-             shadow: float | None = None) -> dict[str, np.ndarray]:
+             shadow: float | None = None, sun: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """The encodings ``names`` under a target ``light`` (and shadow strength ``shadow``, a logit c'),
     re-rendering only those the encoding registry marks light-dependent; the rest are the input's own.
-    Without ``shadow`` the input's own c (its ``shadow`` encoding, when stored) is kept."""
+    Without ``shadow`` the input's own c (its ``shadow`` encoding, when stored) is kept. ``sun``: the direction
+    the cast-shadow maps are marched toward (default: the light's radiance peak)."""
     if shadow is None and "shadow" in arrays:
         shadow = encodings.shadow_logit(arrays)
+    caster = light if sun is None else Suns.of_sh(light, sun)
     out = {}
     for n in names:
         e = encodings.get(n)
-        out[n] = e.render(arrays, light, shadow) if e.light_dependent else arrays[n]
+        if e.light_dependent:
+            out[n] = e.render(arrays, caster if _marched(n) else light, shadow)
+        else:
+            out[n] = arrays[n]
     return out
 
 
-def retarget_many(arrays: Mapping[str, np.ndarray], names: list[str], pairs) -> list[dict[str, np.ndarray]]:
-    """:func:`retarget` for each ``(light, shadow)`` of ``pairs``; the cast shadows of all their lights are
-    ray-marched first in one batched march (a video's 60 frames: one march, not 60)."""
+def _marched(name: str) -> bool:
+    """Whether an encoding is a cast-shadow map marched on the depth (it takes the light's sun)."""
+    e = encodings.get(name)
+    return e.light_dependent and "depth" in e.needs
+
+
+def retarget_many(arrays: Mapping[str, np.ndarray], names: list[str], pairs,
+                  suns=None) -> list[dict[str, np.ndarray]]:
+    """:func:`retarget` for each ``(light, shadow)`` of ``pairs`` (and its ``suns`` direction, None: the
+    light's radiance peak); the cast shadows of all their lights are ray-marched first in one batched march (a
+    video's 60 frames: one march, not 60)."""
     pairs = list(pairs)
-    marched = [n for n in names if encodings.get(n).light_dependent and "depth" in encodings.get(n).needs]
-    if marched and len(pairs) > 1 and "depth" in arrays:
-        lights = [np.asarray(light, dtype=np.float64) for light, _ in pairs]
-        keys = [sun_direction(light).tobytes() for light in lights]
-        arrays = {**arrays, CASTS_KEY: dict(zip(keys, cast_shadows(arrays, lights)))}
-    return [retarget(arrays, names, light, shadow) for light, shadow in pairs]
+    suns = [None] * len(pairs) if suns is None else list(suns)
+    casters = [light if d is None else Suns.of_sh(light, d) for (light, _), d in zip(pairs, suns)]
+    if any(_marched(n) for n in names) and len(pairs) > 1 and "depth" in arrays:
+        keys = [map_direction(c).tobytes() for c in casters]
+        arrays = {**arrays, CASTS_KEY: dict(zip(keys, cast_shadows(arrays, casters)))}
+    return [retarget(arrays, names, light, shadow, d) for (light, shadow), d in zip(pairs, suns)]
 
 
 # ------------------------------------------------------------------------------------------ target c policy
