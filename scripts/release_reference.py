@@ -54,6 +54,9 @@ def main() -> None:
     ap.add_argument("--notes", default="")
     ap.add_argument("--summary", default=None, help="the card's first line (default: the reference <model>)")
     ap.add_argument("--out", default=None, help="folder for the benchmark run dirs (default: a temporary one)")
+    ap.add_argument("--init-from", default=None,
+                    help="the shipped checkpoint the run was fine-tuned from, where its config does not say it (a "
+                         "resumed run) or names it by a name that has since passed to other weights")
     a = ap.parse_args()
 
     if a.run_checkpoint in zoo.available():  # a shipped reference: its training facts stay, the benchmark is new
@@ -68,7 +71,7 @@ def main() -> None:
     batch = OmegaConf.select(cfg, "data.batch_size", default=a.batch_size)
     ema = OmegaConf.select(cfg, "callbacks.ema.decay", default=0.999)
     # A fine-tuned run (init_from=<checkpoint>) counts the steps and hours of the checkpoint it started from.
-    init = OmegaConf.select(cfg, "init_from", default=None)
+    init = a.init_from or OmegaConf.select(cfg, "init_from", default=None)
     prior = read_checkpoint(str(zoo.resolve(init, "init_from"))) if init else None
     comparison, bench = benchmark(a, a.run_checkpoint)
     train_s = float(timer.get("train", 0.0))

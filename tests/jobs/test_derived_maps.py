@@ -67,6 +67,7 @@ def test_a_store_without_what_a_maker_reads_is_refused_by_name(store):
 def test_check_maker_is_silent_for_the_same_maker_and_names_both_otherwise():
     now = shadow_maker()
     assert check_maker(now) is None and check_maker(None) is None
+    assert check_maker({"name": "visible", "version": "visible"}) is None  # the exact shadows: no other maker
     msg = check_maker({"name": "mesh", "light": "fitted"})
     assert "made by mesh (light=fitted)" in msg and "made by march (" in msg
     older = {**now, "thickness": now["thickness"] * 2}

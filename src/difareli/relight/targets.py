@@ -211,11 +211,18 @@ def shadow_maker() -> dict:
             "visible": MARCH_VISIBLE, **settings}
 
 
+#: Training maps that are the renderer's exact shadows (``difareli-shadow-maps maker=visible``), not another maker:
+#: what every maker approximates. A model trained on them follows the march's maps (0.86 and 0.67 of a real cast
+#: shadow's darkening with the march toward the exact suns and toward a fitted light: docs/shadow_maps.md,
+#: section 4), so :func:`check_maker` does not warn about them.
+EXACT_MAPS = ("visible",)
+
+
 def check_maker(trained_on: Mapping | None, what: str = "this model") -> str | None:
     """A warning (one sentence naming both) when ``trained_on`` (the maker of a model's training maps, as a
-    checkpoint records it) differs from the maker of a relight's target maps; None when they agree or the
-    checkpoint does not say (older checkpoints)."""
-    if not trained_on:
+    checkpoint records it) differs from the maker of a relight's target maps; None when they agree, when it
+    trained on the exact shadows (:data:`EXACT_MAPS`) or the checkpoint does not say (older checkpoints)."""
+    if not trained_on or trained_on.get("name") in EXACT_MAPS:
         return None
     now = shadow_maker()
     if dict(trained_on) == now:
