@@ -10,7 +10,8 @@ from difareli.checkpoints import export, zoo
 from difareli.checkpoints.loading import load_checkpoint, read_checkpoint
 from difareli.errors import UserError
 
-SHIPPED = ("difareli_pp-synth64", "difareli-synth64", "difareli_pp_ss-synth64", "difareli_pp_shadows-synth64")
+SHIPPED = ("difareli_pp-synth64", "difareli-synth64", "difareli_pp_ss-synth64", "difareli_pp_shadows-synth64",
+           "difareli_pp_v2-synth64")
 
 
 def _no_pickle(monkeypatch):
