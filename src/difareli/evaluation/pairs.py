@@ -19,6 +19,7 @@ from difareli.data.store import EncodingStore
 from difareli.lighting import sh
 from difareli.lighting.light_fit import LightFit
 from difareli.relight.targets import target_shadow_of
+from difareli.render import sun_fit
 
 
 @dataclass(frozen=True)
@@ -135,16 +136,15 @@ class Lights:
     def sun(self, pair: Pair) -> np.ndarray | None:
         """Where ``pair``'s target map is marched: the fitted light's key sun found from the light-source image's
         cast shadows (``render.sun_fit``, with ``sun_from_shadows``), once per record; None (the light's radiance
-        peak) for exact lights or a store without the depth and parsing it reads."""
+        peak) for exact lights or a store without the image, depth, normals or face mask it reads."""
         if self.estimator is None or not self.sun_from_shadows:
             return None
         rid = pair.light_source
         if rid not in self._suns:
-            from difareli.render import sun_fit
-
             have = all(self.store.available(k) for k in sun_fit.ENCODINGS if k != "masks")
             arrays = self.store.read(rid, [k for k in sun_fit.ENCODINGS if self.store.available(k)]) if have else None
-            self._suns[rid] = None if arrays is None else sun_fit.fit_sun(arrays, self.get(rid), fit=self.estimator).direction
+            found = None if arrays is None else sun_fit.fit_sun(arrays, self.get(rid), fit=self.estimator)
+            self._suns[rid] = None if found is None else found.direction
         return self._suns[rid]
 
     def shadow(self, record_id: str, oracle: bool = False) -> float | None:
