@@ -223,9 +223,11 @@ def test_quality_script_scores_known_maps(store, tmp_path):
     assert float(rows["difference"][0]) == 0.0 and float(rows["difference"][3]) == 0.0
     assert int(rows["difference (a)"][4]) == sum(gt_any)
     csv_rows = (tmp_path / "shadow_map_quality.csv").read_text().splitlines()
-    # 3 records x (2 versions, ray-marched toward the fitted and the exact light, on the exact depth toward the exact
-    # key sun and toward every exact sun, mesh, key-sun bound, whole face)
-    assert len(csv_rows) == 1 + 3 * 9
+    # 3 records x (2 versions, ray-marched toward the fitted and the exact light and toward each one's sun found from
+    # the image's cast shadows, on the exact depth toward the exact key sun and toward every exact sun, mesh, key-sun
+    # bound, whole face)
+    assert len(csv_rows) == 1 + 3 * 11
+    assert "ray-marched, its sun found from the image's cast shadows" in rows
     assert [float(v) for v in rows["key sun, exact mesh (upper bound)"][:2]][1] == 1.0  # inside the GT by definition
     whole = [float(v) for v in rows["whole face (baseline)"][:3]]
     assert whole[2] == 1.0 and 0 < whole[0] < 1  # covering the face: recall 1, IoU = the GT's share of the face
