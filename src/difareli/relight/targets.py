@@ -212,9 +212,9 @@ def shadow_maker() -> dict:
 
 
 #: Training maps that are the renderer's exact shadows (``difareli-shadow-maps maker=visible``), not another maker:
-#: what every maker approximates. A model trained on them follows the march's maps (0.86 and 0.67 of a real cast
-#: shadow's darkening with the march toward the exact suns and toward a fitted light: docs/shadow_maps.md,
-#: section 4), so :func:`check_maker` does not warn about them.
+#: what every maker approximates. A model trained on them follows the march's maps (0.86-0.94 and 0.67-0.76 of a
+#: real cast shadow's darkening with the march toward the exact suns and toward a fitted light, after 604 and 2,170
+#: steps: docs/shadow_maps.md, section 4), so :func:`check_maker` does not warn about them.
 EXACT_MAPS = ("visible",)
 
 
