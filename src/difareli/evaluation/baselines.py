@@ -1,13 +1,14 @@
 """Relighting methods behind one interface, for benchmarks: classical baselines and the diffusion model.
 
 A :class:`Method` has a ``name``, ``relight(source, target_light, target_shadow=None, target=None,
-target_sun=None) -> uint8 HxWx3`` and two declarations the benchmark reads: ``needs_light`` (it uses the target light, so a run under
-ground-truth lights is marked) and ``needs_light_fit`` (it fits a source light with ``estimator``, whose error the
-benchmark reports). ``source`` is the input record as a :class:`~difareli.evaluation.pairs.StoredFace` (its store,
-its id, its encodings read once); ``target``, the ground-truth record as one, is only for the oracle;
-``target_sun`` (None: the light's radiance peak) is where a method that draws cast shadows marches the target's
-(the light's key sun found from the light-source image's cast shadows: ``render.sun_fit``). Methods are
-built from ``conf/method/*.yaml`` ``_target_`` configs by :func:`build_method`.
+target_sun=None) -> uint8 HxWx3`` and two declarations the benchmark reads: ``needs_light`` (it uses the target
+light, so a run under ground-truth lights is marked) and ``needs_light_fit`` (it fits a source light with
+``estimator``, whose error the benchmark reports). ``source`` is the input record as a
+:class:`~difareli.evaluation.pairs.StoredFace` (its store, its id, its encodings read once); ``target``, the
+ground-truth record as one, is only for the oracle; ``target_sun`` is the direction a method that reads a target
+shadow map marches it toward (the light's key sun found from the light-source image's cast shadows:
+``render.sun_fit``; None: the light's radiance peak). Methods are built from ``conf/method/*.yaml`` ``_target_``
+configs by :func:`build_method`.
 
 Target (and source) lights "as a user gets them" come from :class:`difareli.lighting.light_fit.LightFit`.
 """

@@ -40,6 +40,13 @@ def face_normals(arrays: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarr
 SHADOW_SIGMAS = 2.5
 
 
+def robust_sigma(r: np.ndarray) -> float:
+    """The standard deviation of ``r`` estimated from its median absolute deviation (1.4826 x MAD: exact for a
+    normal distribution, blind to the cast-shadow outliers)."""
+    r = np.asarray(r, dtype=np.float64)
+    return float(1.4826 * np.median(np.abs(r - np.median(r))))
+
+
 @dataclass(frozen=True)
 class LightFit:
     """Estimate a record's SH light from its image alone (plus its normals and face parsing).
@@ -87,7 +94,7 @@ class LightFit:
         light = sh.fit(y, n, albedo, weights=w)
         for _ in range(self.robust_iters):
             r = (y - albedo * sh.irradiance(light, n)).mean(-1)
-            sigma = 1.4826 * np.median(np.abs(r - np.median(r)))
+            sigma = robust_sigma(r)
             keep = r >= -SHADOW_SIGMAS * max(sigma, 1e-4)
             if keep.sum() < 9 or keep.all():
                 break

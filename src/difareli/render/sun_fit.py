@@ -19,7 +19,7 @@ from typing import Mapping
 import numpy as np
 
 from difareli.lighting import sh
-from difareli.lighting.light_fit import SHADOW_SIGMAS, LightFit, face_normals
+from difareli.lighting.light_fit import SHADOW_SIGMAS, LightFit, face_normals, robust_sigma
 from difareli.lighting.suns import fibonacci_sphere, sun_direction
 from difareli.render.camera import OrthoCamera
 from difareli.render.screen_shadow import march_shadows
@@ -65,9 +65,8 @@ def shadow_evidence(arrays: Mapping[str, np.ndarray], light: np.ndarray, fit: Li
     normal = face_normals(arrays)[0]
     img = np.asarray(arrays["image"], np.float64) / 255.0
     r = (img - fit.prior() * sh.irradiance(np.asarray(light, np.float64), normal)).mean(-1)
-    med = float(np.median(r[region]))
-    sigma = 1.4826 * float(np.median(np.abs(r[region] - med)))
-    return region & (r < med - SHADOW_SIGMAS * max(sigma, 1e-4)), region
+    cut = float(np.median(r[region])) - SHADOW_SIGMAS * max(robust_sigma(r[region]), 1e-4)
+    return region & (r < cut), region
 
 
 def fit_sun(arrays: Mapping[str, np.ndarray], light: np.ndarray, *, cone_deg: float = CONE_DEG,
