@@ -19,6 +19,7 @@ from difareli.cli.relight import run
 from difareli.relight.relighter import Relighter
 from difareli.data.store import EncodingStore
 from difareli.relight.targets import Targets
+from difareli.render import sun_fit
 
 from tests.helpers import compose_train
 from .test_relight import depth_store  # noqa: F401 (fixture)
@@ -48,10 +49,18 @@ def test_yaw_target_writes_relit_and_comparison(ckpt, depth_store, tmp_path):
     rid = store.ids(split="test")[0]  # record=null: the first test record
     np.testing.assert_array_equal(comparison[20:52, 2:34], store.read(rid, ["image"])["image"])
     np.testing.assert_array_equal(comparison[20:52, 2 + CELL:34 + CELL], relit)
-    # The same relight through the API: UniPC-20 under the input's light rotated 60 degrees about +y.
+    # The same relight through the API: UniPC-20 under the input's light rotated 60 degrees about +y, its map
+    # marched toward the input light's key sun found from the input's cast shadows, turned with it.
     r = Relighter(cfg.checkpoint, cfg.sampler, device="cpu")
     own = np.asarray(store.read(rid, ["light"])["light"])
-    np.testing.assert_array_equal(r.relight(r.source(store, rid), Targets.of([sh.yaw(own, 60.0)]))[0], relit)
+    sun = sh.rotation_yaw(60.0) @ sun_fit.record_sun(store, rid, own).direction
+    np.testing.assert_array_equal(r.relight(r.source(store, rid), Targets.of([sh.yaw(own, 60.0)], suns=[sun]))[0],
+                                  relit)
+    # target.sun=peak: toward the turned light's radiance peak.
+    peak = run(compose(tmp_path / "peak", [f"checkpoint={ckpt}", f"store={depth_store}", "target.yaw=60",
+                                           "sampler=unipc", "sampler.steps=20", "target.sun=peak"]))
+    np.testing.assert_array_equal(r.relight(r.source(store, rid), Targets.of([sh.yaw(own, 60.0)]))[0],
+                                  iio.imread(peak["image"]))
 
 
 @pytest.mark.parametrize("target,gt", [("s00006_l1", True), ("s00000_l1", False)])

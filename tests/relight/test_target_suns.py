@@ -50,3 +50,44 @@ def test_sun_directions_are_checked():
         Targets.of([light], suns=[np.zeros(3)])
     got = Targets.of([light], suns=[[0.0, 0.0, 2.0]]).suns[0]
     np.testing.assert_allclose(got, [0.0, 0.0, 1.0])
+
+
+def test_a_rotation_videos_key_sun_turns_with_its_light():
+    """``rotation_targets(..., sun=d)``: frame i's map is marched toward ``R_i d``, the rotation that turns the SH
+    light (its direction turns the same way); yaw 90 degrees takes +z to +x."""
+    from difareli.relight.targets import rotation_targets
+
+    light = sh.directional_light(_direction(30, 40), 1.0)
+    sun = _direction(35, 80)
+    for axis in sh.AXES:
+        angles, rots = sh.rotation_frames(axis, 8)
+        targets, _ = rotation_targets({"light": light, "shadow": np.array([3.0])}, axis, 8, given=3.0, sun=sun)
+        np.testing.assert_allclose(np.stack(targets.suns), rots @ sun, atol=1e-12)
+        np.testing.assert_allclose(targets.suns[0], sun, atol=1e-12)
+        # Band 1's direction is exact; the radiance peak is searched on a point set (within a degree).
+        np.testing.assert_allclose(sh.dominant_direction(targets.lights), rots @ sh.dominant_direction(light),
+                                   atol=1e-9)
+        np.testing.assert_allclose(np.stack([sun_direction(l) for l in targets.lights]),
+                                   rots @ sun_direction(light), atol=0.02)
+        plain, _ = rotation_targets({"light": light, "shadow": np.array([3.0])}, axis, 8, given=3.0)
+        assert plain.suns is None
+    np.testing.assert_allclose(sh.rotation_frames("yaw", 4)[1][1] @ [0.0, 0.0, 1.0], [1.0, 0.0, 0.0], atol=1e-12)
+    with pytest.raises(UserError, match="rotation axis"):
+        sh.rotation_frames("pitch", 4)
+
+
+def test_key_sun_needs_the_images_face_and_the_choice_is_checked():
+    from difareli.lighting.light_fit import LightFit
+    from difareli.render import sun_fit
+
+    a = _scene(_direction(45, 0), _direction(55, 110))
+    fit = LightFit(albedo=0.6, parts=())
+    light = fit(a)
+    found = sun_fit.key_sun(a, light, fit=fit)
+    np.testing.assert_array_equal(found.direction, sun_fit.fit_sun(a, light, fit=fit).direction)
+    assert "key sun found from the image's cast shadows" in sun_fit.describe(found)
+    assert sun_fit.key_sun({k: v for k, v in a.items() if k != "face_mask"}, light, fit=fit) is None
+    assert sun_fit.describe(None) == "target maps marched toward the light's radiance peak"
+    assert sun_fit.check_target_sun("peak", "target.sun") == "peak"
+    with pytest.raises(UserError, match=r"^target.sun='east': use one of shadows, peak$"):
+        sun_fit.check_target_sun("east", "target.sun")

@@ -35,15 +35,15 @@ def test_rotate_light_is_sh_rotation():
     np.testing.assert_allclose(turned.extra_dirs[0], R @ light.extra_dirs[0], atol=1e-12)
 
 
-def test_rotation_matrices_match_rotation_lights():
+def test_rotation_frames_match_rotation_lights():
     from difareli.relight.targets import rotation_lights
 
     own = np.random.default_rng(2).normal(0, 0.3, (9, 3))
-    angles, rots = rot.rotation_matrices("roll", 8)
+    angles, rots = sh.rotation_frames("roll", 8)
     np.testing.assert_allclose(angles, np.arange(8) * 45.0)
     np.testing.assert_allclose(sh.rotate(own, rots), rotation_lights(own, "roll", 8), atol=1e-12)
     with pytest.raises(ValueError, match="axis"):
-        rot.rotation_matrices("pitch", 4)
+        sh.rotation_frames("pitch", 4)
 
 
 def test_zero_rotation_reproduces_the_record(store):
@@ -62,7 +62,7 @@ def test_rotated_frames_follow_sh_rotate(store):
     rid = _sunny_record(store)
     gt = rot.ground_truth_rotation(store, rid, "yaw", frames=4)
     rec = store.read(rid)
-    _, rots = rot.rotation_matrices("yaw", 4)
+    _, rots = sh.rotation_frames("yaw", 4)
     want = sh.rotate(rec["light_gt"], rots)
     np.testing.assert_allclose(gt.targets["light"], want, atol=1e-5)
     # The shading reference follows the rotated SH light on the record's own normals.

@@ -17,8 +17,8 @@ from difareli.checkpoints import zoo
 from difareli.data import shard as sharding
 from difareli.evaluation.baselines import build_method
 from difareli.lighting.light_fit import light_fit_from_config
-from difareli.evaluation.benchmark import (DEFAULT_MASK, BenchmarkResult, check_score_mask, check_target_sun,
-                                           run_benchmark)
+from difareli.evaluation.benchmark import DEFAULT_MASK, BenchmarkResult, check_score_mask, run_benchmark
+from difareli.render.sun_fit import check_target_sun
 from difareli.evaluation.rescore import rescore
 from difareli.cli import common
 from difareli.lit import logging as lit_logging

@@ -8,6 +8,7 @@ from omegaconf import DictConfig, OmegaConf
 from difareli.diffusion.spec import check_sampler
 from difareli import errors
 from difareli.checkpoints import zoo
+from difareli.render.sun_fit import check_target_sun
 from difareli.configs import CONFIG_PATH, instantiate_group
 
 __all__ = ["CONFIG_PATH", "instantiate_group", "log_hyperparameters", "metric_value", "validate_relight"]
@@ -35,12 +36,13 @@ def validate_relight(cfg: DictConfig, *, frames: tuple[str, object, int], fps: t
                      envmap: tuple[str, object]) -> None:
     """The checks every relighting command (relight, video) makes before any work: sampler, checkpoint (a file
     or a shipped name), batch size, output folder, target shadow strength, and its frame count / rate / env map
-    under the command's own keys (``(key, value[, minimum])``)."""
+    where target maps are marched, under the command's own keys (``(key, value[, minimum])``)."""
     check_sampler(cfg.sampler)
     zoo.resolve(cfg.checkpoint, "checkpoint")
     errors.check_int(cfg.batch_size, "batch_size", 1)
     errors.check_out_dir(cfg.out_dir)
     errors.check_number(cfg.target.shadow, "target.shadow")
+    check_target_sun(cfg.target.sun, "target.sun")
     key, value, minimum = frames
     errors.check_int(value, key, minimum)
     if value > MAX_FRAMES:  # 60 frames x 60 s: anything longer is a typo, and it would fill the disk first

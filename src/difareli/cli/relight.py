@@ -15,7 +15,9 @@ import numpy as np
 from omegaconf import DictConfig
 
 from difareli import errors
+from difareli.lighting import sh
 from difareli.relight import batch, photo
+from difareli.render import sun_fit
 from difareli.utils import viz
 from difareli.cli import common
 from difareli.relight.relighter import Relighter, Source
@@ -27,8 +29,9 @@ from difareli.evaluation.video import describe_file, rotation_video, video_forma
 def read_source(cfg: DictConfig, relighter: Relighter, store: EncodingStore | None) -> Source:
     """The source, read and checked once by the relighter: a photo preprocessed in memory (``image=``) or a store
     record (``record=``, null: the first test record); its notes printed."""
-    if cfg.image is not None:
-        source = relighter.photo_source(cfg.image, size=cfg.photo_size, strict=bool(cfg.strict))
+    if cfg.image is not None:  # the face mask beside the model's inputs: the key sun is found on the face
+        source = relighter.photo_source(cfg.image, size=cfg.photo_size, strict=bool(cfg.strict),
+                                        also=("face_mask",) if _finds_sun(cfg, relighter) else ())
     else:
         source = relighter.source(store, cfg.record)
     for line in source.notes:
@@ -37,6 +40,23 @@ def read_source(cfg: DictConfig, relighter: Relighter, store: EncodingStore | No
         else:
             print(line)
     return source
+
+
+def _finds_sun(cfg: DictConfig, relighter: Relighter) -> bool:
+    """Whether target maps are marched toward a key sun found from cast shadows (``target.sun=shadows``)."""
+    return cfg.target.sun == "shadows" and "shadow_map" in relighter.model_inputs
+
+
+def key_sun(cfg: DictConfig, relighter: Relighter, source: Source, store: EncodingStore | None,
+            record: str | None = None, light: np.ndarray | None = None) -> sun_fit.SunFit | None:
+    """The key sun of ``record``'s ``light`` (None: the source's own), or None with ``target.sun=peak``."""
+    if cfg.target.sun != "shadows":
+        return None
+    if record is not None:
+        return relighter.key_sun(light, store=store, record_id=record)
+    if store is not None and source.photo is None:
+        return relighter.key_sun(source.arrays["light"], store=store, record_id=source.key[1])
+    return relighter.key_sun(source.arrays["light"], arrays=source.arrays)
 
 
 def run_photos(cfg: DictConfig, relighter: Relighter, paths: list[Path]) -> dict[str, Path]:
@@ -80,8 +100,16 @@ def run(cfg: DictConfig) -> dict[str, Path]:
         light = target_lights(source.arrays["light"], light=t.light, other_light=other.get("light"), yaw=t.yaw,
                               roll=t.roll, envmap=t.envmap)
         shadow = t.shadow if t.shadow is not None else (float(other["shadow"][0]) if "shadow" in other else None)
-        relit = relighter.relight(source, Targets.of([light], [shadow], "the target"))
+        # The sun of the image whose light it is: another record's, or the source's own turned with its light.
+        found = (key_sun(cfg, relighter, source, store, t.record, other["light"]) if t.record is not None else
+                 key_sun(cfg, relighter, source, store) if t.yaw is not None or t.roll is not None else None)
+        turn = sh.rotation_yaw(t.yaw) if t.yaw is not None else sh.rotation_roll(t.roll) if t.roll is not None \
+            else np.eye(3)
+        sun = None if found is None else turn @ found.direction
+        relit = relighter.relight(source, Targets.of([light], [shadow], "the target", suns=[sun]))
         print(f"target light 0: {photo.describe_light(light)}")
+        if "shadow_map" in relighter.model_inputs:
+            print(f"target 0: {sun_fit.describe(found)}")
         print(f"relit {source.what} ({relit.describe_seconds()}; {relighter.describe()})")
         row, names = [source.arrays["image"], relit[0]], ["input", "relit"]
         rid = source.key[1] if store is not None else None
@@ -100,9 +128,12 @@ def run(cfg: DictConfig) -> dict[str, Path]:
             print(f"composited into the {full.shape[1]}x{full.shape[0]} photo in {relit.seconds['composite']:.2f} s "
                   f"({c.mode})")
     if cfg.video.axis is not None:
+        found = key_sun(cfg, relighter, source, store)
         targets, why = rotation_targets(source.arrays, cfg.video.axis, cfg.video.frames, store=store,
-                                        given=t.shadow)
+                                        given=t.shadow, sun=None if found is None else found.direction)
         print(f"video shadow strength: {why}")
+        if "shadow_map" in relighter.model_inputs:
+            print(f"video: {sun_fit.describe(found)}, turned with the light")
         quarter = len(targets) // 4
         print(f"video: frame 0 light {photo.describe_light(targets.lights[0])}"
               + (f"; frame {quarter}: {photo.describe_light(targets.lights[quarter])}" if quarter else ""))

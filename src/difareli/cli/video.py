@@ -12,6 +12,7 @@ from omegaconf import DictConfig
 
 from difareli import errors
 from difareli.lighting import sh
+from difareli.render import sun_fit
 from difareli.utils import viz
 from difareli.evaluation import video as vid
 from difareli.cli import common
@@ -36,8 +37,6 @@ def _ground_truth(cfg: DictConfig, store: EncodingStore, rid: str, rots: np.ndar
 def run(cfg: DictConfig) -> dict[str, Path]:
     """Relight, render the ground truth, measure and write; returns the paths written."""
     validate(cfg)
-    from difareli.synth.rotation import rotation_matrices
-
     store = EncodingStore.open(cfg.store).use_versions(cfg.get("versions"))
     rid = cfg.record or (store.ids(split="test") or store.ids())[0]
     synth = store.store_meta.get("generator") == "synthfaces"
@@ -51,7 +50,7 @@ def run(cfg: DictConfig) -> dict[str, Path]:
     source = relighter.source(store, rid)
     arrays = {**{k: np.asarray(v) for k, v in store.read(rid, [n for n in _MEASURE if store.available(n)]).items()},
               **source.arrays}
-    angles, rots = rotation_matrices(cfg.rotation.axis, cfg.rotation.frames)
+    angles, rots = sh.rotation_frames(cfg.rotation.axis, cfg.rotation.frames)
     env_light = None
     if cfg.rotation.envmap is not None:
         env_light = errors.check_light(sh.project_envmap(load_envmap(cfg.rotation.envmap)),
@@ -59,6 +58,14 @@ def run(cfg: DictConfig) -> dict[str, Path]:
     lights = sh.rotate(env_light if env_light is not None else source.arrays["light"], rots)
     what = (f"environment map {cfg.rotation.envmap}" if env_light is not None else "the input's light") + \
         f" rotated about {cfg.rotation.axis}, {len(angles)} frames"
+
+    # The source light's key sun, turned with it: where each frame's own map is marched (not for an environment
+    # map, whose SH is no photo's fit, nor for the oracle's maps).
+    found = None
+    if cfg.target.sun == "shadows" and env_light is None and not cfg.oracle_maps:
+        found = relighter.key_sun(source.arrays["light"], store=store, record_id=rid)
+    suns = None if found is None else list(rots @ found.direction)
+    sun_note = sun_fit.describe(found) if "shadow_map" in relighter.model_inputs and not cfg.oracle_maps else None
 
     gt = _ground_truth(cfg, store, rid, rots, angles, env_light) if with_gt else None
     record_c = shadow_logit(arrays)
@@ -68,14 +75,15 @@ def run(cfg: DictConfig) -> dict[str, Path]:
     else:
         c, c_note = video_shadow(store, record_c, cfg.target.shadow, cfg.shadow_split)
         shadows = [c] * len(angles)
-    print(f"{rid}: {what}; {c_note}")
+    print(f"{rid}: {what}; {c_note}" + (f"; {sun_note}" if sun_note else ""))
 
     ext = vid.video_format(cfg.format)  # auto: mp4 where the encoder exists, else gif
     # Every output is staged and published at the end: a rerun into a finished folder never leaves it mixing runs.
     with staged_outputs(cfg.out_dir, OUTPUTS, last="summary.json") as out:
         if cfg.oracle_maps:  # each frame's exact cast-shadow map (the ground truth's), not the one the march makes
             what += "; target shadow maps: the ground truth's exact ones (oracle_maps=true)"
-        targets = Targets.of(lights, shadows, what, maps=gt.targets["shadow_map"] if cfg.oracle_maps else None)
+        targets = Targets.of(lights, shadows, what, maps=gt.targets["shadow_map"] if cfg.oracle_maps else None,
+                             suns=suns)
         video = vid.rotation_video(relighter, source, targets, out, "relit", fps=cfg.fps, fmt=ext)
         relit, seconds = video.frames, video.seconds
         print(f"{len(relit)} relit frames in {seconds:.1f} s ({len(relit) / seconds:.2f} frames/s)")
@@ -86,7 +94,7 @@ def run(cfg: DictConfig) -> dict[str, Path]:
         written["sheet"] = viz.save_png(viz.grid(rows), out / "contact_sheet.png")
         summary = {"record": rid, "rotation": what, "shadow": c_note, "frames": len(relit),
                    "sampler": dict(cfg.sampler), "seconds": round(seconds, 3), "oracle_shadow": bool(cfg.oracle_shadow),
-                   "oracle_maps": bool(cfg.oracle_maps)}
+                   "oracle_maps": bool(cfg.oracle_maps), "target_sun": cfg.target.sun, "target_maps": sun_note}
         if gt is not None:
             written["gt"] = vid.write_video(gt.frames, out / f"ground_truth.{ext}", cfg.fps)
             side = np.stack([viz.grid([[g, r]]) for g, r in zip(gt.frames, relit)])

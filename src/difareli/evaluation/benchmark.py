@@ -57,6 +57,7 @@ from difareli.utils.fileio import RESUME, append_text, atomic_path, folder_lock,
 from difareli.data.store import CorruptRecordError, EncodingStore
 from difareli.data.protocols import PROTOCOLS
 from difareli.evaluation.pairs import Lights, Pair, StoredFace, load_pairs, protocols_doc
+from difareli.render.sun_fit import check_target_sun
 
 #: The light-estimation errors of a run (where the store holds exact lights).
 LIGHT_CSV = "light_estimation.csv"
@@ -240,17 +241,6 @@ def run_settings(store: EncodingStore, method: Method, protocols: Sequence[str],
             "store": provenance.store_identity(store), "versions": dict(getattr(store, "versions", {}) or {}),
             "protocols": list(protocols), "limit": limit, "oracle_light": bool(oracle_light),
             "oracle_shadow": bool(oracle_shadow), "rule": rule, "score_mask": score_mask, "shard": shard, **marched}
-
-
-#: Where a fitted target light's cast-shadow maps are marched (``run_benchmark``'s ``target_sun``).
-TARGET_SUNS = ("shadows", "peak")
-
-
-def check_target_sun(value: str) -> str:
-    """``value`` if it is one of :data:`TARGET_SUNS`, else a one-line UserError naming them."""
-    if value not in TARGET_SUNS:
-        raise errors.UserError(f"target_sun={value!r}: use one of {', '.join(TARGET_SUNS)}")
-    return value
 
 
 def _marches(method: Method) -> bool:

@@ -141,9 +141,7 @@ class Lights:
             return None
         rid = pair.light_source
         if rid not in self._suns:
-            have = all(self.store.available(k) for k in sun_fit.ENCODINGS if k != "masks")
-            arrays = self.store.read(rid, [k for k in sun_fit.ENCODINGS if self.store.available(k)]) if have else None
-            found = None if arrays is None else sun_fit.fit_sun(arrays, self.get(rid), fit=self.estimator)
+            found = sun_fit.record_sun(self.store, rid, self.get(rid), fit=self.estimator)
             self._suns[rid] = None if found is None else found.direction
         return self._suns[rid]
 

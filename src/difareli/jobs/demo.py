@@ -97,7 +97,9 @@ def run_demo(checkpoint: Any, out_dir: str | Path, *, sampler: Mapping[str, Any]
         tgt = max((r for r in recs if r != src), key=lambda r: np.abs(lights[r] - lights[src]).sum())
         target = store.read(tgt, ["image", "light", "shadow"])
         source = relighter.source(store, src)
-        relit = relighter.relight(source, Targets.of([target["light"]], [shadow_logit(target)], source.what))[0]
+        found = relighter.key_sun(target["light"], store=store, record_id=tgt)
+        relit = relighter.relight(source, Targets.of([target["light"]], [shadow_logit(target)], source.what,
+                                                     suns=[None if found is None else found.direction]))[0]
         grid.append([source.arrays["image"], relit, np.asarray(target["image"])])
         names.append(f"{src} -> {tgt}")  # the source record, the record whose light it takes
     res.paths["comparison"] = viz.save_png(
@@ -106,11 +108,13 @@ def run_demo(checkpoint: Any, out_dir: str | Path, *, sampler: Mapping[str, Any]
     res.seconds["relight"] = time.perf_counter() - t0
 
     # 2. A 360-degree yaw rotation of the most directionally lit test input's light; the cast-shadow map is
-    #    re-rendered toward every frame's light.
+    #    re-rendered toward every frame's light (its key sun found from the input's cast shadows, turned with it).
     t0 = time.perf_counter()
     first = max(test, key=lambda r: directionality(lights[r]))
     source = relighter.source(store, first)
-    targets, why = rotation_targets(source.arrays, "yaw", frames, store=store)
+    found = relighter.key_sun(source.arrays["light"], store=store, record_id=first)
+    targets, why = rotation_targets(source.arrays, "yaw", frames, store=store,
+                                    sun=None if found is None else found.direction)
     res.notes.append(f"rotation video of {first}, shadow strength: {why}")
     video = rotation_video(relighter, source, targets, out, "rotation_yaw", fps=20, zoom=2, fmt="auto")
     # rotation_video's sheet has no captions: written again with each frame's light angle.

@@ -187,6 +187,21 @@ def rotation_roll(deg) -> np.ndarray:
     return _axis_rotation(deg, 2)
 
 
+#: The axes a light rotation video turns about (``rotation_yaw``, ``rotation_roll``).
+AXES = ("yaw", "roll")
+
+
+def rotation_frames(axis: str, frames: int = 60) -> tuple[np.ndarray, np.ndarray]:
+    """``(angles in degrees (N,), rotations (N, 3, 3))``: 360 degrees about ``axis`` (:data:`AXES`) in ``frames``
+    steps starting at 0: a rotation video's frames (a light's ``rotate``, a sun direction's ``R @ d``)."""
+    if axis not in AXES:
+        raise UserError(f"rotation axis must be one of {AXES}, got {axis!r}")
+    if int(frames) < 1:
+        raise UserError(f"frames={frames} must be >= 1")
+    angles = np.linspace(0.0, 360.0, int(frames), endpoint=False)
+    return angles, (rotation_yaw(angles) if axis == "yaw" else rotation_roll(angles))
+
+
 def yaw(light, deg):
     """``light`` rotated by ``rotation_yaw(deg)``; a sequence of angles gives ``(N, 9, 3)`` (videos)."""
     return rotate(light, rotation_yaw(deg))

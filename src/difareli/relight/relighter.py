@@ -40,6 +40,7 @@ from difareli.relight.relit import Relit
 from difareli.runtime.core import Runtime
 from difareli.data.store import EncodingStore
 from difareli.relight.targets import Targets, check_maker
+from difareli.render import sun_fit
 
 
 def needed_encodings(model: Relightable) -> list[str]:
@@ -137,6 +138,17 @@ class Relighter:
 
     def needed_encodings(self) -> list[str]:
         return needed_encodings(self.model)
+
+    def key_sun(self, light: np.ndarray, *, store: EncodingStore | None = None, record_id: str | None = None,
+                arrays: Mapping[str, np.ndarray] | None = None) -> sun_fit.SunFit | None:
+        """Where this model's target map for ``light`` is marched: the key sun found from the cast shadows of the
+        image ``light`` was fitted to (``store``'s ``record_id``, or ``arrays``: a photo source's, with its face
+        mask); None for a model that reads no shadow map (or ``arrays`` without what the fit reads)."""
+        if "shadow_map" not in self.model_inputs:
+            return None
+        if store is not None:
+            return sun_fit.record_sun(store, record_id, light)
+        return sun_fit.key_sun(arrays, light)
 
     def source(self, store: EncodingStore, record_id: str | None = None) -> Source:
         """A store record as a :class:`Source`: the encodings relighting it reads (and nothing else), checked.

@@ -168,27 +168,26 @@ def target_lights(source_light: np.ndarray, *, light: str | None = None, other_l
 
 def rotation_lights(source_light: np.ndarray, axis: str, frames: int = 60) -> np.ndarray:
     """``frames`` lights rotating the input's own light 360 degrees about ``axis`` (yaw | roll), (N, 9, 3)."""
-    angles = np.linspace(0.0, 360.0, frames, endpoint=False)
-    if axis == "yaw":
-        return sh.yaw(source_light, angles)
-    if axis == "roll":
-        return sh.roll(source_light, angles)
-    raise UserError(f"rotation axis must be 'yaw' or 'roll', got {axis!r}")
+    return sh.rotate(source_light, sh.rotation_frames(axis, frames)[1])
 
 
 def rotation_targets(source: Mapping[str, np.ndarray], axis: str, frames: int, *, store=None,
-                     given: float | None = None) -> tuple[Targets, str]:
+                     given: float | None = None, sun: np.ndarray | None = None) -> tuple[Targets, str]:
     """The targets of a 360-degree rotation video of a source's own light, and a sentence saying where their
     shadow strength c' came from: ``given``; else, for a store record, :func:`video_shadow` (the input's own c
-    when shadowed, else the training split's typical shadowed c); else the input's own c (a photo)."""
+    when shadowed, else the training split's typical shadowed c); else the input's own c (a photo). ``sun``: the
+    source light's key sun (``render.sun_fit.key_sun``), turned with the light, toward which each frame's map is
+    marched (None: each frame's radiance peak)."""
     own = encodings.shadow_logit(source)
     if store is not None and own is not None:
         c, why = video_shadow(store, own, given)
     else:
         c = given if given is not None else own
         why = f"target c' = {c} ({'given' if given is not None else 'the input own c'})"
-    lights = rotation_lights(source["light"], axis, frames)
-    return Targets.of(lights, [c] * len(lights), f"rotation about {axis}"), why
+    _, rots = sh.rotation_frames(axis, frames)
+    lights = sh.rotate(source["light"], rots)
+    suns = None if sun is None else list(rots @ np.asarray(sun, np.float64))
+    return Targets.of(lights, [c] * len(lights), f"rotation about {axis}", suns=suns), why
 
 
 #: Where :func:`retarget_many` puts the cast shadows it ray-marched for all its targets at once (keyed by the

@@ -23,6 +23,7 @@ from difareli.lighting.light_fit import SHADOW_SIGMAS, LightFit, face_normals, r
 from difareli.lighting.suns import fibonacci_sphere, sun_direction
 from difareli.render.camera import OrthoCamera
 from difareli.render.screen_shadow import march_shadows
+from difareli.errors import UserError
 
 #: The search, chosen on the 38 sunlit val records of an unseen-seed v3 store (``scripts/sun_fit_sweep.py``,
 #: docs/shadow_maps.md section 2): candidates within ``CONE_DEG`` of the radiance peak, each scored by the IoU of
@@ -33,8 +34,13 @@ ANGLE_COST = 0.3
 MIN_EVIDENCE = 10
 _CANDIDATES = fibonacci_sphere(4000)  # about 3.2 degrees apart
 
-#: The encodings :func:`fit_sun` reads of the lit image's record.
+#: The encodings :func:`fit_sun` reads of the lit image's record (``masks`` where there are any).
 ENCODINGS = ("image", "normal", "depth", "cam", "face_mask", "masks")
+
+#: Where a fitted light's cast-shadow map is marched (the ``target_sun`` setting of the benchmark, the relight and
+#: the video): ``shadows``, toward the key sun found from the cast shadows of the image the light was fitted to
+#: (:func:`key_sun`); ``peak``, toward the light's radiance peak.
+TARGET_SUNS = ("shadows", "peak")
 
 
 @dataclass(frozen=True)
@@ -88,3 +94,34 @@ def fit_sun(arrays: Mapping[str, np.ndarray], light: np.ndarray, *, cone_deg: fl
     degrees = np.degrees(np.arccos(np.clip(cands @ peak, -1.0, 1.0)))
     best = int(np.argmax(iou - angle_cost * degrees / 90.0))  # ties keep the first: the peak
     return SunFit(cands[best], peak, count, float(iou[best]))
+
+
+def check_target_sun(value: str, key: str = "target_sun") -> str:
+    """``value`` if it is one of :data:`TARGET_SUNS`, else a one-line UserError naming the ``key`` and them."""
+    if value not in TARGET_SUNS:
+        raise UserError(f"{key}={value!r}: use one of {', '.join(TARGET_SUNS)}")
+    return value
+
+
+def key_sun(arrays: Mapping[str, np.ndarray], light: np.ndarray, fit: LightFit | None = None) -> SunFit | None:
+    """:func:`fit_sun` of ``light`` on the image it was fitted to where ``arrays`` hold what it reads
+    (:data:`ENCODINGS`, ``masks`` optional), else None: the light's radiance peak stays its sun."""
+    if any(k not in arrays for k in ENCODINGS if k != "masks"):
+        return None
+    return fit_sun(arrays, light, fit=fit)
+
+
+def record_sun(store, record_id: str, light: np.ndarray, fit: LightFit | None = None) -> SunFit | None:
+    """:func:`key_sun` of ``light`` on ``store``'s record ``record_id`` (the image it was fitted to)."""
+    return key_sun(store.read(record_id, [k for k in ENCODINGS if store.available(k)]), light, fit=fit)
+
+
+def describe(found: SunFit | None) -> str:
+    """One line saying where a target map is marched."""
+    if found is None:
+        return "target maps marched toward the light's radiance peak"
+    if found.evidence < MIN_EVIDENCE:
+        return (f"target maps marched toward the light's radiance peak (only {found.evidence} px of cast shadow "
+                "in the image to find its key sun from)")
+    return (f"target maps marched toward the key sun found from the image's cast shadows ({found.evidence} px; "
+            f"{found.moved_deg:.1f} degrees from the radiance peak, map IoU {found.iou:.2f})")

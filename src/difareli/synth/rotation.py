@@ -35,7 +35,6 @@ from difareli.errors import UserError
 
 #: Exact per-frame target encodings returned with the frames.
 TARGETS = ("light", "shading", "shadow", "shadow_map")
-AXES = ("yaw", "roll")
 
 
 @dataclass
@@ -96,17 +95,6 @@ def light_from_sh(light_sh: np.ndarray, category: str = "sh") -> Light:
                  np.zeros(3))
 
 
-def rotation_matrices(axis: str, frames: int = 60) -> tuple[np.ndarray, np.ndarray]:
-    """``(angles in degrees (N,), rotations (N, 3, 3))``: 360 degrees about ``axis`` in ``frames`` steps,
-    starting at 0 (the same angles as ``targets.rotation_lights``)."""
-    if axis not in AXES:
-        raise UserError(f"rotation axis must be one of {AXES}, got {axis!r}")
-    if int(frames) < 1:
-        raise UserError(f"frames={frames} must be >= 1")
-    angles = np.linspace(0.0, 360.0, int(frames), endpoint=False)
-    return angles, (sh.rotation_yaw(angles) if axis == "yaw" else sh.rotation_roll(angles))
-
-
 def render_lights(cfg: SynthConfig, k: int, lights: Sequence[Light]) -> GroundTruthFrames:
     """Subject ``k`` of ``cfg`` rendered under each light (cast shadows ray-traced per sun)."""
     from difareli.render import cast_shadows
@@ -131,7 +119,7 @@ def ground_truth_rotation(store: EncodingStore, record_id: str, axis: str = "yaw
                           ) -> GroundTruthFrames:
     """The record's subject under its own light rotated 360 degrees about ``axis`` (frame 0 = the record)."""
     cfg, k, light = record_source(store, record_id)
-    angles, rots = rotation_matrices(axis, frames)
+    angles, rots = sh.rotation_frames(axis, frames)
     out = render_lights(cfg, k, [rotate_light(light, R) for R in rots])
     out.angles, out.axis = angles, axis
     return out
