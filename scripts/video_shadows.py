@@ -1,14 +1,15 @@
 """Cast shadows in light-rotation videos, several models x records x target maps in one table: each cell is one
 ``difareli-video`` run (a 60-frame yaw rotation of an unseen record beside its SynthFaces ground truth) at the
 model's defaults, with the ground truth's exact target maps (``oracle_maps=true``) and with the model's own (the
-relight's march toward each frame's light); the table gives each model's mean over the records of the relit-shadow
+relight's march toward each frame's light, or toward the input's found key sun turned with it: ``target.sun``); the table gives each model's mean over the records of the relit-shadow
 IoU against the ground truth, how far the frames follow their maps, and DSSIM / LPIPS.
 
     python scripts/video_shadows.py --store data/unseen_v3_s4242 --records s00000_l1 s00001_l1 \
         --checkpoints difareli_pp-synth64 difareli_pp_shadows-synth64 --out logs/video_shadows
 
 A finished cell (its ``summary.json``) is read back, not run again: a killed run resumes. Extra ``difareli-video``
-overrides after ``--``, e.g. ``-- sampler=ddim sampler.steps=50``.
+overrides after ``--``, e.g. ``-- sampler=ddim sampler.steps=50`` or ``-- rotation.axis=roll`` (use another
+``--out`` for each: a cell is known by model, record and maps).
 """
 
 from __future__ import annotations
@@ -51,18 +52,21 @@ def main() -> None:
     ap.add_argument("--records", nargs="+", required=True)
     ap.add_argument("--checkpoints", nargs="+", required=True)
     ap.add_argument("--out", default="logs/video_shadows")
+    ap.add_argument("--maps", nargs="+", choices=list(MAPS), default=list(MAPS), help="which target maps (default: both)")
     ap.add_argument("extra", nargs="*", help="difareli-video overrides (after --)")
     a = ap.parse_args()
     out = Path(a.out)
     rows = []
     for ck in a.checkpoints:
-        for maps in MAPS:
+        for maps in a.maps:
             got = [cell(ck, a.store, r, maps, out, a.extra) for r in a.records]
             per = " ".join(f"{g['shadow_iou_mean']:.3f}" for g in got)
             rows.append(f"| {ck} | {maps} | " + " | ".join(f"{mean([g[c] for g in got]):.3f}" for c in COLUMNS)
                         + f" | {per} |")
     sampler = got[0]["sampler"]
-    head = (f"{len(a.records)} records of {a.store} ({', '.join(a.records)}), 60-frame yaw rotations, "
+    rotation = got[0]["rotation"].split(", ")[0].replace("the input's light ", "")  # e.g. "rotated about yaw"
+    head = (f"{len(a.records)} records of {a.store} ({', '.join(a.records)}), {got[0]['frames']} frames, the "
+            f"input's light {rotation}, "
             f"sampler {sampler['name']}-{sampler['steps']}; means over the records\n\n"
             "| model | target maps | shadow IoU vs GT | map IoU | map adherence | DSSIM | LPIPS "
             "| shadow IoU per record |\n"

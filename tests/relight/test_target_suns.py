@@ -85,9 +85,9 @@ def test_key_sun_needs_the_images_face_and_the_choice_is_checked():
     light = fit(a)
     found = sun_fit.key_sun(a, light, fit=fit)
     np.testing.assert_array_equal(found.direction, sun_fit.fit_sun(a, light, fit=fit).direction)
-    assert "key sun found from the image's cast shadows" in sun_fit.describe(found)
+    assert sun_fit.describe(found).startswith("marched toward the key sun found from the image's cast shadows")
     assert sun_fit.key_sun({k: v for k, v in a.items() if k != "face_mask"}, light, fit=fit) is None
-    assert sun_fit.describe(None) == "target maps marched toward the light's radiance peak"
+    assert sun_fit.describe(None) == "marched toward the light's radiance peak"
     assert sun_fit.check_target_sun("peak", "target.sun") == "peak"
     with pytest.raises(UserError, match=r"^target.sun='east': use one of shadows, peak$"):
         sun_fit.check_target_sun("east", "target.sun")

@@ -109,7 +109,7 @@ def run(cfg: DictConfig) -> dict[str, Path]:
         relit = relighter.relight(source, Targets.of([light], [shadow], "the target", suns=[sun]))
         print(f"target light 0: {photo.describe_light(light)}")
         if "shadow_map" in relighter.model_inputs:
-            print(f"target 0: {sun_fit.describe(found)}")
+            print(f"target 0 shadow map: {sun_fit.describe(found)}")
         print(f"relit {source.what} ({relit.describe_seconds()}; {relighter.describe()})")
         row, names = [source.arrays["image"], relit[0]], ["input", "relit"]
         rid = source.key[1] if store is not None else None
@@ -133,7 +133,7 @@ def run(cfg: DictConfig) -> dict[str, Path]:
                                         given=t.shadow, sun=None if found is None else found.direction)
         print(f"video shadow strength: {why}")
         if "shadow_map" in relighter.model_inputs:
-            print(f"video: {sun_fit.describe(found)}, turned with the light")
+            print(f"video shadow maps: {sun_fit.describe(found)}, turned with the light")
         quarter = len(targets) // 4
         print(f"video: frame 0 light {photo.describe_light(targets.lights[0])}"
               + (f"; frame {quarter}: {photo.describe_light(targets.lights[quarter])}" if quarter else ""))

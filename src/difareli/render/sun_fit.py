@@ -117,11 +117,11 @@ def record_sun(store, record_id: str, light: np.ndarray, fit: LightFit | None = 
 
 
 def describe(found: SunFit | None) -> str:
-    """One line saying where a target map is marched."""
+    """Where a target shadow map is marched, for console lines and summaries."""
     if found is None:
-        return "target maps marched toward the light's radiance peak"
+        return "marched toward the light's radiance peak"
     if found.evidence < MIN_EVIDENCE:
-        return (f"target maps marched toward the light's radiance peak (only {found.evidence} px of cast shadow "
-                "in the image to find its key sun from)")
-    return (f"target maps marched toward the key sun found from the image's cast shadows ({found.evidence} px; "
+        return (f"marched toward the light's radiance peak (the image shows {found.evidence} px of cast shadow, "
+                f"fewer than the {MIN_EVIDENCE} its key sun is found from)")
+    return (f"marched toward the key sun found from the image's cast shadows ({found.evidence} px; "
             f"{found.moved_deg:.1f} degrees from the radiance peak, map IoU {found.iou:.2f})")
