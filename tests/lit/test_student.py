@@ -20,6 +20,7 @@ from difareli.lit.pairs import SOURCE_KEY, pair_dataset
 from difareli.relight.relightable import DiffusionRelightable, OnePassRelightable
 from difareli.relight.relighter import Relighter
 from difareli.data.store import EncodingStore
+from difareli.errors import UserError
 from difareli.relight.targets import render_shading, retarget
 from difareli.relight.targets import Targets
 
@@ -213,13 +214,17 @@ def test_teacher_pairs_resume_after_kill(synth_store, tiny_checkpoint, tmp_path)
         for k in a[p][1]:
             # Batches were composed differently (3 + 1 vs 2 + 2): float rounding may move a pixel by one level.
             assert np.abs(a[p][1][k].astype(np.float64) - b[p][1][k]).max() <= (1 if k == "image" else 1e-6), (p, k)
-    # The batched relight equals the Relighter's one-image relight of the same source toward the same light.
+    # The batched relight equals the Relighter's one-image relight of the same source toward the same light (its
+    # map marched toward the sun the pair's meta names).
     pid = sorted(a)[0]
     meta, arrays = a[pid]
-    one = relighter.relight(relighter.source_from_arrays(relighter.read(store, meta[SOURCE_KEY])), Targets.of([arrays["light"]], [float(arrays["shadow"][0])]))[0]
+    sun = np.asarray(meta["sun"])
+    one = relighter.relight(relighter.source_from_arrays(relighter.read(store, meta[SOURCE_KEY])),
+                            Targets.of([arrays["light"]], [float(arrays["shadow"][0])], suns=[sun]))[0]
     assert np.abs(one.astype(int) - arrays["image"]).max() <= 1
     assert np.array_equal(arrays["shadow_map"], retarget(relighter.read(store, meta[SOURCE_KEY]), ["shadow_map"],
-                                                         arrays["light"], float(arrays["shadow"][0]))["shadow_map"])
+                                                         arrays["light"], float(arrays["shadow"][0]),
+                                                         sun=sun)["shadow_map"])
 
 
 # ------------------------------------------------------------------------------------------ the student's checkpoint
@@ -382,3 +387,33 @@ def test_one_pass_relight_runs_through_the_runtime_denoiser(student_ckpt, synth_
     assert torch.equal(bf16, cast.float())
     cl = relight(model, x0, src, tgt, runtime=Runtime(device="cpu", precision="bf16", memory_format="channels_last"))
     assert 0 < (cl - fp32).abs().max() < 0.1 and (cl - cast.float()).abs().mean() < 1e-2
+
+
+def test_teacher_pairs_march_toward_the_light_records_found_sun(synth_store, tiny_checkpoint, tmp_path):
+    """Each pair's target map is marched toward the key sun found from the cast shadows of the record whose light
+    it is (its meta keeps the direction), as the benchmark's; ``target_sun=peak``: toward the radiance peak."""
+    from difareli.relight.targets import retarget
+    from difareli.render import sun_fit
+
+    store = EncodingStore.open(synth_store)
+    relighter = Relighter(tiny_checkpoint("difareli_pp"), SAMPLER, device="cpu")
+    generate_teacher_pairs(relighter, store, tmp_path / "sun", limit=3, batch_size=3, progress=False)
+    generate_teacher_pairs(relighter, store, tmp_path / "peak", limit=3, batch_size=3, progress=False,
+                           target_sun="peak")
+    sun, peak = _pairs(tmp_path / "sun"), _pairs(tmp_path / "peak")
+    moved = 0
+    for p, (meta, arrays) in sun.items():
+        light = np.asarray(store.read(meta["light_from"], ["light"])["light"])
+        found = sun_fit.record_sun(store, meta["light_from"], light)
+        np.testing.assert_allclose(meta["sun"], found.direction, atol=1e-12)
+        src = relighter.source(store, meta["source"]).arrays
+        c = float(meta["shadow"])
+        want = retarget(src, ["shadow_map"], light, c, sun=found.direction)["shadow_map"]
+        np.testing.assert_allclose(arrays["shadow_map"], want, atol=1e-6)
+        np.testing.assert_allclose(peak[p][1]["shadow_map"], retarget(src, ["shadow_map"], light, c)["shadow_map"],
+                                   atol=1e-6)
+        assert "sun" not in peak[p][0]
+        moved += found.moved_deg > 1
+    assert moved >= 1  # the found sun is not the peak for at least one light record here
+    with pytest.raises(UserError, match="target_sun='east'"):
+        generate_teacher_pairs(relighter, store, tmp_path / "bad", limit=1, progress=False, target_sun="east")

@@ -9,6 +9,7 @@ from difareli.diffusion.spec import check_sampler
 from difareli import errors
 from difareli.checkpoints import zoo
 from difareli.cli import common
+from difareli.render.sun_fit import check_target_sun
 
 
 def run(cfg: DictConfig) -> dict:
@@ -23,13 +24,14 @@ def run(cfg: DictConfig) -> dict:
     errors.check_int(cfg.batch_size, "batch_size", 1)
     errors.check_int(cfg.per_record, "per_record", 1)
     errors.check_int(cfg.limit, "limit", 1, allow_none=True)
+    check_target_sun(cfg.target_sun)
     relighter = Relighter(cfg.checkpoint, cfg.sampler, runtime=cfg.runtime, mean_matching=cfg.mean_matching)
     if not isinstance(relighter.model, DiffusionRelightable):
         raise errors.UserError(f"checkpoint {cfg.checkpoint} is not a diffusion teacher "
                                f"({type(relighter.model).__name__}); give a difareli-train model=difareli_pp checkpoint")
     return generate_teacher_pairs(relighter, EncodingStore.open(cfg.store), cfg.out, split=cfg.split,
                                   per_record=cfg.per_record, limit=cfg.limit, batch_size=cfg.batch_size,
-                                  seed=cfg.seed, progress=cfg.progress)
+                                  seed=cfg.seed, progress=cfg.progress, target_sun=cfg.target_sun)
 
 
 @hydra.main(version_base="1.3", config_path=common.CONFIG_PATH, config_name="teacher_pairs")

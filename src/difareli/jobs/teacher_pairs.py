@@ -19,6 +19,7 @@ from difareli.errors import UserError, check_record
 from difareli.utils.fileio import folder_lock
 from difareli.lit.pairs import LIGHT_FROM_KEY, SOURCE_KEY
 from difareli.relight.targets import Targets
+from difareli.render.sun_fit import check_target_sun
 from difareli.data.provenance import model_identity, store_identity
 from difareli.data.store import EncodingStore
 
@@ -44,31 +45,37 @@ def draw_light_records(ids: Sequence[str], per_record: int, seed: int) -> dict[s
 
 def generate_teacher_pairs(relighter, store: EncodingStore, out: str | Path, *, split: str = "train",
                            per_record: int = 1, limit: int | None = None, batch_size: int = 8, seed: int = 0,
-                           progress: bool = True, stop_after: int | None = None) -> dict[str, Any]:
+                           progress: bool = True, stop_after: int | None = None,
+                           target_sun: str = "shadows") -> dict[str, Any]:
     """Relight every ``split`` record of ``store`` toward another random record's light with the teacher in
     ``relighter`` (a :class:`~difareli.relight.relighter.Relighter`), ``batch_size`` images per batched relight;
     write each pair atomically into the pair store at ``out`` and skip pairs already there (resume).
 
     ``out`` is locked for the run, and its ``provenance.json`` ties it to the source store and the teacher's
-    weights (sampler, precision, split, seed): a rerun with another teacher or store is refused, naming what
-    differs. ``stop_after`` ends after that many new pairs (tests simulate a kill with it). Returns counts and
+    weights (sampler, precision, split, seed, target sun): a rerun with another teacher or store is refused,
+    naming what differs. ``target_sun``: where a target shadow map is marched (``render.sun_fit.TARGET_SUNS``:
+    toward the key sun found from the cast shadows of the record whose light it is, as the benchmark and the
+    relight do, or its radiance peak); each pair's direction is in its meta. ``stop_after`` ends after that many new pairs (tests simulate a kill with it). Returns counts and
     pairs/s.
     """
     with folder_lock(out, "teacher-pairs"):
         return _generate(relighter, store, out, split=split, per_record=per_record, limit=limit,
-                         batch_size=batch_size, seed=seed, progress=progress, stop_after=stop_after)
+                         batch_size=batch_size, seed=seed, progress=progress, stop_after=stop_after,
+                         target_sun=check_target_sun(target_sun))
 
 
-def pair_provenance(relighter, store: EncodingStore, *, split: str, seed: int, per_record: int) -> dict[str, Any]:
+def pair_provenance(relighter, store: EncodingStore, *, split: str, seed: int, per_record: int,
+                    target_sun: str = "shadows") -> dict[str, Any]:
     """What makes a teacher-pair store: the source store, the teacher's weights and how they relit."""
     return {"kind": "teacher_pairs", "source_store": store_identity(store), "teacher": model_identity(relighter.model),
             "sampler": relighter.spec.to_config() if relighter.spec is not None else None,
             "mean_matching": bool(relighter.mean_matching), "precision": relighter.runtime.precision,
-            "split": split, "seed": int(seed), "per_record": int(per_record)}
+            "split": split, "seed": int(seed), "per_record": int(per_record),
+            **({"target_sun": target_sun} if "shadow_map" in relighter.model_inputs else {})}
 
 
 def _generate(relighter, store: EncodingStore, out: str | Path, *, split: str, per_record: int, limit: int | None,
-              batch_size: int, seed: int, progress: bool, stop_after: int | None) -> dict[str, Any]:
+              batch_size: int, seed: int, progress: bool, stop_after: int | None, target_sun: str) -> dict[str, Any]:
     inputs = relighter.model_inputs
     dependent = enc.light_dependent(inputs)
     ids = store.ids(split=split) or []
@@ -81,7 +88,8 @@ def _generate(relighter, store: EncodingStore, out: str | Path, *, split: str, p
     has_c = store.available("shadow")
     names = list(dict.fromkeys(["image", "light", *(["shadow"] if has_c else []), *dependent]))
     done = (Path(out) / "store.json").is_file() and bool(EncodingStore.open(out).ids())
-    provenance.ensure(out, pair_provenance(relighter, store, split=split, seed=seed, per_record=per_record),
+    provenance.ensure(out, pair_provenance(relighter, store, split=split, seed=seed, per_record=per_record,
+                                           target_sun=target_sun),
                       "teacher pairs", has_results=done)
     pairs = EncodingStore.create(out, store.dims, names, meta={"kind": "teacher_pairs", "source_store": str(store.root),
                                                               "split": split, "seed": seed, "per_record": per_record},
@@ -98,14 +106,18 @@ def _generate(relighter, store: EncodingStore, out: str | Path, *, split: str, p
         srcs = [relighter.source(store, rid) for rid, _, _ in batch]
         lights = [check_record(store.read(lid, ["light"] + (["shadow"] if has_c else [])), lid, store.root)
                   for _, _, lid in batch]
-        targets = Targets.of([l["light"] for l in lights], [enc.shadow_logit(l) for l in lights], "teacher targets")
+        found = [relighter.key_sun(l["light"], store=store, record_id=lid) if target_sun == "shadows" else None
+                 for l, (_, _, lid) in zip(lights, batch)]
+        suns = [None if f is None else f.direction for f in found]
+        targets = Targets.of([l["light"] for l in lights], [enc.shadow_logit(l) for l in lights], "teacher targets",
+                             suns=suns)
         relit = relighter.relight_each(srcs, targets)  # one batched inversion and decode; NaN refused there
         tgts = [targets.retarget(s.arrays, inputs, k, k + 1)[0] for k, s in enumerate(srcs)]
-        for (rid, k, lid), img, light, tgt in zip(batch, relit, lights, tgts):
+        for (rid, k, lid), img, light, tgt, sun in zip(batch, relit, lights, tgts, suns):
             arrays = {**{n: tgt[n] for n in dependent}, "image": img,
                       "light": light["light"], **({"shadow": light["shadow"]} if has_c else {})}
             meta = {SOURCE_KEY: rid, LIGHT_FROM_KEY: lid, "split": split, "subject": store.meta(rid).get("subject"),
-                    "shadow": enc.shadow_logit(light)}
+                    "shadow": enc.shadow_logit(light), **({} if sun is None else {"sun": [float(v) for v in sun]})}
             pairs.write(pair_id(rid, k), {n: arrays[n] for n in names}, meta)
             written += 1
         bar.update(len(batch))
