@@ -78,6 +78,33 @@ def test_gt_pairs_are_same_subject_other_light_with_retargeted_maps(synth_store)
         assert torch.equal(item["target_nonspatial"], item["nonspatial"])  # shape, cam, identity: the source's
 
 
+def test_gt_pairs_with_stored_maps_take_the_target_records_own_map(synth_store):
+    """``gt_maps=stored``: the target's shadow-map channel is the target record's stored map (the march's re-render
+    otherwise), the shading still re-rendered; a bad value is one line naming the key."""
+    store = EncodingStore.open(synth_store)
+    ids = store.ids(split="train")
+    torch.manual_seed(0)
+    stored = pair_dataset("gt", store, ids, SP, NS, gt_maps="stored")
+    torch.manual_seed(0)
+    march = pair_dataset("gt", store, ids, SP, NS)
+    differ = 0
+    for i in range(6):
+        torch.manual_seed(i)
+        a = stored[i]
+        torch.manual_seed(i)
+        b = march[i]
+        assert torch.equal(a["target_image"], b["target_image"])  # the same target drawn
+        tid = next(o for o in store.ids(subject=store.meta(ids[i])["subject"])
+                   if torch.equal(image_to_tensor(store.read(o, ["image"])["image"]), a["target_image"]))
+        own = torch.from_numpy(np.asarray(store.read(tid, ["shadow_map"])["shadow_map"], np.float32))
+        assert torch.allclose(a["target_spatial"][3], own.reshape(a["target_spatial"][3].shape))
+        assert torch.equal(a["target_spatial"][:3], b["target_spatial"][:3])  # shading: re-rendered in both
+        differ += not torch.equal(a["target_spatial"][3], b["target_spatial"][3])
+    assert differ >= 1  # the stored maps are not the march's
+    with pytest.raises(UserError, match="data.gt_maps='exact' is not one of"):
+        pair_dataset("gt", store, ids, SP, NS, gt_maps="exact")
+
+
 def test_gt_pairs_with_group_lights_take_the_light_of_a_face_of_the_group_under_the_same_light(synth_store):
     store = EncodingStore.open(synth_store)
     ids = store.ids(split="train")

@@ -67,6 +67,7 @@ class EncodingsDataModule(L.LightningDataModule):
         teacher_pairs: str | None = None,
         gt_light: str = "subject",
         gt_identity: bool = False,
+        gt_maps: str = "march",
         versions: Mapping[str, str | None] | None = None,
     ):
         super().__init__()
@@ -83,6 +84,7 @@ class EncodingsDataModule(L.LightningDataModule):
         self.allow_split_fallback = bool(allow_split_fallback)
         # The student's pair sampler (difareli.lit.pairs.PAIR_SAMPLERS: teacher | gt | mix | identity); None: records.
         self.pairs, self.teacher_pairs, self.gt_light, self.gt_identity = pairs, teacher_pairs, gt_light, gt_identity
+        self.gt_maps = gt_maps
         #: derived encoding versions read in place of their base (``{"shadow_map": "diff-1a2b"}``; difareli.data.derived)
         self.versions = {k: v for k, v in dict(versions or {}).items() if v is not None}
         self.store: EncodingStore | None = None
@@ -200,8 +202,9 @@ class EncodingsDataModule(L.LightningDataModule):
 
             teacher = EncodingStore.open(self.teacher_pairs) if self.teacher_pairs else None
             self.train_set = pair_dataset(self.pairs, store, train, self.spatial, self.nonspatial, teacher,
-                                          self.gt_light, self.gt_identity)
-            # Validation: ground truth where the store has it (SynthFaces), else the training pairs' kind.
+                                          self.gt_light, self.gt_identity, self.gt_maps)
+            # Validation: ground truth where the store has it (SynthFaces), else the training pairs' kind; its
+            # target maps the march's (gt_maps' default), as a relight's at test time.
             kind = "gt" if self.pairs in ("teacher", "mix") and store.meta(val[0]).get("subject") else self.pairs
             self.val_set = pair_dataset(kind, store, val, self.spatial, self.nonspatial, teacher, self.gt_light)
             return

@@ -88,6 +88,11 @@ class IdentityPairs(PairDataset):
 
 #: data.gt_light: whose fitted light conditions a ground-truth pair's target (see the module docstring).
 GT_LIGHTS = ("subject", "group")
+#: data.gt_maps: a ground-truth pair's target shadow map: ``march``, re-rendered on the source's depth by the relight's
+#: maker (what a relight gives at test time); ``stored``, the target record's own stored ``shadow_map`` (with
+#: ``data.versions.shadow_map=visible``: the exact shadow its image shows, so map and image agree, as the teacher's
+#: training maps did). Same subject, same geometry: the target's map lies on the source's face.
+GT_MAPS = ("march", "stored")
 
 
 class GroundTruthPairs(PairDataset):
@@ -97,10 +102,14 @@ class GroundTruthPairs(PairDataset):
     light index (the same true light, each fitted on its own face), so the student meets the fitting errors of
     other faces' lights, as in protocol (ii), while the image it learns is still the exact target."""
 
-    def __init__(self, store, ids, spatial, nonspatial, light_from: str = "subject", with_source: bool = False):
+    def __init__(self, store, ids, spatial, nonspatial, light_from: str = "subject", with_source: bool = False,
+                 target_maps: str = "march"):
         super().__init__(store, ids, spatial, nonspatial)
         if light_from not in GT_LIGHTS:
             raise UserError(f"data.gt_light={light_from!r} is not one of {list(GT_LIGHTS)}")
+        if target_maps not in GT_MAPS:
+            raise UserError(f"data.gt_maps={target_maps!r} is not one of {list(GT_MAPS)}")
+        self.stored_maps = target_maps == "stored" and "shadow_map" in self.inputs
         meta = {rid: store.meta(rid) for rid in store.ids()}  # read once: the maps below consult it per pair
         by_subject: dict[Any, list[str]] = {}
         by_light: dict[Any, list[str]] = {}
@@ -132,10 +141,12 @@ class GroundTruthPairs(PairDataset):
         src = self.source(rid)
         light_names = ["light"] + (["shadow"] if "shadow" in src else [])
         # One read when the target's own fit conditions it (always with gt_light=subject).
-        tgt_rec = check_record(self.store.read(tid, ["image"] + (light_names if lid == tid else [])), tid,
-                               self.store.root)
+        tgt_rec = check_record(self.store.read(tid, ["image"] + (light_names if lid == tid else [])
+                                               + (["shadow_map"] if self.stored_maps else [])), tid, self.store.root)
         light = tgt_rec if lid == tid else check_record(self.store.read(lid, light_names), lid, self.store.root)
         tgt = target_arrays(src, self.inputs, light["light"], enc.shadow_logit(light))
+        if self.stored_maps:
+            tgt["shadow_map"] = tgt_rec["shadow_map"]
         return self.item(rid, src, tgt, tgt_rec["image"])
 
 
@@ -213,10 +224,11 @@ PAIR_SAMPLERS: dict[str, Callable[..., Dataset]] = {
 
 def pair_dataset(kind: str, store: EncodingStore, ids: Sequence[str], spatial: Sequence[str],
                  nonspatial: Sequence[str], pair_store: EncodingStore | None = None,
-                 gt_light: str = "subject", gt_identity: bool = False) -> Dataset:
+                 gt_light: str = "subject", gt_identity: bool = False, gt_maps: str = "march") -> Dataset:
     """The ``kind`` pair sampler (``data.pairs``) over the records ``ids``; ``gt_light``: see :data:`GT_LIGHTS`;
-    ``gt_identity``: ground-truth targets include the source's own light index (the identity pair)."""
+    ``gt_identity``: ground-truth targets include the source's own light index (the identity pair); ``gt_maps``:
+    see :data:`GT_MAPS`."""
     if kind not in PAIR_SAMPLERS:
         raise UserError(f"data.pairs={kind!r} is not a pair sampler; choose one of {sorted(PAIR_SAMPLERS)}")
     return PAIR_SAMPLERS[kind](store, ids, spatial, nonspatial, pair_store,
-                               {"light_from": gt_light, "with_source": bool(gt_identity)})
+                               {"light_from": gt_light, "with_source": bool(gt_identity), "target_maps": gt_maps})
