@@ -54,6 +54,9 @@ def test_yaw_target_writes_relit_and_comparison(ckpt, depth_store, tmp_path):
     r = Relighter(cfg.checkpoint, cfg.sampler, device="cpu")
     own = np.asarray(store.read(rid, ["light"])["light"])
     sun = sh.rotation_yaw(60.0) @ sun_fit.record_sun(store, rid, own).direction
+    source = r.source(store, rid)  # holds the face mask the key sun is found on, beside the model's inputs
+    assert "face_mask" in source.arrays and "face_mask" not in r.needed_encodings()
+    np.testing.assert_array_equal(r.key_sun(source).direction, sun_fit.record_sun(store, rid, own).direction)
     np.testing.assert_array_equal(r.relight(r.source(store, rid), Targets.of([sh.yaw(own, 60.0)], suns=[sun]))[0],
                                   relit)
     # target.sun=peak: toward the turned light's radiance peak.

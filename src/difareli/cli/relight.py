@@ -29,9 +29,8 @@ from difareli.evaluation.video import describe_file, rotation_video, video_forma
 def read_source(cfg: DictConfig, relighter: Relighter, store: EncodingStore | None) -> Source:
     """The source, read and checked once by the relighter: a photo preprocessed in memory (``image=``) or a store
     record (``record=``, null: the first test record); its notes printed."""
-    if cfg.image is not None:  # the face mask beside the model's inputs: the key sun is found on the face
-        source = relighter.photo_source(cfg.image, size=cfg.photo_size, strict=bool(cfg.strict),
-                                        also=("face_mask",) if _finds_sun(cfg, relighter) else ())
+    if cfg.image is not None:
+        source = relighter.photo_source(cfg.image, size=cfg.photo_size, strict=bool(cfg.strict))
     else:
         source = relighter.source(store, cfg.record)
     for line in source.notes:
@@ -40,23 +39,6 @@ def read_source(cfg: DictConfig, relighter: Relighter, store: EncodingStore | No
         else:
             print(line)
     return source
-
-
-def _finds_sun(cfg: DictConfig, relighter: Relighter) -> bool:
-    """Whether target maps are marched toward a key sun found from cast shadows (``target.sun=shadows``)."""
-    return cfg.target.sun == "shadows" and "shadow_map" in relighter.model_inputs
-
-
-def key_sun(cfg: DictConfig, relighter: Relighter, source: Source, store: EncodingStore | None,
-            record: str | None = None, light: np.ndarray | None = None) -> sun_fit.SunFit | None:
-    """The key sun of ``record``'s ``light`` (None: the source's own), or None with ``target.sun=peak``."""
-    if cfg.target.sun != "shadows":
-        return None
-    if record is not None:
-        return relighter.key_sun(light, store=store, record_id=record)
-    if store is not None and source.photo is None:
-        return relighter.key_sun(source.arrays["light"], store=store, record_id=source.key[1])
-    return relighter.key_sun(source.arrays["light"], arrays=source.arrays)
 
 
 def run_photos(cfg: DictConfig, relighter: Relighter, paths: list[Path]) -> dict[str, Path]:
@@ -100,9 +82,10 @@ def run(cfg: DictConfig) -> dict[str, Path]:
         light = target_lights(source.arrays["light"], light=t.light, other_light=other.get("light"), yaw=t.yaw,
                               roll=t.roll, envmap=t.envmap)
         shadow = t.shadow if t.shadow is not None else (float(other["shadow"][0]) if "shadow" in other else None)
-        # The sun of the image whose light it is: another record's, or the source's own turned with its light.
-        found = (key_sun(cfg, relighter, source, store, t.record, other["light"]) if t.record is not None else
-                 key_sun(cfg, relighter, source, store) if t.yaw is not None or t.roll is not None else None)
+        # The key sun of the image whose light it is: another record's, or the source's own turned with its light.
+        finds = t.sun == "shadows" and (t.record is not None or t.yaw is not None or t.roll is not None)
+        found = None if not finds else relighter.key_sun(relighter.source(store, t.record)) \
+            if t.record is not None else relighter.key_sun(source)
         turn = sh.rotation_yaw(t.yaw) if t.yaw is not None else sh.rotation_roll(t.roll) if t.roll is not None \
             else np.eye(3)
         sun = None if found is None else turn @ found.direction
@@ -128,7 +111,7 @@ def run(cfg: DictConfig) -> dict[str, Path]:
             print(f"composited into the {full.shape[1]}x{full.shape[0]} photo in {relit.seconds['composite']:.2f} s "
                   f"({c.mode})")
     if cfg.video.axis is not None:
-        found = key_sun(cfg, relighter, source, store)
+        found = relighter.key_sun(source) if t.sun == "shadows" else None
         targets, why = rotation_targets(source.arrays, cfg.video.axis, cfg.video.frames, store=store,
                                         given=t.shadow, sun=None if found is None else found.direction)
         print(f"video shadow strength: {why}")

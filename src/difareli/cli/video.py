@@ -63,7 +63,7 @@ def run(cfg: DictConfig) -> dict[str, Path]:
     # map, whose SH is no photo's fit, nor for the oracle's maps).
     found = None
     if cfg.target.sun == "shadows" and env_light is None and not cfg.oracle_maps:
-        found = relighter.key_sun(source.arrays["light"], store=store, record_id=rid)
+        found = relighter.key_sun(source)
     suns = None if found is None else list(rots @ found.direction)
     sun_note = f"target shadow maps {sun_fit.describe(found)}" if "shadow_map" in relighter.model_inputs and not cfg.oracle_maps else None
 

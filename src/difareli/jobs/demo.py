@@ -97,7 +97,7 @@ def run_demo(checkpoint: Any, out_dir: str | Path, *, sampler: Mapping[str, Any]
         tgt = max((r for r in recs if r != src), key=lambda r: np.abs(lights[r] - lights[src]).sum())
         target = store.read(tgt, ["image", "light", "shadow"])
         source = relighter.source(store, src)
-        found = relighter.key_sun(target["light"], store=store, record_id=tgt)
+        found = relighter.key_sun(relighter.source(store, tgt))
         relit = relighter.relight(source, Targets.of([target["light"]], [shadow_logit(target)], source.what,
                                                      suns=[None if found is None else found.direction]))[0]
         grid.append([source.arrays["image"], relit, np.asarray(target["image"])])
@@ -112,7 +112,7 @@ def run_demo(checkpoint: Any, out_dir: str | Path, *, sampler: Mapping[str, Any]
     t0 = time.perf_counter()
     first = max(test, key=lambda r: directionality(lights[r]))
     source = relighter.source(store, first)
-    found = relighter.key_sun(source.arrays["light"], store=store, record_id=first)
+    found = relighter.key_sun(source)
     targets, why = rotation_targets(source.arrays, "yaw", frames, store=store,
                                     sun=None if found is None else found.direction)
     res.notes.append(f"rotation video of {first}, shadow strength: {why}")

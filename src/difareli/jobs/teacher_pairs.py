@@ -106,8 +106,8 @@ def _generate(relighter, store: EncodingStore, out: str | Path, *, split: str, p
         srcs = [relighter.source(store, rid) for rid, _, _ in batch]
         lights = [check_record(store.read(lid, ["light"] + (["shadow"] if has_c else [])), lid, store.root)
                   for _, _, lid in batch]
-        found = [relighter.key_sun(l["light"], store=store, record_id=lid) if target_sun == "shadows" else None
-                 for l, (_, _, lid) in zip(lights, batch)]
+        found = [relighter.key_sun(relighter.source(store, lid)) if target_sun == "shadows" else None
+                 for _, _, lid in batch]
         suns = [None if f is None else f.direction for f in found]
         targets = Targets.of([l["light"] for l in lights], [enc.shadow_logit(l) for l in lights], "teacher targets",
                              suns=suns)

@@ -139,19 +139,23 @@ class Relighter:
     def needed_encodings(self) -> list[str]:
         return needed_encodings(self.model)
 
-    def key_sun(self, light: np.ndarray, *, store: EncodingStore | None = None, record_id: str | None = None,
-                arrays: Mapping[str, np.ndarray] | None = None) -> sun_fit.SunFit | None:
-        """Where this model's target map for ``light`` is marched: the key sun found from the cast shadows of the
-        image ``light`` was fitted to (``store``'s ``record_id``, or ``arrays``: a photo source's, with its face
-        mask); None for a model that reads no shadow map (or ``arrays`` without what the fit reads)."""
+    def sun_reads(self) -> list[str]:
+        """What a source holds beyond the model's inputs so that its light's key sun can be found
+        (:meth:`key_sun`): the face mask (and part masks) for a model that reads a shadow map; else nothing."""
+        return [n for n in sun_fit.ENCODINGS if n not in self.needed_encodings()] \
+            if "shadow_map" in self.model_inputs else []
+
+    def key_sun(self, source: Source, light: np.ndarray | None = None) -> sun_fit.SunFit | None:
+        """Where this model's target map for ``light`` (None: the source's own) is marched: the key sun found from
+        the source image's cast shadows, ``light`` being the light fitted to that image (``render.sun_fit``);
+        None for a model that reads no shadow map, or a source without what the fit reads."""
         if "shadow_map" not in self.model_inputs:
             return None
-        if store is not None:
-            return sun_fit.record_sun(store, record_id, light)
-        return sun_fit.key_sun(arrays, light)
+        return sun_fit.key_sun(source.arrays, source.arrays["light"] if light is None else light)
 
     def source(self, store: EncodingStore, record_id: str | None = None) -> Source:
-        """A store record as a :class:`Source`: the encodings relighting it reads (and nothing else), checked.
+        """A store record as a :class:`Source`: the encodings relighting it reads (and, where the store has them,
+        what finding its light's key sun reads: :meth:`sun_reads`), checked.
         ``record_id=None``: the first record of the test split (said in its notes). The store must hold what
         this model reads (else a UserError naming the fix); a store at another resolution than the checkpoint's
         is said in the notes."""
@@ -175,7 +179,8 @@ class Relighter:
             record_id = (test or store.ids())[0]
             notes.append(f"record=null: relighting {record_id}, the first record of the "
                          f"{'test split' if test else 'store'} (record=<id> picks another)")
-        arrays = read_record(store, record_id, self.needed_encodings())
+        arrays = read_record(store, record_id, [*self.needed_encodings(),
+                                                *(n for n in self.sun_reads() if store.available(n))])
         notes.append(f"source light (record {record_id}): {photos.describe_light(arrays['light'])}")
         return Source(arrays, (str(store.root), record_id), f"record {record_id!r} of {store.root}", None,
                       tuple(notes), photos.is_grey(arrays["image"]))
@@ -206,7 +211,8 @@ class Relighter:
                      also: Sequence[str] = ()) -> Source:
         """A photo (a path, or decoded RGB uint8) preprocessed in memory by difareli-preprocess's estimators (the
         encodings this model reads) at ``size`` px (None: the training resolution), ``face`` a box of
-        :func:`~difareli.relight.photo.detect_faces` (None: the largest). Checked before relighting
+        :func:`~difareli.relight.photo.detect_faces` (None: the largest), with what finding its light's key sun
+        reads (:meth:`sun_reads`). Checked before relighting
         (:mod:`~difareli.relight.photo_check`: one line in its notes; ``strict``: a poor photo is refused).
         Its ``photo`` composites the relights back (:meth:`Relit.composite`); ``also``: encodings estimated beyond
         the model's (e.g. ``face_mask`` for scoring)."""
@@ -219,7 +225,7 @@ class Relighter:
         notes = [] if size is None else [line for line in [photos.resolution_warning(
             self.checkpoint, self.resolution, f"photo_size={size}", px,
             f"leave photo_size unset (null) or give photo_size={self.resolution}")] if line]
-        reads = list(dict.fromkeys([*self.needed_encodings(), *also]))
+        reads = list(dict.fromkeys([*self.needed_encodings(), *self.sun_reads(), *also]))
         prepared = photos.prepare_photo(rgb, reads, size=px, what=what, face=face)
         stages = ", ".join(f"{k} {1000 * v:.0f} ms" for k, v in prepared.meta.get("seconds", {}).items())
         notes.append(f"preprocessed {what} in {prepared.seconds:.1f} s ({px} px crop of "
