@@ -68,7 +68,7 @@ def main() -> None:
     head = (f"{len(a.records)} records of {a.store} ({', '.join(a.records)}), {got[0]['frames']} frames, the "
             f"input's light {rotation}, "
             f"sampler {sampler['name']}-{sampler['steps']}; means over the records\n\n"
-            "| model | target maps | shadow IoU vs GT | the rule on the GT (ceiling) | map IoU | map adherence | DSSIM "
+            "| model | target maps | shadow IoU vs GT | the rule on the GT vs its exact shadows | map IoU | map adherence | DSSIM "
             "| LPIPS | shadow IoU per record |\n"
             "|---|---|---:|---:|---:|---:|---:|---:|---|\n")
     text = head + "\n".join(rows) + "\n"
