@@ -65,7 +65,8 @@ def run(cfg: DictConfig) -> dict[str, Path]:
     if cfg.target.sun == "shadows" and env_light is None and not cfg.oracle_maps:
         found = relighter.key_sun(source)
     suns = None if found is None else list(rots @ found.direction)
-    sun_note = f"target shadow maps {sun_fit.describe(found)}" if "shadow_map" in relighter.model_inputs and not cfg.oracle_maps else None
+    sun_note = (f"target shadow maps {sun_fit.describe(found)}"
+                if "shadow_map" in relighter.model_inputs and not cfg.oracle_maps else None)
 
     gt = _ground_truth(cfg, store, rid, rots, angles, env_light) if with_gt else None
     record_c = shadow_logit(arrays)
