@@ -1,8 +1,9 @@
 """Cast shadows in light-rotation videos, several models x records x target maps in one table: each cell is one
 ``difareli-video`` run (a 60-frame yaw rotation of an unseen record beside its SynthFaces ground truth) at the
 model's defaults, with the ground truth's exact target maps (``oracle_maps=true``) and with the model's own (the
-relight's march toward each frame's light, or toward the input's found key sun turned with it: ``target.sun``); the table gives each model's mean over the records of the relit-shadow
-IoU against the ground truth, how far the frames follow their maps, and DSSIM / LPIPS.
+relight's march toward each frame's light, or toward the input's found key sun turned with it: ``target.sun``);
+the table gives each model's mean over the records of the relit-shadow IoU against the ground truth, how well the
+detection rule finds the ground truth's exact shadows, how far the frames follow their maps, and DSSIM / LPIPS.
 
     python scripts/video_shadows.py --store data/unseen_v3_s4242 --records s00000_l1 s00001_l1 \
         --checkpoints difareli_pp-synth64 difareli_pp_shadows-synth64 --out logs/video_shadows
@@ -52,7 +53,8 @@ def main() -> None:
     ap.add_argument("--records", nargs="+", required=True)
     ap.add_argument("--checkpoints", nargs="+", required=True)
     ap.add_argument("--out", default="logs/video_shadows")
-    ap.add_argument("--maps", nargs="+", choices=list(MAPS), default=list(MAPS), help="which target maps (default: both)")
+    ap.add_argument("--maps", nargs="+", choices=list(MAPS), default=list(MAPS),
+                    help="which target maps (default: both)")
     ap.add_argument("extra", nargs="*", help="difareli-video overrides (after --)")
     a = ap.parse_args()
     out = Path(a.out)
@@ -68,8 +70,8 @@ def main() -> None:
     head = (f"{len(a.records)} records of {a.store} ({', '.join(a.records)}), {got[0]['frames']} frames, the "
             f"input's light {rotation}, "
             f"sampler {sampler['name']}-{sampler['steps']}; means over the records\n\n"
-            "| model | target maps | shadow IoU vs GT | the rule on the GT vs its exact shadows | map IoU | map adherence | DSSIM "
-            "| LPIPS | shadow IoU per record |\n"
+            "| model | target maps | shadow IoU vs GT | the rule on the GT vs its exact shadows | map IoU "
+            "| map adherence | DSSIM | LPIPS | shadow IoU per record |\n"
             "|---|---|---:|---:|---:|---:|---:|---:|---|\n")
     text = head + "\n".join(rows) + "\n"
     out.mkdir(parents=True, exist_ok=True)

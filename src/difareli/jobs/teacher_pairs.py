@@ -55,8 +55,8 @@ def generate_teacher_pairs(relighter, store: EncodingStore, out: str | Path, *, 
     weights (sampler, precision, split, seed, target sun): a rerun with another teacher or store is refused,
     naming what differs. ``target_sun``: where a target shadow map is marched (``render.sun_fit.TARGET_SUNS``:
     toward the key sun found from the cast shadows of the record whose light it is, as the benchmark and the
-    relight do, or its radiance peak); each pair's direction is in its meta. ``stop_after`` ends after that many new pairs (tests simulate a kill with it). Returns counts and
-    pairs/s.
+    relight do, or its radiance peak); each pair's direction is in its meta. ``stop_after`` ends after that many
+    new pairs (tests simulate a kill with it). Returns counts and pairs/s.
     """
     with folder_lock(out, "teacher-pairs"):
         return _generate(relighter, store, out, split=split, per_record=per_record, limit=limit,

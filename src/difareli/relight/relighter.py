@@ -145,13 +145,13 @@ class Relighter:
         return [n for n in sun_fit.ENCODINGS if n not in self.needed_encodings()] \
             if "shadow_map" in self.model_inputs else []
 
-    def key_sun(self, source: Source, light: np.ndarray | None = None) -> sun_fit.SunFit | None:
-        """Where this model's target map for ``light`` (None: the source's own) is marched: the key sun found from
-        the source image's cast shadows, ``light`` being the light fitted to that image (``render.sun_fit``);
-        None for a model that reads no shadow map, or a source without what the fit reads."""
+    def key_sun(self, source: Source) -> sun_fit.SunFit | None:
+        """Where this model's target map for the source's light is marched: the key sun found from the source
+        image's cast shadows under the light fitted to it (``render.sun_fit``); None for a model that reads no
+        shadow map, or a source without what the fit reads."""
         if "shadow_map" not in self.model_inputs:
             return None
-        return sun_fit.key_sun(source.arrays, source.arrays["light"] if light is None else light)
+        return sun_fit.key_sun(source.arrays, source.arrays["light"])
 
     def source(self, store: EncodingStore, record_id: str | None = None) -> Source:
         """A store record as a :class:`Source`: the encodings relighting it reads (and, where the store has them,
