@@ -48,11 +48,17 @@ class Cancelled(RequestError):
 class CancelScope:
     """The current request's "has the client gone?" check, read between network passes (a forward pre-hook on
     the denoising network, so once per sampler step) and while waiting for the lock. Only the request holding
-    the lock sets it, so one slot is enough."""
+    the lock sets it, so one slot is enough; a deep copy of a hooked network shares it."""
 
     def __init__(self) -> None:
         self.check: Callable[[], bool] | None = None
         self.cancelled = 0  # how many requests were cancelled (tests, logs)
+
+    def __deepcopy__(self, memo: dict) -> "CancelScope":
+        # The runtime's inference copy (bf16 on a CPU with native bf16) deep-copies the network with its hooks; a
+        # copied scope would keep the check of the request that made the copy, whose socket is closed by the next
+        # one, and cancel every later relight. The copy's hook must read this one scope.
+        return self
 
     def hook(self, module: Any, args: Any) -> None:
         """``nn.Module.register_forward_pre_hook`` callback: stop the pass if the client has gone."""
