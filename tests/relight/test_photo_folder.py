@@ -47,10 +47,10 @@ def relighter():
     return Relighter(CKPT, None, progress=False)
 
 
-def yaw45(light):
+def yaw45(source):
     from difareli.relight.targets import Targets, target_lights
 
-    return Targets.of([target_lights(light, yaw=45)], [None], "t")
+    return Targets.of([target_lights(source.arrays["light"], yaw=45)], [None], "t")
 
 
 def rows_of(out):

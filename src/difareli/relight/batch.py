@@ -65,10 +65,10 @@ def append_row(out_dir: Path, row: Mapping[str, Any]) -> None:
         f.flush()
 
 
-def relight_one(path: Path, *, relighter, target: Callable[[np.ndarray], Any], size: int | None, face: Any,
+def relight_one(path: Path, *, relighter, target: Callable[[Any], Any], size: int | None, face: Any,
                 composite: Mapping[str, Any], strict: bool = False, say=print
                 ) -> tuple[np.ndarray, list[np.ndarray], dict[str, Any]]:
-    """One photo: every chosen face relit under ``target(source light)`` by the relighter's one door
+    """One photo: every chosen face relit under ``target(source)`` (its Targets) by the relighter's one door
     (:meth:`~difareli.relight.relighter.Relighter.photo_source`, ``relight``) and composited in turn into the
     photo. Returns (composite, relit crops, CSV row fields); a UserError for a photo that cannot be relit."""
     what = f"image={path}"
@@ -85,7 +85,7 @@ def relight_one(path: Path, *, relighter, target: Callable[[np.ndarray], Any], s
                                         what=name, key=("image", str(path), i))
         say(source.check.line())
         worst = source.check if worst is None or (worst.ok and not source.check.ok) else worst
-        relit = relighter.relight(source, target(source.arrays["light"]))
+        relit = relighter.relight(source, target(source))
         crops.append(relit[0])
         out = relit.composite(composite.get("mode", "ratio"), composite.get("feather", 0.03), parts, onto=out)[0]
     row = {"faces": len(boxes), "relit_faces": len(crops), "verdict": "ok" if worst.ok else "poor",

@@ -9,7 +9,8 @@ A model offers the :mod:`difareli.relight.relightable` interfaces (diffusion or 
   :meth:`Relighter.photo_source`, :meth:`Relighter.source_from_arrays`), then ``relight(source, targets)``
   -> :class:`~difareli.relight.relit.Relit` (images, seconds per stage, whole photos by ``composite()``),
   the inversion cached and reused across targets; ``relight_many`` for many sources at once, each under its own
-  targets sharing its inversion (uint8 or float), ``relight_each`` its case of one target each. Grey sources
+  targets sharing its inversion (uint8 or float), ``relight_each`` its case of one target each; ``answer(request)``
+  for a whole :class:`~difareli.relight.request.Request` (source, target, video, compositing). Grey sources
   come back grey from ``relight``; what a request gets wrong is said once, at :meth:`Relighter.check_inputs`.
 The :class:`~difareli.runtime.core.Runtime` decides device, precision, compile and CUDA graphs.
 """
@@ -37,6 +38,7 @@ from difareli.relight.core import invert_image, relight  # noqa: F401 (callers i
 from difareli.relight import photo as photos
 from difareli.relight.relightable import OnePassRelightable, Relightable, model_inputs
 from difareli.relight.relit import Relit
+from difareli.relight.request import Answer, Request, answer
 from difareli.runtime.core import Runtime
 from difareli.data.store import EncodingStore
 from difareli.relight.targets import Targets, check_maker
@@ -341,6 +343,12 @@ class Relighter:
         images = np.stack(out)
         seconds["decode"] = time.perf_counter() - start
         return Relit(photos.grey_like(images) if source.grey else images, seconds, source, targets)
+
+    def answer(self, request: Request, say=None) -> Answer:
+        """A whole request (:class:`~difareli.relight.request.Request`: a source by store record or photo, a target,
+        a rotation video, compositing) answered: :func:`difareli.relight.request.answer` (``say``: told each line
+        as it arises)."""
+        return answer(self, request, say)
 
     def relight_each(self, sources: Sequence[Source], targets: Targets) -> np.ndarray:
         """Source ``i`` under target ``i`` for many sources at once (N, H, W, 3) uint8: :meth:`relight_many` with

@@ -1,0 +1,190 @@
+"""A relight request as a user states it, and the relighter's answer to it.
+
+:class:`Request` says where the source is (a store record, or a photo preprocessed in memory), the target (one of a
+light file, another record's light, the source's own light turned by a yaw or a roll, an environment map; its
+shadow strength and where its shadow map is marched), a rotation video of the source's light, and how a photo's
+relights go back into it. :meth:`Request.from_config` takes it from a command's config (``conf/relight.yaml``) and
+checks what only a request can get wrong (the command's own values, such as the sampler or the output folder, are
+the command's). :func:`answer` (the relighter's door :meth:`~difareli.relight.relighter.Relighter.answer`) reads the
+source once, builds the targets, relights, composites, and returns an :class:`Answer` that a command only writes out.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Callable, Mapping
+
+import numpy as np
+
+from difareli import errors
+from difareli.lighting import sh
+from difareli.relight import photo
+from difareli.relight.targets import Targets, rotation_targets, target_lights
+from difareli.render import sun_fit
+
+#: The keys that give a target; exactly one of them (or a video alone).
+TARGET_KEYS = ("light", "record", "yaw", "roll", "envmap")
+
+
+@dataclass(frozen=True)
+class Target:
+    """The target of a request: exactly one of ``TARGET_KEYS`` (none: only a video), its shadow strength c'
+    (None: the other record's, else the source's own) and where its map is marched (``sun_fit.TARGET_SUNS``)."""
+
+    light: str | None = None
+    record: str | None = None
+    yaw: float | None = None
+    roll: float | None = None
+    envmap: str | None = None
+    shadow: float | None = None
+    sun: str = "shadows"
+
+    @property
+    def given(self) -> bool:
+        return any(getattr(self, k) is not None for k in TARGET_KEYS)
+
+    def for_source(self, relighter, source, store=None) -> tuple[Targets, Any]:
+        """This target for ``source`` (a :class:`~difareli.relight.relighter.Source`; ``store``: where a target
+        record is read) and the key sun its map is marched toward: found by ``relighter.key_sun`` from the cast
+        shadows of the image whose light it is (another record's; the source's own, turned with a yaw or a
+        roll), None for ``sun=peak``, a light file or an environment map (the light's radiance peak)."""
+        other = store.read(self.record, ["light", "shadow"]) if self.record is not None else {}
+        finds = self.sun == "shadows" and (self.record is not None or self.yaw is not None or self.roll is not None)
+        found = None if not finds else relighter.key_sun(relighter.source(store, self.record)
+                                                         if self.record is not None else source)
+        light = target_lights(source.arrays["light"], light=self.light, other_light=other.get("light"),
+                              yaw=self.yaw, roll=self.roll, envmap=self.envmap)
+        shadow = self.shadow if self.shadow is not None else \
+            (float(other["shadow"][0]) if "shadow" in other else None)
+        sun = None if found is None else self.turn() @ found.direction
+        return Targets.of([light], [shadow], "the target", suns=[sun]), found
+
+    def turn(self) -> np.ndarray:
+        """The rotation this target applies to the source's light (and so to its key sun); identity otherwise."""
+        return sh.rotation_yaw(self.yaw) if self.yaw is not None else \
+            sh.rotation_roll(self.roll) if self.roll is not None else np.eye(3)
+
+
+@dataclass(frozen=True)
+class Request:
+    """One relight request (module doc). ``store``/``record`` or ``image`` is the source; ``video_axis`` adds a
+    360-degree rotation of its light; ``composite`` (mode, feather, parts) puts a photo's relights back."""
+
+    store: str | None = None
+    record: str | None = None
+    versions: Mapping[str, Any] | None = None
+    image: str | None = None
+    face: Any = "largest"
+    photo_size: int | None = None
+    strict: bool = False
+    target: Target = Target()
+    video_axis: str | None = None
+    video_frames: int = 60
+    composite: Mapping[str, Any] = field(default_factory=lambda: {"mode": "ratio", "feather": 0.03, "parts": None})
+
+    @classmethod
+    def from_config(cls, cfg: Mapping[str, Any]) -> "Request":
+        """The request of a relight command's config, checked: one source, a target or a video, a target record
+        only with a store, the target's numbers and file, the photo's compositing."""
+        t, c = cfg["target"], cfg["composite"]
+        if (cfg["image"] is None) == (cfg["store"] is None):
+            raise errors.UserError("give the source as either store=<encodings store> (and record=) or "
+                                   f"image=<photo>; got store={cfg['store']} image={cfg['image']}")
+        if t["record"] is not None and cfg["store"] is None:
+            raise errors.UserError(f"target.record={t['record']} names a store record: give store= too")
+        if all(t[k] is None for k in TARGET_KEYS) and cfg["video"]["axis"] is None:
+            raise errors.UserError("nothing to do: give a target (target.light|record|yaw|roll|envmap) or "
+                                   "video.axis=yaw|roll")
+        for key in ("yaw", "roll"):
+            errors.check_number(t[key], f"target.{key}")
+        if t["light"] is not None:
+            errors.check_file(t["light"], "target.light")
+        if cfg["image"] is not None:
+            check_composite(c)
+        versions = cfg.get("versions")
+        return cls(store=cfg["store"], record=cfg["record"], versions=None if versions is None else dict(versions),
+                   image=cfg["image"], face=cfg["face"], photo_size=cfg["photo_size"], strict=bool(cfg["strict"]),
+                   target=Target(**{k: t[k] for k in (*TARGET_KEYS, "shadow", "sun")}),
+                   video_axis=cfg["video"]["axis"], video_frames=int(cfg["video"]["frames"]),
+                   composite={"mode": c["mode"], "feather": float(c["feather"]),
+                              "parts": list(c["parts"]) if c["parts"] else None})
+
+
+def check_composite(c: Mapping[str, Any]) -> None:
+    """A photo's compositing settings: a known mode, a feather >= 0, known parts."""
+    from difareli.relight.composite import MODES, part_mask
+
+    if c["mode"] not in MODES:
+        raise errors.UserError(f"composite.mode={c['mode']}: not a composite mode; use one of {', '.join(MODES)}")
+    if errors.check_number(c["feather"], "composite.feather", allow_none=False) < 0:
+        raise errors.UserError(f"composite.feather={c['feather']}: must be >= 0 (a fraction of the crop size)")
+    try:
+        part_mask(np.zeros((1, 1), np.uint8), list(c["parts"] or []))
+    except ValueError as e:
+        raise errors.UserError(f"composite.parts: {e}") from None
+
+
+@dataclass
+class Answer:
+    """What a request comes back as: the source read, the target's relight (``relit``, with the ground truth
+    ``truth`` where the target record is the same subject, and ``whole`` the relit photo), the video's relit
+    frames (``video``, ``whole_video`` for a photo) and lines worth telling the user (``lines``; a source's warnings
+    start with ``warning:``)."""
+
+    source: Any
+    relit: Any = None
+    truth: np.ndarray | None = None
+    whole: np.ndarray | None = None
+    video: Any = None
+    whole_video: np.ndarray | None = None
+    lines: list[str] = field(default_factory=list)
+    say: Callable[[str], None] | None = None  # told each line as it arises (a long relight shows its notes first)
+
+    def tell(self, line: str) -> None:
+        self.lines.append(line)
+        if self.say is not None:
+            self.say(line)
+
+
+def answer(relighter, request: Request, say: Callable[[str], None] | None = None) -> Answer:
+    """``request`` answered by ``relighter`` (module doc): the source read and checked once, its target relit
+    (its map toward the key sun found from the cast shadows of the image whose light it is, turned with a yaw or
+    a roll), the video's frames relit, a photo's relights composited back."""
+    from difareli.data.store import EncodingStore
+
+    store = None if request.store is None else EncodingStore.open(request.store).use_versions(request.versions)
+    source = relighter.photo_source(request.image, size=request.photo_size, strict=request.strict) \
+        if request.image is not None else relighter.source(store, request.record)
+    out = Answer(source, say=say)
+    for line in source.notes:
+        out.tell(line)
+    t, maps, c = request.target, "shadow_map" in relighter.model_inputs, request.composite
+    if t.given:
+        targets, found = t.for_source(relighter, source, store)
+        out.relit = relighter.relight(source, targets)
+        out.tell(f"target light 0: {photo.describe_light(targets.lights[0])}")
+        if maps:
+            out.tell(f"target 0 shadow map: {sun_fit.describe(found)}")
+        out.tell(f"relit {source.what} ({out.relit.describe_seconds()}; {relighter.describe()})")
+        if t.record is not None and store.meta(t.record).get("subject") == store.meta(source.key[1]).get("subject"):
+            out.truth = np.asarray(store.read(t.record, ["image"])["image"])
+        if source.photo is not None:  # the whole photo back
+            out.whole = out.relit.composite(c["mode"], c["feather"], c["parts"])[0]
+            out.tell(f"composited into the {out.whole.shape[1]}x{out.whole.shape[0]} photo in "
+                 f"{out.relit.seconds['composite']:.2f} s ({c['mode']})")
+    if request.video_axis is not None:
+        found = relighter.key_sun(source) if t.sun == "shadows" else None
+        targets, why = rotation_targets(source.arrays, request.video_axis, request.video_frames, store=store,
+                                        given=t.shadow, sun=None if found is None else found.direction)
+        out.tell(f"video shadow strength: {why}")
+        if maps:
+            out.tell(f"video shadow maps: {sun_fit.describe(found)}, turned with the light")
+        quarter = len(targets) // 4
+        out.tell(f"video: frame 0 light {photo.describe_light(targets.lights[0])}"
+                 + (f"; frame {quarter}: {photo.describe_light(targets.lights[quarter])}" if quarter else ""))
+        out.video = relighter.relight(source, targets)
+        n, seconds = len(out.video), sum(out.video.seconds.values())
+        out.tell(f"{n} frames in {seconds:.1f} s ({seconds / n:.2f} s/frame, {relighter.describe()})")
+        if source.photo is not None:  # every frame back into the whole photo
+            out.whole_video = out.video.composite(c["mode"], c["feather"], c["parts"])
+    return out

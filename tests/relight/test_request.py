@@ -1,0 +1,99 @@
+"""A relight request: its checks (Request.from_config) and its target for a source (Target.for_source)."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from omegaconf import OmegaConf
+
+from difareli.errors import UserError
+from difareli.lighting import sh
+from difareli.relight.request import Request, Target
+
+LIGHT = np.zeros((9, 3))
+LIGHT[0], LIGHT[2] = 1.0, 0.5  # an ambient and a light from the front-ish
+
+
+class FakeRelighter:
+    """What Target.for_source asks a relighter: a source's key sun (a fixed direction) and a store record."""
+
+    def __init__(self, direction):
+        self.direction, self.asked = np.asarray(direction, np.float64), []
+
+    def key_sun(self, source):
+        self.asked.append(source.what)
+        return SimpleNamespace(direction=self.direction)
+
+    def source(self, store, rid):
+        return SimpleNamespace(arrays=store.read(rid, ["light"]), what=rid)
+
+
+class FakeStore:
+    def read(self, rid, names):
+        other = LIGHT.copy()
+        other[1] = 0.3
+        return {"light": other, "shadow": np.array([2.5])}
+
+
+def src():
+    return SimpleNamespace(arrays={"light": LIGHT}, what="the source")
+
+
+def test_a_yaw_turns_the_sources_key_sun_with_its_light():
+    d = np.array([0.6, 0.0, 0.8])
+    rel = FakeRelighter(d)
+    targets, found = Target(yaw=90.0).for_source(rel, src())
+    assert np.allclose(targets.suns[0], sh.rotation_yaw(90.0) @ d)
+    assert not np.allclose(targets.suns[0], d)
+    assert np.allclose(targets.lights[0], sh.yaw(LIGHT, 90.0))
+    assert rel.asked == ["the source"] and np.allclose(found.direction, d)
+    targets, _ = Target(roll=-30.0).for_source(rel, src())
+    assert np.allclose(targets.suns[0], sh.rotation_roll(-30.0) @ d)
+
+
+def test_a_target_record_gives_its_light_shadow_and_sun():
+    d = np.array([0.0, 0.6, 0.8])
+    rel = FakeRelighter(d)
+    targets, _ = Target(record="s1_l2").for_source(rel, src(), FakeStore())
+    assert rel.asked == ["s1_l2"]  # the sun of the image whose light it is: the record's, not the source's
+    assert np.allclose(targets.suns[0], d) and targets.shadows == (2.5,)
+    assert np.allclose(targets.lights[0][1], 0.3)
+    targets, _ = Target(record="s1_l2", shadow=-1.0).for_source(rel, src(), FakeStore())
+    assert targets.shadows == (-1.0,)  # a given c' wins over the record's
+
+
+def test_peak_and_light_files_keep_the_radiance_peak(tmp_path):
+    rel = FakeRelighter([0.0, 0.0, 1.0])
+    targets, found = Target(yaw=45.0, sun="peak").for_source(rel, src())
+    assert found is None and targets.suns == (None,) and rel.asked == []
+    path = tmp_path / "light.npy"
+    np.save(path, LIGHT)
+    targets, found = Target(light=str(path)).for_source(rel, src())
+    assert found is None and rel.asked == [] and np.allclose(targets.lights[0], LIGHT)
+
+
+def cfg(**over):
+    base = {"store": None, "record": None, "versions": None, "image": None, "face": "largest", "photo_size": None,
+            "strict": False, "video": {"axis": None, "frames": 8},
+            "target": {"light": None, "record": None, "yaw": None, "roll": None, "envmap": None, "shadow": None,
+                       "sun": "shadows"},
+            "composite": {"mode": "ratio", "feather": 0.03, "parts": None}}
+    return OmegaConf.merge(base, OmegaConf.from_dotlist([f"{k}={v}" for k, v in over.items()]))
+
+
+def test_a_request_is_checked_once_naming_the_key():
+    r = Request.from_config(cfg(store="data/x", **{"target.yaw": 30}))
+    assert r.target == Target(yaw=30.0) and r.store == "data/x" and r.video_axis is None
+    with pytest.raises(UserError, match="either store=.* or image="):
+        Request.from_config(cfg(**{"target.yaw": 30}))
+    with pytest.raises(UserError, match="either store=.* or image="):
+        Request.from_config(cfg(store="s", image="p.png", **{"target.yaw": 30}))
+    with pytest.raises(UserError, match="target.record=r1 names a store record"):
+        Request.from_config(cfg(image="p.png", **{"target.record": "r1"}))
+    with pytest.raises(UserError, match="nothing to do"):
+        Request.from_config(cfg(store="s"))
+    with pytest.raises(UserError, match="target.light"):
+        Request.from_config(cfg(store="s", **{"target.light": "/no/such/light.npy"}))
+    assert Request.from_config(cfg(store="s", **{"video.axis": "roll"})).video_frames == 8
