@@ -43,7 +43,8 @@ def test_no_lit_sun_and_bad_suns():
 def test_of_sh_is_one_sun_toward_the_radiance_peak_carrying_all_the_light():
     light = sh.directional_light(np.array([0.3, 0.4, 0.866]), 2.0)
     suns = Suns.of_sh(light)
-    np.testing.assert_array_equal(suns.dirs[0], sun_direction(light))
+    # The same direction (one finder); to rounding: numpy's SIMD paths differ by a few ulps across CPUs.
+    np.testing.assert_allclose(suns.dirs[0], sun_direction(light), rtol=0, atol=1e-12)
     assert _angle(suns.dirs[0], np.array([0.3, 0.4, 0.866])) < 0.3
     assert not suns.ambient.any() and len(suns.dirs) == 1
 
