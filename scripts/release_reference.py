@@ -51,6 +51,8 @@ def main() -> None:
     ap.add_argument("--precision", default="bf16-mixed")
     ap.add_argument("--data", default=None, help=f"the training data (default: {DATA!r}; a fine-tune or a refresh keeps its card's)")
     ap.add_argument("--batch-size", type=int, default=16, help="when the run's .hydra/config.yaml is missing")
+    ap.add_argument("--wall", default=None, help="the training's wall time as the card says it, for a checkpoint "
+                    "that holds no Timer (a run resumed with trainer.max_time=null), e.g. '0.83 h in three runs'")
     ap.add_argument("--notes", default="")
     ap.add_argument("--summary", default=None, help="the card's first line (default: the reference <model>)")
     ap.add_argument("--out", default=None, help="folder for the benchmark run dirs (default: a temporary one)")
@@ -63,6 +65,9 @@ def main() -> None:
         return refresh(a)
     raw = torch.load(a.run_checkpoint, map_location="cpu", weights_only=True)
     timer = raw.get("callbacks", {}).get("Timer", {}).get("time_elapsed", {})
+    if not timer and not a.wall:
+        raise SystemExit(f"{a.run_checkpoint} holds no Timer (a run resumed with trainer.max_time=null): give its "
+                         "training's wall time, --wall '<hours and runs>'")
     hp = raw["hyper_parameters"]
     # The run's resolved config (saved by Hydra beside its checkpoints) states seed, batch and EMA decay.
     run_cfg = Path(a.run_checkpoint).resolve().parents[1] / ".hydra" / "config.yaml"
@@ -75,8 +80,8 @@ def main() -> None:
     prior = read_checkpoint(str(zoo.resolve(init, "init_from"))) if init else None
     comparison, bench = benchmark(a, a.run_checkpoint)
     train_s = float(timer.get("train", 0.0))
-    wall = (f"{train_s / 3600:.2f} h of {'fine-tuning' if prior is not None else 'training'} "
-            f"({float(timer.get('validate', 0.0)) / 60:.1f} min of validation besides)")
+    wall = a.wall or (f"{train_s / 3600:.2f} h of {'fine-tuning' if prior is not None else 'training'} "
+                      f"({float(timer.get('validate', 0.0)) / 60:.1f} min of validation besides)")
     steps = None
     if prior is not None:
         before, step = total_steps(prior), int(raw.get("global_step") or 0)
