@@ -60,6 +60,12 @@ def main() -> None:
                 ious.append((m & gt).sum() / union if union else np.nan)
             row.append(f"{np.nanmean(ious):.3f}")
         print(f"| {centre} | " + " | ".join(row) + " |")
+    # The whole judged face marked as shadow: what a map must beat to say anything about where the shadow is.
+    whole = []
+    for r in ids:
+        gt = np.asarray(store.read(r, ["shadow_visible_gt"])["shadow_visible_gt"], bool) & faces[r]
+        whole.append(gt.sum() / faces[r].sum() if faces[r].any() else np.nan)
+    print(f"\nwhole face (baseline): IoU {np.nanmean(whole):.3f} on the same records and region")
 
 
 if __name__ == "__main__":
