@@ -97,3 +97,22 @@ def test_a_request_is_checked_once_naming_the_key():
     with pytest.raises(UserError, match="target.light"):
         Request.from_config(cfg(store="s", **{"target.light": "/no/such/light.npy"}))
     assert Request.from_config(cfg(store="s", **{"video.axis": "roll"})).video_frames == 8
+
+
+def test_the_key_sun_is_found_once_per_source_key(monkeypatch):
+    # A request with a yaw target and a video of the source's own light asks for its key sun twice: fitted once.
+    from difareli.relight.relighter import Relighter
+    from difareli.render import sun_fit
+
+    calls = []
+    monkeypatch.setattr(sun_fit, "key_sun", lambda arrays, light: calls.append(1) or SimpleNamespace(direction=1))
+    me = SimpleNamespace(model_inputs=["shading", "shadow_map"], _suns={})
+    keyed = SimpleNamespace(arrays={"light": LIGHT}, key=("store", "r1"))
+    assert Relighter.key_sun(me, keyed) is Relighter.key_sun(me, keyed) and len(calls) == 1
+    other = SimpleNamespace(arrays={"light": LIGHT}, key=("store", "r2"))
+    Relighter.key_sun(me, other)
+    anonymous = SimpleNamespace(arrays={"light": LIGHT}, key=None)  # not cached: nothing names it
+    Relighter.key_sun(me, anonymous)
+    Relighter.key_sun(me, anonymous)
+    assert len(calls) == 4
+    assert Relighter.key_sun(SimpleNamespace(model_inputs=["shading"], _suns={}), keyed) is None

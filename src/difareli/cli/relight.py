@@ -27,9 +27,10 @@ def run(cfg: DictConfig) -> dict[str, Path]:
     request = validate(cfg)
     relighter = Relighter(cfg.checkpoint, cfg.sampler, runtime=cfg.runtime, mean_matching=cfg.mean_matching,
                           batch_size=cfg.batch_size, progress=cfg.progress)
-    paths = batch.photo_paths(cfg.image) if cfg.image is not None else None
-    if cfg.image is not None and (paths is not None or str(cfg.face).lower() != "largest"):
-        return run_photos(cfg, request, relighter, paths or [Path(str(cfg.image))])
+    if cfg.image is not None:
+        paths = batch.photo_paths(cfg.image)
+        if paths is not None or str(cfg.face).lower() != "largest":
+            return run_photos(cfg, request, relighter, paths or [Path(str(cfg.image))])
     return write(relighter.answer(request, say=say), cfg)
 
 
@@ -42,9 +43,9 @@ def say(line: str) -> None:
 
 
 def write(answer: Answer, cfg: DictConfig) -> dict[str, Path]:
-    """The answer's images written into ``out_dir`` (its lines were said as they arose): relit.png and a labelled comparison
-    (with the ground truth where the target record is the same subject); a photo's aligned crop and whole
-    relit photo; the rotation video, its captioned contact sheet and, for a photo, the video composited."""
+    """The answer's images written into ``out_dir`` (its lines were said as they arose): relit.png and a labelled
+    comparison (with the ground truth where the target record is the same subject); a photo's aligned crop and
+    whole relit photo; the rotation video, its captioned contact sheet and, for a photo, the video composited."""
     out_dir, written, source = Path(cfg.out_dir), {}, answer.source
     if answer.relit is not None:
         row, names = [source.arrays["image"], answer.relit[0]], ["input", "relit"]
@@ -78,8 +79,9 @@ def run_photos(cfg: DictConfig, request: Request, relighter: Relighter, paths: l
         raise errors.UserError(f"image={cfg.image} face={cfg.face}: a folder or several faces take a target light "
                                "(target.light|yaw|roll|envmap), not video.axis or target.record")
     counts = batch.relight_photos(paths, cfg.out_dir, progress=cfg.progress, relighter=relighter,
-                                  target=lambda s: request.target.for_source(relighter, s)[0], size=request.photo_size, face=request.face,
-                                  composite=request.composite, strict=request.strict)
+                                  target=lambda s: request.target.for_source(relighter, s)[0],
+                                  size=request.photo_size, face=request.face, composite=request.composite,
+                                  strict=request.strict)
     print(f"{counts['done']} photo(s) relit, {counts['resumed']} already done, {counts['skipped']} skipped; "
           f"results and {batch.CSV_NAME} in {cfg.out_dir}")
     if counts["skipped"]:

@@ -124,6 +124,7 @@ class Relighter:
                                                   else SamplerSpec.from_config(sampler))
         self.mean_matching, self.batch_size, self.progress = mean_matching, batch_size, progress
         self._inversions: dict[Any, Inversion] = {}
+        self._suns: dict[Any, sun_fit.SunFit | None] = {}
         # A model trained on shadow maps of another maker than this relight's target maps: said once, naming both.
         other = check_maker(getattr(self.model, "training_maps", None)) if "shadow_map" in self.model_inputs else None
         if other:
@@ -150,10 +151,16 @@ class Relighter:
     def key_sun(self, source: Source) -> sun_fit.SunFit | None:
         """Where this model's target map for the source's light is marched: the key sun found from the source
         image's cast shadows under the light fitted to it (``render.sun_fit``); None for a model that reads no
-        shadow map, or a source without what the fit reads."""
+        shadow map, or a source without what the fit reads. Cached under the source's key, as its inversion is
+        (a request with a target and a video of the source's own light asks twice; the fit takes about 1 s)."""
         if "shadow_map" not in self.model_inputs:
             return None
-        return sun_fit.key_sun(source.arrays, source.arrays["light"])
+        if source.key is not None and source.key in self._suns:
+            return self._suns[source.key]
+        found = sun_fit.key_sun(source.arrays, source.arrays["light"])
+        if source.key is not None:
+            self._suns[source.key] = found
+        return found
 
     def source(self, store: EncodingStore, record_id: str | None = None) -> Source:
         """A store record as a :class:`Source`: the encodings relighting it reads (and, where the store has them,
