@@ -27,7 +27,7 @@ class FakeRelighter:
         return SimpleNamespace(direction=self.direction)
 
     def source(self, store, rid):
-        return SimpleNamespace(arrays=store.read(rid, ["light"]), what=rid)
+        return SimpleNamespace(arrays=store.read(rid, ["light", "shadow"]), what=rid)
 
 
 class FakeStore:
@@ -56,12 +56,16 @@ def test_a_yaw_turns_the_sources_key_sun_with_its_light():
 def test_a_target_record_gives_its_light_shadow_and_sun():
     d = np.array([0.0, 0.6, 0.8])
     rel = FakeRelighter(d)
-    targets, _ = Target(record="s1_l2").for_source(rel, src(), FakeStore())
+    target = Target(record="s1_l2")
+    targets, _ = target.for_source(rel, src(), target.record_source(rel, FakeStore()))
     assert rel.asked == ["s1_l2"]  # the sun of the image whose light it is: the record's, not the source's
     assert np.allclose(targets.suns[0], d) and targets.shadows == (2.5,)
     assert np.allclose(targets.lights[0][1], 0.3)
-    targets, _ = Target(record="s1_l2", shadow=-1.0).for_source(rel, src(), FakeStore())
+    target = Target(record="s1_l2", shadow=-1.0)
+    targets, _ = target.for_source(rel, src(), target.record_source(rel, FakeStore()))
     assert targets.shadows == (-1.0,)  # a given c' wins over the record's
+    with pytest.raises(ValueError, match="record_source"):
+        target.for_source(rel, src())  # a record target without its record read
 
 
 def test_peak_and_light_files_keep_the_radiance_peak(tmp_path):

@@ -32,8 +32,10 @@ from difareli.utils.viz import png_data_url
 from difareli.lighting import sh
 from difareli.diffusion.spec import DEFAULT_SAMPLER, PRESETS
 
+from difareli.utils.lru import LRU
+
 from . import checks
-from .cache import LRU, CancelScope, attach
+from .cache import CancelScope, attach
 from .checks import RequestError
 from .envmaps import ENVMAPS, envmap_light
 
@@ -119,8 +121,8 @@ class Service:
         steps = checks.number({"steps": steps}, "steps", 1, checks.MAX_STEPS, integer=True)
         key = (ckpt, sampler, steps)
         if key not in self._relighters:
-            rel = Relighter(ckpt, {"name": sampler, "steps": steps}, runtime=self.runtime)
-            rel._inversions = LRU(self.max_inversions)  # its own dict keeps every source's inversion for ever
+            rel = Relighter(ckpt, {"name": sampler, "steps": steps}, runtime=self.runtime,
+                            cache_size=self.max_inversions)
             attach(rel.model, self.cancel)
             self.built += 1
             self._relighters[key] = rel

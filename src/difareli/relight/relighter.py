@@ -31,6 +31,7 @@ from tqdm.auto import tqdm
 
 from difareli import errors
 from difareli.utils import viz
+from difareli.utils.lru import LRU
 from difareli.data.inputs import condition_tensors, image_to_tensor, read_record, relight_reads
 from difareli.diffusion.relight import Inversion, SamplerSpec
 from difareli.diffusion.spec import DEFAULT_SAMPLER, PRESETS
@@ -101,11 +102,13 @@ def implausible_lights(arrays: Mapping[str, np.ndarray], lights: np.ndarray) -> 
 
 class Relighter:
     """A relightable model + a sampler + a runtime: ``relight(source, targets)`` for a store record
-    (:meth:`source`) or in-memory encodings (:meth:`source_from_arrays`)."""
+    (:meth:`source`) or in-memory encodings (:meth:`source_from_arrays`). Each source's inversion and key sun are
+    cached under its key: all of them, or the last ``cache_size`` sources' for a long-lived caller."""
 
     def __init__(self, checkpoint, sampler: SamplerSpec | Mapping[str, Any] | None = None, *,
                  runtime: Runtime | Mapping[str, Any] | None = None, device: str | None = None,
-                 mean_matching: bool = True, batch_size: int = 16, progress: bool = False):
+                 mean_matching: bool = True, batch_size: int = 16, progress: bool = False,
+                 cache_size: int | None = None):
         from difareli.checkpoints.loading import LoadedCheckpoint, load_checkpoint
 
         rt = runtime if isinstance(runtime, Runtime) else Runtime.from_config(runtime)
@@ -123,8 +126,9 @@ class Relighter:
         self.spec = None if sampler is None else (sampler if isinstance(sampler, SamplerSpec)
                                                   else SamplerSpec.from_config(sampler))
         self.mean_matching, self.batch_size, self.progress = mean_matching, batch_size, progress
-        self._inversions: dict[Any, Inversion] = {}
-        self._suns: dict[Any, sun_fit.SunFit | None] = {}
+        # Per source key; a long-lived caller (the app) bounds them to its last ``cache_size`` sources.
+        self._inversions: dict[Any, Inversion] = {} if cache_size is None else LRU(cache_size)
+        self._suns: dict[Any, sun_fit.SunFit | None] = {} if cache_size is None else LRU(cache_size)
         # A model trained on shadow maps of another maker than this relight's target maps: said once, naming both.
         other = check_maker(getattr(self.model, "training_maps", None)) if "shadow_map" in self.model_inputs else None
         if other:

@@ -43,19 +43,25 @@ class Target:
     def given(self) -> bool:
         return any(getattr(self, k) is not None for k in TARGET_KEYS)
 
-    def for_source(self, relighter, source, store=None) -> tuple[Targets, Any]:
-        """This target for ``source`` (a :class:`~difareli.relight.relighter.Source`; ``store``: where a target
-        record is read) and the key sun its map is marched toward: found by ``relighter.key_sun`` from the cast
-        shadows of the image whose light it is (another record's; the source's own, turned with a yaw or a
-        roll), None for ``sun=peak``, a light file or an environment map (the light's radiance peak)."""
-        other = store.read(self.record, ["light", "shadow"]) if self.record is not None else {}
-        finds = self.sun == "shadows" and (self.record is not None or self.yaw is not None or self.roll is not None)
-        found = None if not finds else relighter.key_sun(relighter.source(store, self.record)
-                                                         if self.record is not None else source)
-        light = target_lights(source.arrays["light"], light=self.light, other_light=other.get("light"),
+    def record_source(self, relighter, store):
+        """The target record read once, as the relighter reads a source (its light, shadow strength, image and
+        what its key sun's fit reads); None for a target without a record."""
+        return None if self.record is None else relighter.source(store, self.record)
+
+    def for_source(self, relighter, source, other=None) -> tuple[Targets, Any]:
+        """This target for ``source`` (a :class:`~difareli.relight.relighter.Source`; ``other``: the target
+        record's, :meth:`record_source`) and the key sun its map is marched toward: found by
+        ``relighter.key_sun`` from the cast shadows of the image whose light it is (the other record's; the
+        source's own, turned with a yaw or a roll), None for ``sun=peak``, a light file or an environment map
+        (the light's radiance peak)."""
+        if (self.record is None) != (other is None):
+            raise ValueError(f"target.record={self.record}: pass its source (Target.record_source), and only then")
+        o = {} if other is None else other.arrays
+        finds = self.sun == "shadows" and (other is not None or self.yaw is not None or self.roll is not None)
+        found = relighter.key_sun(other or source) if finds else None
+        light = target_lights(source.arrays["light"], light=self.light, other_light=o.get("light"),
                               yaw=self.yaw, roll=self.roll, envmap=self.envmap)
-        shadow = self.shadow if self.shadow is not None else \
-            (float(other["shadow"][0]) if "shadow" in other else None)
+        shadow = self.shadow if self.shadow is not None else (float(o["shadow"][0]) if "shadow" in o else None)
         sun = None if found is None else self.turn() @ found.direction
         return Targets.of([light], [shadow], "the target", suns=[sun]), found
 
@@ -160,14 +166,15 @@ def answer(relighter, request: Request, say: Callable[[str], None] | None = None
         out.tell(line)
     t, maps, c = request.target, "shadow_map" in relighter.model_inputs, request.composite
     if t.given:
-        targets, found = t.for_source(relighter, source, store)
+        other = t.record_source(relighter, store)
+        targets, found = t.for_source(relighter, source, other)
         out.relit = relighter.relight(source, targets)
         out.tell(f"target light 0: {photo.describe_light(targets.lights[0])}")
         if maps:
             out.tell(f"target 0 shadow map: {sun_fit.describe(found)}")
         out.tell(f"relit {source.what} ({out.relit.describe_seconds()}; {relighter.describe()})")
-        if t.record is not None and store.meta(t.record).get("subject") == store.meta(source.key[1]).get("subject"):
-            out.truth = np.asarray(store.read(t.record, ["image"])["image"])
+        if other is not None and store.meta(t.record).get("subject") == store.meta(source.key[1]).get("subject"):
+            out.truth = np.asarray(other.arrays["image"])
         if source.photo is not None:  # the whole photo back
             out.whole = out.relit.composite(c["mode"], c["feather"], c["parts"])[0]
             out.tell(f"composited into the {out.whole.shape[1]}x{out.whole.shape[0]} photo in "
