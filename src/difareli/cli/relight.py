@@ -15,7 +15,7 @@ from omegaconf import DictConfig
 
 from difareli import errors
 from difareli.cli import common
-from difareli.evaluation.video import describe_file, video_format, write_video
+from difareli.evaluation.video import describe_file, video_format, write_rotation, write_video
 from difareli.relight import batch
 from difareli.relight.relighter import Relighter
 from difareli.relight.request import Answer, Request
@@ -60,10 +60,10 @@ def write(answer: Answer, cfg: DictConfig) -> dict[str, Path]:
                 viz.grid([[source.photo.rgb, answer.whole]], col_labels=["photo", "relit photo"]),
                 out_dir / "composite_comparison.png")
     if answer.video is not None:
-        axis, fmt, frames = cfg.video.axis, video_format(cfg.video.format, "video.format"), answer.video.images
-        written["video"] = write_video(frames, out_dir / f"rotation_{axis}.{fmt}", cfg.video.fps)
-        written["sheet"] = viz.save_png(viz.contact_sheet(frames, viz.rotation_captions(axis, len(frames))),
-                                        out_dir / f"rotation_{axis}.png")
+        axis, fmt = cfg.video.axis, video_format(cfg.video.format, "video.format")
+        rotation = write_rotation(answer.video.images, out_dir, f"rotation_{axis}", axis=axis, fps=cfg.video.fps,
+                                  fmt=fmt)
+        written["video"], written["sheet"] = rotation["video"], rotation["sheet"]
         if answer.whole_video is not None:
             written["video_composite"] = write_video(answer.whole_video,
                                                      out_dir / f"rotation_{axis}_composite.{fmt}", cfg.video.fps)

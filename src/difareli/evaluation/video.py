@@ -216,23 +216,31 @@ class RotationVideo:
     relit: object = None  # the relighter's answer (a Relit: its ``composite()`` puts the frames into a photo)
 
 
-def rotation_video(relighter, source, targets, out_dir: str | Path, name: str, *, fps: int = 20,
-                   fmt: str = "auto", zoom: int = 1, columns: int = 10) -> RotationVideo:
-    """Relight ``source`` under every frame's target (``relighter.relight``), write ``<name>.<fmt>`` (frames
-    upscaled ``zoom`` times, nearest) and its contact sheet ``<name>.png`` (``columns`` frames a row)."""
-    import time
-
+def write_rotation(frames: np.ndarray, out_dir: str | Path, name: str, *, axis: str | None = None, fps: int = 20,
+                   fmt: str = "auto", zoom: int = 1, columns: int = 10) -> dict[str, Path]:
+    """A rotation's frames written: ``<name>.<fmt>`` (upscaled ``zoom`` times, nearest) and its contact sheet
+    ``<name>.png`` (``columns`` frames a row, each captioned with its light angle about ``axis``; none without)."""
     from difareli.utils import viz
+
+    out = Path(out_dir)
+    big = np.repeat(np.repeat(frames, zoom, axis=1), zoom, axis=2) if zoom > 1 else frames
+    sheet = viz.contact_sheet(frames, viz.rotation_captions(axis, len(frames)), columns) if axis else \
+        viz.grid([list(frames[i:i + columns]) for i in range(0, len(frames), columns)])
+    return {"video": write_video(big, out / f"{name}.{video_format(fmt)}", fps),
+            "sheet": viz.save_png(sheet, out / f"{name}.png")}
+
+
+def rotation_video(relighter, source, targets, out_dir: str | Path, name: str, *, axis: str | None = None,
+                   fps: int = 20, fmt: str = "auto", zoom: int = 1, columns: int = 10) -> RotationVideo:
+    """Relight ``source`` under every frame's target (``relighter.relight``) and write the frames
+    (:func:`write_rotation`)."""
+    import time
 
     start = time.perf_counter()
     relit = relighter.relight(source, targets)
     frames = np.asarray(relit)
     seconds = time.perf_counter() - start
-    out = Path(out_dir)
-    big = np.repeat(np.repeat(frames, zoom, axis=1), zoom, axis=2) if zoom > 1 else frames
-    paths = {"video": write_video(big, out / f"{name}.{video_format(fmt)}", fps),
-             "sheet": viz.save_png(viz.grid([list(frames[i:i + columns]) for i in range(0, len(frames), columns)]),
-                                   out / f"{name}.png")}
+    paths = write_rotation(frames, out_dir, name, axis=axis, fps=fps, fmt=fmt, zoom=zoom, columns=columns)
     return RotationVideo(frames, paths, seconds, relit)
 
 

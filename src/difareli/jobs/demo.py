@@ -116,10 +116,7 @@ def run_demo(checkpoint: Any, out_dir: str | Path, *, sampler: Mapping[str, Any]
     targets, why = rotation_targets(source.arrays, "yaw", frames, store=store,
                                     sun=None if found is None else found.direction)
     res.notes.append(f"rotation video of {first}, shadow strength: {why}")
-    video = rotation_video(relighter, source, targets, out, "rotation_yaw", fps=20, zoom=2, fmt="auto")
-    # rotation_video's sheet has no captions: written again with each frame's light angle.
-    viz.save_png(viz.contact_sheet(video.frames, viz.rotation_captions("yaw", len(video.frames))),
-                 video.paths["sheet"])
+    video = rotation_video(relighter, source, targets, out, "rotation_yaw", axis="yaw", fps=20, zoom=2, fmt="auto")
     res.paths.update(video.paths)
     res.seconds["video"] = time.perf_counter() - t0
 
