@@ -58,7 +58,7 @@ class Target:
             raise ValueError(f"target.record={self.record}: pass its source (Target.record_source), and only then")
         o = {} if other is None else other.arrays
         finds = self.sun == "shadows" and (other is not None or self.yaw is not None or self.roll is not None)
-        found = relighter.key_sun(other or source) if finds else None
+        found = relighter.key_sun(source if other is None else other) if finds else None
         light = target_lights(source.arrays["light"], light=self.light, other_light=o.get("light"),
                               yaw=self.yaw, roll=self.roll, envmap=self.envmap)
         shadow = self.shadow if self.shadow is not None else (float(o["shadow"][0]) if "shadow" in o else None)
