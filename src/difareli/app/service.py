@@ -31,7 +31,6 @@ from difareli.data import encodings
 from difareli.utils.viz import png_data_url
 from difareli.lighting import sh
 from difareli.diffusion.spec import DEFAULT_SAMPLER, PRESETS
-
 from difareli.utils.lru import LRU
 
 from . import checks

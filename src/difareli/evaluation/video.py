@@ -224,8 +224,7 @@ def write_rotation(frames: np.ndarray, out_dir: str | Path, name: str, *, axis: 
 
     out = Path(out_dir)
     big = np.repeat(np.repeat(frames, zoom, axis=1), zoom, axis=2) if zoom > 1 else frames
-    sheet = viz.contact_sheet(frames, viz.rotation_captions(axis, len(frames)), columns) if axis else \
-        viz.grid([list(frames[i:i + columns]) for i in range(0, len(frames), columns)])
+    sheet = viz.contact_sheet(frames, viz.rotation_captions(axis, len(frames)) if axis else None, columns)
     return {"video": write_video(big, out / f"{name}.{video_format(fmt)}", fps),
             "sheet": viz.save_png(sheet, out / f"{name}.png")}
 

@@ -100,6 +100,15 @@ def implausible_lights(arrays: Mapping[str, np.ndarray], lights: np.ndarray) -> 
     return out
 
 
+def _cached(cache: dict, key: Any, make):
+    """``cache[key]``, made by ``make()`` the first time; a keyless source (nothing names it) is made every time."""
+    if key is None:
+        return make()
+    if key not in cache:
+        cache[key] = make()
+    return cache[key]
+
+
 class Relighter:
     """A relightable model + a sampler + a runtime: ``relight(source, targets)`` for a store record
     (:meth:`source`) or in-memory encodings (:meth:`source_from_arrays`). Each source's inversion and key sun are
@@ -159,12 +168,7 @@ class Relighter:
         (a request with a target and a video of the source's own light asks twice; the fit takes about 1 s)."""
         if "shadow_map" not in self.model_inputs:
             return None
-        if source.key is not None and source.key in self._suns:
-            return self._suns[source.key]
-        found = sun_fit.key_sun(source.arrays, source.arrays["light"])
-        if source.key is not None:
-            self._suns[source.key] = found
-        return found
+        return _cached(self._suns, source.key, lambda: sun_fit.key_sun(source.arrays, source.arrays["light"]))
 
     def source(self, store: EncodingStore, record_id: str | None = None) -> Source:
         """A store record as a :class:`Source`: the encodings relighting it reads (and, where the store has them,
@@ -294,14 +298,12 @@ class Relighter:
         """Passes 1-2 for a source, cached under its key; ``None`` for a one-pass model."""
         if isinstance(self.model, OnePassRelightable):
             return None
-        if source.key is not None and source.key in self._inversions:
-            return self._inversions[source.key]
+        return _cached(self._inversions, source.key, lambda: self._invert(source))
+
+    def _invert(self, source: Source) -> Inversion:
         x0 = image_to_tensor(source.arrays["image"])[None].to(self.device)
-        inv = invert_image(self.model, x0, condition_tensors(self.model, [source.arrays], self.device), self._spec(),
-                           runtime=self.runtime, mean_matching=self.mean_matching, progress=self.progress)
-        if source.key is not None:
-            self._inversions[source.key] = inv
-        return inv
+        return invert_image(self.model, x0, condition_tensors(self.model, [source.arrays], self.device), self._spec(),
+                            runtime=self.runtime, mean_matching=self.mean_matching, progress=self.progress)
 
     def _spec(self) -> SamplerSpec:
         if self.spec is None:

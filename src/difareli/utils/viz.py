@@ -65,10 +65,12 @@ def grid(rows: Sequence[Sequence[np.ndarray]], pad: int = 2, fill: int = 255, *,
     return out
 
 
-def contact_sheet(frames: Sequence[np.ndarray], captions: Sequence[str], columns: int = 10) -> np.ndarray:
-    """Frames ``columns`` a row, each under its caption (a rotation's light angle)."""
-    rows = [list(frames[i:i + columns]) for i in range(0, len(frames), columns)]
-    return grid(rows, cell_labels=[list(captions[i:i + columns]) for i in range(0, len(frames), columns)])
+def contact_sheet(frames: Sequence[np.ndarray], captions: Sequence[str] | None = None,
+                  columns: int = 10) -> np.ndarray:
+    """Frames ``columns`` a row, each under its caption (a rotation's light angle; none without captions)."""
+    starts = range(0, len(frames), columns)
+    rows = [list(frames[i:i + columns]) for i in starts]
+    return grid(rows, cell_labels=None if captions is None else [list(captions[i:i + columns]) for i in starts])
 
 
 def rotation_captions(axis: str, frames: int) -> list[str]:
