@@ -61,10 +61,18 @@ def rotation(synth_store):
     return store, rid, rot.ground_truth_rotation(store, rid, "yaw", frames=8)
 
 
+def rule_lights(store, rid, gt):
+    """The exact suns of each frame and of the input, as difareli-video gives the rule."""
+    from difareli.synth import rotation as rot
+
+    return [light.as_suns() for light in gt.lights], rot.record_source(store, rid)[2].as_suns()
+
+
 def test_measure_ground_truth_against_itself(rotation):
     store, rid, gt = rotation
     arrays = store.read(rid)
-    rep = vid.measure(gt.frames, gt.frames, arrays, gt.targets["light"], gt.cast())
+    frames, source = rule_lights(store, rid, gt)
+    rep = vid.measure(gt.frames, gt.frames, arrays, frames, gt.cast(), input_light=source)
     np.testing.assert_allclose(rep.per_frame["mse"], 0.0, atol=1e-12)
     np.testing.assert_allclose(rep.per_frame["dssim"], 0.0, atol=1e-9)
     finite = np.isfinite(rep.per_frame["shadow_iou"])
@@ -77,11 +85,15 @@ def test_shadow_rule_finds_exact_cast_shadows(rotation):
     # The rule (which reads no GT) against the exact cast maps of a sunny SynthFaces rotation.
     store, rid, gt = rotation
     arrays = store.read(rid)
-    found, judged = vid.detect_cast_shadow(gt.frames, arrays, gt.targets["light"])
+    frames, source = rule_lights(store, rid, gt)
+    found, judged = vid.detect_cast_shadow(gt.frames, arrays, frames, source)
     truth = gt.cast() & judged
     assert truth.sum() > 0, "the strongest-shadow record casts shadows somewhere in its rotation"
     inter, union = (found & truth).sum(), (found | truth).sum()
-    assert inter / union > 0.5, f"pooled IoU of the rule vs exact cast maps: {inter / union:.3f}"
+    # Without the realism effects (specular, subsurface, AO) the exact suns predict the unshadowed image exactly:
+    # only the 8-bit rounding and the visible-share cut separate the rule from the truth (0.987 measured; the
+    # smooth SH prediction the rule used before found 0.909 of a smaller judged region).
+    assert inter / union > 0.95, f"pooled IoU of the rule vs exact cast maps: {inter / union:.3f}"
 
 
 def test_target_shadow_policy(synth_store):

@@ -19,6 +19,7 @@ from difareli.cli import common
 from difareli.relight.relighter import Relighter
 from difareli.data.encodings import shadow_logit
 from difareli.data.store import EncodingStore
+from difareli.synth import rotation
 from difareli.utils.fileio import staged_outputs
 from difareli.relight.targets import Targets, load_envmap, video_shadow
 
@@ -27,8 +28,6 @@ _MEASURE = ("image", "light", "normal", "face_mask", "shadow_map", "shadow")
 
 def _ground_truth(cfg: DictConfig, store: EncodingStore, rid: str, rots: np.ndarray, angles: np.ndarray,
                   env_light: np.ndarray | None):
-    from difareli.synth import rotation
-
     if env_light is not None:
         return rotation.ground_truth_lights(store, rid, sh.rotate(env_light, rots))
     return rotation.ground_truth_rotation(store, rid, cfg.rotation.axis, len(angles))
@@ -100,18 +99,19 @@ def run(cfg: DictConfig) -> dict[str, Path]:
             written["gt"] = vid.write_video(gt.frames, out / f"ground_truth.{ext}", cfg.fps)
             side = np.stack([viz.grid([[g, r]]) for g, r in zip(gt.frames, relit)])
             written["side_by_side"] = vid.write_video(side, out / f"side_by_side.{ext}", cfg.fps)
-            # The rule measures (it is no model input): the exact input and frame lights where the store has them.
-            rule_arrays = {**arrays, "light": np.asarray(store.read(rid, ["light_gt"])["light_gt"])} \
-                if store.available("light_gt") else arrays
+            # The rule measures (it is no model input): the exact suns of the input and of each frame.
+            input_light = rotation.record_source(store, rid)[2]
+            input_suns = input_light.as_suns()
             # The maps the frames were given (made by the march, or the oracle's), to measure how far they are followed.
             given = np.stack([a["shadow_map"] for a in targets.retarget(source.arrays, ["shadow_map"])]) \
                 if "shadow_map" in relighter.model_inputs else None
-            report = vid.measure(relit, gt.frames, rule_arrays, gt.targets["light"], gt.cast(), maps=given)
+            report = vid.measure(relit, gt.frames, arrays, [light.as_suns() for light in gt.lights], gt.cast(),
+                                 maps=given, input_light=input_light.sh() if input_suns is None else input_suns)
             written["csv"] = vid.write_csv(report, out / "frames.csv", angles)
             written["figure"] = vid.plot_temporal(report, out / "temporal.png", f"{rid}: {what}")
             summary.update(report.summary(), shadow_rule=(
-                f"cast shadow where luminance < {vid.SHADOW_RATIO} x albedo-proxy x target SH irradiance "
-                "(difareli/evaluation/video.py)"))
+                f"cast shadow where luminance < {1 - vid.VISIBLE:g} x albedo-proxy x the frame's unshadowed "
+                f"irradiance, where its key sun carries > {vid.VISIBLE:g} of the light (difareli/evaluation/video.py)"))
             print("GT rows: top = ground truth, bottom = relit.  " + ", ".join(
                 f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in report.summary().items()))
         tmp = out / "summary.json.tmp"

@@ -19,6 +19,7 @@ import numpy as np
 
 from difareli.errors import UserError
 from difareli.lighting import sh
+from difareli.lighting.suns import Suns
 
 #: Categories and their sampling weights (see :func:`sample_light`).
 CATEGORIES: dict[str, float] = {
@@ -70,6 +71,14 @@ class Light:
         for d, c in zip(self.extra_dirs, self.extra_rgbs):
             full = full + sh.directional_light(d, c)
         return full.astype(np.float32)
+
+    def as_suns(self) -> Suns | None:
+        """The same light as :class:`~difareli.lighting.suns.Suns` (every lit sun, the key first, and the ambient),
+        or None when no sun has light."""
+        lit = self.suns()
+        if not lit:
+            return None
+        return Suns(np.stack([d for d, _ in lit]), np.stack([c for _, c in lit]), self.ambient)
 
     def meta(self) -> dict:
         out = {"category": self.category, "sun_dir": self.sun_dir.round(6).tolist(),
