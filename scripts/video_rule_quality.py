@@ -1,0 +1,73 @@
+"""How well the video shadow rule (``difareli.evaluation.video.detect_cast_shadow``) finds SynthFaces' own visible
+cast shadows, over its one setting: each chosen record's subject is rendered under its light rotated through 360
+degrees (``synth.rotation.ground_truth_rotation``, the frames difareli-video compares against), the rule is applied
+to those ground-truth frames with the exact suns (as difareli-video applies it), and its IoU against the frames'
+exact visible shadows on the judged pixels is averaged per record, then over records. Choose on a store the models
+trained on (its train split), never on the records a table reports.
+
+    python scripts/video_rule_quality.py --store data/sf_v3_64 --split train --records 10
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+from tqdm import tqdm
+
+from difareli.data.store import EncodingStore
+from difareli.evaluation import video as vid
+from difareli.synth import rotation
+
+#: The visible shares tried (the rule's ``visible``: its darkness cut is ``1 - visible``, its key-sun share ``visible``).
+SHARES = (0.15, 0.2, 0.25, 0.3, 0.4)
+
+
+def shadowed(store: EncodingStore, split: str, n: int, light: str, min_share: float) -> list[str]:
+    """The first ``n`` records of ``split`` under light ``light`` whose visible shadow covers > min_share of the face."""
+    out = []
+    for rid in store.ids(split=split):
+        if not rid.endswith(f"_l{light}"):
+            continue
+        a = store.read(rid, ["face_mask", "shadow_visible_gt"])
+        face = np.asarray(a["face_mask"], bool)
+        if (np.asarray(a["shadow_visible_gt"], bool) & face).sum() > min_share * face.sum():
+            out.append(rid)
+        if len(out) == n:
+            break
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--store", required=True)
+    ap.add_argument("--split", default="train")
+    ap.add_argument("--records", type=int, default=10)
+    ap.add_argument("--light", default="1", help="the light index of the records (default 1, as the tables use)")
+    ap.add_argument("--frames", type=int, default=60)
+    ap.add_argument("--min-share", type=float, default=0.04, help="visible shadow share of the face a record needs")
+    a = ap.parse_args()
+    store = EncodingStore.open(a.store)
+    ids = shadowed(store, a.split, a.records, a.light, a.min_share)
+    if not ids:
+        raise SystemExit(f"{a.store}: no {a.split} record with a visible shadow over {a.min_share} of the face")
+    scores = {v: [] for v in SHARES}
+    for rid in tqdm(ids, desc="records"):
+        gt = rotation.ground_truth_rotation(store, rid, "yaw", a.frames)
+        arrays = store.read(rid, ["image", "normal", "face_mask", "shadow_map"])
+        source = rotation.record_source(store, rid)[2]
+        suns, src = [light.as_suns() for light in gt.lights], source.as_suns()
+        for v in SHARES:
+            found, judged = vid.detect_cast_shadow(gt.frames, arrays, suns, src if src is not None else source.sh(),
+                                                   visible=v)
+            scores[v].append(float(np.nanmean(vid.iou(found, gt.cast() & judged))))
+    print(f"{len(ids)} shadowed {a.split} records of {a.store} ({' '.join(ids)}), {a.frames}-frame yaw rotations: "
+          "the rule on the ground-truth frames against their exact visible shadows\n")
+    print("| visible share | IoU (mean over records) | per record |\n|---:|---:|---|")
+    for v, s in scores.items():
+        mark = " (the default)" if v == vid.VISIBLE else ""
+        print(f"| {v:g}{mark} | {np.mean(s):.3f} | {' '.join(f'{x:.2f}' for x in s)} |")
+
+
+if __name__ == "__main__":
+    main()
