@@ -22,8 +22,6 @@ from tqdm import tqdm
 from difareli.data.store import EncodingStore
 from difareli.evaluation import video as vid
 from difareli.synth import rotation
-from difareli.synth.blas import single_thread_blas
-from difareli.synth.subject import build_subject, shade
 
 #: The visible shares tried (the rule's ``visible``: its darkness cut is ``1 - visible``, its key-sun share ``visible``).
 SHARES = (0.15, 0.2, 0.25, 0.3, 0.4)
@@ -42,17 +40,6 @@ def shadowed(store: EncodingStore, split: str, n: int, light: str, min_share: fl
         if len(out) == n:
             break
     return out
-
-
-def shadowless(store: EncodingStore, rid: str, lights) -> np.ndarray:
-    """The record's subject rendered under each light with no cast shadow (N, H, W, 3) uint8."""
-    import dataclasses
-
-    cfg, k, _ = rotation.record_source(store, rid)
-    exact = dataclasses.replace(cfg, inputs="exact")
-    with single_thread_blas():
-        subject = build_subject(k, exact)
-        return np.stack([shade(subject, light, None, exact)[0]["image"] for light in lights])
 
 
 def main() -> None:
@@ -84,7 +71,8 @@ def main() -> None:
             scores[v].append(float(np.nanmean(vid.iou(found, gt.cast() & judged))))
         src = src if src is not None else source.sh()
         detected, judged = vid.detect_cast_shadow(gt.frames, arrays, suns, src)
-        for name, frames in (("no cast shadow", shadowless(store, rid, gt.lights)),
+        cfg, k, _ = rotation.record_source(store, rid)
+        for name, frames in (("no cast shadow", rotation.render_lights(cfg, k, gt.lights, shadows=False).frames),
                              ("the input, unrelit", np.repeat(np.asarray(arrays["image"])[None], len(gt), 0))):
             found, _ = vid.detect_cast_shadow(frames, arrays, suns, src)
             for against, truth in (("vs GT's exact shadows", gt.cast() & judged), ("vs the rule on the GT", detected)):

@@ -75,10 +75,25 @@ def test_measure_ground_truth_against_itself(rotation):
     rep = vid.measure(gt.frames, gt.frames, arrays, frames, gt.cast(), input_light=source)
     np.testing.assert_allclose(rep.per_frame["mse"], 0.0, atol=1e-12)
     np.testing.assert_allclose(rep.per_frame["dssim"], 0.0, atol=1e-9)
-    finite = np.isfinite(rep.per_frame["shadow_iou"])
-    np.testing.assert_array_equal(rep.per_frame["shadow_iou"][finite], 1.0)
+    # The ground truth relit as itself scores what the rule scores on it, frame by frame.
+    np.testing.assert_array_equal(rep.per_frame["shadow_iou"], rep.per_frame["rule_iou"])
     np.testing.assert_allclose(rep.changes["error"], 0.0)
     np.testing.assert_allclose(rep.changes["relit"], rep.changes["gt"])
+
+
+def test_frames_without_cast_shadows_score_near_zero(rotation):
+    # The floor of the shadow IoU: the subject rendered under each frame's light with no cast shadow (a relight
+    # perfect but for the shadow) against the ground truth's exact shadows.
+    from difareli.synth import rotation as rot
+
+    store, rid, gt = rotation
+    cfg, k, _ = rot.record_source(store, rid)
+    flat = rot.render_lights(cfg, k, gt.lights, shadows=False)
+    assert not flat.cast().any() and gt.cast().any()
+    np.testing.assert_array_equal(flat.targets["light"], gt.targets["light"])  # same lights, shadows gone
+    frames, source = rule_lights(store, rid, gt)
+    rep = vid.measure(flat.frames, gt.frames, store.read(rid), frames, gt.cast(), input_light=source)
+    assert np.nanmean(rep.per_frame["shadow_iou"]) < 0.05 < np.nanmean(rep.per_frame["rule_iou"])
 
 
 def test_shadow_rule_finds_exact_cast_shadows(rotation):

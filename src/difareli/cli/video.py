@@ -111,7 +111,8 @@ def run(cfg: DictConfig) -> dict[str, Path]:
             written["figure"] = vid.plot_temporal(report, out / "temporal.png", f"{rid}: {what}")
             summary.update(report.summary(), shadow_rule=(
                 f"cast shadow where luminance < {1 - vid.VISIBLE:g} x albedo-proxy x the frame's unshadowed "
-                f"irradiance, where its key sun carries > {vid.VISIBLE:g} of the light (difareli/evaluation/video.py)"))
+                f"irradiance, where its key sun carries > {vid.VISIBLE:g} of the light, against the ground truth's "
+                "exact visible shadows (difareli/evaluation/video.py)"))
             print("GT rows: top = ground truth, bottom = relit.  " + ", ".join(
                 f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in report.summary().items()))
         tmp = out / "summary.json.tmp"

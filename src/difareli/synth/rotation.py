@@ -95,20 +95,21 @@ def light_from_sh(light_sh: np.ndarray, category: str = "sh") -> Light:
                  np.zeros(3))
 
 
-def render_lights(cfg: SynthConfig, k: int, lights: Sequence[Light]) -> GroundTruthFrames:
-    """Subject ``k`` of ``cfg`` rendered under each light (cast shadows ray-traced per sun)."""
+def render_lights(cfg: SynthConfig, k: int, lights: Sequence[Light], shadows: bool = True) -> GroundTruthFrames:
+    """Subject ``k`` of ``cfg`` rendered under each light (cast shadows ray-traced per sun; none with
+    ``shadows=False``: what a relight that draws no cast shadow would be at best)."""
     from difareli.render import cast_shadows
 
     exact = dataclasses.replace(cfg, inputs="exact")  # the image does not depend on it; skip the estimators
     frames, targets = [], {n: [] for n in TARGETS}
     with single_thread_blas():  # bit-identical to the generator's own records
         subject = build_subject(k, exact)
-        dirs = [d for light in lights for d, _ in light.suns()]
+        dirs = [d for light in lights for d, _ in light.suns()] if shadows else []
         maps = list(cast_shadows(subject.scene, subject.gbuffer, np.array(dirs))) if dirs else []
         for light in lights:
-            n = len(light.suns())
+            n = len(light.suns()) if shadows else 0
             casts, maps = maps[:n], maps[n:]
-            arrays, _ = shade(subject, light, casts, exact)
+            arrays, _ = shade(subject, light, casts if shadows else None, exact)
             frames.append(arrays["image"])
             for name in TARGETS:
                 targets[name].append(arrays[f"{name}_gt"])
