@@ -4,7 +4,8 @@ model's defaults, with the ground truth's exact target maps (``oracle_maps=true`
 relight's march toward each frame's light, or toward the input's found key sun turned with it: ``target.sun``);
 the table gives each model's mean over the records of the relit-shadow IoU against the ground truth (the shadow
 detected in the relit frame against the ground truth's exact visible shadows), how well the detection rule finds
-those shadows in the ground-truth frames (the most a relit frame can score), how far the frames follow their maps, and DSSIM / LPIPS.
+those shadows in the ground-truth frames (the most a relit frame can score) and what the ground-truth frames
+rendered without cast shadows score (what a relight that draws none scores), how far the frames follow their maps, and DSSIM / LPIPS.
 
     python scripts/video_shadows.py --store data/unseen_v3_s4242 --records s00000_l1 s00001_l1 \
         --checkpoints difareli_pp-synth64 difareli_pp_shadows-synth64 --out logs/video_shadows
@@ -25,7 +26,7 @@ import sys
 from pathlib import Path
 
 MAPS = {"exact": "oracle_maps=true", "own": "oracle_maps=false"}
-COLUMNS = ("shadow_iou_mean", "rule_iou_mean", "map_iou_mean", "map_adherence_mean", "dssim_mean",
+COLUMNS = ("shadow_iou_mean", "rule_iou_mean", "floor_iou_mean", "map_iou_mean", "map_adherence_mean", "dssim_mean",
            "lpips_mean")
 
 
@@ -65,16 +66,16 @@ def main() -> None:
         for maps in a.maps:
             got = [cell(ck, a.store, r, maps, out, a.extra) for r in a.records]
             per = " ".join(f"{g['shadow_iou_mean']:.3f}" for g in got)
-            rows.append(f"| {ck} | {maps} | " + " | ".join(f"{mean([g[c] for g in got]):.3f}" for c in COLUMNS)
+            rows.append(f"| {ck} | {maps} | " + " | ".join(f"{mean([g.get(c, math.nan) for g in got]):.3f}" for c in COLUMNS)
                         + f" | {per} |")
     sampler = got[0]["sampler"]
     rotation = got[0]["rotation"].split(", ")[0].replace("the input's light ", "")  # e.g. "rotated about yaw"
     head = (f"{len(a.records)} records of {a.store} ({', '.join(a.records)}), {got[0]['frames']} frames, the "
             f"input's light {rotation}, "
             f"sampler {sampler['name']}-{sampler['steps']}; means over the records\n\n"
-            "| model | target maps | shadow IoU vs GT | the rule on the GT | map IoU | map adherence | DSSIM | LPIPS "
-            "| shadow IoU per record |\n"
-            "|---|---|---:|---:|---:|---:|---:|---:|---|\n")
+            "| model | target maps | shadow IoU vs GT | the rule on the GT | GT without cast shadows | map IoU "
+            "| map adherence | DSSIM | LPIPS | shadow IoU per record |\n"
+            "|---|---|---:|---:|---:|---:|---:|---:|---:|---|\n")
     text = head + "\n".join(rows) + "\n"
     out.mkdir(parents=True, exist_ok=True)
     (out / "table.md").write_text(text)

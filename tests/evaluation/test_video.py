@@ -92,8 +92,10 @@ def test_frames_without_cast_shadows_score_near_zero(rotation):
     assert not flat.cast().any() and gt.cast().any()
     np.testing.assert_array_equal(flat.targets["light"], gt.targets["light"])  # same lights, shadows gone
     frames, source = rule_lights(store, rid, gt)
-    rep = vid.measure(flat.frames, gt.frames, store.read(rid), frames, gt.cast(), input_light=source)
+    rep = vid.measure(flat.frames, gt.frames, store.read(rid), frames, gt.cast(), input_light=source,
+                      shadowless=flat.frames)
     assert np.nanmean(rep.per_frame["shadow_iou"]) < 0.05 < np.nanmean(rep.per_frame["rule_iou"])
+    np.testing.assert_array_equal(rep.per_frame["floor_iou"], rep.per_frame["shadow_iou"])  # the floor, by name
 
 
 def test_shadow_rule_finds_exact_cast_shadows(rotation):
@@ -142,6 +144,7 @@ def test_video_cli_frames_and_outputs(tiny_checkpoint, synth_store, tmp_path):
     summary = json.loads(Path(written["summary"]).read_text())
     assert summary["frames"] == 4 and "target c'" in summary["shadow"] and not summary["oracle_shadow"]
     assert 0 <= summary["dssim_mean"] <= 1 and summary["change_gt_mean"] > 0
+    assert 0 <= summary["floor_iou_mean"] <= summary["rule_iou_mean"] <= 1  # the floor and the ceiling
     assert summary["target_sun"] == "shadows" and summary["target_maps"].startswith("target shadow maps marched toward")
 
 

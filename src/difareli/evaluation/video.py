@@ -5,9 +5,9 @@ What is measured per frame (relit vs ground truth, on the record's face mask):
 - DSSIM / MSE / LPIPS (``metrics.evaluate``);
 - **shadow IoU**: the cast shadow :func:`detect_cast_shadow` finds in the relit frame against the GT frame's exact
   visible shadows (SynthFaces' ``shadow_visible_gt`` of that frame) on the pixels the rule judges, and the same
-  rule's IoU on the GT frame (``rule_iou``: the most a relit frame can score with this detector). Frames that draw
-  no cast shadow score about 0.02 (the shadowless render of each frame's light on five unseen records:
-  ``scripts/video_rule_quality.py``); comparing the relit frame's detection with the GT frame's instead would have
+  rule's IoU on the GT frame (``rule_iou``: the most a relit frame can score with this detector) and on the GT
+  frame rendered without cast shadows (``floor_iou``: what a relight that draws none scores, about 0.02 on five
+  unseen records: ``scripts/video_rule_quality.py``); comparing the relit frame's detection with the GT frame's instead would have
   given those frames 0.31, the two detections sharing the rule's errors on everything but cast shadows;
 - **temporal consistency**: the frame-to-frame change ``mean |f[t+1] - f[t]|`` (face mask, [0, 1] units) of the
   relit sequence and of the GT, and the temporal error ``mean |(r[t+1] - r[t]) - (g[t+1] - g[t])|``.
@@ -117,7 +117,7 @@ def temporal_error(relit: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> np.nd
 class VideoReport:
     """Per-frame measurements of a relit sequence against its ground truth."""
 
-    per_frame: dict[str, np.ndarray]       # dssim, mse, lpips, shadow_iou, rule_iou [, map_adherence, map_iou] (N,)
+    per_frame: dict[str, np.ndarray]       # dssim, mse, lpips, shadow_iou, rule_iou [, floor_iou, map_adherence, map_iou] (N,)
     changes: dict[str, np.ndarray] = field(default_factory=dict)  # relit, gt, error (N - 1,)
 
     def summary(self) -> dict[str, float]:
@@ -131,13 +131,14 @@ class VideoReport:
 
 def measure(relit: np.ndarray, gt: np.ndarray, arrays: Mapping[str, np.ndarray], lights: Sequence[Suns | None],
             gt_cast: np.ndarray, maps: np.ndarray | None = None,
-            input_light: Suns | np.ndarray | None = None) -> VideoReport:
+            input_light: Suns | np.ndarray | None = None, shadowless: np.ndarray | None = None) -> VideoReport:
     """Measure relit frames (N, H, W, 3) against GT frames; ``lights`` (one :class:`Suns` per frame) and
     ``input_light`` (default ``arrays["light"]``) are the lights the detection rule uses, ``gt_cast`` (N, H, W)
     the GT frames' exact visible shadows, ``maps`` (N, H, W) the target shadow maps the relight was given: how far
     each frame follows its map (:func:`difareli.evaluation.adherence.shadow_scores`: ``map_adherence``, its
     darkening against the ground truth's under the same map, and ``map_iou``, the shadow found in the frame against
-    the map)."""
+    the map); ``shadowless`` (N, H, W, 3) the GT frames rendered without cast shadows: their shadow IoU
+    (``floor_iou``) is what a relight that draws no cast shadow scores."""
     from difareli.evaluation import metrics
 
     if relit.shape != gt.shape:
@@ -150,6 +151,8 @@ def measure(relit: np.ndarray, gt: np.ndarray, arrays: Mapping[str, np.ndarray],
     truth = np.asarray(gt_cast, bool) & judged
     scores["shadow_iou"] = iou(found, truth)
     scores["rule_iou"] = iou(detect_cast_shadow(gt, arrays, lights, input_light)[0], truth)
+    if shadowless is not None:
+        scores["floor_iou"] = iou(detect_cast_shadow(shadowless, arrays, lights, input_light)[0], truth)
     if maps is not None:
         from difareli.evaluation.adherence import shadow_scores
 
@@ -281,6 +284,8 @@ def plot_temporal(report: VideoReport, path: str | Path, title: str = "") -> Pat
     a.set_xlabel("frame t"), a.set_ylabel("mean |f[t+1] - f[t]|"), a.legend(), a.set_title("temporal change")
     b.plot(report.per_frame["shadow_iou"], label="relit vs GT's exact shadows")
     b.plot(report.per_frame["rule_iou"], "--", label="the rule on the GT")
+    if "floor_iou" in report.per_frame:
+        b.plot(report.per_frame["floor_iou"], ":", label="GT without cast shadows")
     b.set_ylim(0, 1), b.set_xlabel("frame"), b.set_ylabel("IoU"), b.legend(), b.set_title("cast-shadow IoU")
     fig.suptitle(title, fontsize=9)
     fig.tight_layout()
