@@ -1,6 +1,7 @@
 """How well the video shadow rule (``difareli.evaluation.video.detect_cast_shadow``) finds SynthFaces' own visible
 cast shadows, over its one setting: each chosen record's subject is rendered under its light rotated through 360
-degrees (``synth.rotation.ground_truth_rotation``, the frames difareli-video compares against), the rule is applied
+degrees about yaw or roll (``synth.rotation.ground_truth_rotation``, the frames difareli-video compares against),
+the rule is applied
 to those ground-truth frames with the exact suns (as difareli-video applies it), and its IoU against the frames'
 exact visible shadows on the judged pixels is averaged per record, then over records. Choose on a store the models
 trained on (its train split), never on the records a table reports.
@@ -49,6 +50,7 @@ def main() -> None:
     ap.add_argument("--records", type=int, default=10)
     ap.add_argument("--light", default="1", help="the light index of the records (default 1, as the tables use)")
     ap.add_argument("--frames", type=int, default=60)
+    ap.add_argument("--axis", default="yaw", choices=("yaw", "roll"), help="the rotation (default yaw)")
     ap.add_argument("--min-share", type=float, default=0.04, help="visible shadow share of the face a record needs")
     ap.add_argument("--ids", nargs="+", help="these records instead of the first shadowed ones of --split (e.g. the "
                     "records a video table reports, for its controls)")
@@ -61,7 +63,7 @@ def main() -> None:
     controls = {f"{name}, {against}": [] for name in ("no cast shadow", "the input, unrelit")
                 for against in ("vs GT's exact shadows", "vs the rule on the GT")}
     for rid in tqdm(ids, desc="records"):
-        gt = rotation.ground_truth_rotation(store, rid, "yaw", a.frames)
+        gt = rotation.ground_truth_rotation(store, rid, a.axis, a.frames)
         arrays = store.read(rid, ["image", "normal", "face_mask", "shadow_map"])
         source = rotation.record_source(store, rid)[2]
         suns, src = [light.as_suns() for light in gt.lights], source.as_suns()
@@ -78,7 +80,8 @@ def main() -> None:
             for against, truth in (("vs GT's exact shadows", gt.cast() & judged), ("vs the rule on the GT", detected)):
                 # per frame, NaN where both are empty, averaged as difareli-video's summary averages
                 controls[f"{name}, {against}"].append(float(np.nanmean(vid.iou(found, truth))))
-    print(f"{len(ids)} {'given' if a.ids else f'shadowed {a.split}'} records of {a.store} ({' '.join(ids)}), {a.frames}-frame yaw rotations: "
+    which = "given" if a.ids else f"shadowed {a.split}"
+    print(f"{len(ids)} {which} records of {a.store} ({' '.join(ids)}), {a.frames}-frame {a.axis} rotations: "
           "the rule on the ground-truth frames against their exact visible shadows\n")
     print("| visible share | IoU (mean over records) | per record |\n|---:|---:|---|")
     for v, s in scores.items():
