@@ -1,14 +1,14 @@
 """How well the video shadow rule (``difareli.evaluation.video.detect_cast_shadow``) finds SynthFaces' own visible
 cast shadows, over its one setting: each chosen record's subject is rendered under its light rotated through 360
 degrees about yaw or roll (``synth.rotation.ground_truth_rotation``, the frames difareli-video compares against),
-the rule is applied
-to those ground-truth frames with the exact suns (as difareli-video applies it), and its IoU against the frames'
-exact visible shadows on the judged pixels is averaged per record, then over records. Choose on a store the models
-trained on (its train split), never on the records a table reports.
+the rule is applied to those ground-truth frames with the exact suns (as difareli-video applies it), and its IoU
+against the frames' exact visible shadows on the judged pixels is averaged per record, then over records. Choose on
+a store the models trained on (its train split), never on the records a table reports.
 
-Two controls show the floor of the shadow IoU difareli-video reports (the shadow detected in relit frames against
-the one detected in the ground truth's): the subject rendered under each frame's light *without* cast shadows (a
-perfect relight that draws none) and the input image itself in every frame (no relight at all).
+Two controls, frames that draw no cast shadow, show the floor of difareli-video's shadow IoU (against the ground
+truth's exact shadows) and of the detection-against-detection IoU it replaced (against the shadow the rule finds in
+the ground-truth frame): the subject rendered under each frame's light without cast shadows (a relight perfect but
+for the shadow) and the input image itself in every frame (no relight at all).
 
     python scripts/video_rule_quality.py --store data/sf_v3_64 --split train --records 10
 """
@@ -24,12 +24,14 @@ from difareli.data.store import EncodingStore
 from difareli.evaluation import video as vid
 from difareli.synth import rotation
 
-#: The visible shares tried (the rule's ``visible``: its darkness cut is ``1 - visible``, its key-sun share ``visible``).
+#: The visible shares tried (the rule's ``visible``: its darkness cut is ``1 - visible``, its key-sun share
+#: ``visible``).
 SHARES = (0.15, 0.2, 0.25, 0.3, 0.4)
 
 
 def shadowed(store: EncodingStore, split: str, n: int, light: str, min_share: float) -> list[str]:
-    """The first ``n`` records of ``split`` under light ``light`` whose visible shadow covers > min_share of the face."""
+    """The first ``n`` records of ``split`` under light ``light`` whose visible shadow covers more than
+    ``min_share`` of the face."""
     out = []
     for rid in store.ids(split=split):
         if not rid.endswith(f"_l{light}"):

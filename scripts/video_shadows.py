@@ -5,7 +5,8 @@ relight's march toward each frame's light, or toward the input's found key sun t
 the table gives each model's mean over the records of the relit-shadow IoU against the ground truth (the shadow
 detected in the relit frame against the ground truth's exact visible shadows), how well the detection rule finds
 those shadows in the ground-truth frames (the most a relit frame can score) and what the ground-truth frames
-rendered without cast shadows score (what a relight that draws none scores), how far the frames follow their maps, and DSSIM / LPIPS.
+rendered without cast shadows score (what a relight that draws none scores), how far the frames follow their
+maps, and DSSIM / LPIPS.
 
     python scripts/video_shadows.py --store data/unseen_v3_s4242 --records s00000_l1 s00001_l1 \
         --checkpoints difareli_pp-synth64 difareli_pp_shadows-synth64 --out logs/video_shadows
@@ -66,7 +67,8 @@ def main() -> None:
         for maps in a.maps:
             got = [cell(ck, a.store, r, maps, out, a.extra) for r in a.records]
             per = " ".join(f"{g['shadow_iou_mean']:.3f}" for g in got)
-            rows.append(f"| {ck} | {maps} | " + " | ".join(f"{mean([g.get(c, math.nan) for g in got]):.3f}" for c in COLUMNS)
+            cols = [mean([g.get(c, math.nan) for g in got]) for c in COLUMNS]
+            rows.append(f"| {ck} | {maps} | " + " | ".join(f"{v:.3f}" for v in cols)
                         + f" | {per} |")
     sampler = got[0]["sampler"]
     rotation = got[0]["rotation"].split(", ")[0].replace("the input's light ", "")  # e.g. "rotated about yaw"

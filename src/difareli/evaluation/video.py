@@ -7,8 +7,8 @@ What is measured per frame (relit vs ground truth, on the record's face mask):
   visible shadows (SynthFaces' ``shadow_visible_gt`` of that frame) on the pixels the rule judges, and the same
   rule's IoU on the GT frame (``rule_iou``: the most a relit frame can score with this detector) and on the GT
   frame rendered without cast shadows (``floor_iou``: what a relight that draws none scores, about 0.02 on five
-  unseen records: ``scripts/video_rule_quality.py``); comparing the relit frame's detection with the GT frame's instead would have
-  given those frames 0.31, the two detections sharing the rule's errors on everything but cast shadows;
+  unseen records: ``scripts/video_rule_quality.py``); comparing the relit frame's detection with the GT frame's
+  instead would have given those frames 0.31, the two detections sharing the rule's errors on all but cast shadows;
 - **temporal consistency**: the frame-to-frame change ``mean |f[t+1] - f[t]|`` (face mask, [0, 1] units) of the
   relit sequence and of the GT, and the temporal error ``mean |(r[t+1] - r[t]) - (g[t+1] - g[t])|``.
 
@@ -117,7 +117,8 @@ def temporal_error(relit: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> np.nd
 class VideoReport:
     """Per-frame measurements of a relit sequence against its ground truth."""
 
-    per_frame: dict[str, np.ndarray]       # dssim, mse, lpips, shadow_iou, rule_iou [, floor_iou, map_adherence, map_iou] (N,)
+    # (N,) each: dssim, mse, lpips, shadow_iou, rule_iou [, floor_iou, map_adherence, map_iou]
+    per_frame: dict[str, np.ndarray]
     changes: dict[str, np.ndarray] = field(default_factory=dict)  # relit, gt, error (N - 1,)
 
     def summary(self) -> dict[str, float]:
