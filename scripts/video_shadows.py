@@ -4,9 +4,9 @@ model's defaults, with the ground truth's exact target maps (``oracle_maps=true`
 relight's march toward each frame's light, or toward the input's found key sun turned with it: ``target.sun``);
 the table gives each model's mean over the records of the relit-shadow IoU against the ground truth (the shadow
 detected in the relit frame against the ground truth's exact visible shadows), how well the detection rule finds
-those shadows in the ground-truth frames (the most a relit frame can score) and what the ground-truth frames
-rendered without cast shadows score (what a relight that draws none scores), how far the frames follow their
-maps, and DSSIM / LPIPS.
+those shadows in the ground-truth frames (a relit frame that draws them darker can score above it), what the
+ground-truth frames rendered without cast shadows score (what a relight that draws none scores), how far the
+frames follow their maps, and DSSIM / LPIPS.
 
     python scripts/video_shadows.py --store data/unseen_v3_s4242 --records s00000_l1 s00001_l1 \
         --checkpoints difareli_pp-synth64 difareli_pp_shadows-synth64 --out logs/video_shadows

@@ -144,7 +144,7 @@ def test_video_cli_frames_and_outputs(tiny_checkpoint, synth_store, tmp_path):
     summary = json.loads(Path(written["summary"]).read_text())
     assert summary["frames"] == 4 and "target c'" in summary["shadow"] and not summary["oracle_shadow"]
     assert 0 <= summary["dssim_mean"] <= 1 and summary["change_gt_mean"] > 0
-    assert 0 <= summary["floor_iou_mean"] <= summary["rule_iou_mean"] <= 1  # the floor and the ceiling
+    assert 0 <= summary["floor_iou_mean"] <= summary["rule_iou_mean"] <= 1  # the floor, and the rule on the truth
     assert summary["target_sun"] == "shadows" and summary["target_maps"].startswith("target shadow maps marched toward")
 
 

@@ -5,9 +5,10 @@ What is measured per frame (relit vs ground truth, on the record's face mask):
 - DSSIM / MSE / LPIPS (``metrics.evaluate``);
 - **shadow IoU**: the cast shadow :func:`detect_cast_shadow` finds in the relit frame against the GT frame's exact
   visible shadows (SynthFaces' ``shadow_visible_gt`` of that frame) on the pixels the rule judges, and the same
-  rule's IoU on the GT frame (``rule_iou``: the most a relit frame can score with this detector) and on the GT
-  frame rendered without cast shadows (``floor_iou``: what a relight that draws none scores, about 0.02 on five
-  unseen records: ``scripts/video_rule_quality.py``); comparing the relit frame's detection with the GT frame's
+  rule's IoU on the GT frame (``rule_iou``: how well the detector finds the real shadows; a relit frame whose
+  shadow is darker than the real one can score above it) and on the GT frame rendered without cast shadows
+  (``floor_iou``: what a relight that draws none scores, about 0.02 on five unseen records:
+  ``scripts/video_rule_quality.py``); comparing the relit frame's detection with the GT frame's
   instead would have given those frames 0.31, the two detections sharing the rule's errors on all but cast shadows;
 - **temporal consistency**: the frame-to-frame change ``mean |f[t+1] - f[t]|`` (face mask, [0, 1] units) of the
   relit sequence and of the GT, and the temporal error ``mean |(r[t+1] - r[t]) - (g[t+1] - g[t])|``.
