@@ -21,9 +21,10 @@ definition of a visible shadow (``SynthConfig.shadow_visible``, 0.25). Pixels ar
 the normal is known, the input is lit enough for the albedo proxy (``Y(E_input) > MIN_INPUT_IRRADIANCE``) and not in
 its own stored cast shadow, and where the frame's key sun carries more than ``VISIBLE`` of the pixel's light (only
 there can its cast shadow be seen). The lights are :class:`~difareli.lighting.suns.Suns`, the suns and ambient a
-SynthFaces record is rendered with: a 9-term SH cannot hold a sun's sharp ``max(0, n.d)`` falloff, and predicting
-with it found the ground truth's own visible shadows at IoU 0.33 on ten shadowed train-split records of
-``data/sf_v3_64``, the exact suns at 0.52 (ratio 0.6-0.9 x key share 0.15-0.4 tried; 0.75 / 0.25 best).
+SynthFaces record is rendered with: a 9-term SH cannot hold a sun's sharp ``max(0, n.d)`` falloff, and the rule
+that predicted with it (before 2026-12-05) found the ground truth's own visible shadows at IoU 0.33 on ten shadowed
+train-split records of ``data/sf_v3_64``, the exact suns at 0.52 (``scripts/video_rule_quality.py``: shares
+0.15-0.4 tried, 0.25 best).
 difareli-video applies it with the exact lights (the input's and each GT frame's) where the store has them: the rule
 is a measurement, not a model input.
 """
