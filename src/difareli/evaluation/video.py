@@ -22,9 +22,9 @@ the normal is known, the input is lit enough for the albedo proxy (``Y(E_input) 
 its own stored cast shadow, and where the frame's key sun carries more than ``VISIBLE`` of the pixel's light (only
 there can its cast shadow be seen). The lights are :class:`~difareli.lighting.suns.Suns`, the suns and ambient a
 SynthFaces record is rendered with: a 9-term SH cannot hold a sun's sharp ``max(0, n.d)`` falloff, and the rule
-that predicted with it (before 2026-12-05) found the ground truth's own visible shadows at IoU 0.33 on ten shadowed
-train-split records of ``data/sf_v3_64``, the exact suns at 0.52 (``scripts/video_rule_quality.py``: shares
-0.15-0.4 tried, 0.25 best).
+that predicted with it (before 2026-12-05) found the ground truth's own visible shadows at IoU 0.325 on the five
+records of docs/shadow_maps.md's video tables, the exact suns at 0.545 (``scripts/video_rule_quality.py``; the
+share 0.25 chosen on ten train-split records of ``data/sf_v3_64``: 0.520, 0.48-0.52 over 0.15-0.4).
 difareli-video applies it with the exact lights (the input's and each GT frame's) where the store has them: the rule
 is a measurement, not a model input.
 """
