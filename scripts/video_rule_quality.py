@@ -69,9 +69,7 @@ def main() -> None:
     for rid in tqdm(ids, desc="records"):
         gt = rotation.ground_truth_rotation(store, rid, a.axis, a.frames)
         arrays = store.read(rid, ["image", "normal", "face_mask", "shadow_map"])
-        cfg, k, source = rotation.record_source(store, rid)
-        suns, src = [light.as_suns() for light in gt.lights], source.as_suns()
-        src = source.sh() if src is None else src  # a record without a sun: its SH light
+        suns, src = gt.suns(), rotation.source_suns(store, rid)
         for v in SHARES:
             found, judged = vid.detect_cast_shadow(gt.frames, arrays, suns, src, visible=v)
             scores[v].append(float(np.nanmean(vid.iou(found, gt.cast() & judged))))
@@ -79,7 +77,7 @@ def main() -> None:
         exact = gt.cast() & judged
         # per frame, NaN where both are empty, averaged as difareli-video's summary averages
         controls["every judged pixel shadowed, vs GT's exact shadows"].append(float(np.nanmean(vid.iou(judged, exact))))
-        for name, frames in (("no cast shadow", rotation.render_lights(cfg, k, gt.lights, shadows=False).frames),
+        for name, frames in (("no cast shadow", gt.without_shadows().frames),
                              ("the input, unrelit", np.repeat(np.asarray(arrays["image"])[None], len(gt), 0))):
             found, _ = vid.detect_cast_shadow(frames, arrays, suns, src)
             for against, truth in (("vs GT's exact shadows", exact), ("vs the rule on the GT", detected)):

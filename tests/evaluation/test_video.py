@@ -65,7 +65,7 @@ def rule_lights(store, rid, gt):
     """The exact suns of each frame and of the input, as difareli-video gives the rule."""
     from difareli.synth import rotation as rot
 
-    return [light.as_suns() for light in gt.lights], rot.record_source(store, rid)[2].as_suns()
+    return gt.suns(), rot.source_suns(store, rid)
 
 
 def test_measure_ground_truth_against_itself(rotation):
@@ -84,18 +84,16 @@ def test_measure_ground_truth_against_itself(rotation):
 def test_frames_without_cast_shadows_score_near_zero(rotation):
     # The floor of the shadow IoU: the subject rendered under each frame's light with no cast shadow (a relight
     # perfect but for the shadow) against the ground truth's exact shadows.
-    from difareli.synth import rotation as rot
-
     store, rid, gt = rotation
-    cfg, k, _ = rot.record_source(store, rid)
-    flat = rot.render_lights(cfg, k, gt.lights, shadows=False)
+    flat = gt.without_shadows()
     assert not flat.cast().any() and gt.cast().any()
     np.testing.assert_array_equal(flat.targets["light"], gt.targets["light"])  # same lights, shadows gone
     frames, source = rule_lights(store, rid, gt)
     rep = vid.measure(flat.frames, gt.frames, store.read(rid), frames, gt.cast(), input_light=source,
                       shadowless=flat.frames)
     assert np.nanmean(rep.per_frame["shadow_iou"]) < 0.05 < np.nanmean(rep.per_frame["rule_iou"])
-    np.testing.assert_array_equal(rep.per_frame["floor_iou"], rep.per_frame["shadow_iou"])  # the floor, by name
+    # the floor, by name
+    np.testing.assert_array_equal(rep.per_frame["floor_iou"], rep.per_frame["shadow_iou"])
 
 
 def test_shadow_rule_finds_exact_cast_shadows(rotation):

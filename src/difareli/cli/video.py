@@ -99,17 +99,14 @@ def run(cfg: DictConfig) -> dict[str, Path]:
             written["gt"] = vid.write_video(gt.frames, out / f"ground_truth.{ext}", cfg.fps)
             side = np.stack([viz.grid([[g, r]]) for g, r in zip(gt.frames, relit)])
             written["side_by_side"] = vid.write_video(side, out / f"side_by_side.{ext}", cfg.fps)
-            # The rule measures (it is no model input): the exact suns of the input and of each frame.
-            synth_cfg, subject, input_light = rotation.record_source(store, rid)
-            input_suns = input_light.as_suns()
-            # The floor of the shadow IoU: the same frames rendered without cast shadows.
-            flat = rotation.render_lights(synth_cfg, subject, gt.lights, shadows=False).frames
             # The maps the frames were given (made by the march, or the oracle's), to measure how far they are followed.
             given = np.stack([a["shadow_map"] for a in targets.retarget(source.arrays, ["shadow_map"])]) \
                 if "shadow_map" in relighter.model_inputs else None
-            report = vid.measure(relit, gt.frames, arrays, [light.as_suns() for light in gt.lights], gt.cast(),
-                                 maps=given, input_light=input_light.sh() if input_suns is None else input_suns,
-                                 shadowless=flat)
+            # The rule measures (it is no model input): the exact suns of the input and of each frame; its floor,
+            # the same frames rendered without cast shadows.
+            report = vid.measure(relit, gt.frames, arrays, gt.suns(), gt.cast(), maps=given,
+                                 input_light=rotation.source_suns(store, rid),
+                                 shadowless=gt.without_shadows().frames)
             written["csv"] = vid.write_csv(report, out / "frames.csv", angles)
             written["figure"] = vid.plot_temporal(report, out / "temporal.png", f"{rid}: {what}")
             summary.update(report.summary(), shadow_rule=(

@@ -25,6 +25,7 @@ from typing import Sequence
 import numpy as np
 
 from difareli.lighting import sh
+from difareli.lighting.suns import Suns
 from difareli.data.store import EncodingStore
 from difareli.data import protocols as sp
 from difareli.synth.config import SynthConfig
@@ -46,6 +47,7 @@ class GroundTruthFrames:
     lights: list[Light]
     angles: np.ndarray | None = None   # degrees, for a rotation
     axis: str | None = None
+    subject: tuple[SynthConfig, int] | None = None  # (config, subject index) it was rendered from
 
     def __len__(self) -> int:
         return len(self.frames)
@@ -53,6 +55,17 @@ class GroundTruthFrames:
     def cast(self) -> np.ndarray:
         """Binary cast-shadow maps (N, H, W): where the exact ``shadow_map`` is positive."""
         return self.targets["shadow_map"] > 0
+
+    def suns(self) -> list[Suns | None]:
+        """Each frame's light as :class:`~difareli.lighting.suns.Suns` (None for a frame without a sun)."""
+        return [light.as_suns() for light in self.lights]
+
+    def without_shadows(self) -> "GroundTruthFrames":
+        """The same subject under the same lights with no cast shadow: what a relight that draws none is at best."""
+        cfg, k = self.subject
+        out = render_lights(cfg, k, self.lights, shadows=False)
+        out.angles, out.axis = self.angles, self.axis
+        return out
 
 
 def synth_config(store: EncodingStore) -> SynthConfig:
@@ -113,7 +126,8 @@ def render_lights(cfg: SynthConfig, k: int, lights: Sequence[Light], shadows: bo
             frames.append(arrays["image"])
             for name in TARGETS:
                 targets[name].append(arrays[f"{name}_gt"])
-    return GroundTruthFrames(np.stack(frames), {n: np.stack(v) for n, v in targets.items()}, list(lights))
+    return GroundTruthFrames(np.stack(frames), {n: np.stack(v) for n, v in targets.items()}, list(lights),
+                             subject=(cfg, k))
 
 
 def ground_truth_rotation(store: EncodingStore, record_id: str, axis: str = "yaw", frames: int = 60
@@ -124,6 +138,13 @@ def ground_truth_rotation(store: EncodingStore, record_id: str, axis: str = "yaw
     out = render_lights(cfg, k, [rotate_light(light, R) for R in rots])
     out.angles, out.axis = angles, axis
     return out
+
+
+def source_suns(store: EncodingStore, record_id: str) -> Suns | np.ndarray:
+    """The record's own light as the video shadow rule reads it: its exact suns, or its SH light where it has no sun."""
+    light = record_source(store, record_id)[2]
+    suns = light.as_suns()
+    return light.sh() if suns is None else suns
 
 
 def ground_truth_lights(store: EncodingStore, record_id: str, lights: Sequence[np.ndarray | Light]
