@@ -15,11 +15,11 @@ from omegaconf import DictConfig
 
 from difareli import errors
 from difareli.cli import common
-from difareli.evaluation.video import describe_file, video_format, write_rotation, write_video
 from difareli.relight import batch
 from difareli.relight.relighter import Relighter
 from difareli.relight.request import Answer, Request
 from difareli.utils import viz
+from difareli.utils.video import describe_file, video_format, write_rotation, write_video
 
 
 def run(cfg: DictConfig) -> dict[str, Path]:

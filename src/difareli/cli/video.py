@@ -15,6 +15,7 @@ from difareli.lighting import sh
 from difareli.render import sun_fit
 from difareli.utils import viz
 from difareli.evaluation import video as vid
+from difareli.utils import video as video_files
 from difareli.cli import common
 from difareli.relight.relighter import Relighter
 from difareli.data.encodings import shadow_logit
@@ -77,7 +78,7 @@ def run(cfg: DictConfig) -> dict[str, Path]:
         shadows = [c] * len(angles)
     print(f"{rid}: {what}; {c_note}" + (f"; {sun_note}" if sun_note else ""))
 
-    ext = vid.video_format(cfg.format)  # auto: mp4 where the encoder exists, else gif
+    ext = video_files.video_format(cfg.format)  # auto: mp4 where the encoder exists, else gif
     # Every output is staged and published at the end: a rerun into a finished folder never leaves it mixing runs.
     with staged_outputs(cfg.out_dir, OUTPUTS, last="summary.json") as out:
         if cfg.oracle_maps:  # each frame's exact cast-shadow map (the ground truth's), not the one the march makes
@@ -96,9 +97,9 @@ def run(cfg: DictConfig) -> dict[str, Path]:
                    "sampler": dict(cfg.sampler), "seconds": round(seconds, 3), "oracle_shadow": bool(cfg.oracle_shadow),
                    "oracle_maps": bool(cfg.oracle_maps), "target_sun": cfg.target.sun, "target_maps": sun_note}
         if gt is not None:
-            written["gt"] = vid.write_video(gt.frames, out / f"ground_truth.{ext}", cfg.fps)
+            written["gt"] = video_files.write_video(gt.frames, out / f"ground_truth.{ext}", cfg.fps)
             side = np.stack([viz.grid([[g, r]]) for g, r in zip(gt.frames, relit)])
-            written["side_by_side"] = vid.write_video(side, out / f"side_by_side.{ext}", cfg.fps)
+            written["side_by_side"] = video_files.write_video(side, out / f"side_by_side.{ext}", cfg.fps)
             # The maps the frames were given (made by the march, or the oracle's), to measure how far they are followed.
             given = np.stack([a["shadow_map"] for a in targets.retarget(source.arrays, ["shadow_map"])]) \
                 if "shadow_map" in relighter.model_inputs else None
@@ -137,7 +138,7 @@ def validate(cfg: DictConfig) -> None:
     errors.check_int(cfg.sheet_columns, "sheet_columns", 1)
     if cfg.rotation.axis not in ("yaw", "roll"):
         raise errors.UserError(f"rotation.axis={cfg.rotation.axis!r} is not a rotation axis; use yaw or roll")
-    vid.video_format(cfg.format)
+    video_files.video_format(cfg.format)
 
 
 @hydra.main(version_base="1.3", config_path=common.CONFIG_PATH, config_name="video")

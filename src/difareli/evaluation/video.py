@@ -42,6 +42,7 @@ from difareli.errors import UserError
 from difareli.lighting import sh
 from difareli.lighting.suns import Suns
 from difareli.data.encodings import known_normals
+from difareli.utils.video import write_rotation
 from difareli.utils.imageops import LUMA
 
 #: The share of a pixel's light its cast shadows must take to count as visible (SynthFaces' ``shadow_visible``).
@@ -186,56 +187,6 @@ def write_csv(report: VideoReport, path: str | Path, angles: np.ndarray | None =
     return path
 
 
-#: The video formats: ``auto`` is MP4 where imageio's ffmpeg plugin is installed (``pip install imageio-ffmpeg``,
-#: the ``video`` extra: a 60-frame rotation is tens of kB), else an optimised GIF.
-VIDEO_FORMATS = ("auto", "mp4", "gif")
-
-
-def has_mp4() -> bool:
-    """Whether MP4 can be written here (imageio's ffmpeg plugin is installed)."""
-    import importlib.util
-
-    return importlib.util.find_spec("imageio_ffmpeg") is not None
-
-
-def video_format(fmt: str = "auto", key: str = "format") -> str:
-    """``fmt`` resolved to ``mp4`` or ``gif`` (``auto``: MP4 where the encoder exists); a UserError naming ``key``
-    for another value, or for ``mp4`` without the encoder."""
-    if fmt not in VIDEO_FORMATS:
-        raise UserError(f"{key}={fmt!r} is not a video format; use one of {', '.join(VIDEO_FORMATS)}")
-    if fmt == "mp4" and not has_mp4():
-        raise UserError(f"{key}=mp4 needs imageio's ffmpeg plugin: pip install imageio-ffmpeg (or {key}=gif)")
-    return ("mp4" if has_mp4() else "gif") if fmt == "auto" else fmt
-
-
-def describe_file(path: str | Path) -> str:
-    """``path (123 kB)``: a written file and its size, for the line a command ends with."""
-    size = Path(path).stat().st_size
-    return f"{path} ({size / 2 ** 20:.1f} MB)" if size >= 2 ** 20 else f"{path} ({size / 1024:.0f} kB)"
-
-
-def write_video(frames: np.ndarray, path: str | Path, fps: int = 20) -> Path:
-    """Write frames (N, H, W, 3) uint8 as a GIF (``.gif``: :func:`difareli.relight.composite.write_gif`, one
-    fast palette per frame) or an MP4 (H.264 through imageio's ffmpeg plugin)."""
-    import imageio.v3 as iio
-
-    from difareli.relight.composite import write_gif
-
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if path.suffix == ".gif":
-        write_gif(frames, path, fps)
-    else:
-        try:
-            # H.264 needs even sides: a 64 px crop is, a whole photo may not be (padded by one edge row/column).
-            f = np.asarray(frames)
-            f = np.pad(f, ((0, 0), (0, f.shape[1] % 2), (0, f.shape[2] % 2), (0, 0)), mode="edge")
-            iio.imwrite(path, f, fps=fps, codec="libx264", macro_block_size=1)
-        except Exception as e:  # no ffmpeg backend
-            raise RuntimeError(f"cannot write {path} ({e}); install imageio[ffmpeg] or use a .gif path") from e
-    return path
-
-
 @dataclass
 class RotationVideo:
     """A relit light rotation: its frames, the files written and the seconds the relight took."""
@@ -244,19 +195,6 @@ class RotationVideo:
     paths: dict[str, Path]
     seconds: float
     relit: object = None  # the relighter's answer (a Relit: its ``composite()`` puts the frames into a photo)
-
-
-def write_rotation(frames: np.ndarray, out_dir: str | Path, name: str, *, axis: str | None = None, fps: int = 20,
-                   fmt: str = "auto", zoom: int = 1, columns: int = 10) -> dict[str, Path]:
-    """A rotation's frames written: ``<name>.<fmt>`` (upscaled ``zoom`` times, nearest) and its contact sheet
-    ``<name>.png`` (``columns`` frames a row, each captioned with its light angle about ``axis``; none without)."""
-    from difareli.utils import viz
-
-    out = Path(out_dir)
-    big = np.repeat(np.repeat(frames, zoom, axis=1), zoom, axis=2) if zoom > 1 else frames
-    sheet = viz.contact_sheet(frames, viz.rotation_captions(axis, len(frames)) if axis else None, columns)
-    return {"video": write_video(big, out / f"{name}.{video_format(fmt)}", fps),
-            "sheet": viz.save_png(sheet, out / f"{name}.png")}
 
 
 def rotation_video(relighter, source, targets, out_dir: str | Path, name: str, *, axis: str | None = None,
