@@ -12,6 +12,8 @@ import torch
 from difareli.diffusion.spec import check_sampler
 from difareli import errors
 from difareli.errors import UserError
+from difareli.checkpoints.files import load_torch_file
+from difareli.checkpoints.loading import check_resume
 
 from tests.helpers import compose_train
 
@@ -202,11 +204,11 @@ def test_corrupt_checkpoints_name_the_file(real_ckpt, tmp_path):
     for name, blob in cases.items():
         (tmp_path / name).write_bytes(blob)
         with pytest.raises(UserError) as e:
-            errors.load_torch_file(tmp_path / name)
+            load_torch_file(tmp_path / name)
         msg = str(e.value)
         assert msg.startswith(f"checkpoint {tmp_path / name} ({len(blob)} bytes) is not a readable PyTorch file")
         assert "weights_only=False" not in msg and "\n" not in msg
-    assert torch.equal(errors.load_torch_file(real_ckpt)["state_dict"]["w"], torch.arange(1000.0))
+    assert torch.equal(load_torch_file(real_ckpt)["state_dict"]["w"], torch.arange(1000.0))
 
 
 def test_load_checkpoint_uses_the_check(tmp_path):
@@ -232,9 +234,9 @@ def test_check_resume_lists_differing_hyperparameters(tmp_path):
     saved = _module("difareli_pp", 20)
     path = tmp_path / "pp.ckpt"
     torch.save({"state_dict": saved.state_dict(), "hyper_parameters": dict(saved.hparams)}, path)
-    errors.check_resume(path, _module("difareli_pp", 20))  # same config: no error
+    check_resume(path, _module("difareli_pp", 20))  # same config: no error
     with pytest.raises(UserError) as e:
-        errors.check_resume(path, _module("difareli", 21))
+        check_resume(path, _module("difareli", 21))
     msg = str(e.value)
     assert msg.count("\n") == 1 and "tensors differ" in msg
     assert "name: checkpoint 'difareli_pp', config 'difareli'" in msg

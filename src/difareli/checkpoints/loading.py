@@ -12,14 +12,14 @@ from __future__ import annotations
 import importlib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
 import lightning as L
 import torch
 
 from difareli.checkpoints import zoo
-from difareli.checkpoints.folder import is_folder, read_folder
-from difareli.errors import UserError, load_torch_file
+from difareli.checkpoints.files import is_folder, load_torch_file, read_folder
+from difareli.errors import UserError
 from difareli.checkpoints.format import MODULE_KEY, upgrade_checkpoint
 
 #: Modules a checkpoint may name: the package's own namespace only (a checkpoint is data, not code).
@@ -84,3 +84,24 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     raw = config.get("nonspatial_stats") or {}
     stats = {k: torch.as_tensor(v, dtype=torch.float32) for k, v in raw.items()}
     return LoadedCheckpoint(model=model, config=config, stats=stats, global_step=int(ckpt.get("global_step", 0)))
+
+
+def check_resume(ckpt_path: Any, model: Any, ckpt: Mapping[str, Any] | None = None) -> None:
+    """Resuming ``model`` from ``ckpt_path``: if state-dict keys or shapes differ, raise a UserError listing
+    the differing hyperparameters (or tensors), instead of PyTorch's size-mismatch dump. ``ckpt``: the
+    checkpoint dict when the caller has already read it."""
+    ckpt = load_torch_file(ckpt_path, "ckpt_path") if ckpt is None else ckpt
+    if not isinstance(ckpt, dict) or "state_dict" not in ckpt:
+        raise UserError(f"ckpt_path={ckpt_path} is not a Lightning checkpoint (no state_dict)")
+    have = {k: tuple(v.shape) for k, v in ckpt["state_dict"].items() if hasattr(v, "shape")}
+    want = {k: tuple(v.shape) for k, v in model.state_dict().items()}
+    bad = sorted(k for k in set(have) | set(want) if have.get(k) != want.get(k))
+    if not bad:
+        return
+    saved = dict(ckpt.get("hyper_parameters") or {})
+    now = dict(getattr(model, "hparams", {}) or {})
+    diff = [f"{k}: checkpoint {saved.get(k)!r}, config {now.get(k)!r}" for k in sorted(set(saved) | set(now))
+            if k != "compile" and saved.get(k) != now.get(k)]
+    listed = "; ".join(diff[:8]) if diff else f"tensors {', '.join(bad[:5])}"
+    raise UserError(f"ckpt_path={ckpt_path} does not match this model config ({len(bad)} tensors differ): "
+                    f"{listed}\nresume with the model config it was trained with (see <run>/.hydra/config.yaml)")

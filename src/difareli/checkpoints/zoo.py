@@ -17,9 +17,9 @@ from typing import Any
 
 import torch
 
-from difareli.checkpoints.folder import is_folder
+from difareli.checkpoints.files import is_folder, load_torch_file
 from difareli.checkpoints.format import SLIM_KEYS
-from difareli.errors import UserError, UserFileNotFoundError, check_file, load_torch_file
+from difareli.errors import UserError, UserFileNotFoundError, check_file
 from difareli.utils.fileio import torch_save_atomic, write_text_atomic
 
 #: Where the shipped checkpoints and their model cards live (package data).

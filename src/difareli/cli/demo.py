@@ -12,6 +12,7 @@ from omegaconf import DictConfig, OmegaConf
 from difareli.diffusion.spec import check_sampler
 from difareli import errors
 from difareli.checkpoints import zoo
+from difareli.checkpoints.files import load_torch_file
 from difareli.cli import common
 from difareli.jobs.demo import DemoResult, run_demo
 
@@ -75,7 +76,7 @@ def answer(cfg: DictConfig, res: DemoResult) -> str:
 
 def card_benchmark(checkpoint: str) -> str | None:
     """The benchmark paragraph of a checkpoint's model card (shipped checkpoints have one), else None."""
-    ckpt = errors.load_torch_file(zoo.resolve(checkpoint), "checkpoint")
+    ckpt = load_torch_file(zoo.resolve(checkpoint), "checkpoint")
     text = (ckpt.get("model_card") or {}).get("benchmark") if isinstance(ckpt, dict) else None
     return str(text) if text else None
 

@@ -13,7 +13,7 @@ from difareli.diffusion.spec import check_sampler
 from difareli import errors
 from difareli.checkpoints import zoo
 from difareli.cli import common
-from difareli.checkpoints.loading import read_checkpoint
+from difareli.checkpoints.loading import check_resume, read_checkpoint
 from difareli.lit import logging as lit_logging
 from difareli.lit import summary as lit_summary
 
@@ -51,7 +51,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     )
     common.log_hyperparameters(trainer, cfg)
     if ckpt_path or init_from:  # a mismatching config: list what differs, not a size-mismatch dump
-        errors.check_resume(ckpt_path or init_from, model, ckpt)
+        check_resume(ckpt_path or init_from, model, ckpt)
     if init_from:
         model.load_state_dict(ckpt["state_dict"])
     lit_logging.log_run_info(trainer, cfg)  # git commit + resolved config as text

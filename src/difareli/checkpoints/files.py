@@ -1,6 +1,7 @@
-"""Reading a weights folder (``model.safetensors`` + ``config.json`` + ``README.md``, written by
-:mod:`difareli.checkpoints.export`): what loading a checkpoint and resolving a shipped name need, below both, so
-neither imports the writer. No ``torch.load``, no pickle."""
+"""Reading a checkpoint's files: a ``.ckpt`` (or any torch file) with ``torch.load(weights_only=True)``, and a
+weights folder (``model.safetensors`` + ``config.json`` + ``README.md``, written by
+:mod:`difareli.checkpoints.export`; no ``torch.load``, no pickle). What loading a checkpoint, resolving a shipped
+name and importing the authors' weights need, below all of them, so none imports the writer."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ from typing import Any
 import torch
 
 from difareli.checkpoints.format import FORMAT_KEY, MODULE_KEY
-from difareli.errors import UserError
+from difareli.errors import UserError, UserFileNotFoundError
 
 WEIGHTS, CONFIG, CARD = "model.safetensors", "config.json", "README.md"
 #: ``config.json``'s ``format``: what wrote the folder, so another folder with a config.json is never mistaken.
@@ -48,3 +49,22 @@ def read_folder(folder: str | Path, map_location: str | torch.device = "cpu") ->
     ckpt = {k: config[k] for k in CONFIG_KEYS if k in config}
     ckpt["state_dict"] = load_file(folder / WEIGHTS, device=device)
     return ckpt
+
+
+def load_torch_file(path: Any, what: str = "checkpoint", map_location: Any = "cpu") -> Any:
+    """``torch.load(path, weights_only=True)``; a missing, truncated or non-torch file is a UserError naming
+    it (never a hint to load untrusted pickles)."""
+    import torch
+
+    p = Path(str(path))
+    if not p.is_file():
+        raise UserFileNotFoundError(f"{what} {p} does not exist (difareli-train writes <run>/checkpoints/last.ckpt)")
+    try:
+        return torch.load(p, map_location=map_location, weights_only=True)
+    except Exception as e:  # random bytes reach the unpickler's internals: KeyError, struct.error, ...
+        size = p.stat().st_size
+        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        if "weights_only" in first or "Weights only load failed" in first:
+            first = "it holds objects other than tensors and plain containers"
+        raise UserError(f"{what} {p} ({size} bytes) is not a readable PyTorch file ({first[:160]}); it may be "
+                        "truncated or corrupt: copy it again or use another checkpoint") from None
