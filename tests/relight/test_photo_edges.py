@@ -146,7 +146,8 @@ def test_in_dir_may_be_one_photo_but_not_a_text_file(tmp_path):
 @needs_shipped
 def test_photo_size_defaults_to_the_checkpoint_resolution():
     from difareli.checkpoints.loading import read_checkpoint
-    from difareli.relight.photo import resolution_warning, training_resolution
+    from difareli.checkpoints.format import training_resolution
+    from difareli.relight.photo import resolution_warning
     from difareli.relight.relighter import Relighter
 
     assert training_resolution(read_checkpoint("difareli_pp-synth64")["hyper_parameters"]) == 64

@@ -8,7 +8,7 @@ statistics in ``state_dict`` buffers) are translated by :func:`upgrade_checkpoin
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Mapping
 
 #: The module class that wrote a checkpoint (``package.module.Class``) and the format version.
 MODULE_KEY, FORMAT_KEY, FORMAT_VERSION = "difareli_module", "difareli_format", 2
@@ -83,3 +83,11 @@ def refuse_official(obj: Any, path: Any) -> None:
         raise UserError(f"checkpoint={path} is an official DiFaReli {role} state dict ({OFFICIAL_REPO}); convert it "
                         f"once: difareli-import-checkpoint {path} config=<its official YAML> out=<name>.ckpt, then "
                         "use checkpoint=<name>.ckpt")
+
+
+def training_resolution(config: Mapping[str, Any] | None) -> int | None:
+    """The image size (px) a checkpoint was trained at, from its hyperparameters (``input_dims.resolution``, which
+    difareli-train takes from the DataModule), or None where it records none."""
+    dims = dict((config or {}).get("input_dims") or {})
+    res = dims.get("resolution")
+    return int(res) if res else None

@@ -20,7 +20,7 @@ import torch
 from difareli.checkpoints import zoo
 from difareli.checkpoints.files import is_folder, load_torch_file, read_folder
 from difareli.errors import UserError
-from difareli.checkpoints.format import MODULE_KEY, upgrade_checkpoint
+from difareli.checkpoints.format import MODULE_KEY, training_resolution, upgrade_checkpoint
 
 #: Modules a checkpoint may name: the package's own namespace only (a checkpoint is data, not code).
 ALLOWED_PREFIX = "difareli."
@@ -34,6 +34,11 @@ class LoadedCheckpoint:
     config: dict[str, Any]
     stats: dict[str, torch.Tensor]
     global_step: int
+
+    @property
+    def resolution(self) -> int | None:
+        """The image size (px) it was trained at (:func:`~difareli.checkpoints.format.training_resolution`)."""
+        return training_resolution(self.config)
 
 
 def module_class(path: str) -> type[L.LightningModule]:

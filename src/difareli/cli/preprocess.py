@@ -32,7 +32,7 @@ def checkpoint_facts(checkpoint) -> tuple[int | None, list[str]]:
     from difareli.checkpoints import zoo
     from difareli.checkpoints.format import upgrade_checkpoint
     from difareli.checkpoints.files import load_torch_file
-    from difareli.relight.photo import training_resolution
+    from difareli.checkpoints.format import training_resolution
 
     ckpt = upgrade_checkpoint(load_torch_file(zoo.resolve(checkpoint, "checkpoint"), "checkpoint"))
     hp = ckpt.get("hyper_parameters")

@@ -27,10 +27,8 @@ def run(cfg: DictConfig) -> dict[str, Path]:
     request = validate(cfg)
     relighter = Relighter(cfg.checkpoint, cfg.sampler, runtime=cfg.runtime, mean_matching=cfg.mean_matching,
                           batch_size=cfg.batch_size, progress=cfg.progress)
-    if cfg.image is not None:
-        paths = batch.photo_paths(cfg.image)
-        if paths is not None or str(cfg.face).lower() != "largest":
-            return run_photos(cfg, request, relighter, paths or [Path(str(cfg.image))])
+    if request.photos is not None:
+        return run_photos(cfg, request, relighter)
     return write(relighter.answer(request, say=say), cfg)
 
 
@@ -72,30 +70,23 @@ def write(answer: Answer, cfg: DictConfig) -> dict[str, Path]:
     return written
 
 
-def run_photos(cfg: DictConfig, request: Request, relighter: Relighter, paths: list[Path]) -> dict[str, Path]:
-    """``image=<folder or glob>`` or ``face=all|<index>``: every photo (and chosen face) under the one target, by
-    :func:`difareli.relight.batch.relight_photos`; a UserError (non-zero exit) saying how many were skipped."""
-    if request.video_axis is not None or request.target.record is not None:
-        raise errors.UserError(f"image={cfg.image} face={cfg.face}: a folder or several faces take a target light "
-                               "(target.light|yaw|roll|envmap), not video.axis or target.record")
-    counts = batch.relight_photos(paths, cfg.out_dir, progress=cfg.progress, relighter=relighter,
-                                  target=lambda s: request.target.for_source(relighter, s)[0],
-                                  size=request.photo_size, face=request.face, composite=request.composite,
-                                  strict=request.strict)
+def run_photos(cfg: DictConfig, request: Request, relighter: Relighter) -> dict[str, Path]:
+    """``image=<folder or glob>`` or ``face=all|<index>``: every photo (and chosen face) under the one target
+    (:meth:`Relighter.answer_photos`); a UserError (non-zero exit) saying how many were skipped."""
+    counts = relighter.answer_photos(request, cfg.out_dir, progress=cfg.progress)
+    csv = Path(cfg.out_dir) / batch.CSV_NAME
     print(f"{counts['done']} photo(s) relit, {counts['resumed']} already done, {counts['skipped']} skipped; "
-          f"results and {batch.CSV_NAME} in {cfg.out_dir}")
+          f"results and {csv.name} in {cfg.out_dir}")
     if counts["skipped"]:
-        raise errors.UserError(f"image={cfg.image}: {counts['skipped']} of {len(paths)} photo(s) skipped (one line "
-                               f"each above, and in {Path(cfg.out_dir) / batch.CSV_NAME}); fix or remove them")
-    return {"csv": Path(cfg.out_dir) / batch.CSV_NAME}
+        raise errors.UserError(f"image={cfg.image}: {counts['skipped']} of {len(request.photos)} photo(s) skipped "
+                               f"(one line each above, and in {csv}); fix or remove them")
+    return {"csv": csv}
 
 
 def validate(cfg: DictConfig) -> Request:
     """Config values and input files, checked before any work: the command's own, then the request's
     (:meth:`Request.from_config`), which is returned."""
-    common.validate_relight(cfg, frames=("video.frames", cfg.video.frames, 1), fps=("video.fps", cfg.video.fps),
-                            envmap=("target.envmap", cfg.target.envmap))
-    video_format(cfg.video.format, "video.format")
+    common.validate_relight(cfg, fps=("video.fps", cfg.video.fps), fmt=("video.format", cfg.video.format))
     return Request.from_config(cfg)
 
 

@@ -18,6 +18,7 @@ from difareli.evaluation import video as vid
 from difareli.utils import video as video_files
 from difareli.cli import common
 from difareli.relight.relighter import Relighter
+from difareli.relight.request import check_frames
 from difareli.data.encodings import shadow_logit
 from difareli.data.store import EncodingStore
 from difareli.synth import rotation
@@ -133,12 +134,15 @@ OUTPUTS = ("relit.gif", "relit.mp4", "relit.png", "contact_sheet.png", "ground_t
 
 def validate(cfg: DictConfig) -> None:
     """Config values and input files, checked before any work."""
-    common.validate_relight(cfg, frames=("rotation.frames", cfg.rotation.frames, 2), fps=("fps", cfg.fps),
-                            envmap=("rotation.envmap", cfg.rotation.envmap))
-    errors.check_int(cfg.sheet_columns, "sheet_columns", 1)
+    common.validate_relight(cfg, fps=("fps", cfg.fps), fmt=("format", cfg.format))
     if cfg.rotation.axis not in ("yaw", "roll"):
         raise errors.UserError(f"rotation.axis={cfg.rotation.axis!r} is not a rotation axis; use yaw or roll")
-    video_files.video_format(cfg.format)
+    sun_fit.check_target_sun(cfg.target.sun, "target.sun")
+    check_frames(cfg.rotation.frames, "rotation.frames", 2)
+    errors.check_number(cfg.target.shadow, "target.shadow")
+    errors.check_int(cfg.sheet_columns, "sheet_columns", 1)
+    if cfg.rotation.envmap is not None:
+        errors.check_file(cfg.rotation.envmap, "rotation.envmap")
 
 
 @hydra.main(version_base="1.3", config_path=common.CONFIG_PATH, config_name="video")

@@ -5,9 +5,9 @@ The same estimators as ``difareli-preprocess`` (``conf/preprocess/``), planned f
 model needs (plus the part masks the composite blends with); nothing is written to disk. Pipelines are built once
 per process and crop size (:func:`pipeline_for`): building one and its first image load mediapipe and dlib (s).
 
-:func:`training_resolution` reads the resolution a checkpoint was trained at (``hyper_parameters.input_dims``):
-a photo is aligned at it unless told otherwise, and an input at another resolution is named in a warning
-(:func:`resolution_warning`). A grey photo (:func:`is_grey`) gets a grey light and comes back grey
+A photo is aligned at the resolution its checkpoint was trained at
+(:func:`difareli.checkpoints.format.training_resolution`) unless told otherwise, and an input at another
+resolution is named in a warning (:func:`resolution_warning`). A grey photo (:func:`is_grey`) gets a grey light and comes back grey
 (:func:`grey_like`): it has no colour for the model to keep.
 
 A group photo: :func:`detect_faces` lists every face (left to right), ``prepare_photo(..., face=box)`` aligns the
@@ -37,14 +37,6 @@ BORDERS = ("reflect", "mask")
 EXTRAS_FIX = "install the photo estimators: DIFARELI_PREPROCESS=1 bash scripts/install.sh"
 PHOTO_FIX = "use a photo with one clearly visible face"
 _PIPELINES: dict[Any, Any] = {}
-
-
-def training_resolution(config: Mapping[str, Any] | None) -> int | None:
-    """The image size (px) a checkpoint was trained at, from its hyperparameters (``input_dims.resolution``, which
-    difareli-train takes from the DataModule), or None where it records none."""
-    dims = dict((config or {}).get("input_dims") or {})
-    res = dims.get("resolution")
-    return int(res) if res else None
 
 
 def resolution_warning(checkpoint: Any, trained: int | None, what: str, size: int, fix: str) -> str | None:

@@ -39,7 +39,7 @@ from difareli.relight.core import invert_image, relight  # noqa: F401 (callers i
 from difareli.relight import photo as photos
 from difareli.relight.relightable import OnePassRelightable, Relightable, model_inputs
 from difareli.relight.relit import Relit
-from difareli.relight.request import Answer, Request, answer
+from difareli.relight.request import Answer, Request, answer, answer_photos
 from difareli.runtime.core import Runtime
 from difareli.data.store import EncodingStore
 from difareli.relight.targets import Targets, check_maker
@@ -120,16 +120,17 @@ class Relighter:
                  cache_size: int | None = None):
         from difareli.checkpoints.loading import LoadedCheckpoint, load_checkpoint
 
+        # Loaded on the CPU, then moved: the runtime (device, precision) is resolved after the checkpoint's own checks.
+        ckpt = checkpoint if isinstance(checkpoint, LoadedCheckpoint) else load_checkpoint(checkpoint)
         rt = runtime if isinstance(runtime, Runtime) else Runtime.from_config(runtime)
         if device is not None:  # the older keyword: the device alone
             rt = dataclasses.replace(rt, device=device)
         self.runtime = rt
         self.device = rt.torch_device
-        ckpt = checkpoint if isinstance(checkpoint, LoadedCheckpoint) else load_checkpoint(checkpoint, self.device)
         self.model = ckpt.model.to(self.device)
         self.config = ckpt.config
         self.checkpoint = "the given checkpoint" if isinstance(checkpoint, LoadedCheckpoint) else checkpoint
-        self.resolution = photos.training_resolution(self.config)  # None: the checkpoint records none
+        self.resolution = ckpt.resolution  # None: the checkpoint records none
         if sampler is None:  # a diffusion model without a named sampler gets the default, the cards' sampler
             sampler = None if isinstance(self.model, OnePassRelightable) else PRESETS[DEFAULT_SAMPLER]
         self.spec = None if sampler is None else (sampler if isinstance(sampler, SamplerSpec)
@@ -362,6 +363,11 @@ class Relighter:
         a rotation video, compositing) answered: :func:`difareli.relight.request.answer` (``say``: told each line
         as it arises)."""
         return answer(self, request, say)
+
+    def answer_photos(self, request: Request, out_dir: str | Path, progress: bool = True) -> dict:
+        """A batch request (``request.photos``) answered photo by photo into ``out_dir``
+        (:func:`difareli.relight.request.answer_photos`); counts {done, skipped, resumed}."""
+        return answer_photos(self, request, out_dir, progress)
 
     def relight_each(self, sources: Sequence[Source], targets: Targets) -> np.ndarray:
         """Source ``i`` under target ``i`` for many sources at once (N, H, W, 3) uint8: :meth:`relight_many` with

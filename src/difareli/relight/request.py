@@ -12,6 +12,7 @@ source once, builds the targets, relights, composites, and returns an :class:`An
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Callable, Mapping
 
 import numpy as np
@@ -19,8 +20,11 @@ import numpy as np
 from difareli import errors
 from difareli.lighting import sh
 from difareli.relight import photo
+from difareli.relight.batch import photo_paths, relight_photos
+from difareli.relight.composite import MODES, part_mask
 from difareli.relight.targets import Targets, rotation_targets, target_lights
 from difareli.render import sun_fit
+from difareli.render.sun_fit import check_target_sun
 
 #: The keys that give a target; exactly one of them (or a video alone).
 TARGET_KEYS = ("light", "record", "yaw", "roll", "envmap")
@@ -80,6 +84,7 @@ class Request:
     record: str | None = None
     versions: Mapping[str, Any] | None = None
     image: str | None = None
+    photos: tuple[Path, ...] | None = None  # a batch of photos under one target (relight.batch), else None
     face: Any = "largest"
     photo_size: int | None = None
     strict: bool = False
@@ -90,44 +95,66 @@ class Request:
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any]) -> "Request":
-        """The request of a relight command's config, checked: one source, a target or a video, a target record
-        only with a store, the target's numbers and file, the photo's compositing."""
-        t, c = cfg["target"], cfg["composite"]
-        if (cfg["image"] is None) == (cfg["store"] is None):
+        """The request of a relight command's config, checked before any work, each value once: one source (a
+        folder or glob of photos, or ``face=all|<index>``: a batch under one target light), a target or a video, a
+        target record only with a store, the photos' compositing, the target's sun, numbers and files, the video's
+        frame count."""
+        t, c, image = cfg["target"], cfg["composite"], cfg["image"]
+        if (image is None) == (cfg["store"] is None):
             raise errors.UserError("give the source as either store=<encodings store> (and record=) or "
-                                   f"image=<photo>; got store={cfg['store']} image={cfg['image']}")
+                                   f"image=<photo>; got store={cfg['store']} image={image}")
         if t["record"] is not None and cfg["store"] is None:
             raise errors.UserError(f"target.record={t['record']} names a store record: give store= too")
         if all(t[k] is None for k in TARGET_KEYS) and cfg["video"]["axis"] is None:
             raise errors.UserError("nothing to do: give a target (target.light|record|yaw|roll|envmap) or "
                                    "video.axis=yaw|roll")
-        for key in ("yaw", "roll"):
-            errors.check_number(t[key], f"target.{key}")
-        if t["light"] is not None:
-            errors.check_file(t["light"], "target.light")
-        if cfg["image"] is not None:
+        photos = None if image is None else photo_paths(image)
+        if image is not None and (photos is not None or str(cfg["face"]).lower() != "largest"):
+            photos = photos or [Path(str(image))]
+            if cfg["video"]["axis"] is not None or t["record"] is not None:
+                raise errors.UserError(f"image={image} face={cfg['face']}: a folder or several faces take a target "
+                                       "light (target.light|yaw|roll|envmap), not video.axis or target.record")
+        if image is not None:
             check_composite(c)
+        check_target_sun(t["sun"], "target.sun")
+        check_frames(cfg["video"]["frames"], "video.frames", 1)
+        for key in ("yaw", "roll", "shadow"):
+            errors.check_number(t[key], f"target.{key}")
+        for key in ("light", "envmap"):
+            if t[key] is not None:
+                errors.check_file(t[key], f"target.{key}")
         versions = cfg.get("versions")
         return cls(store=cfg["store"], record=cfg["record"], versions=None if versions is None else dict(versions),
-                   image=cfg["image"], face=cfg["face"], photo_size=cfg["photo_size"], strict=bool(cfg["strict"]),
+                   image=image, photos=None if photos is None else tuple(photos), face=cfg["face"],
+                   photo_size=cfg["photo_size"], strict=bool(cfg["strict"]),
                    target=Target(**{k: t[k] for k in (*TARGET_KEYS, "shadow", "sun")}),
                    video_axis=cfg["video"]["axis"], video_frames=int(cfg["video"]["frames"]),
                    composite={"mode": c["mode"], "feather": float(c["feather"]),
                               "parts": list(c["parts"]) if c["parts"] else None})
 
 
-def check_composite(c: Mapping[str, Any]) -> None:
-    """A photo's compositing settings: a known mode, a feather >= 0, known parts."""
-    from difareli.relight.composite import MODES, part_mask
+#: The longest rotation video a command makes: 60 frames x 60 s; anything longer is a typo, and would fill the disk.
+MAX_FRAMES = 3600
 
+
+def check_frames(value: Any, key: str, minimum: int = 1) -> int:
+    """A rotation video's frame count: an integer from ``minimum`` to :data:`MAX_FRAMES`, else a UserError."""
+    if isinstance(value, int) and not isinstance(value, bool) and value > MAX_FRAMES:
+        raise errors.UserError(f"{key}={value} is invalid: at most {MAX_FRAMES} frames (a {MAX_FRAMES // 20}-s video "
+                               f"at 20 fps); e.g. {key}=60")
+    return errors.check_int(value, key, minimum)
+
+
+def check_composite(c: Mapping[str, Any]) -> None:
+    """A photo's compositing settings: a known mode, known parts, a feather >= 0."""
     if c["mode"] not in MODES:
         raise errors.UserError(f"composite.mode={c['mode']}: not a composite mode; use one of {', '.join(MODES)}")
-    if errors.check_number(c["feather"], "composite.feather", allow_none=False) < 0:
-        raise errors.UserError(f"composite.feather={c['feather']}: must be >= 0 (a fraction of the crop size)")
     try:
         part_mask(np.zeros((1, 1), np.uint8), list(c["parts"] or []))
     except ValueError as e:
         raise errors.UserError(f"composite.parts: {e}") from None
+    if errors.check_number(c["feather"], "composite.feather", allow_none=False) < 0:
+        raise errors.UserError(f"composite.feather={c['feather']}: must be >= 0 (a fraction of the crop size)")
 
 
 @dataclass
@@ -195,3 +222,15 @@ def answer(relighter, request: Request, say: Callable[[str], None] | None = None
         if source.photo is not None:  # every frame back into the whole photo
             out.whole_video = out.video.composite(c["mode"], c["feather"], c["parts"])
     return out
+
+
+def answer_photos(relighter, request: Request, out_dir, progress: bool = True) -> dict:
+    """A batch request (``request.photos``: a folder, a glob, or several faces of one photo) answered by
+    ``relighter`` under the request's one target: :func:`difareli.relight.batch.relight_photos` writes each photo's
+    composite, relit crops and CSV row into ``out_dir`` as it goes (a rerun resumes); counts {done, skipped,
+    resumed}."""
+    if request.photos is None:
+        raise ValueError("answer_photos takes a request with photos (image=<folder or glob>, or face=all|<index>)")
+    return relight_photos(list(request.photos), out_dir, progress=progress, relighter=relighter,
+                          target=lambda s: request.target.for_source(relighter, s)[0], size=request.photo_size,
+                          face=request.face, composite=request.composite, strict=request.strict)
