@@ -31,7 +31,7 @@ import signal
 import sys
 import warnings
 from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -195,16 +195,26 @@ def threading_main() -> bool:
 
 
 # ------------------------------------------------------------------------------------------ config values
-def check_int(value: Any, key: str, minimum: int = 1, *, allow_none: bool = False) -> int | None:
-    """``value`` as an int >= ``minimum`` (``None`` allowed if ``allow_none``); bools and 2.7 are errors."""
+def check_int(value: Any, key: str, minimum: int = 1, *, allow_none: bool = False,
+              maximum: int | None = None) -> int | None:
+    """``value`` as an int >= ``minimum`` (and <= ``maximum`` where given; ``None`` allowed if ``allow_none``);
+    bools and 2.7 are errors."""
     if value is None and allow_none:
         return None
     ok = isinstance(value, (int, np.integer)) and not isinstance(value, bool)
-    if not ok or value < minimum:
+    if not ok or value < minimum or (maximum is not None and value > maximum):
         none = " or null" if allow_none else ""
-        raise UserError(f"{key}={value!r} is invalid: must be an integer >= {minimum}{none}; "
+        bound = f">= {minimum}" if maximum is None else f"from {minimum} to {maximum}"
+        raise UserError(f"{key}={value!r} is invalid: must be an integer {bound}{none}; "
                         f"e.g. {key}={max(minimum, 1)}")
     return int(value)
+
+
+def check_choice(value: Any, key: str, choices: Sequence[Any]) -> Any:
+    """``value`` if it is one of ``choices``, else a one-line UserError naming the ``key`` and them."""
+    if value not in choices:
+        raise UserError(f"{key}={value!r}: use one of {', '.join(map(str, choices))}")
+    return value
 
 
 def check_number(value: Any, key: str, *, allow_none: bool = True, limit: float = 1e6) -> float | None:

@@ -12,7 +12,7 @@ import torch
 from difareli.diffusion.spec import check_sampler
 from difareli import errors
 from difareli.errors import UserError
-from difareli.checkpoints.files import load_torch_file
+from difareli.checkpoints.format import load_torch_file
 from difareli.checkpoints.loading import check_resume
 
 from tests.helpers import compose_train
@@ -245,15 +245,15 @@ def test_check_resume_lists_differing_hyperparameters(tmp_path):
 
 # ------------------------------------------------------------------------------------------ CLIs, in process
 def test_relight_validates_before_any_work(tmp_path):
-    from difareli.cli.relight import validate
+    from difareli.cli.relight import run, validate
 
     ckpt = tmp_path / "c.ckpt"
-    ckpt.write_bytes(b"x")
+    ckpt.write_bytes(b"x")  # read, it would be refused as "not a readable PyTorch file": the checks come first
     base = [f"checkpoint={ckpt}", f"store={tmp_path}", "target.yaw=30"]
-    cases = {"sampler.steps=2.7": "sampler.steps=2.7 is invalid: must be an integer >= 1",
-             "sampler.name=euler": "sampler.name='euler' is not a sampler",
-             "video.frames=0": "video.frames=0 is invalid",
+    cases = {"video.frames=0": "video.frames=0 is invalid",
+             "video.frames=4000": "video.frames=4000 is invalid: must be an integer from 1 to 3600",
              "target.shadow=nan": "target.shadow=nan is invalid: must be a finite number",
+             "target.sun=east": "target.sun='east': use one of",
              f"out_dir={ckpt}": "is a file, not a folder",
              f"target.light={tmp_path}/none.npy": "target.light=.* does not exist; give the path of an existing file"}
     for override, want in cases.items():
@@ -261,6 +261,17 @@ def test_relight_validates_before_any_work(tmp_path):
         kind = FileNotFoundError if "target.light" in override else UserError  # a user error either way
         with pytest.raises(kind, match=want.replace("(", r"\(").replace(")", r"\)")):
             validate(cfg)
+    # The relighter's own values, at its door before it reads the checkpoint.
+    relighter = {"sampler.steps=2.7": r"sampler steps must be an integer >= 1, got 2.7 \(e.g. sampler.steps=50\)",
+                 "sampler.name=euler": "unknown sampler 'euler'; choose from ddim",
+                 "+sampler.foo=1": "unknown option 'foo' for sampler",
+                 "batch_size=0": "batch_size=0 is invalid"}
+    for override, want in relighter.items():
+        cfg = compose_train(tmp_path / "run", [*base, override], config_name="relight")
+        with pytest.raises(UserError, match=want):
+            run(cfg)
+    with pytest.raises(UserError, match="is not a readable PyTorch file"):
+        run(compose_train(tmp_path / "run", base, config_name="relight"))
 
 
 def test_benchmark_limit_and_out_dir_checked_first(tmp_path):

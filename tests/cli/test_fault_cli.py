@@ -97,7 +97,7 @@ def test_rotation_with_a_million_frames_is_refused_before_any_work(tmp_path):
 
     cfg = compose_train(tmp_path, ["checkpoint=difareli_pp-synth64", "image=x.png", "video.axis=yaw",
                                    "video.frames=1000000"], config_name="relight")
-    with pytest.raises(UserError, match=r"video.frames=1000000 is invalid: at most 3600 frames"):
+    with pytest.raises(UserError, match=r"video.frames=1000000 is invalid: must be an integer from 1 to 3600"):
         validate(cfg)
 
 

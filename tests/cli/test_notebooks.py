@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from difareli.utils.video import video_format
+from difareli.utils.viz import video_format
 
 nbformat = pytest.importorskip("nbformat")
 nbclient = pytest.importorskip("nbclient")

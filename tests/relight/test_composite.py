@@ -176,5 +176,5 @@ def test_relight_cli_rejects_a_bad_composite_mode(tmp_path):
 
     cfg = compose_train(tmp_path, ["checkpoint=difareli_pp-synth64", f"image={tmp_path / 'x.png'}", "target.yaw=45",
                                    "composite.mode=blend"], config_name="relight")
-    with pytest.raises(ValueError, match="composite.mode=blend: not a composite mode"):
+    with pytest.raises(ValueError, match="composite.mode='blend': use one of ratio, pixels"):
         validate(cfg)

@@ -12,7 +12,7 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
-from difareli.utils.video import video_format
+from difareli.utils.viz import video_format
 
 from difareli.lighting import sh
 from difareli.cli.relight import run

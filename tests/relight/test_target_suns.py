@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from difareli.errors import UserError
+from difareli.errors import UserError, check_choice
 from difareli.lighting import sh
 from difareli.lighting.suns import sun_direction
 from difareli.relight.targets import Targets, retarget
@@ -88,6 +88,6 @@ def test_key_sun_needs_the_images_face_and_the_choice_is_checked():
     assert sun_fit.describe(found).startswith("marched toward the key sun found from the image's cast shadows")
     assert sun_fit.key_sun({k: v for k, v in a.items() if k != "face_mask"}, light, fit=fit) is None
     assert sun_fit.describe(None) == "marched toward the light's radiance peak"
-    assert sun_fit.check_target_sun("peak", "target.sun") == "peak"
+    assert check_choice("peak", "target.sun", sun_fit.TARGET_SUNS) == "peak"
     with pytest.raises(UserError, match=r"^target.sun='east': use one of shadows, peak$"):
-        sun_fit.check_target_sun("east", "target.sun")
+        check_choice("east", "target.sun", sun_fit.TARGET_SUNS)

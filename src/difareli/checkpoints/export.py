@@ -20,8 +20,8 @@ import json
 import os
 from pathlib import Path
 
-# The folder's layout and its reader live below the loaders (checkpoints/files.py); re-exported here.
-from difareli.checkpoints.files import (  # noqa: F401
+# The folder's layout and its reader live below the loaders (checkpoints/format.py); re-exported here.
+from difareli.checkpoints.format import (  # noqa: F401
     CARD, CONFIG, CONFIG_KEYS, FOLDER_FORMAT, FOLDER_VERSION, WEIGHTS, is_folder, read_folder)
 from difareli.errors import UserError
 

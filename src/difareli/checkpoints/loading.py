@@ -18,9 +18,9 @@ import lightning as L
 import torch
 
 from difareli.checkpoints import zoo
-from difareli.checkpoints.files import is_folder, load_torch_file, read_folder
 from difareli.errors import UserError
-from difareli.checkpoints.format import MODULE_KEY, training_resolution, upgrade_checkpoint
+from difareli.checkpoints.format import (MODULE_KEY, is_folder, load_torch_file, read_folder, refuse_official,
+                                         training_resolution, upgrade_checkpoint)
 
 #: Modules a checkpoint may name: the package's own namespace only (a checkpoint is data, not code).
 ALLOWED_PREFIX = "difareli."
@@ -65,8 +65,6 @@ def read_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
         return upgrade_checkpoint(read_folder(path, map_location))
     ckpt = load_torch_file(path, "checkpoint", map_location)  # torch.load(weights_only=True), errors name the file
     if "hyper_parameters" not in ckpt or "state_dict" not in ckpt:
-        from difareli.checkpoints.format import refuse_official
-
         refuse_official(ckpt, path)  # the authors' ImgCond/ImgEncoder .pt: a message naming the import command
         raise UserError(f"{path} is not a difareli Lightning checkpoint (no hyper_parameters/state_dict)")
     return upgrade_checkpoint(ckpt)

@@ -17,8 +17,7 @@ from typing import Any
 
 import torch
 
-from difareli.checkpoints.files import is_folder, load_torch_file
-from difareli.checkpoints.format import SLIM_KEYS
+from difareli.checkpoints.format import SLIM_KEYS, is_folder, load_torch_file
 from difareli.errors import UserError, UserFileNotFoundError, check_file
 from difareli.utils.fileio import torch_save_atomic, write_text_atomic
 

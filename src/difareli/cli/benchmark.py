@@ -18,7 +18,7 @@ from difareli.data import shard as sharding
 from difareli.evaluation.baselines import build_method
 from difareli.lighting.light_fit import light_fit_from_config
 from difareli.evaluation.benchmark import DEFAULT_MASK, BenchmarkResult, check_score_mask, run_benchmark
-from difareli.render.sun_fit import check_target_sun
+from difareli.render.sun_fit import TARGET_SUNS
 from difareli.evaluation.rescore import rescore
 from difareli.cli import common
 from difareli.lit import logging as lit_logging
@@ -91,7 +91,7 @@ def validate(cfg: DictConfig) -> None:
     errors.check_int(cfg.grid_pairs, "grid_pairs", 0)
     errors.check_int(cfg.num_threads, "num_threads", 1, allow_none=True)
     errors.check_out_dir(cfg.out_dir)
-    check_target_sun(cfg.get("target_sun", "shadows"))
+    errors.check_choice(cfg.get("target_sun", "shadows"), "target_sun", TARGET_SUNS)
     if "checkpoint" in cfg.method:  # a trained model (the diffusion method): its sampler and file
         check_sampler(cfg.sampler)
         zoo.resolve(cfg.method.get("checkpoint") or "", "method.checkpoint")

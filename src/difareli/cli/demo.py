@@ -12,7 +12,7 @@ from omegaconf import DictConfig, OmegaConf
 from difareli.diffusion.spec import check_sampler
 from difareli import errors
 from difareli.checkpoints import zoo
-from difareli.checkpoints.files import load_torch_file
+from difareli.checkpoints.format import load_torch_file
 from difareli.cli import common
 from difareli.jobs.demo import DemoResult, run_demo
 

@@ -31,7 +31,7 @@ def checkpoint_facts(checkpoint) -> tuple[int | None, list[str]]:
     """``(training resolution, inputs)`` of a checkpoint (a file or a shipped name), read without Lightning."""
     from difareli.checkpoints import zoo
     from difareli.checkpoints.format import upgrade_checkpoint
-    from difareli.checkpoints.files import load_torch_file
+    from difareli.checkpoints.format import load_torch_file
     from difareli.checkpoints.format import training_resolution
 
     ckpt = upgrade_checkpoint(load_torch_file(zoo.resolve(checkpoint, "checkpoint"), "checkpoint"))

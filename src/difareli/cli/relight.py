@@ -19,7 +19,6 @@ from difareli.relight import batch
 from difareli.relight.relighter import Relighter
 from difareli.relight.request import Answer, Request
 from difareli.utils import viz
-from difareli.utils.video import describe_file, video_format, write_rotation, write_video
 
 
 def run(cfg: DictConfig) -> dict[str, Path]:
@@ -58,15 +57,15 @@ def write(answer: Answer, cfg: DictConfig) -> dict[str, Path]:
                 viz.grid([[source.photo.rgb, answer.whole]], col_labels=["photo", "relit photo"]),
                 out_dir / "composite_comparison.png")
     if answer.video is not None:
-        axis, fmt = cfg.video.axis, video_format(cfg.video.format, "video.format")
-        rotation = write_rotation(answer.video.images, out_dir, f"rotation_{axis}", axis=axis, fps=cfg.video.fps,
+        axis, fmt = cfg.video.axis, viz.video_format(cfg.video.format, "video.format")
+        rotation = viz.write_rotation(answer.video.images, out_dir, f"rotation_{axis}", axis=axis, fps=cfg.video.fps,
                                   fmt=fmt)
         written["video"], written["sheet"] = rotation["video"], rotation["sheet"]
         if answer.whole_video is not None:
-            written["video_composite"] = write_video(answer.whole_video,
+            written["video_composite"] = viz.write_video(answer.whole_video,
                                                      out_dir / f"rotation_{axis}_composite.{fmt}", cfg.video.fps)
     for k, p in written.items():
-        print(f"{k}: {describe_file(p)}")
+        print(f"{k}: {viz.describe_file(p)}")
     return written
 
 
@@ -84,9 +83,12 @@ def run_photos(cfg: DictConfig, request: Request, relighter: Relighter) -> dict[
 
 
 def validate(cfg: DictConfig) -> Request:
-    """Config values and input files, checked before any work: the command's own, then the request's
-    (:meth:`Request.from_config`), which is returned."""
-    common.validate_relight(cfg, fps=("video.fps", cfg.video.fps), fmt=("video.format", cfg.video.format))
+    """Config values and input files, checked before any work: the command's own (its outputs), then the
+    request's (:meth:`Request.from_config`), which is returned; the relighter checks its own (sampler, batch size,
+    checkpoint) before it loads anything."""
+    viz.video_format(cfg.video.format, "video.format")
+    errors.check_out_dir(cfg.out_dir)
+    errors.check_int(cfg.video.fps, "video.fps", 1)
     return Request.from_config(cfg)
 
 

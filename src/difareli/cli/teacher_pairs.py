@@ -9,7 +9,7 @@ from difareli.diffusion.spec import check_sampler
 from difareli import errors
 from difareli.checkpoints import zoo
 from difareli.cli import common
-from difareli.render.sun_fit import check_target_sun
+from difareli.render.sun_fit import TARGET_SUNS
 
 
 def run(cfg: DictConfig) -> dict:
@@ -24,7 +24,7 @@ def run(cfg: DictConfig) -> dict:
     errors.check_int(cfg.batch_size, "batch_size", 1)
     errors.check_int(cfg.per_record, "per_record", 1)
     errors.check_int(cfg.limit, "limit", 1, allow_none=True)
-    check_target_sun(cfg.target_sun)
+    errors.check_choice(cfg.target_sun, "target_sun", TARGET_SUNS)
     relighter = Relighter(cfg.checkpoint, cfg.sampler, runtime=cfg.runtime, mean_matching=cfg.mean_matching)
     if not isinstance(relighter.model, DiffusionRelightable):
         raise errors.UserError(f"checkpoint {cfg.checkpoint} is not a diffusion teacher "

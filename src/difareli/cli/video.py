@@ -15,10 +15,9 @@ from difareli.lighting import sh
 from difareli.render import sun_fit
 from difareli.utils import viz
 from difareli.evaluation import video as vid
-from difareli.utils import video as video_files
 from difareli.cli import common
 from difareli.relight.relighter import Relighter
-from difareli.relight.request import check_frames
+from difareli.relight.request import MAX_FRAMES
 from difareli.data.encodings import shadow_logit
 from difareli.data.store import EncodingStore
 from difareli.synth import rotation
@@ -57,8 +56,8 @@ def run(cfg: DictConfig) -> dict[str, Path]:
         env_light = errors.check_light(sh.project_envmap(load_envmap(cfg.rotation.envmap)),
                                        f"the SH projection of {cfg.rotation.envmap}")
     lights = sh.rotate(env_light if env_light is not None else source.arrays["light"], rots)
-    what = (f"environment map {cfg.rotation.envmap}" if env_light is not None else "the input's light") + \
-        f" rotated about {cfg.rotation.axis}, {len(angles)} frames"
+    what = ((f"environment map {cfg.rotation.envmap}" if env_light is not None else "the input's light")
+            + f" rotated about {cfg.rotation.axis}, {len(angles)} frames")
 
     # The source light's key sun, turned with it: where each frame's own map is marched (not for an environment
     # map, whose SH is no photo's fit, nor for the oracle's maps).
@@ -79,7 +78,7 @@ def run(cfg: DictConfig) -> dict[str, Path]:
         shadows = [c] * len(angles)
     print(f"{rid}: {what}; {c_note}" + (f"; {sun_note}" if sun_note else ""))
 
-    ext = video_files.video_format(cfg.format)  # auto: mp4 where the encoder exists, else gif
+    ext = viz.video_format(cfg.format)  # auto: mp4 where the encoder exists, else gif
     # Every output is staged and published at the end: a rerun into a finished folder never leaves it mixing runs.
     with staged_outputs(cfg.out_dir, OUTPUTS, last="summary.json") as out:
         if cfg.oracle_maps:  # each frame's exact cast-shadow map (the ground truth's), not the one the march makes
@@ -98,12 +97,12 @@ def run(cfg: DictConfig) -> dict[str, Path]:
                    "sampler": dict(cfg.sampler), "seconds": round(seconds, 3), "oracle_shadow": bool(cfg.oracle_shadow),
                    "oracle_maps": bool(cfg.oracle_maps), "target_sun": cfg.target.sun, "target_maps": sun_note}
         if gt is not None:
-            written["gt"] = video_files.write_video(gt.frames, out / f"ground_truth.{ext}", cfg.fps)
+            written["gt"] = viz.write_video(gt.frames, out / f"ground_truth.{ext}", cfg.fps)
             side = np.stack([viz.grid([[g, r]]) for g, r in zip(gt.frames, relit)])
-            written["side_by_side"] = video_files.write_video(side, out / f"side_by_side.{ext}", cfg.fps)
+            written["side_by_side"] = viz.write_video(side, out / f"side_by_side.{ext}", cfg.fps)
             # The maps the frames were given (made by the march, or the oracle's), to measure how far they are followed.
-            given = np.stack([a["shadow_map"] for a in targets.retarget(source.arrays, ["shadow_map"])]) \
-                if "shadow_map" in relighter.model_inputs else None
+            given = (np.stack([a["shadow_map"] for a in targets.retarget(source.arrays, ["shadow_map"])])
+                     if "shadow_map" in relighter.model_inputs else None)
             # The rule measures (it is no model input): the exact suns of the input and of each frame; its floor,
             # the same frames rendered without cast shadows.
             report = vid.measure(relit, gt.frames, arrays, gt.suns(), gt.cast(), maps=given,
@@ -133,12 +132,14 @@ OUTPUTS = ("relit.gif", "relit.mp4", "relit.png", "contact_sheet.png", "ground_t
 
 
 def validate(cfg: DictConfig) -> None:
-    """Config values and input files, checked before any work."""
-    common.validate_relight(cfg, fps=("fps", cfg.fps), fmt=("format", cfg.format))
-    if cfg.rotation.axis not in ("yaw", "roll"):
-        raise errors.UserError(f"rotation.axis={cfg.rotation.axis!r} is not a rotation axis; use yaw or roll")
-    sun_fit.check_target_sun(cfg.target.sun, "target.sun")
-    check_frames(cfg.rotation.frames, "rotation.frames", 2)
+    """Config values and input files, checked before any work (the relighter checks its own: sampler, batch
+    size, checkpoint)."""
+    viz.video_format(cfg.format)
+    errors.check_out_dir(cfg.out_dir)
+    errors.check_int(cfg.fps, "fps", 1)
+    errors.check_choice(cfg.rotation.axis, "rotation.axis", ("yaw", "roll"))
+    errors.check_choice(cfg.target.sun, "target.sun", sun_fit.TARGET_SUNS)
+    errors.check_int(cfg.rotation.frames, "rotation.frames", 2, maximum=MAX_FRAMES)
     errors.check_number(cfg.target.shadow, "target.shadow")
     errors.check_int(cfg.sheet_columns, "sheet_columns", 1)
     if cfg.rotation.envmap is not None:

@@ -32,8 +32,8 @@ KEY = "derived"
 def version_name(base: str, version: str) -> str:
     """``base@version``, checking both parts (a version is 1-64 characters of [A-Za-z0-9_.+=-])."""
     enc.get(base)
-    if not version or len(version) > 64 or not all(ch.isalnum() or ch in "_.+=-" for ch in version) \
-            or version[0] in ".-":
+    if (not version or len(version) > 64 or not all(ch.isalnum() or ch in "_.+=-" for ch in version)
+            or version[0] in ".-"):
         raise UserError(f"derived version {version!r} is invalid: use 1-64 characters from [A-Za-z0-9_.+=-], not "
                         "starting with '.' or '-'")
     return f"{base}{SEP}{version}"

@@ -52,12 +52,12 @@ from difareli.data import provenance
 from difareli.evaluation.baselines import Method
 from difareli.lighting.light_fit import LightFit
 from difareli.data import encodings
-from difareli.utils.fileio import RESUME, append_text, atomic_path, folder_lock, on_full_disk, write_json_atomic, \
-    write_text_atomic
+from difareli.utils.fileio import (RESUME, append_text, atomic_path, folder_lock, on_full_disk, write_json_atomic,
+                                   write_text_atomic)
 from difareli.data.store import CorruptRecordError, EncodingStore
 from difareli.data.protocols import PROTOCOLS
 from difareli.evaluation.pairs import Lights, Pair, StoredFace, load_pairs, protocols_doc
-from difareli.render.sun_fit import check_target_sun
+from difareli.render.sun_fit import TARGET_SUNS
 
 #: The light-estimation errors of a run (where the store holds exact lights).
 LIGHT_CSV = "light_estimation.csv"
@@ -76,8 +76,8 @@ def check_score_mask(store: EncodingStore, key: str | None) -> str:
     have = [n for n in store.encodings if n in encodings.ENCODINGS and encodings.get(n).dtype == "bool"
             and tuple(encodings.get(n).shape) == ("H", "W")]
     if key not in have:
-        what = f"has {key} but it is not a mask (a bool HxW encoding)" if store.available(key) else \
-            f"has no {key}"
+        what = (f"has {key} but it is not a mask (a bool HxW encoding)" if store.available(key) else
+                f"has no {key}")
         raise errors.UserError(f"score_mask={key}: store {store.root} {what}; give one of its masks: "
                                f"{', '.join(have)} (default score_mask={DEFAULT_MASK})")
     return key
@@ -181,7 +181,7 @@ def run_benchmark(store: EncodingStore, method: Method, protocols: Sequence[str]
     if hasattr(method, "check_store"):  # a model that cannot read the store: one line, not a failed row per pair
         method.check_store(store)
     with folder_lock(out_dir, "benchmark"), on_full_disk(out_dir, scratch=[out_dir], fix=RESUME):
-        target_sun = check_target_sun(target_sun)
+        target_sun = errors.check_choice(target_sun, "target_sun", TARGET_SUNS)
         settings = run_settings(store, method, protocols, limit=limit, oracle_light=oracle_light,
                                 oracle_shadow=oracle_shadow, rule=rule, shard=shard, score_mask=score_mask,
                                 target_sun=target_sun)
@@ -208,7 +208,7 @@ def finished_run(store: EncodingStore, method: Method, protocols: Sequence[str],
         return None
     want = run_settings(store, method, protocols, limit=limit, oracle_light=oracle_light,
                         oracle_shadow=oracle_shadow, rule=metrics.check_rule(rule), shard=None,
-                        score_mask=check_score_mask(store, score_mask), target_sun=check_target_sun(target_sun))
+                        score_mask=check_score_mask(store, score_mask), target_sun=errors.check_choice(target_sun, "target_sun", TARGET_SUNS))
     if provenance.differences(_recorded(out_dir), provenance.plain(want)):
         return None
     try:
@@ -376,8 +376,8 @@ def _keep(run: _Run, rec: tables.Record, relit: np.ndarray | None, png: Path) ->
 
 def _grid_row(store: EncodingStore, pair: Pair, relit: np.ndarray) -> list[np.ndarray]:
     """One line of ``comparison_<protocol>.png``: input | light source | relit | ground truth."""
-    return [np.asarray(store.read(r, ["image"])["image"]) for r in (pair.source, pair.light_source)] + \
-        [relit, np.asarray(store.read(pair.target, ["image"])["image"])]
+    return ([np.asarray(store.read(r, ["image"])["image"]) for r in (pair.source, pair.light_source)]
+            + [relit, np.asarray(store.read(pair.target, ["image"])["image"])])
 
 
 def write_outputs(result: BenchmarkResult, out_dir: Path, caption: str | None = None) -> dict[str, Path]:

@@ -52,8 +52,8 @@ def _models():
 
     from difareli.estimators.dlib_resnet import load
 
-    return dlib.shape_predictor(frm.pose_predictor_five_point_model_location()), \
-        load(frm.face_recognition_model_location())
+    return (dlib.shape_predictor(frm.pose_predictor_five_point_model_location()),
+            load(frm.face_recognition_model_location()))
 
 
 def face_box(mask: np.ndarray) -> tuple[int, int, int, int]:

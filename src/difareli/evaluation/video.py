@@ -42,7 +42,7 @@ from difareli.errors import UserError
 from difareli.lighting import sh
 from difareli.lighting.suns import Suns
 from difareli.data.encodings import known_normals
-from difareli.utils.video import write_rotation
+from difareli.utils.viz import write_rotation
 from difareli.utils.imageops import LUMA
 
 #: The share of a pixel's light its cast shadows must take to count as visible (SynthFaces' ``shadow_visible``).

@@ -15,11 +15,11 @@ from tqdm.auto import tqdm
 
 from difareli.data import encodings as enc
 from difareli.data import provenance
-from difareli.errors import UserError, check_record
+from difareli.errors import UserError, check_choice, check_record
 from difareli.utils.fileio import folder_lock
 from difareli.lit.pairs import LIGHT_FROM_KEY, SOURCE_KEY
 from difareli.relight.targets import Targets
-from difareli.render.sun_fit import check_target_sun
+from difareli.render.sun_fit import TARGET_SUNS
 from difareli.data.provenance import model_identity, store_identity
 from difareli.data.store import EncodingStore
 
@@ -61,7 +61,7 @@ def generate_teacher_pairs(relighter, store: EncodingStore, out: str | Path, *, 
     with folder_lock(out, "teacher-pairs"):
         return _generate(relighter, store, out, split=split, per_record=per_record, limit=limit,
                          batch_size=batch_size, seed=seed, progress=progress, stop_after=stop_after,
-                         target_sun=check_target_sun(target_sun))
+                         target_sun=check_choice(target_sun, "target_sun", TARGET_SUNS))
 
 
 def pair_provenance(relighter, store: EncodingStore, *, split: str, seed: int, per_record: int,

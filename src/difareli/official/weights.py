@@ -46,7 +46,7 @@ STORE_SHAPE_PARTS = ("shape", "exp", "pose")
 
 # ---------------------------------------------------------------------------------------------- files
 def _load(path: Path, what: str) -> dict[str, Any]:
-    from difareli.checkpoints.files import load_torch_file
+    from difareli.checkpoints.format import load_torch_file
 
     obj = load_torch_file(path, what)
     if isinstance(obj, Mapping) and "hyper_parameters" in obj and "state_dict" in obj:

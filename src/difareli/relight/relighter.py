@@ -120,6 +120,10 @@ class Relighter:
                  cache_size: int | None = None):
         from difareli.checkpoints.loading import LoadedCheckpoint, load_checkpoint
 
+        # Its own values first (the sampler, whole, by its spec; the batch size): said before anything is loaded.
+        if sampler is not None and not isinstance(sampler, SamplerSpec):
+            sampler = SamplerSpec.from_config(sampler)
+        errors.check_int(batch_size, "batch_size", 1)
         # Loaded on the CPU, then moved: the runtime (device, precision) is resolved after the checkpoint's own checks.
         ckpt = checkpoint if isinstance(checkpoint, LoadedCheckpoint) else load_checkpoint(checkpoint)
         rt = runtime if isinstance(runtime, Runtime) else Runtime.from_config(runtime)
@@ -133,8 +137,7 @@ class Relighter:
         self.resolution = ckpt.resolution  # None: the checkpoint records none
         if sampler is None:  # a diffusion model without a named sampler gets the default, the cards' sampler
             sampler = None if isinstance(self.model, OnePassRelightable) else PRESETS[DEFAULT_SAMPLER]
-        self.spec = None if sampler is None else (sampler if isinstance(sampler, SamplerSpec)
-                                                  else SamplerSpec.from_config(sampler))
+        self.spec = sampler
         self.mean_matching, self.batch_size, self.progress = mean_matching, batch_size, progress
         # Per source key; a long-lived caller (the app) bounds them to its last ``cache_size`` sources.
         self._inversions: dict[Any, Inversion] = {} if cache_size is None else LRU(cache_size)
@@ -159,8 +162,9 @@ class Relighter:
     def sun_reads(self) -> list[str]:
         """What a source holds beyond the model's inputs so that its light's key sun can be found
         (:meth:`key_sun`): the face mask (and part masks) for a model that reads a shadow map; else nothing."""
-        return [n for n in sun_fit.ENCODINGS if n not in self.needed_encodings()] \
-            if "shadow_map" in self.model_inputs else []
+        if "shadow_map" not in self.model_inputs:
+            return []
+        return [n for n in sun_fit.ENCODINGS if n not in self.needed_encodings()]
 
     def key_sun(self, source: Source) -> sun_fit.SunFit | None:
         """Where this model's target map for the source's light is marched: the key sun found from the source

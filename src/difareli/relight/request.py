@@ -24,7 +24,7 @@ from difareli.relight.batch import photo_paths, relight_photos
 from difareli.relight.composite import MODES, part_mask
 from difareli.relight.targets import Targets, rotation_targets, target_lights
 from difareli.render import sun_fit
-from difareli.render.sun_fit import check_target_sun
+from difareli.render.sun_fit import TARGET_SUNS
 
 #: The keys that give a target; exactly one of them (or a video alone).
 TARGET_KEYS = ("light", "record", "yaw", "roll", "envmap")
@@ -71,8 +71,9 @@ class Target:
 
     def turn(self) -> np.ndarray:
         """The rotation this target applies to the source's light (and so to its key sun); identity otherwise."""
-        return sh.rotation_yaw(self.yaw) if self.yaw is not None else \
-            sh.rotation_roll(self.roll) if self.roll is not None else np.eye(3)
+        if self.yaw is not None:
+            return sh.rotation_yaw(self.yaw)
+        return sh.rotation_roll(self.roll) if self.roll is not None else np.eye(3)
 
 
 @dataclass(frozen=True)
@@ -116,8 +117,8 @@ class Request:
                                        "light (target.light|yaw|roll|envmap), not video.axis or target.record")
         if image is not None:
             check_composite(c)
-        check_target_sun(t["sun"], "target.sun")
-        check_frames(cfg["video"]["frames"], "video.frames", 1)
+        errors.check_choice(t["sun"], "target.sun", TARGET_SUNS)
+        errors.check_int(cfg["video"]["frames"], "video.frames", 1, maximum=MAX_FRAMES)
         for key in ("yaw", "roll", "shadow"):
             errors.check_number(t[key], f"target.{key}")
         for key in ("light", "envmap"):
@@ -133,22 +134,13 @@ class Request:
                               "parts": list(c["parts"]) if c["parts"] else None})
 
 
-#: The longest rotation video a command makes: 60 frames x 60 s; anything longer is a typo, and would fill the disk.
+#: The longest rotation video a command makes (60 s at 60 fps): anything longer is a typo, and would fill the disk.
 MAX_FRAMES = 3600
-
-
-def check_frames(value: Any, key: str, minimum: int = 1) -> int:
-    """A rotation video's frame count: an integer from ``minimum`` to :data:`MAX_FRAMES`, else a UserError."""
-    if isinstance(value, int) and not isinstance(value, bool) and value > MAX_FRAMES:
-        raise errors.UserError(f"{key}={value} is invalid: at most {MAX_FRAMES} frames (a {MAX_FRAMES // 20}-s video "
-                               f"at 20 fps); e.g. {key}=60")
-    return errors.check_int(value, key, minimum)
 
 
 def check_composite(c: Mapping[str, Any]) -> None:
     """A photo's compositing settings: a known mode, known parts, a feather >= 0."""
-    if c["mode"] not in MODES:
-        raise errors.UserError(f"composite.mode={c['mode']}: not a composite mode; use one of {', '.join(MODES)}")
+    errors.check_choice(c["mode"], "composite.mode", MODES)
     try:
         part_mask(np.zeros((1, 1), np.uint8), list(c["parts"] or []))
     except ValueError as e:
@@ -186,8 +178,8 @@ def answer(relighter, request: Request, say: Callable[[str], None] | None = None
     from difareli.data.store import EncodingStore
 
     store = None if request.store is None else EncodingStore.open(request.store).use_versions(request.versions)
-    source = relighter.photo_source(request.image, size=request.photo_size, strict=request.strict) \
-        if request.image is not None else relighter.source(store, request.record)
+    source = (relighter.photo_source(request.image, size=request.photo_size, strict=request.strict)
+              if request.image is not None else relighter.source(store, request.record))
     out = Answer(source, say=say)
     for line in source.notes:
         out.tell(line)

@@ -96,13 +96,6 @@ def fit_sun(arrays: Mapping[str, np.ndarray], light: np.ndarray, *, cone_deg: fl
     return SunFit(cands[best], peak, count, float(iou[best]))
 
 
-def check_target_sun(value: str, key: str = "target_sun") -> str:
-    """``value`` if it is one of :data:`TARGET_SUNS`, else a one-line UserError naming the ``key`` and them."""
-    if value not in TARGET_SUNS:
-        raise UserError(f"{key}={value!r}: use one of {', '.join(TARGET_SUNS)}")
-    return value
-
-
 def key_sun(arrays: Mapping[str, np.ndarray], light: np.ndarray, fit: LightFit | None = None) -> SunFit | None:
     """:func:`fit_sun` of ``light`` on the image it was fitted to where ``arrays`` hold what it reads
     (:data:`ENCODINGS`, ``masks`` optional), else None: the light's radiance peak stays its sun."""

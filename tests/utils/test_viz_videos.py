@@ -1,4 +1,4 @@
-"""Video files (difareli.utils.video): the format choice, a GIF's round trip, an MP4 at odd sizes."""
+"""Videos written by difareli.utils.viz: the format choice, a GIF's round trip, an MP4 at odd sizes."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
-from difareli.utils import video as vid
+from difareli.utils import viz as vid
 
 
 def test_video_format_auto_picks_the_encoder_that_exists_and_refuses_the_rest(monkeypatch):
