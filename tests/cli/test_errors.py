@@ -3,17 +3,13 @@
 from __future__ import annotations
 
 import os
-import sys
 
 import numpy as np
 import pytest
-import torch
 
 from difareli.diffusion.spec import check_sampler
 from difareli import errors
 from difareli.errors import UserError
-from difareli.checkpoints.format import load_torch_file
-from difareli.checkpoints.loading import check_resume
 
 from tests.helpers import compose_train
 
@@ -156,6 +152,17 @@ def test_check_int_and_number_accept():
             errors.check_number(bad, "target.yaw")
 
 
+def test_check_int_bounds_and_check_choice():
+    assert errors.check_int(3600, "video.frames", 1, maximum=3600) == 3600
+    with pytest.raises(UserError, match=r"^video.frames=3601 is invalid: must be an integer from 1 to 3600; "):
+        errors.check_int(3601, "video.frames", 1, maximum=3600)
+    with pytest.raises(UserError, match=r"^video.frames=0 is invalid: must be an integer from 1 to 3600; "):
+        errors.check_int(0, "video.frames", 1, maximum=3600)
+    assert errors.check_choice("roll", "rotation.axis", ("yaw", "roll")) == "roll"
+    with pytest.raises(UserError, match=r"^rotation.axis='pitch': use one of yaw, roll$"):
+        errors.check_choice("pitch", "rotation.axis", ("yaw", "roll"))
+
+
 def test_check_sampler_names_valid_ones():
     with pytest.raises(UserError, match=r"sampler.name='euler' is not a sampler; choose from \['ddim'"):
         check_sampler({"name": "euler", "steps": 10})
@@ -189,60 +196,6 @@ def test_check_finite_names_input_and_index():
     assert errors.check_light(np.ones((9, 3), np.float32), "l").dtype == np.float64
 
 
-# ------------------------------------------------------------------------------------------ checkpoints
-@pytest.fixture
-def real_ckpt(tmp_path):
-    path = tmp_path / "good.ckpt"
-    torch.save({"state_dict": {"w": torch.arange(1000.0)}, "hyper_parameters": {"preset": "tiny"}}, path)
-    return path
-
-
-def test_corrupt_checkpoints_name_the_file(real_ckpt, tmp_path):
-    data = real_ckpt.read_bytes()
-    cases = {"random.ckpt": np.random.default_rng(0).bytes(5000), "truncated.ckpt": data[: len(data) // 2],
-             "text.ckpt": b"hello\n", "empty.ckpt": b""}
-    for name, blob in cases.items():
-        (tmp_path / name).write_bytes(blob)
-        with pytest.raises(UserError) as e:
-            load_torch_file(tmp_path / name)
-        msg = str(e.value)
-        assert msg.startswith(f"checkpoint {tmp_path / name} ({len(blob)} bytes) is not a readable PyTorch file")
-        assert "weights_only=False" not in msg and "\n" not in msg
-    assert torch.equal(load_torch_file(real_ckpt)["state_dict"]["w"], torch.arange(1000.0))
-
-
-def test_load_checkpoint_uses_the_check(tmp_path):
-    from difareli.lit import load_checkpoint
-
-    bad = tmp_path / "last.ckpt"
-    bad.write_bytes(b"\x00" * 100)
-    with pytest.raises(UserError, match=f"checkpoint {bad} \\(100 bytes\\)"):
-        load_checkpoint(bad)
-
-
-def _module(model: str, nonspatial_dim: int):
-    from difareli.lit import DiffusionModule
-
-    spatial = ["shading", "background"] if model == "difareli" else ["shading", "shadow_map", "masks"]
-    ns = ["shape", "cam", "identity", "shadow"] if model == "difareli" else ["shape", "cam", "identity"]
-    return DiffusionModule(name=model, preset="tiny", spatial_inputs=spatial, nonspatial_inputs=ns,
-                           input_dims={"spatial_channels": 6 if model == "difareli" else 18,
-                                       "nonspatial_dim": nonspatial_dim, "resolution": 32})
-
-
-def test_check_resume_lists_differing_hyperparameters(tmp_path):
-    saved = _module("difareli_pp", 20)
-    path = tmp_path / "pp.ckpt"
-    torch.save({"state_dict": saved.state_dict(), "hyper_parameters": dict(saved.hparams)}, path)
-    check_resume(path, _module("difareli_pp", 20))  # same config: no error
-    with pytest.raises(UserError) as e:
-        check_resume(path, _module("difareli", 21))
-    msg = str(e.value)
-    assert msg.count("\n") == 1 and "tensors differ" in msg
-    assert "name: checkpoint 'difareli_pp', config 'difareli'" in msg
-    assert "spatial_inputs: checkpoint ['shading', 'shadow_map', 'masks'], config ['shading', 'background']" in msg
-
-
 # ------------------------------------------------------------------------------------------ CLIs, in process
 def test_relight_validates_before_any_work(tmp_path):
     from difareli.cli.relight import run, validate
@@ -265,7 +218,8 @@ def test_relight_validates_before_any_work(tmp_path):
     relighter = {"sampler.steps=2.7": r"sampler steps must be an integer >= 1, got 2.7 \(e.g. sampler.steps=50\)",
                  "sampler.name=euler": "unknown sampler 'euler'; choose from ddim",
                  "+sampler.foo=1": "unknown option 'foo' for sampler",
-                 "batch_size=0": "batch_size=0 is invalid"}
+                 "batch_size=0": "batch_size=0 is invalid",
+                 "runtime.precision=fp8": "runtime.precision='fp8' is not one of"}
     for override, want in relighter.items():
         cfg = compose_train(tmp_path / "run", [*base, override], config_name="relight")
         with pytest.raises(UserError, match=want):

@@ -18,7 +18,6 @@ from tests.helpers import HAS_MEDIAPIPE, NO_ESTIMATORS
 if not HAS_MEDIAPIPE:
     pytest.skip(NO_ESTIMATORS, allow_module_level=True)
 
-from difareli.lighting import sh  # noqa: E402
 from difareli.estimators import light as light_mod  # noqa: E402
 from difareli.estimators import masks as masks_mod  # noqa: E402
 from difareli.estimators.align import FaceAligner, landmarks_to_crop  # noqa: E402

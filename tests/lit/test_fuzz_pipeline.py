@@ -16,7 +16,6 @@ import pytest
 import torch
 
 from difareli.evaluation import tables as T
-from difareli.errors import UserError
 from tests.helpers import HAS_ESTIMATORS, NO_ESTIMATORS
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -8,7 +8,6 @@ import math
 import numpy as np
 import pytest
 
-from difareli.lighting import sh
 from difareli.lighting.light_fit import LightFit
 from difareli.lighting.suns import sun_direction
 from difareli.render.camera import OrthoCamera

@@ -120,17 +120,16 @@ class Relighter:
                  cache_size: int | None = None):
         from difareli.checkpoints.loading import LoadedCheckpoint, load_checkpoint
 
-        # Its own values first (the sampler, whole, by its spec; the batch size): said before anything is loaded.
-        if sampler is not None and not isinstance(sampler, SamplerSpec):
-            sampler = SamplerSpec.from_config(sampler)
-        errors.check_int(batch_size, "batch_size", 1)
-        # Loaded on the CPU, then moved: the runtime (device, precision) is resolved after the checkpoint's own checks.
-        ckpt = checkpoint if isinstance(checkpoint, LoadedCheckpoint) else load_checkpoint(checkpoint)
+        # Its own values first (the runtime, the sampler whole by its spec, the batch size): said before any loading.
         rt = runtime if isinstance(runtime, Runtime) else Runtime.from_config(runtime)
         if device is not None:  # the older keyword: the device alone
             rt = dataclasses.replace(rt, device=device)
+        if sampler is not None and not isinstance(sampler, SamplerSpec):
+            sampler = SamplerSpec.from_config(sampler)
+        errors.check_int(batch_size, "batch_size", 1)
         self.runtime = rt
         self.device = rt.torch_device
+        ckpt = checkpoint if isinstance(checkpoint, LoadedCheckpoint) else load_checkpoint(checkpoint, self.device)
         self.model = ckpt.model.to(self.device)
         self.config = ckpt.config
         self.checkpoint = "the given checkpoint" if isinstance(checkpoint, LoadedCheckpoint) else checkpoint

@@ -23,7 +23,6 @@ from difareli.lighting.light_fit import SHADOW_SIGMAS, LightFit, face_normals, r
 from difareli.lighting.suns import fibonacci_sphere, sun_direction
 from difareli.render.camera import OrthoCamera
 from difareli.render.screen_shadow import march_shadows
-from difareli.errors import UserError
 
 #: The search, chosen on the 38 sunlit val records of an unseen-seed v3 store (``scripts/sun_fit_sweep.py``,
 #: docs/shadow_maps.md section 2): candidates within ``CONE_DEG`` of the radiance peak, each scored by the IoU of
