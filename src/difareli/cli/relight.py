@@ -58,12 +58,12 @@ def write(answer: Answer, cfg: DictConfig) -> dict[str, Path]:
                 out_dir / "composite_comparison.png")
     if answer.video is not None:
         axis, fmt = cfg.video.axis, viz.video_format(cfg.video.format, "video.format")
-        rotation = viz.write_rotation(answer.video.images, out_dir, f"rotation_{axis}", axis=axis, fps=cfg.video.fps,
-                                  fmt=fmt)
+        rotation = viz.write_rotation(answer.video.images, out_dir, f"rotation_{axis}", axis=axis,
+                                      fps=cfg.video.fps, fmt=fmt)
         written["video"], written["sheet"] = rotation["video"], rotation["sheet"]
         if answer.whole_video is not None:
             written["video_composite"] = viz.write_video(answer.whole_video,
-                                                     out_dir / f"rotation_{axis}_composite.{fmt}", cfg.video.fps)
+                                                         out_dir / f"rotation_{axis}_composite.{fmt}", cfg.video.fps)
     for k, p in written.items():
         print(f"{k}: {viz.describe_file(p)}")
     return written
