@@ -38,6 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from difareli.relight.photo_check import LIMITS, choose_limit
+from difareli.utils import fileio
 
 SEED = 9100            # SynthFaces seed of the subjects: no shipped model trained on it
 RENDER = 256           # render size; the aligned square spans about the whole render
@@ -191,13 +192,9 @@ def read_rows(path: Path) -> list[dict]:
 
 
 def append_row(path: Path, row: dict) -> None:
-    """One photo's row appended to photos.csv (the header first): a killed run keeps what it measured."""
-    new = not path.exists()
-    with open(path, "a", newline="") as f:
-        w = csv.DictWriter(f, FIELDS, extrasaction="ignore")
-        if new:
-            w.writeheader()
-        w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in row.items() if k in FIELDS})
+    """One photo's row appended to photos.csv (the header first), whole or not at all: a killed run keeps what it
+    measured."""
+    fileio.append_csv_row(path, FIELDS, {k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in row.items()})
 
 
 def _limit(rows: list[dict], name: str, margin: float, bin_size: int) -> float | None:

@@ -22,7 +22,6 @@ from difareli.relight.targets import Targets
 from difareli.render import sun_fit
 
 from tests.helpers import compose_train
-from .test_relight import depth_store  # noqa: F401 (fixture)
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

@@ -101,6 +101,11 @@ def test_a_request_is_checked_once_naming_the_key():
     with pytest.raises(UserError, match="target.light"):
         Request.from_config(cfg(store="s", **{"target.light": "/no/such/light.npy"}))
     assert Request.from_config(cfg(store="s", **{"video.axis": "roll"})).video_frames == 8
+    for key in ("yaw", "roll"):  # the one check of a turn (target_lights turns what it is given)
+        c = cfg(store="s")
+        c.target[key] = float("nan")
+        with pytest.raises(UserError, match=f"target.{key}=nan is invalid"):
+            Request.from_config(c)
 
 
 def test_the_key_sun_is_found_once_per_source_key(monkeypatch):

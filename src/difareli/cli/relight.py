@@ -26,9 +26,8 @@ def run(cfg: DictConfig) -> dict[str, Path]:
     request = validate(cfg)
     relighter = Relighter(cfg.checkpoint, cfg.sampler, runtime=cfg.runtime, mean_matching=cfg.mean_matching,
                           batch_size=cfg.batch_size, progress=cfg.progress)
-    if request.photos is not None:
-        return run_photos(cfg, request, relighter)
-    return write(relighter.answer(request, say=say), cfg)
+    answer = relighter.answer(request, say=say)
+    return write(answer, cfg)
 
 
 def say(line: str) -> None:
@@ -42,7 +41,10 @@ def say(line: str) -> None:
 def write(answer: Answer, cfg: DictConfig) -> dict[str, Path]:
     """The answer's images written into ``out_dir`` (its lines were said as they arose): relit.png and a labelled
     comparison (with the ground truth where the target record is the same subject); a photo's aligned crop and
-    whole relit photo; the rotation video, its captioned contact sheet and, for a photo, the video composited."""
+    whole relit photo; the rotation video, its captioned contact sheet and, for a photo, the video composited.
+    A batch of photos (already written as it went): its counts said (:func:`write_counts`)."""
+    if answer.counts is not None:
+        return write_counts(answer.counts, cfg)
     out_dir, written, source = Path(cfg.out_dir), {}, answer.source
     if answer.relit is not None:
         row, names = [source.arrays["image"], answer.relit[0]], ["input", "relit"]
@@ -69,15 +71,15 @@ def write(answer: Answer, cfg: DictConfig) -> dict[str, Path]:
     return written
 
 
-def run_photos(cfg: DictConfig, request: Request, relighter: Relighter) -> dict[str, Path]:
-    """``image=<folder or glob>`` or ``face=all|<index>``: every photo (and chosen face) under the one target
-    (:meth:`Relighter.answer_photos`); a UserError (non-zero exit) saying how many were skipped."""
-    counts = relighter.answer_photos(request, cfg.out_dir, progress=cfg.progress)
+def write_counts(counts: dict[str, int], cfg: DictConfig) -> dict[str, Path]:
+    """A batch's outcome (``image=<folder or glob>`` or ``face=all|<index>``; each photo's files and CSV row were
+    written as it went): its counts, and a UserError (non-zero exit) saying how many were skipped."""
     csv = Path(cfg.out_dir) / batch.CSV_NAME
     print(f"{counts['done']} photo(s) relit, {counts['resumed']} already done, {counts['skipped']} skipped; "
           f"results and {csv.name} in {cfg.out_dir}")
     if counts["skipped"]:
-        raise errors.UserError(f"image={cfg.image}: {counts['skipped']} of {len(request.photos)} photo(s) skipped "
+        total = sum(counts.values())
+        raise errors.UserError(f"image={cfg.image}: {counts['skipped']} of {total} photo(s) skipped "
                                f"(one line each above, and in {csv}); fix or remove them")
     return {"csv": csv}
 

@@ -28,8 +28,6 @@ nothing half-written; rows already scored are kept and a rerun resumes from them
 
 from __future__ import annotations
 
-import csv
-import io
 import json
 import sys
 import math
@@ -52,8 +50,8 @@ from difareli.data import provenance
 from difareli.evaluation.baselines import Method
 from difareli.lighting.light_fit import LightFit
 from difareli.data import encodings
-from difareli.utils.fileio import (RESUME, append_text, atomic_path, folder_lock, on_full_disk, write_json_atomic,
-                                   write_text_atomic)
+from difareli.utils.fileio import (RESUME, append_csv_row, atomic_path, folder_lock, on_full_disk,
+                                   write_json_atomic, write_text_atomic)
 from difareli.data.store import CorruptRecordError, EncodingStore
 from difareli.data.protocols import PROTOCOLS
 from difareli.evaluation.pairs import Lights, Pair, StoredFace, load_pairs, protocols_doc
@@ -105,13 +103,8 @@ def _read_png(path: Path) -> np.ndarray:
 def _append_row(out_dir: Path, r: tables.Record, extra: Sequence[str] = ()) -> None:
     """Append one scored row with the run's ``extra`` columns (whole or not at all: a full disk leaves the rows
     before it intact)."""
-    path = out_dir / PARTIAL_CSV
-    buf = io.StringIO()
-    w = csv.writer(buf)
-    if not path.is_file() or path.stat().st_size == 0:
-        w.writerow(tables.header(extra))
-    w.writerow(tables.record_row(r, extra=extra))
-    append_text(path, buf.getvalue())
+    header = tables.header(extra)
+    append_csv_row(out_dir / PARTIAL_CSV, header, dict(zip(header, tables.record_row(r, extra=extra))))
 
 
 def score(pred: np.ndarray, target: np.ndarray, face_mask: np.ndarray, rule: str | None = None,

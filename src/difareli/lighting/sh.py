@@ -166,7 +166,11 @@ def rotate(light, R):
 
 
 def _axis_rotation(deg, axis: int) -> np.ndarray:
-    a = np.deg2rad(_f64(deg))
+    deg = _f64(deg)
+    if not np.isfinite(deg).all():  # else a NaN matrix, refused later as "not orthogonal": name the angle here
+        raise UserError(f"rotation angle {deg if deg.ndim == 0 else deg[~np.isfinite(deg)][0]} degrees is not "
+                        "finite: give a finite number of degrees")
+    a = np.deg2rad(deg)
     c, s = np.cos(a), np.sin(a)
     i, j = [(1, 2), (2, 0), (0, 1)][axis]  # right-handed: positive angle turns i toward j
     R = np.zeros((*a.shape, 3, 3))

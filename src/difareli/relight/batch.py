@@ -10,7 +10,6 @@ the photos whose composite exists (a killed run resumes: files are written atomi
 
 from __future__ import annotations
 
-import csv
 import glob
 import sys
 import time
@@ -22,6 +21,7 @@ import numpy as np
 
 from difareli.errors import UserError
 from difareli.relight import photo, photo_check
+from difareli.utils import fileio, viz
 
 CSV_NAME = "relight.csv"
 FIELDS = ("photo", "status", "seconds", "faces", "relit_faces", "verdict", *photo_check.LIMITS, "reason")
@@ -42,27 +42,6 @@ def photo_paths(value: str) -> list[Path] | None:
         raise UserError(f"image={value}: no photos there ({', '.join(IMAGE_SUFFIXES)}); give a folder of face "
                         "photos, a glob such as 'photos/*.jpg', or one photo")
     return found
-
-
-def done_rows(out_dir: Path) -> dict[str, dict[str, str]]:
-    """The CSV rows of an earlier run, by photo."""
-    path = out_dir / CSV_NAME
-    if not path.is_file():
-        return {}
-    with path.open(newline="") as f:
-        return {row["photo"]: row for row in csv.DictReader(f)}
-
-
-def append_row(out_dir: Path, row: Mapping[str, Any]) -> None:
-    """One CSV row (the header first in a new file), flushed: a kill loses at most the photo in progress."""
-    path = out_dir / CSV_NAME
-    new = not path.is_file()
-    with path.open("a", newline="") as f:
-        w = csv.DictWriter(f, FIELDS, extrasaction="ignore")
-        if new:
-            w.writeheader()
-        w.writerow({k: (f"{v:.4g}" if isinstance(v, float) else v) for k, v in row.items()})
-        f.flush()
 
 
 def relight_one(path: Path, *, relighter, target: Callable[[Any], Any], size: int | None, face: Any,
@@ -97,11 +76,10 @@ def relight_photos(paths: Sequence[Path], out_dir: str | Path, *, progress: bool
     """Relight every photo of ``paths`` (module doc); returns counts {"done", "skipped", "resumed"}."""
     from tqdm.auto import tqdm
 
-    from difareli.utils import viz
-
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    before = done_rows(out_dir)
+    csv_path = out_dir / CSV_NAME
+    before = fileio.read_csv_rows(csv_path, "photo")
     counts = {"done": 0, "skipped": 0, "resumed": 0}
     stems: dict[str, int] = {}
     bar = tqdm(paths, desc="photos", unit="photo", disable=not progress, file=sys.stderr)
@@ -122,12 +100,19 @@ def relight_photos(paths: Sequence[Path], out_dir: str | Path, *, progress: bool
             counts["skipped"] += 1
             reason = str(e).removeprefix(f"image={path}: ").splitlines()[0]
             print(f"skipped image={path}: {reason}", file=sys.stderr)
-            append_row(out_dir, {"photo": str(path), "status": "skipped", "reason": reason,
-                                 "seconds": time.perf_counter() - start})
+            fileio.append_csv_row(csv_path, FIELDS, _formatted({"photo": str(path), "status": "skipped",
+                                                                "reason": reason,
+                                                                "seconds": time.perf_counter() - start}))
             continue
         viz.save_png(np.concatenate(crops, axis=1), out_dir / f"{stem}_relit.png")
         viz.save_png(full, target)
-        append_row(out_dir, {"photo": str(path), "status": "relit", "seconds": time.perf_counter() - start, **row})
+        fileio.append_csv_row(csv_path, FIELDS, _formatted({"photo": str(path), "status": "relit",
+                                                            "seconds": time.perf_counter() - start, **row}))
         counts["done"] += 1
     bar.close()
     return counts
+
+
+def _formatted(row: Mapping[str, Any]) -> dict[str, Any]:
+    # Numbers to 4 significant digits: a CSV people read.
+    return {k: (f"{v:.4g}" if isinstance(v, float) else v) for k, v in row.items()}

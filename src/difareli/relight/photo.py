@@ -77,7 +77,8 @@ def pipeline_for(encodings: Sequence[str], size: int, estimators: Mapping[str, A
     if estimators is not None:
         return Pipeline.from_config(estimators, names)
     if key not in _PIPELINES:
-        _PIPELINES[key] = Pipeline.from_config(default_estimators(size), names)
+        estimators = default_estimators(size)
+        _PIPELINES[key] = Pipeline.from_config(estimators, names)
     return _PIPELINES[key]
 
 

@@ -39,7 +39,7 @@ from difareli.relight.core import invert_image, relight  # noqa: F401 (callers i
 from difareli.relight import photo as photos
 from difareli.relight.relightable import OnePassRelightable, Relightable, model_inputs
 from difareli.relight.relit import Relit
-from difareli.relight.request import Answer, Request, answer, answer_photos
+from difareli.relight.request import Answer, Request, answer
 from difareli.runtime.core import Runtime
 from difareli.data.store import EncodingStore
 from difareli.relight.targets import Targets, check_maker
@@ -363,14 +363,9 @@ class Relighter:
 
     def answer(self, request: Request, say=None) -> Answer:
         """A whole request (:class:`~difareli.relight.request.Request`: a source by store record or photo, a target,
-        a rotation video, compositing) answered: :func:`difareli.relight.request.answer` (``say``: told each line
-        as it arises)."""
+        a rotation video, compositing; or a batch of photos, written as they go) answered:
+        :func:`difareli.relight.request.answer` (``say``: told each line as it arises)."""
         return answer(self, request, say)
-
-    def answer_photos(self, request: Request, out_dir: str | Path, progress: bool = True) -> dict:
-        """A batch request (``request.photos``) answered photo by photo into ``out_dir``
-        (:func:`difareli.relight.request.answer_photos`); counts {done, skipped, resumed}."""
-        return answer_photos(self, request, out_dir, progress)
 
     def relight_each(self, sources: Sequence[Source], targets: Targets) -> np.ndarray:
         """Source ``i`` under target ``i`` for many sources at once (N, H, W, 3) uint8: :meth:`relight_many` with

@@ -6,7 +6,9 @@ shadow strength and where its shadow map is marched), a rotation video of the so
 relights go back into it. :meth:`Request.from_config` takes it from a command's config (``conf/relight.yaml``) and
 checks what only a request can get wrong (the command's own values, such as the sampler or the output folder, are
 the command's). :func:`answer` (the relighter's door :meth:`~difareli.relight.relighter.Relighter.answer`) reads the
-source once, builds the targets, relights, composites, and returns an :class:`Answer` that a command only writes out.
+source once, builds the targets, relights, composites, and returns an :class:`Answer` that a command only writes out;
+a batch of photos is answered photo by photo into the request's ``out_dir`` (:mod:`difareli.relight.batch`), its
+answer the counts.
 """
 
 from __future__ import annotations
@@ -86,6 +88,7 @@ class Request:
     versions: Mapping[str, Any] | None = None
     image: str | None = None
     photos: tuple[Path, ...] | None = None  # a batch of photos under one target (relight.batch), else None
+    out_dir: str | None = None  # where a batch's results are written as they go (a rerun resumes)
     face: Any = "largest"
     photo_size: int | None = None
     strict: bool = False
@@ -126,7 +129,8 @@ class Request:
                 errors.check_file(t[key], f"target.{key}")
         versions = cfg.get("versions")
         return cls(store=cfg["store"], record=cfg["record"], versions=None if versions is None else dict(versions),
-                   image=image, photos=None if photos is None else tuple(photos), face=cfg["face"],
+                   image=image, photos=None if photos is None else tuple(photos), out_dir=cfg.get("out_dir"),
+                   face=cfg["face"],
                    photo_size=cfg["photo_size"], strict=bool(cfg["strict"]),
                    target=Target(**{k: t[k] for k in (*TARGET_KEYS, "shadow", "sun")}),
                    video_axis=cfg["video"]["axis"], video_frames=int(cfg["video"]["frames"]),
@@ -153,15 +157,17 @@ def check_composite(c: Mapping[str, Any]) -> None:
 class Answer:
     """What a request comes back as: the source read, the target's relight (``relit``, with the ground truth
     ``truth`` where the target record is the same subject, and ``whole`` the relit photo), the video's relit
-    frames (``video``, ``whole_video`` for a photo) and lines worth telling the user (``lines``; a source's warnings
-    start with ``warning:``)."""
+    frames (``video``, ``whole_video`` for a photo), a batch's counts (``counts``: done, skipped, resumed; its
+    files are already written) and lines worth telling the user (``lines``; a source's warnings start with
+    ``warning:``)."""
 
-    source: Any
+    source: Any = None
     relit: Any = None
     truth: np.ndarray | None = None
     whole: np.ndarray | None = None
     video: Any = None
     whole_video: np.ndarray | None = None
+    counts: dict[str, int] | None = None
     lines: list[str] = field(default_factory=list)
     say: Callable[[str], None] | None = None  # told each line as it arises (a long relight shows its notes first)
 
@@ -174,9 +180,11 @@ class Answer:
 def answer(relighter, request: Request, say: Callable[[str], None] | None = None) -> Answer:
     """``request`` answered by ``relighter`` (module doc): the source read and checked once, its target relit
     (its map toward the key sun found from the cast shadows of the image whose light it is, turned with a yaw or
-    a roll), the video's frames relit, a photo's relights composited back."""
+    a roll), the video's frames relit, a photo's relights composited back; a batch of photos: :func:`answer_photos`."""
     from difareli.data.store import EncodingStore
 
+    if request.photos is not None:
+        return Answer(counts=answer_photos(relighter, request), say=say)
     store = None if request.store is None else EncodingStore.open(request.store).use_versions(request.versions)
     source = (relighter.photo_source(request.image, size=request.photo_size, strict=request.strict)
               if request.image is not None else relighter.source(store, request.record))
@@ -216,13 +224,14 @@ def answer(relighter, request: Request, say: Callable[[str], None] | None = None
     return out
 
 
-def answer_photos(relighter, request: Request, out_dir, progress: bool = True) -> dict:
+def answer_photos(relighter, request: Request) -> dict[str, int]:
     """A batch request (``request.photos``: a folder, a glob, or several faces of one photo) answered by
     ``relighter`` under the request's one target: :func:`difareli.relight.batch.relight_photos` writes each photo's
-    composite, relit crops and CSV row into ``out_dir`` as it goes (a rerun resumes); counts {done, skipped,
-    resumed}."""
-    if request.photos is None:
-        raise ValueError("answer_photos takes a request with photos (image=<folder or glob>, or face=all|<index>)")
-    return relight_photos(list(request.photos), out_dir, progress=progress, relighter=relighter,
+    composite, relit crops and CSV row into ``request.out_dir`` as it goes (a rerun resumes; a progress bar where
+    the relighter shows progress); counts {done, skipped, resumed}."""
+    if request.photos is None or request.out_dir is None:
+        raise ValueError("answer_photos takes a request with photos (image=<folder or glob>, or face=all|<index>) "
+                         "and an out_dir")
+    return relight_photos(list(request.photos), request.out_dir, progress=relighter.progress, relighter=relighter,
                           target=lambda s: request.target.for_source(relighter, s)[0], size=request.photo_size,
                           face=request.face, composite=request.composite, strict=request.strict)

@@ -147,8 +147,9 @@ def load_envmap(path: str | Path) -> np.ndarray:
 
 def target_lights(source_light: np.ndarray, *, light: str | None = None, other_light: np.ndarray | None = None,
                   yaw: float | None = None, roll: float | None = None, envmap: str | None = None) -> np.ndarray:
-    """Resolve exactly one target specification into a (9, 3) light (its bound is checked once, by
-    :meth:`Targets.of`)."""
+    """Resolve exactly one target specification into a (9, 3) light. Its numbers are checked once, where they are
+    given (:meth:`~difareli.relight.request.Request.from_config`), and the light's bound once, by
+    :meth:`Targets.of` (a NaN yaw from a caller that checked nothing gives a NaN light, refused there)."""
     given = {k: v for k, v in dict(light=light, record=other_light, yaw=yaw, roll=roll, envmap=envmap).items()
              if v is not None}
     if len(given) != 1:
@@ -160,9 +161,9 @@ def target_lights(source_light: np.ndarray, *, light: str | None = None, other_l
         return np.asarray(other_light, np.float64)
     src = check_finite(np.asarray(source_light, np.float64), "the source record's light")
     if yaw is not None:
-        return sh.yaw(src, check_number(yaw, "target.yaw", allow_none=False))
+        return sh.yaw(src, yaw)
     if roll is not None:
-        return sh.roll(src, check_number(roll, "target.roll", allow_none=False))
+        return sh.roll(src, roll)
     return sh.project_envmap(load_envmap(envmap))
 
 

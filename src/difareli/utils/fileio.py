@@ -7,7 +7,8 @@
   text and JSON; a full disk is a :class:`~difareli.errors.UserError` naming the file, and the temporary file is
   removed.
 - :func:`append_text` appends whole lines or nothing (a full disk truncates back what it began: resumable row
-  logs); :func:`on_full_disk` turns a full disk anywhere in a command's writes into the same one-line error and
+  logs), :func:`append_csv_row` a CSV row so (the header first), :func:`read_csv_rows` reads such a log back;
+  :func:`on_full_disk` turns a full disk anywhere in a command's writes into the same one-line error and
   removes this process's scratch files (``*.tmp-<pid>``) that writers outside this module leave behind.
 - :func:`folder_lock` holds an exclusive ``fcntl`` lock on ``<folder>/.difareli.lock`` for a command's whole run:
   a second concurrent writer into the same output folder stops at once with a message naming the first one's
@@ -17,12 +18,14 @@
 from __future__ import annotations
 
 import contextlib
+import csv
 import errno
+import io
 import json
 import os
 import shutil
 from pathlib import Path
-from typing import Any, Iterable, Iterator
+from typing import Any, Iterable, Iterator, Mapping, Sequence
 
 from difareli.errors import UserError, is_no_space, os_reason
 
@@ -113,6 +116,27 @@ def append_text(path: str | Path, text: str, *, durable: bool = False, fix: str 
     finally:
         os.close(fd)
     return path
+
+
+def append_csv_row(path: str | Path, fields: Sequence[str], row: Mapping[str, Any], *,
+                   fix: str | None = None) -> Path:
+    """One CSV row (keys outside ``fields`` ignored; the header first into a new or empty file) appended whole or
+    not at all (:func:`append_text`): a kill or a full disk loses at most the row in progress."""
+    path, buf = Path(path), io.StringIO()
+    w = csv.DictWriter(buf, list(fields), extrasaction="ignore")
+    if not path.is_file() or path.stat().st_size == 0:
+        w.writeheader()
+    w.writerow(row)
+    return append_text(path, buf.getvalue(), fix=fix)
+
+
+def read_csv_rows(path: str | Path, key: str) -> dict[str, dict[str, str]]:
+    """The rows of a CSV log (:func:`append_csv_row`) by their ``key`` column (a later row wins); {} for no file."""
+    path = Path(path)
+    if not path.is_file():
+        return {}
+    with path.open(newline="") as f:
+        return {row[key]: row for row in csv.DictReader(f)}
 
 
 @contextlib.contextmanager
