@@ -303,6 +303,3 @@ def check_output(image: Any, what: str) -> np.ndarray:
     if a.ndim != 3 or a.shape[-1] != 3:
         raise NonFiniteError(f"{what}: result has shape {a.shape}, expected HxWx3")
     return check_finite(a, what, fix="the model or its inputs produced invalid values")
-
-
-# ------------------------------------------------------------------------------------------ checkpoints

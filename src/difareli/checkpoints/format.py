@@ -141,8 +141,6 @@ def read_folder(folder: str | Path, map_location: str | torch.device = "cpu") ->
 def load_torch_file(path: Any, what: str = "checkpoint", map_location: Any = "cpu") -> Any:
     """``torch.load(path, weights_only=True)``; a missing, truncated or non-torch file is a UserError naming
     it (never a hint to load untrusted pickles)."""
-    import torch
-
     p = Path(str(path))
     if not p.is_file():
         raise UserFileNotFoundError(f"{what} {p} does not exist (difareli-train writes <run>/checkpoints/last.ckpt)")

@@ -30,9 +30,7 @@ DEFAULT_SIZE = 256
 def checkpoint_facts(checkpoint) -> tuple[int | None, list[str]]:
     """``(training resolution, inputs)`` of a checkpoint (a file or a shipped name), read without Lightning."""
     from difareli.checkpoints import zoo
-    from difareli.checkpoints.format import upgrade_checkpoint
-    from difareli.checkpoints.format import load_torch_file
-    from difareli.checkpoints.format import training_resolution
+    from difareli.checkpoints.format import load_torch_file, training_resolution, upgrade_checkpoint
 
     ckpt = upgrade_checkpoint(load_torch_file(zoo.resolve(checkpoint, "checkpoint"), "checkpoint"))
     hp = ckpt.get("hyper_parameters")

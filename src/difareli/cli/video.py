@@ -137,7 +137,7 @@ def validate(cfg: DictConfig) -> None:
     viz.video_format(cfg.format)
     errors.check_out_dir(cfg.out_dir)
     errors.check_int(cfg.fps, "fps", 1)
-    errors.check_choice(cfg.rotation.axis, "rotation.axis", ("yaw", "roll"))
+    errors.check_choice(cfg.rotation.axis, "rotation.axis", sh.AXES)
     errors.check_choice(cfg.target.sun, "target.sun", sun_fit.TARGET_SUNS)
     errors.check_int(cfg.rotation.frames, "rotation.frames", 2, maximum=MAX_FRAMES)
     errors.check_number(cfg.target.shadow, "target.shadow")

@@ -201,7 +201,8 @@ def finished_run(store: EncodingStore, method: Method, protocols: Sequence[str],
         return None
     want = run_settings(store, method, protocols, limit=limit, oracle_light=oracle_light,
                         oracle_shadow=oracle_shadow, rule=metrics.check_rule(rule), shard=None,
-                        score_mask=check_score_mask(store, score_mask), target_sun=errors.check_choice(target_sun, "target_sun", TARGET_SUNS))
+                        score_mask=check_score_mask(store, score_mask),
+                        target_sun=errors.check_choice(target_sun, "target_sun", TARGET_SUNS))
     if provenance.differences(_recorded(out_dir), provenance.plain(want)):
         return None
     try:

@@ -7,8 +7,8 @@ per process and crop size (:func:`pipeline_for`): building one and its first ima
 
 A photo is aligned at the resolution its checkpoint was trained at
 (:func:`difareli.checkpoints.format.training_resolution`) unless told otherwise, and an input at another
-resolution is named in a warning (:func:`resolution_warning`). A grey photo (:func:`is_grey`) gets a grey light and comes back grey
-(:func:`grey_like`): it has no colour for the model to keep.
+resolution is named in a warning (:func:`resolution_warning`). A grey photo (:func:`is_grey`) gets a grey light and
+comes back grey (:func:`grey_like`): it has no colour for the model to keep.
 
 A group photo: :func:`detect_faces` lists every face (left to right), ``prepare_photo(..., face=box)`` aligns the
 one chosen (``face=<index>|largest|all`` of difareli-relight, :func:`choose_faces`). Where the aligned square runs
@@ -77,8 +77,7 @@ def pipeline_for(encodings: Sequence[str], size: int, estimators: Mapping[str, A
     if estimators is not None:
         return Pipeline.from_config(estimators, names)
     if key not in _PIPELINES:
-        estimators = default_estimators(size)
-        _PIPELINES[key] = Pipeline.from_config(estimators, names)
+        _PIPELINES[key] = Pipeline.from_config(default_estimators(size), names)
     return _PIPELINES[key]
 
 

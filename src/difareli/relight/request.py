@@ -112,13 +112,14 @@ class Request:
         if all(t[k] is None for k in TARGET_KEYS) and cfg["video"]["axis"] is None:
             raise errors.UserError("nothing to do: give a target (target.light|record|yaw|roll|envmap) or "
                                    "video.axis=yaw|roll")
-        photos = None if image is None else photo_paths(image)
-        if image is not None and (photos is not None or str(cfg["face"]).lower() != "largest"):
-            photos = photos or [Path(str(image))]
-            if cfg["video"]["axis"] is not None or t["record"] is not None:
+        photos = None
+        if image is not None:
+            photos = photo_paths(image)  # a folder or a glob; None for one photo
+            if photos is None and str(cfg["face"]).lower() != "largest":
+                photos = [Path(str(image))]  # several faces of one photo
+            if photos is not None and (cfg["video"]["axis"] is not None or t["record"] is not None):
                 raise errors.UserError(f"image={image} face={cfg['face']}: a folder or several faces take a target "
                                        "light (target.light|yaw|roll|envmap), not video.axis or target.record")
-        if image is not None:
             check_composite(c)
         errors.check_choice(t["sun"], "target.sun", TARGET_SUNS)
         errors.check_int(cfg["video"]["frames"], "video.frames", 1, maximum=MAX_FRAMES)
@@ -130,8 +131,7 @@ class Request:
         versions = cfg.get("versions")
         return cls(store=cfg["store"], record=cfg["record"], versions=None if versions is None else dict(versions),
                    image=image, photos=None if photos is None else tuple(photos), out_dir=cfg.get("out_dir"),
-                   face=cfg["face"],
-                   photo_size=cfg["photo_size"], strict=bool(cfg["strict"]),
+                   face=cfg["face"], photo_size=cfg["photo_size"], strict=bool(cfg["strict"]),
                    target=Target(**{k: t[k] for k in (*TARGET_KEYS, "shadow", "sun")}),
                    video_axis=cfg["video"]["axis"], video_frames=int(cfg["video"]["frames"]),
                    composite={"mode": c["mode"], "feather": float(c["feather"]),

@@ -148,8 +148,8 @@ def load_envmap(path: str | Path) -> np.ndarray:
 def target_lights(source_light: np.ndarray, *, light: str | None = None, other_light: np.ndarray | None = None,
                   yaw: float | None = None, roll: float | None = None, envmap: str | None = None) -> np.ndarray:
     """Resolve exactly one target specification into a (9, 3) light. Its numbers are checked once, where they are
-    given (:meth:`~difareli.relight.request.Request.from_config`), and the light's bound once, by
-    :meth:`Targets.of` (a NaN yaw from a caller that checked nothing gives a NaN light, refused there)."""
+    given (:meth:`~difareli.relight.request.Request.from_config`; a caller that checked nothing hears of a
+    non-finite angle from :mod:`difareli.lighting.sh`), and the light's bound once, by :meth:`Targets.of`."""
     given = {k: v for k, v in dict(light=light, record=other_light, yaw=yaw, roll=roll, envmap=envmap).items()
              if v is not None}
     if len(given) != 1:

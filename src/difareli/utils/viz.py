@@ -181,8 +181,6 @@ def describe_file(path: str | Path) -> str:
 def write_video(frames: np.ndarray, path: str | Path, fps: int = 20) -> Path:
     """Write frames (N, H, W, 3) uint8 as a GIF (``.gif``: :func:`write_gif`, one fast palette per
     frame) or an MP4 (H.264 through imageio's ffmpeg plugin)."""
-    import imageio.v3 as iio
-
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     if path.suffix == ".gif":
