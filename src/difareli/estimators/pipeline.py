@@ -30,6 +30,37 @@ PREVIEWS = "previews"
 UPSAMPLE_NOTE = 0.5
 
 
+_DEFAULT_PIPELINES: dict[tuple, "Pipeline"] = {}
+
+
+def default_estimators(size: int) -> dict[str, Any]:
+    """The ``estimators`` block that ``conf/preprocess.yaml`` composes by default (its ``preprocess/<role>:
+    <choice>`` defaults), at crop ``size``, as plain config for callers without Hydra."""
+    from difareli.configs import read_yaml
+
+    out = {}
+    for entry in read_yaml("", "preprocess")["defaults"]:
+        group, choice = next(iter(entry.items())) if isinstance(entry, dict) else (entry, None)
+        if group.startswith("preprocess/") and choice is not None:
+            cfg = read_yaml(group, choice)
+            out[group.split("/", 1)[1]] = {k: (size if v == "${size}" else v) for k, v in cfg.items()}
+    return out
+
+
+def default_pipeline(encodings: Iterable[str], size: int, align: Mapping[str, Any] | None = None) -> "Pipeline":
+    """A :class:`Pipeline` of the default estimators (:func:`default_estimators`) for ``encodings`` at ``size`` px,
+    built once per process (building one and its first image load mediapipe and dlib: seconds); ``align``: another
+    aligner's config in place of the default one."""
+    names = tuple(dict.fromkeys(encodings))
+    key = (names, int(size), None if align is None else tuple(sorted(align.items())))
+    if key not in _DEFAULT_PIPELINES:
+        est = default_estimators(size)
+        if align is not None:
+            est["align"] = dict(align)
+        _DEFAULT_PIPELINES[key] = Pipeline.from_config(est, names)
+    return _DEFAULT_PIPELINES[key]
+
+
 @contextlib.contextmanager
 def _one_torch_thread():
     """torch's intra-op threads at one while an image is processed (the identity network): between mediapipe's

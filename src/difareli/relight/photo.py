@@ -30,13 +30,9 @@ import numpy as np
 from difareli.errors import UserError
 from difareli.estimators.light import describe_light, is_grey, light_direction  # noqa: F401 (re-exported)
 
-#: The default estimators (``conf/preprocess.yaml``'s choices) as plain config, for callers without Hydra.
-DEFAULT_ESTIMATORS = {"align": "mediapipe", "geometry": "bfm", "masks": "facemesh_selfie", "light": "skin_sh",
-                      "identity": "dlib", "shadow": "logreg"}
 BORDERS = ("reflect", "mask")
 EXTRAS_FIX = "install the photo estimators: DIFARELI_PREPROCESS=1 bash scripts/install.sh"
 PHOTO_FIX = "use a photo with one clearly visible face"
-_PIPELINES: dict[Any, Any] = {}
 
 
 def resolution_warning(checkpoint: Any, trained: int | None, what: str, size: int, fix: str) -> str | None:
@@ -56,29 +52,14 @@ def grey_like(images: np.ndarray) -> np.ndarray:
     return np.repeat(y[..., None], 3, axis=-1)
 
 
-def default_estimators(size: int) -> dict[str, Any]:
-    """The ``estimators`` block of ``conf/preprocess.yaml`` at crop ``size``, read from the package's conf/."""
-    from difareli.configs import read_yaml
-
-    out = {}
-    for role, choice in DEFAULT_ESTIMATORS.items():
-        cfg = read_yaml(f"preprocess/{role}", choice)
-        out[role] = {k: (size if v == "${size}" else v) for k, v in cfg.items()}
-    return out
-
-
 def pipeline_for(encodings: Sequence[str], size: int, estimators: Mapping[str, Any] | None = None):
-    """A :class:`~difareli.estimators.pipeline.Pipeline` for ``encodings`` at ``size`` px, built once per process
-    (the default estimators only: a caller's own block builds a new one)."""
-    from difareli.estimators.pipeline import Pipeline
+    """A :class:`~difareli.estimators.pipeline.Pipeline` for the image and ``encodings`` at ``size`` px: the default
+    estimators' (built once per process, :func:`~difareli.estimators.pipeline.default_pipeline`), or a new one of a
+    caller's own ``estimators`` block."""
+    from difareli.estimators.pipeline import Pipeline, default_pipeline
 
-    names = tuple(dict.fromkeys(["image", *encodings]))
-    key = (names, int(size))
-    if estimators is not None:
-        return Pipeline.from_config(estimators, names)
-    if key not in _PIPELINES:
-        _PIPELINES[key] = Pipeline.from_config(default_estimators(size), names)
-    return _PIPELINES[key]
+    names = ["image", *encodings]
+    return default_pipeline(names, size) if estimators is None else Pipeline.from_config(estimators, names)
 
 
 @dataclass

@@ -1,9 +1,9 @@
 """Model inputs as a user has them, estimated from a SynthFaces record's rendered image.
 
 ``inputs: estimated`` (SynthFaces v3, :func:`estimate_all`): **every** model input comes from the photo
-estimators of ``difareli-preprocess`` (``photo.default_estimators``: FaceMesh + BFM fit for ``shape``/``cam`` and the
-face surface, FaceMesh outlines + selfie segmentation for ``masks``/``face_mask``/``background``, dlib for
-``identity``), then the record light fit and the shadow classifier on that estimated geometry:
+estimators of ``difareli-preprocess`` (``estimators.pipeline.default_estimators``: FaceMesh + BFM fit for
+``shape``/``cam`` and the face surface, FaceMesh outlines + selfie segmentation for ``masks``/``face_mask``/
+``background``, dlib for ``identity``), then the record light fit and the shadow classifier on that estimated geometry:
 
 - A SynthFaces render is already a face crop, so :class:`FrameAligner` keeps its frame (no FFHQ re-crop): every
   estimated map lies in the stored image's pixels and the ground-truth pairs stay aligned.
@@ -30,7 +30,6 @@ from difareli.data.encodings import FACE_PARTS, FOREGROUND_PARTS, NUM_MASK_PARTS
 from difareli.errors import UserError
 
 _SHADOW = None
-_PIPELINES: dict[int, object] = {}
 _FACE_IDX = np.array([PART_INDEX[p] for p in FACE_PARTS])
 _FG_IDX = np.array([PART_INDEX[p] for p in FOREGROUND_PARTS])
 #: What the photo pipeline is asked for (the rest is derived at the stored resolution).
@@ -75,17 +74,13 @@ def missing_estimators() -> str | None:
 
 def pipeline(size: int):
     """The preprocess pipeline (default estimators, frame-keeping aligner) at ``size`` px, once per process."""
-    if size not in _PIPELINES:
-        from difareli.estimators.pipeline import Pipeline
-        from difareli.relight.photo import default_estimators
+    from difareli.estimators.pipeline import default_pipeline
 
-        est = dict(default_estimators(size))
-        est["align"] = {"_target_": f"{__name__}.FrameAligner", "size": size}
-        try:
-            _PIPELINES[size] = Pipeline.from_config(est, ["image", *PIPELINE_ENCODINGS])
-        except ImportError as e:
-            raise ImportError(f"SynthFaces inputs=estimated runs the photo estimators ({e}); {FIX}") from e
-    return _PIPELINES[size]
+    try:
+        return default_pipeline(["image", *PIPELINE_ENCODINGS], size,
+                                align={"_target_": f"{__name__}.FrameAligner", "size": size})
+    except ImportError as e:
+        raise ImportError(f"SynthFaces inputs=estimated runs the photo estimators ({e}); {FIX}") from e
 
 
 def mode_downsample(labels: np.ndarray, size: int) -> np.ndarray:
