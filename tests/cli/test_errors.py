@@ -198,7 +198,8 @@ def test_check_finite_names_input_and_index():
 
 # ------------------------------------------------------------------------------------------ CLIs, in process
 def test_relight_validates_before_any_work(tmp_path):
-    from difareli.cli.relight import run, validate
+    from difareli.cli.relight import run
+    from difareli.relight.request import Request
 
     ckpt = tmp_path / "c.ckpt"
     ckpt.write_bytes(b"x")  # read, it would be refused as "not a readable PyTorch file": the checks come first
@@ -208,12 +209,14 @@ def test_relight_validates_before_any_work(tmp_path):
              "target.shadow=nan": "target.shadow=nan is invalid: must be a finite number",
              "target.sun=east": "target.sun='east': use one of",
              f"out_dir={ckpt}": "is a file, not a folder",
+             "video.fps=0": "video.fps=0 is invalid",
+             "video.format=avi": "video.format='avi' is not a video format; use one of",
              f"target.light={tmp_path}/none.npy": "target.light=.* does not exist; give the path of an existing file"}
     for override, want in cases.items():
         cfg = compose_train(tmp_path / "run", [*base, override], config_name="relight")
         kind = FileNotFoundError if "target.light" in override else UserError  # a user error either way
         with pytest.raises(kind, match=want.replace("(", r"\(").replace(")", r"\)")):
-            validate(cfg)
+            Request.from_config(cfg)
     # The relighter's own values, at its door before it reads the checkpoint.
     relighter = {"sampler.steps=2.7": r"sampler steps must be an integer >= 1, got 2.7 \(e.g. sampler.steps=50\)",
                  "sampler.name=euler": "unknown sampler 'euler'; choose from ddim",

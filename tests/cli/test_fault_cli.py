@@ -93,12 +93,12 @@ def test_a_target_light_far_brighter_than_any_face_is_refused():
 
 
 def test_rotation_with_a_million_frames_is_refused_before_any_work(tmp_path):
-    from difareli.cli.relight import validate
+    from difareli.relight.request import Request
 
     cfg = compose_train(tmp_path, ["checkpoint=difareli_pp-synth64", "image=x.png", "video.axis=yaw",
                                    "video.frames=1000000"], config_name="relight")
     with pytest.raises(UserError, match=r"video.frames=1000000 is invalid: must be an integer from 1 to 3600"):
-        validate(cfg)
+        Request.from_config(cfg)
 
 
 class Saturating(torch.nn.Module):

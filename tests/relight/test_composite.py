@@ -172,9 +172,9 @@ def test_relight_cli_writes_crop_and_full_photo_with_an_identity_model(tmp_path,
 
 
 def test_relight_cli_rejects_a_bad_composite_mode(tmp_path):
-    from difareli.cli.relight import validate
+    from difareli.relight.request import Request
 
     cfg = compose_train(tmp_path, ["checkpoint=difareli_pp-synth64", f"image={tmp_path / 'x.png'}", "target.yaw=45",
                                    "composite.mode=blend"], config_name="relight")
     with pytest.raises(ValueError, match="composite.mode='blend': use one of ratio, pixels"):
-        validate(cfg)
+        Request.from_config(cfg)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -90,6 +91,11 @@ def test_folder_skips_writes_csv_and_resumes(tmp_path, relighter, capsys):
     again = batch.relight_photos(paths, out, **kw)
     assert again == {"done": 1, "skipped": 3, "resumed": 2}
     assert (out / "grace_composite.png").is_file() and rows_of(out)["grace.png"]["status"] == "relit"
+    # A skipped photo fixed (the error says "fix or remove them"): the next run relights it, the rest resume.
+    shutil.copyfile(folder / "astronaut.png", folder / "tiny.png")
+    fixed = batch.relight_photos(paths, out, **kw)
+    assert fixed == {"done": 1, "skipped": 2, "resumed": 3}
+    assert rows_of(out)["tiny.png"]["status"] == "relit" and (out / "tiny_composite.png").is_file()
 
 
 def test_face_all_relights_both_astronauts(relighter, capsys):

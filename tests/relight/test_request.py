@@ -11,6 +11,7 @@ from omegaconf import OmegaConf
 from difareli.errors import UserError
 from difareli.lighting import sh
 from difareli.relight.request import Request, Target
+from difareli.utils.viz import video_format
 
 LIGHT = np.zeros((9, 3))
 LIGHT[0], LIGHT[2] = 1.0, 0.5  # an ambient and a light from the front-ish
@@ -80,7 +81,7 @@ def test_peak_and_light_files_keep_the_radiance_peak(tmp_path):
 
 def cfg(**over):
     base = {"store": None, "record": None, "versions": None, "image": None, "face": "largest", "photo_size": None,
-            "strict": False, "video": {"axis": None, "frames": 8},
+            "strict": False, "video": {"axis": None, "frames": 8, "fps": 20, "format": "gif"}, "out_dir": "out",
             "target": {"light": None, "record": None, "yaw": None, "roll": None, "envmap": None, "shadow": None,
                        "sun": "shadows"},
             "composite": {"mode": "ratio", "feather": 0.03, "parts": None}}
@@ -101,6 +102,14 @@ def test_a_request_is_checked_once_naming_the_key():
     with pytest.raises(UserError, match="target.light"):
         Request.from_config(cfg(store="s", **{"target.light": "/no/such/light.npy"}))
     assert Request.from_config(cfg(store="s", **{"video.axis": "roll"})).video_frames == 8
+    # Where the answer goes, checked and resolved once (the command writes with these values).
+    r = Request.from_config(cfg(store="s", out_dir="somewhere", **{"video.axis": "yaw", "video.format": "auto",
+                                                                    "video.fps": 12}))
+    assert (r.out_dir, r.video_fps, r.video_format) == ("somewhere", 12, video_format("auto"))
+    with pytest.raises(UserError, match="video.fps=0 is invalid"):
+        Request.from_config(cfg(store="s", **{"video.axis": "yaw", "video.fps": 0}))
+    with pytest.raises(UserError, match="out_dir is empty"):
+        Request.from_config(cfg(store="s", out_dir="", **{"video.axis": "yaw"}))
     for key in ("yaw", "roll"):  # the one check of a turn (target_lights turns what it is given)
         c = cfg(store="s")
         c.target[key] = float("nan")

@@ -23,11 +23,11 @@ from difareli.utils import viz
 
 def run(cfg: DictConfig) -> dict[str, Path]:
     """Relight as configured; returns the paths written."""
-    request = validate(cfg)
+    request = Request.from_config(cfg)  # every value of the request checked, before any work
     relighter = Relighter(cfg.checkpoint, cfg.sampler, runtime=cfg.runtime, mean_matching=cfg.mean_matching,
                           batch_size=cfg.batch_size, progress=cfg.progress)
     answer = relighter.answer(request, say=say)
-    return write(answer, cfg)
+    return write(answer, request)
 
 
 def say(line: str) -> None:
@@ -38,14 +38,14 @@ def say(line: str) -> None:
         print(line)
 
 
-def write(answer: Answer, cfg: DictConfig) -> dict[str, Path]:
-    """The answer's images written into ``out_dir`` (its lines were said as they arose): relit.png and a labelled
+def write(answer: Answer, request: Request) -> dict[str, Path]:
+    """The answer's images written into the request's ``out_dir`` (its lines were said as they arose): relit.png and a labelled
     comparison (with the ground truth where the target record is the same subject); a photo's aligned crop and
     whole relit photo; the rotation video, its captioned contact sheet and, for a photo, the video composited.
     A batch of photos (already written as it went): its counts said (:func:`write_counts`)."""
     if answer.counts is not None:
-        return write_counts(answer.counts, cfg)
-    out_dir, written, source = Path(cfg.out_dir), {}, answer.source
+        return write_counts(answer.counts, request)
+    out_dir, written, source = Path(request.out_dir), {}, answer.source
     if answer.relit is not None:
         row, names = [source.arrays["image"], answer.relit[0]], ["input", "relit"]
         if answer.truth is not None:
@@ -59,39 +59,28 @@ def write(answer: Answer, cfg: DictConfig) -> dict[str, Path]:
                 viz.grid([[source.photo.rgb, answer.whole]], col_labels=["photo", "relit photo"]),
                 out_dir / "composite_comparison.png")
     if answer.video is not None:
-        axis, fmt = cfg.video.axis, viz.video_format(cfg.video.format, "video.format")
-        rotation = viz.write_rotation(answer.video.images, out_dir, f"rotation_{axis}", axis=axis,
-                                      fps=cfg.video.fps, fmt=fmt)
+        axis, fmt, fps = request.video_axis, request.video_format, request.video_fps
+        rotation = viz.write_rotation(answer.video.images, out_dir, f"rotation_{axis}", axis=axis, fps=fps, fmt=fmt)
         written["video"], written["sheet"] = rotation["video"], rotation["sheet"]
         if answer.whole_video is not None:
             written["video_composite"] = viz.write_video(answer.whole_video,
-                                                         out_dir / f"rotation_{axis}_composite.{fmt}", cfg.video.fps)
+                                                         out_dir / f"rotation_{axis}_composite.{fmt}", fps)
     for k, p in written.items():
         print(f"{k}: {viz.describe_file(p)}")
     return written
 
 
-def write_counts(counts: dict[str, int], cfg: DictConfig) -> dict[str, Path]:
+def write_counts(counts: dict[str, int], request: Request) -> dict[str, Path]:
     """A batch's outcome (``image=<folder or glob>`` or ``face=all|<index>``; each photo's files and CSV row were
     written as it went): its counts, and a UserError (non-zero exit) saying how many were skipped."""
-    csv = Path(cfg.out_dir) / batch.CSV_NAME
+    csv = Path(request.out_dir) / batch.CSV_NAME
     print(f"{counts['done']} photo(s) relit, {counts['resumed']} already done, {counts['skipped']} skipped; "
-          f"results and {csv.name} in {cfg.out_dir}")
+          f"results and {csv.name} in {request.out_dir}")
     if counts["skipped"]:
         total = sum(counts.values())
-        raise errors.UserError(f"image={cfg.image}: {counts['skipped']} of {total} photo(s) skipped "
+        raise errors.UserError(f"image={request.image}: {counts['skipped']} of {total} photo(s) skipped "
                                f"(one line each above, and in {csv}); fix or remove them")
     return {"csv": csv}
-
-
-def validate(cfg: DictConfig) -> Request:
-    """Config values and input files, checked before any work: the command's own (its outputs), then the
-    request's (:meth:`Request.from_config`), which is returned; the relighter checks its own (sampler, batch size,
-    checkpoint) before it loads anything."""
-    viz.video_format(cfg.video.format, "video.format")
-    errors.check_out_dir(cfg.out_dir)
-    errors.check_int(cfg.video.fps, "video.fps", 1)
-    return Request.from_config(cfg)
 
 
 @hydra.main(version_base="1.3", config_path=common.CONFIG_PATH, config_name="relight")

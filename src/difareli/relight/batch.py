@@ -5,8 +5,8 @@
 and ``<stem>_relit.png`` (the relit crops side by side) into ``out_dir``, and a row per photo to ``relight.csv``
 (seconds, faces, the check's measures, the outcome). A photo that cannot be relit (unreadable or truncated
 file, no face, too small, ``strict`` and a poor check) is one line on stderr and a ``skipped`` row. A rerun skips
-the photos whose composite exists (a killed run resumes: files are written atomically, the CSV row last).
-"""
+the photos relit before (a killed run resumes: files are written atomically, the CSV row last) and tries the
+skipped ones again (the error said to fix them; the last row of a photo is its outcome)."""
 
 from __future__ import annotations
 
@@ -88,10 +88,8 @@ def relight_photos(paths: Sequence[Path], out_dir: str | Path, *, progress: bool
         stems[stem] = 1
         target = out_dir / f"{stem}_composite.png"
         prior = before.get(str(path))
-        if prior is not None and (prior["status"] == "skipped" or target.is_file()):
-            counts["resumed" if prior["status"] == "relit" else "skipped"] += 1
-            if prior["status"] == "skipped":
-                print(f"skipped image={path}: {prior['reason']}", file=sys.stderr)
+        if prior is not None and prior["status"] == "relit" and target.is_file():
+            counts["resumed"] += 1  # a photo skipped before is tried again: the user may have fixed it
             continue
         start = time.perf_counter()
         try:

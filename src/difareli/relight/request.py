@@ -2,10 +2,10 @@
 
 :class:`Request` says where the source is (a store record, or a photo preprocessed in memory), the target (one of a
 light file, another record's light, the source's own light turned by a yaw or a roll, an environment map; its
-shadow strength and where its shadow map is marched), a rotation video of the source's light, and how a photo's
-relights go back into it. :meth:`Request.from_config` takes it from a command's config (``conf/relight.yaml``) and
-checks what only a request can get wrong (the command's own values, such as the sampler or the output folder, are
-the command's). :func:`answer` (the relighter's door :meth:`~difareli.relight.relighter.Relighter.answer`) reads the
+shadow strength and where its shadow map is marched), a rotation video of the source's light, how a photo's
+relights go back into it, and where and how the answer is written (the output folder, the video's frame rate and
+format). :meth:`Request.from_config` takes it from a command's config (``conf/relight.yaml``) and checks it, each
+value once (how it is relit, the sampler, runtime and batch size, is the relighter's to check). :func:`answer` (the relighter's door :meth:`~difareli.relight.relighter.Relighter.answer`) reads the
 source once, builds the targets, relights, composites, and returns an :class:`Answer` that a command only writes out;
 a batch of photos is answered photo by photo into the request's ``out_dir`` (:mod:`difareli.relight.batch`), its
 answer the counts.
@@ -27,6 +27,7 @@ from difareli.relight.composite import MODES, part_mask
 from difareli.relight.targets import Targets, rotation_targets, target_lights
 from difareli.render import sun_fit
 from difareli.render.sun_fit import TARGET_SUNS
+from difareli.utils import viz
 
 #: The keys that give a target; exactly one of them (or a video alone).
 TARGET_KEYS = ("light", "record", "yaw", "roll", "envmap")
@@ -81,20 +82,23 @@ class Target:
 @dataclass(frozen=True)
 class Request:
     """One relight request (module doc). ``store``/``record`` or ``image`` is the source; ``video_axis`` adds a
-    360-degree rotation of its light; ``composite`` (mode, feather, parts) puts a photo's relights back."""
+    360-degree rotation of its light; ``composite`` (mode, feather, parts) puts a photo's relights back; ``out_dir``
+    gets the answer (a batch's as it goes), its video at ``video_fps`` as ``video_format`` (``mp4`` or ``gif``)."""
 
     store: str | None = None
     record: str | None = None
     versions: Mapping[str, Any] | None = None
     image: str | None = None
     photos: tuple[Path, ...] | None = None  # a batch of photos under one target (relight.batch), else None
-    out_dir: str | None = None  # where a batch's results are written as they go (a rerun resumes)
+    out_dir: str | None = None  # where the answer is written (a batch's as it goes: a rerun resumes)
     face: Any = "largest"
     photo_size: int | None = None
     strict: bool = False
     target: Target = Target()
     video_axis: str | None = None
     video_frames: int = 60
+    video_fps: int = 20
+    video_format: str = "gif"
     composite: Mapping[str, Any] = field(default_factory=lambda: {"mode": "ratio", "feather": 0.03, "parts": None})
 
     @classmethod
@@ -102,14 +106,14 @@ class Request:
         """The request of a relight command's config, checked before any work, each value once: one source (a
         folder or glob of photos, or ``face=all|<index>``: a batch under one target light), a target or a video, a
         target record only with a store, the photos' compositing, the target's sun, numbers and files, the video's
-        frame count."""
-        t, c, image = cfg["target"], cfg["composite"], cfg["image"]
+        frame count; where the answer goes (the output folder, the video's frame rate and format)."""
+        t, c, v, image = cfg["target"], cfg["composite"], cfg["video"], cfg["image"]
         if (image is None) == (cfg["store"] is None):
             raise errors.UserError("give the source as either store=<encodings store> (and record=) or "
                                    f"image=<photo>; got store={cfg['store']} image={image}")
         if t["record"] is not None and cfg["store"] is None:
             raise errors.UserError(f"target.record={t['record']} names a store record: give store= too")
-        if all(t[k] is None for k in TARGET_KEYS) and cfg["video"]["axis"] is None:
+        if all(t[k] is None for k in TARGET_KEYS) and v["axis"] is None:
             raise errors.UserError("nothing to do: give a target (target.light|record|yaw|roll|envmap) or "
                                    "video.axis=yaw|roll")
         photos = None
@@ -117,12 +121,15 @@ class Request:
             photos = photo_paths(image)  # a folder or a glob; None for one photo
             if photos is None and str(cfg["face"]).lower() != "largest":
                 photos = [Path(str(image))]  # several faces of one photo
-            if photos is not None and (cfg["video"]["axis"] is not None or t["record"] is not None):
+            if photos is not None and (v["axis"] is not None or t["record"] is not None):
                 raise errors.UserError(f"image={image} face={cfg['face']}: a folder or several faces take a target "
                                        "light (target.light|yaw|roll|envmap), not video.axis or target.record")
             check_composite(c)
+        fmt = viz.video_format(v["format"], "video.format")
+        errors.check_out_dir(cfg["out_dir"])
         errors.check_choice(t["sun"], "target.sun", TARGET_SUNS)
-        errors.check_int(cfg["video"]["frames"], "video.frames", 1, maximum=MAX_FRAMES)
+        errors.check_int(v["frames"], "video.frames", 1, maximum=MAX_FRAMES)
+        errors.check_int(v["fps"], "video.fps", 1)
         for key in ("yaw", "roll", "shadow"):
             errors.check_number(t[key], f"target.{key}")
         for key in ("light", "envmap"):
@@ -130,10 +137,10 @@ class Request:
                 errors.check_file(t[key], f"target.{key}")
         versions = cfg.get("versions")
         return cls(store=cfg["store"], record=cfg["record"], versions=None if versions is None else dict(versions),
-                   image=image, photos=None if photos is None else tuple(photos), out_dir=cfg.get("out_dir"),
+                   image=image, photos=None if photos is None else tuple(photos), out_dir=str(cfg["out_dir"]),
                    face=cfg["face"], photo_size=cfg["photo_size"], strict=bool(cfg["strict"]),
                    target=Target(**{k: t[k] for k in (*TARGET_KEYS, "shadow", "sun")}),
-                   video_axis=cfg["video"]["axis"], video_frames=int(cfg["video"]["frames"]),
+                   video_axis=v["axis"], video_frames=int(v["frames"]), video_fps=int(v["fps"]), video_format=fmt,
                    composite={"mode": c["mode"], "feather": float(c["feather"]),
                               "parts": list(c["parts"]) if c["parts"] else None})
 
