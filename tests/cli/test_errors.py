@@ -199,11 +199,13 @@ def test_check_finite_names_input_and_index():
 # ------------------------------------------------------------------------------------------ CLIs, in process
 def test_relight_validates_before_any_work(tmp_path):
     from difareli.cli.relight import run
+    from difareli.data.store import EncodingStore
     from difareli.relight.request import Request
 
     ckpt = tmp_path / "c.ckpt"
     ckpt.write_bytes(b"x")  # read, it would be refused as "not a readable PyTorch file": the checks come first
-    base = [f"checkpoint={ckpt}", f"store={tmp_path}", "target.yaw=30"]
+    store = EncodingStore.create(tmp_path / "store", {}, ["light"], durable=False).root
+    base = [f"checkpoint={ckpt}", f"store={store}", "target.yaw=30"]
     cases = {"video.frames=0": "video.frames=0 is invalid",
              "video.frames=4000": "video.frames=4000 is invalid: must be an integer from 1 to 3600",
              "target.shadow=nan": "target.shadow=nan is invalid: must be a finite number",
@@ -211,6 +213,8 @@ def test_relight_validates_before_any_work(tmp_path):
              f"out_dir={ckpt}": "is a file, not a folder",
              "video.fps=0": "video.fps=0 is invalid",
              "video.format=avi": "video.format='avi' is not a video format; use one of",
+             f"store={tmp_path}/none": "no encoding store at",
+             "record=s1_l0": "record=s1_l0: no such record in the store",
              f"target.light={tmp_path}/none.npy": "target.light=.* does not exist; give the path of an existing file"}
     for override, want in cases.items():
         cfg = compose_train(tmp_path / "run", [*base, override], config_name="relight")

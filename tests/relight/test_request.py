@@ -88,30 +88,50 @@ def cfg(**over):
     return OmegaConf.merge(base, OmegaConf.from_dotlist([f"{k}={v}" for k, v in over.items()]))
 
 
-def test_a_request_is_checked_once_naming_the_key():
-    r = Request.from_config(cfg(store="data/x", **{"target.yaw": 30}))
-    assert r.target == Target(yaw=30.0) and r.store == "data/x" and r.video_axis is None
+@pytest.fixture
+def store(tmp_path):
+    """A store of one record (its light only): what the request's store check opens."""
+    from difareli.data.store import EncodingStore
+
+    st = EncodingStore.create(tmp_path / "store", {}, ["light"], durable=False)
+    st.write("s1_l0", {"light": LIGHT.astype(np.float32)})
+    return str(st.root)
+
+
+def test_a_request_is_checked_once_naming_the_key(store, tmp_path):
+    r = Request.from_config(cfg(store=store, **{"target.yaw": 30}))
+    assert r.target == Target(yaw=30.0) and r.store == store and r.video_axis is None
     with pytest.raises(UserError, match="either store=.* or image="):
         Request.from_config(cfg(**{"target.yaw": 30}))
     with pytest.raises(UserError, match="either store=.* or image="):
-        Request.from_config(cfg(store="s", image="p.png", **{"target.yaw": 30}))
+        Request.from_config(cfg(store=store, image="p.png", **{"target.yaw": 30}))
     with pytest.raises(UserError, match="target.record=r1 names a store record"):
         Request.from_config(cfg(image="p.png", **{"target.record": "r1"}))
     with pytest.raises(UserError, match="nothing to do"):
-        Request.from_config(cfg(store="s"))
+        Request.from_config(cfg(store=store))
     with pytest.raises(UserError, match="target.light"):
-        Request.from_config(cfg(store="s", **{"target.light": "/no/such/light.npy"}))
-    assert Request.from_config(cfg(store="s", **{"video.axis": "roll"})).video_frames == 8
+        Request.from_config(cfg(store=store, **{"target.light": "/no/such/light.npy"}))
+    assert Request.from_config(cfg(store=store, **{"video.axis": "roll"})).video_frames == 8
+    # The store opens and holds the records named, before any work (the key named as the config spells it).
+    with pytest.raises(UserError, match="no encoding store at"):
+        Request.from_config(cfg(store=tmp_path / "nowhere", **{"target.yaw": 30}))
+    assert Request.from_config(cfg(store=store, record="s1_l0", **{"target.record": "s1_l0"})).record == "s1_l0"
+    for key in ("record", "target.record"):
+        with pytest.raises(UserError, match=rf"^{key}=s9_l0: no such record in the store .* \(1 records, e.g. "
+                                            r"s1_l0\); give one of its record ids"):
+            Request.from_config(cfg(store=store, **{key: "s9_l0", "target.yaw": 30}))
+    with pytest.raises(UserError, match="versions.shadow_map='v9'"):
+        Request.from_config(cfg(store=store, **{"versions.shadow_map": "v9", "target.yaw": 30}))
     # Where the answer goes, checked and resolved once (the command writes with these values).
-    r = Request.from_config(cfg(store="s", out_dir="somewhere", **{"video.axis": "yaw", "video.format": "auto",
-                                                                    "video.fps": 12}))
+    r = Request.from_config(cfg(store=store, out_dir="somewhere", **{"video.axis": "yaw", "video.format": "auto",
+                                                                      "video.fps": 12}))
     assert (r.out_dir, r.video_fps, r.video_format) == ("somewhere", 12, video_format("auto"))
     with pytest.raises(UserError, match="video.fps=0 is invalid"):
-        Request.from_config(cfg(store="s", **{"video.axis": "yaw", "video.fps": 0}))
+        Request.from_config(cfg(store=store, **{"video.axis": "yaw", "video.fps": 0}))
     with pytest.raises(UserError, match="out_dir is empty"):
-        Request.from_config(cfg(store="s", out_dir="", **{"video.axis": "yaw"}))
+        Request.from_config(cfg(store=store, out_dir="", **{"video.axis": "yaw"}))
     for key in ("yaw", "roll"):  # the one check of a turn (target_lights turns what it is given)
-        c = cfg(store="s")
+        c = cfg(store=store)
         c.target[key] = float("nan")
         with pytest.raises(UserError, match=f"target.{key}=nan is invalid"):
             Request.from_config(c)

@@ -104,9 +104,10 @@ class Request:
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any]) -> "Request":
         """The request of a relight command's config, checked before any work, each value once: one source (a
-        folder or glob of photos, or ``face=all|<index>``: a batch under one target light), a target or a video, a
-        target record only with a store, the photos' compositing, the target's sun, numbers and files, the video's
-        frame count; where the answer goes (the output folder, the video's frame rate and format)."""
+        folder or glob of photos, or ``face=all|<index>``: a batch under one target light), a store that opens and
+        holds the records named, a target or a video, a target record only with a store, the photos' compositing,
+        the target's sun, numbers and files, the video's frame count; where the answer goes (the output folder, the
+        video's frame rate and format)."""
         t, c, v, image = cfg["target"], cfg["composite"], cfg["video"], cfg["image"]
         if (image is None) == (cfg["store"] is None):
             raise errors.UserError("give the source as either store=<encodings store> (and record=) or "
@@ -116,6 +117,10 @@ class Request:
         if all(t[k] is None for k in TARGET_KEYS) and v["axis"] is None:
             raise errors.UserError("nothing to do: give a target (target.light|record|yaw|roll|envmap) or "
                                    "video.axis=yaw|roll")
+        versions = cfg.get("versions")
+        versions = None if versions is None else dict(versions)
+        if cfg["store"] is not None:
+            check_store(cfg["store"], versions, record=cfg["record"], target_record=t["record"])
         photos = None
         if image is not None:
             photos = photo_paths(image)  # a folder or a glob; None for one photo
@@ -135,8 +140,7 @@ class Request:
         for key in ("light", "envmap"):
             if t[key] is not None:
                 errors.check_file(t[key], f"target.{key}")
-        versions = cfg.get("versions")
-        return cls(store=cfg["store"], record=cfg["record"], versions=None if versions is None else dict(versions),
+        return cls(store=cfg["store"], record=cfg["record"], versions=versions,
                    image=image, photos=None if photos is None else tuple(photos), out_dir=str(cfg["out_dir"]),
                    face=cfg["face"], photo_size=cfg["photo_size"], strict=bool(cfg["strict"]),
                    target=Target(**{k: t[k] for k in (*TARGET_KEYS, "shadow", "sun")}),
@@ -147,6 +151,19 @@ class Request:
 
 #: The longest rotation video a command makes (60 s at 60 fps): anything longer is a typo, and would fill the disk.
 MAX_FRAMES = 3600
+
+
+def check_store(root: str, versions: Mapping[str, Any] | None, **records: str | None) -> None:
+    """A source store that opens (its header, the derived ``versions`` asked for) and holds the ``records`` named
+    (``record``, ``target_record``: None for none; the key is said as the config spells it)."""
+    from difareli.data.store import EncodingStore
+
+    store = EncodingStore.open(root).use_versions(versions)
+    for key, rid in records.items():
+        if rid is not None and not store.has(str(rid)):
+            some = ", ".join(store.ids()[:3])
+            raise errors.UserError(f"{key.replace('_', '.')}={rid}: no such record in the store {root} ({len(store)} "
+                                   f"records{', e.g. ' + some if some else ''}); give one of its record ids")
 
 
 def check_composite(c: Mapping[str, Any]) -> None:
