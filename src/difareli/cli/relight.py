@@ -39,10 +39,10 @@ def say(line: str) -> None:
 
 
 def write(answer: Answer, request: Request) -> dict[str, Path]:
-    """The answer's images written into the request's ``out_dir`` (its lines were said as they arose): relit.png and a labelled
-    comparison (with the ground truth where the target record is the same subject); a photo's aligned crop and
-    whole relit photo; the rotation video, its captioned contact sheet and, for a photo, the video composited.
-    A batch of photos (already written as it went): its counts said (:func:`write_counts`)."""
+    """The answer's images written into the request's ``out_dir`` (its lines were said as they arose): relit.png
+    and a labelled comparison (with the ground truth where the target record is the same subject); a photo's
+    aligned crop and whole relit photo; the rotation video, its captioned contact sheet and, for a photo, the
+    video composited. A batch of photos (already written as it went): its counts said (:func:`write_counts`)."""
     if answer.counts is not None:
         return write_counts(answer.counts, request)
     out_dir, written, source = Path(request.out_dir), {}, answer.source

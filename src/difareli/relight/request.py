@@ -5,10 +5,10 @@ light file, another record's light, the source's own light turned by a yaw or a 
 shadow strength and where its shadow map is marched), a rotation video of the source's light, how a photo's
 relights go back into it, and where and how the answer is written (the output folder, the video's frame rate and
 format). :meth:`Request.from_config` takes it from a command's config (``conf/relight.yaml``) and checks it, each
-value once (how it is relit, the sampler, runtime and batch size, is the relighter's to check). :func:`answer` (the relighter's door :meth:`~difareli.relight.relighter.Relighter.answer`) reads the
-source once, builds the targets, relights, composites, and returns an :class:`Answer` that a command only writes out;
-a batch of photos is answered photo by photo into the request's ``out_dir`` (:mod:`difareli.relight.batch`), its
-answer the counts.
+value once (how it is relit, the sampler, runtime and batch size, is the relighter's to check). :func:`answer` (the
+relighter's door :meth:`~difareli.relight.relighter.Relighter.answer`) reads the source once, builds the targets,
+relights, composites, and returns an :class:`Answer` that a command only writes out; a batch of photos is answered
+photo by photo into the request's ``out_dir`` (:mod:`difareli.relight.batch`), its answer the counts.
 """
 
 from __future__ import annotations
