@@ -15,6 +15,7 @@ import pytest
 from difareli.relight import targets
 from difareli.evaluation import video as vid
 from difareli.data.store import EncodingStore
+from difareli.errors import UserError
 
 from tests.helpers import compose_train
 
@@ -143,3 +144,17 @@ def test_video_cli_frames_and_outputs(tiny_checkpoint, synth_store, tmp_path):
     assert 0 <= summary["dssim_mean"] <= 1 and summary["change_gt_mean"] > 0
     assert 0 <= summary["floor_iou_mean"] <= summary["rule_iou_mean"] <= 1  # the floor, and the rule on the truth
     assert summary["target_sun"] == "shadows" and summary["target_maps"].startswith("target shadow maps marched toward")
+
+
+def test_video_cli_checks_its_store_and_record_before_the_checkpoint(synth_store, tmp_path):
+    from difareli.cli.video import run
+
+    ckpt = tmp_path / "c.ckpt"
+    ckpt.write_bytes(b"x")  # read, it would be refused as "not a readable PyTorch file": the store is said first
+    for override, want in {"record=s9_l9": r"^record=s9_l9: no such record in the store .*; give one of its record ids",
+                           f"store={tmp_path}/none": "no encoding store at",
+                           "versions.shadow_map=v9": "versions.shadow_map='v9'"}.items():
+        store = [] if override.startswith("store=") else [f"store={synth_store}"]
+        cfg = compose_train(tmp_path / "run", [f"checkpoint={ckpt}", *store, override], config_name="video")
+        with pytest.raises(UserError, match=want):
+            run(cfg)

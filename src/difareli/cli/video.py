@@ -17,7 +17,7 @@ from difareli.utils import viz
 from difareli.evaluation import video as vid
 from difareli.cli import common
 from difareli.relight.relighter import Relighter
-from difareli.relight.request import MAX_FRAMES
+from difareli.relight.request import MAX_FRAMES, check_store
 from difareli.data.encodings import shadow_logit
 from difareli.data.store import EncodingStore
 from difareli.synth import rotation
@@ -132,8 +132,8 @@ OUTPUTS = ("relit.gif", "relit.mp4", "relit.png", "contact_sheet.png", "ground_t
 
 
 def validate(cfg: DictConfig) -> None:
-    """Config values and input files, checked before any work (the relighter checks its own: sampler, batch
-    size, checkpoint)."""
+    """Config values and input files, checked before any work: the outputs, the rotation, the target, the store and
+    its record (as a relight request checks them); the relighter checks its own (sampler, batch size, checkpoint)."""
     viz.video_format(cfg.format)
     errors.check_out_dir(cfg.out_dir)
     errors.check_int(cfg.fps, "fps", 1)
@@ -144,6 +144,8 @@ def validate(cfg: DictConfig) -> None:
     errors.check_int(cfg.sheet_columns, "sheet_columns", 1)
     if cfg.rotation.envmap is not None:
         errors.check_file(cfg.rotation.envmap, "rotation.envmap")
+    versions = cfg.get("versions")
+    check_store(cfg.store, None if versions is None else dict(versions), record=cfg.record)
 
 
 @hydra.main(version_base="1.3", config_path=common.CONFIG_PATH, config_name="video")
