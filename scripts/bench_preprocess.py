@@ -10,8 +10,8 @@ git ``--baseline`` (default: the commit before issue 25), extracted with ``git a
 (nothing in the checkout changes). ``--workers n`` also times this tree's ``difareli-preprocess`` run with ``n``
 worker processes on the same photos (store writes included, previews off; wall-clock images/s). The rows
 "mediapipe graphs" and "identity network" are the wall time inside those third-party calls (part of the stages
-above them, hence "within the stages"), and "networks alone" the images/s this tree would reach if everything else were free: the bound on
-what changing our own code can give. Time it under
+above them, hence "within the stages"), and "networks alone" the images/s this tree would reach if everything else
+were free: the bound on what changing our own code can give. Time it under
 the shared lock: ``flock /tmp/difareli-timing.lock python ...``.
 """
 
@@ -195,7 +195,8 @@ def main(argv=None) -> None:
         print(table(b, a), flush=True)
         if args.workers > 1:
             ips = measure_workers(a["size"], args.repeats, args.workers)
-            print(f"{'images/s, ' + str(args.workers) + ' workers':<22}{'':>13}{ips:>14.2f}  (run(), start-up included)")
+            print(f"{'images/s, ' + str(args.workers) + ' workers':<22}{'':>13}{ips:>14.2f}"
+                  "  (run(), start-up included)")
 
 
 if __name__ == "__main__":

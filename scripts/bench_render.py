@@ -2,8 +2,8 @@
 
 The mesh is a bumpy sphere (~10k triangles, non-convex so shadow rays do real work) plus a floating box
 occluder and a backdrop plane, in camera space. Prints the median wall and CPU time of ``--repeats`` runs of each
-stage after one warm-up (:func:`difareli.perf.measure.time_calls`; CPU time is the steadier figure on a shared machine) and
-the ray backend (embree or pure Python), then a per-record estimate for SynthFaces-sized renders
+stage after one warm-up (:func:`difareli.perf.measure.time_calls`; CPU time is the steadier figure on a shared machine)
+and the ray backend (embree or pure Python), then a per-record estimate for SynthFaces-sized renders
 (``--record-res``, one scene build, one G-buffer, ``--shadows`` shadow passes, one shading reference).
 
     python scripts/bench_render.py --res 256 --repeats 10

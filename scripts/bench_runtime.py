@@ -3,11 +3,11 @@
     python scripts/bench_runtime.py --checkpoint <ckpt> --store <store> [--sampler unipc --steps 20]
         [--modes fp32 bf16 fp32+compile] [--repeats 3] [--records 2]
 
-Each mode is a :class:`difareli.runtime.core.Runtime`; every relight goes through :class:`difareli.relight.relighter.Relighter`
-(the record read, inversion + mean-matching self-decode + decode of one target, the inversion cache cleared each
-time), after one untimed warm-up per mode (compilation, allocation), modes interleaved within each repeat. Prints
-the median seconds and the largest pixel difference against fp32 (uint8 levels), so a faster mode that changes the
-picture is visible.
+Each mode is a :class:`difareli.runtime.core.Runtime`; every relight goes through
+:class:`difareli.relight.relighter.Relighter` (the record read, inversion + mean-matching self-decode + decode of one
+target, the inversion cache cleared each time), after one untimed warm-up per mode (compilation, allocation), modes
+interleaved within each repeat. Prints the median seconds and the largest pixel difference against fp32 (uint8
+levels), so a faster mode that changes the picture is visible.
 """
 
 from __future__ import annotations

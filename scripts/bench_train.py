@@ -62,7 +62,8 @@ def main() -> None:
         proc = subprocess.run([sys.executable, __file__, "--one", c, "--device", a.device, "--steps", str(a.steps),
                                "--warmup", str(a.warmup), "--variant", a.variant], capture_output=True, text=True)
         if proc.returncode != 0:
-            print(f"| {c} | failed: {proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else proc.returncode} |")
+            print(f"| {c} | failed: "
+                  f"{proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else proc.returncode} |")
             continue
         r = json.loads(proc.stdout.strip().splitlines()[-1])
         rows.append(r)

@@ -40,7 +40,8 @@ def main() -> None:
     ids = [r for r in store.ids(split=a.split) if any((store.records_dir / r / f"{k}.npy").is_file() for k in raws)]
     ids = shadowed_records(store, ids, a.shadowed)
     if not ids:
-        raise SystemExit(f"no shadowed {a.split} record of {a.store} has a raw difference: run the difference job first")
+        raise SystemExit(f"no shadowed {a.split} record of {a.store} has a raw difference: "
+                         "run the difference job first")
     raw = next(k for k in raws if (store.records_dir / ids[0] / f"{k}.npy").is_file())
     print(f"{len(ids)} shadowed {a.split} records of {a.store} ({raw}); IoU against shadow_visible_gt, both on the "
           "face less the eyes, brows and mouth\n")

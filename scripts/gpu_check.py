@@ -41,7 +41,8 @@ FULL = dict(sizes=[("ffhq128", 128), ("ffhq256", 256)], batches=[1, 16], iters={
             modes=list(MODES), compile_estimate_s=120)
 SMALL = dict(sizes=[("tiny", 32)], batches=[1, 2], iters={1: 3, 2: 2}, warmup=1, relight=("tiny", 32), ddim_steps=4,
              unipc_steps=3, frames=3, train=dict(preset="tiny", res=32, batch=2, precision="bf16-mixed", steps=1,
-                                                 warmup=1), modes=["fp32", "bf16", "bf16+cuda_graphs"], compile_estimate_s=300)
+                                                 warmup=1), modes=["fp32", "bf16", "bf16+cuda_graphs"],
+             compile_estimate_s=300)
 
 
 def untrained(preset: str, res: int, device: torch.device):
@@ -120,7 +121,8 @@ def check(args) -> dict:
             unet = count_flops(net, x, t, cond)
             mod = count_flops(net.condition, sp, ns)
         report["flops"].append({"preset": preset, "resolution": res, "unet_pass_GFLOP": unet / 1e9,
-                                "modulator_GFLOP": mod / 1e9, "params_M": sum(p.numel() for p in net.parameters()) / 1e6})
+                                "modulator_GFLOP": mod / 1e9,
+                                "params_M": sum(p.numel() for p in net.parameters()) / 1e6})
     eager = [m for m in modes if "compile" not in m]
     if "unet" in stages:
         unet_modes(report, plan, models, dev, eager, peak, left)
@@ -190,7 +192,8 @@ def markdown(r: dict) -> str:
     lines += [f"| {f['preset']} | {f['resolution']} | {f['unet_pass_GFLOP']:.1f} | {f['modulator_GFLOP']:.1f} | "
               f"{f['params_M']:.1f} |" for f in r["flops"]]
     lines += ["", "## UNet pass (denoiser with a prepared condition)", "",
-              "| preset | px | batch | mode | ms/pass | warm-up s | TFLOP/s | MFU |", "|---|---|---|---|---|---|---|---|"]
+              "| preset | px | batch | mode | ms/pass | warm-up s | TFLOP/s | MFU |",
+              "|---|---|---|---|---|---|---|---|"]
     lines += [f"| {u['preset']} | {u['resolution']} | {u['batch']} | {u['mode']} | {u['ms_per_pass']:.2f} | "
               f"{u['setup_s']:.1f} | {u['TFLOPs']:.3g} | {_percent(u['mfu'])} |"
               for u in r["unet"]]
@@ -199,7 +202,8 @@ def markdown(r: dict) -> str:
         lines += ["", f"## Relights at {rl['resolution']} px ({rl['preset']}; invert + self-decode + decode)", "",
                   "| what | mode | passes | targets | invert s | decode s | total s |", "|---|---|---|---|---|---|---|"]
         for name, row in [(f"unipc-{u['steps']}", u) for u in rl["unipc"]] + [
-                (f"ddim-{rl['ddim']['steps']}", rl["ddim"]), (f"rotation unipc-{rl['rotation']['steps']}", rl["rotation"])]:
+                (f"ddim-{rl['ddim']['steps']}", rl["ddim"]),
+                (f"rotation unipc-{rl['rotation']['steps']}", rl["rotation"])]:
             lines.append(f"| {name} | {row['mode']} | {row['passes']} | {row['targets']} | {row['invert_s']:.2f} | "
                          f"{row['decode_s']:.2f} | {row['seconds']:.2f} |")
     if r["train"]:

@@ -126,8 +126,8 @@ def main() -> None:
         achieved = None if ips is None else flops / batch * ips
         name = f"{model}-synth{res}"
         facts = {"summary": f"Reference {model} trained by scripts/gpu_train_reference.sh on {report['device']}.",
-                 "data": f"SynthFaces v2 (realism=full, inputs=estimated_light), {cfg['subjects']} subjects x 4 lights, "
-                         f"{res} px, seed 0 (train split)", "seed": 42, "batch_size": batch,
+                 "data": f"SynthFaces v2 (realism=full, inputs=estimated_light), {cfg['subjects']} subjects "
+                         f"x 4 lights, {res} px, seed 0 (train split)", "seed": 42, "batch_size": batch,
                  "precision": "bf16-mixed" if cuda else "32-true", "hardware": report["device"],
                  "wall_time": f"{wall:.0f} s (process), trainer.max_time {minutes} min",
                  "weights": "EMA, stored in bf16" if cuda else "EMA, fp32",

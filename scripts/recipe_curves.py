@@ -87,8 +87,8 @@ def main(argv: list[str] | None = None) -> None:
     out.mkdir(parents=True, exist_ok=True)
     (out / "recipe_table.md").write_text("\n".join(lines) + "\n")
     cols = min(3, len(shown))
-    fig, axes = plt.subplots(math.ceil(len(shown) / cols), cols, figsize=(4.5 * cols, 3.4 * math.ceil(len(shown) / cols)),
-                             squeeze=False)
+    fig, axes = plt.subplots(math.ceil(len(shown) / cols), cols,
+                             figsize=(4.5 * cols, 3.4 * math.ceil(len(shown) / cols)), squeeze=False)
     for ax, m in zip(axes.ravel(), shown):
         for name, d in zip(names, data):
             pts = [(r["perf/wall_s"] / 60, r[m]) for r in d if m in r]

@@ -43,13 +43,15 @@ def main() -> None:
     ap.add_argument("run_checkpoint")
     ap.add_argument("name")
     ap.add_argument("--store", required=True, help="the store benchmarked (its protocols; a seed the model never saw)")
-    ap.add_argument("--store-cmd", default=None, help="the command that made --store, for the card (default: read back from the store's header)")
+    ap.add_argument("--store-cmd", default=None, help="the command that made --store, for the card (default: read back "
+                    "from the store's header)")
     ap.add_argument("--pairs", type=int, default=100, help="pairs per protocol")
     ap.add_argument("--sampler", default=DEFAULT_SAMPLER, help="a preset (default: the default sampler)")
     ap.add_argument("--steps", type=int, default=None, help="default: the preset's")
     ap.add_argument("--hardware", default=platform.processor() or platform.machine())
     ap.add_argument("--precision", default="bf16-mixed")
-    ap.add_argument("--data", default=None, help=f"the training data (default: {DATA!r}; a fine-tune or a refresh keeps its card's)")
+    ap.add_argument("--data", default=None, help=f"the training data (default: {DATA!r}; a fine-tune or a refresh "
+                    "keeps its card's)")
     ap.add_argument("--batch-size", type=int, default=16, help="when the run's .hydra/config.yaml is missing")
     ap.add_argument("--wall", default=None, help="the training's wall time as the card says it, for a checkpoint "
                     "that holds no Timer (a run resumed with trainer.max_time=null), e.g. '0.83 h in three runs'")

@@ -4,7 +4,8 @@
     python scripts/synth_v2_report.py --work /tmp/synth_v2 [--subjects 250 --lights 4 --resolution 64 --limit 120]
 
 Steps (each skipped when its output exists, so a rerun resumes):
-1. ``difareli-synth`` both presets (``inputs=estimated_light``, the v2 inputs, in both, so only the appearance effects differ);
+1. ``difareli-synth`` both presets (``inputs=estimated_light``, the v2 inputs, in both, so only the appearance effects
+   differ);
 2. ``difareli-benchmark -m method=identity,lambertian,oracle`` and ``method=lambertian oracle_light=true`` on each;
 3. ``difareli-table`` per store;
 4. the face-pixel energy shares of the effect terms (record meta ``energy``) and the light-fit errors;
@@ -38,9 +39,11 @@ def cli(module: str, *args: str) -> str:
     return proc.stdout
 
 
-def synth(out_dir: Path, preset: str, subjects: int, lights: int, res: int, workers: int, preview: bool = True) -> float | None:
+def synth(out_dir: Path, preset: str, subjects: int, lights: int, res: int, workers: int,
+          preview: bool = True) -> float | None:
     out = cli("synth", f"out_dir={out_dir}", f"subjects={subjects}", f"lights={lights}", f"resolution={res}",
-              f"realism={preset}", "inputs=estimated_light", f"workers={workers}", f"preview.enabled={str(preview).lower()}")
+              f"realism={preset}", "inputs=estimated_light", f"workers={workers}",
+              f"preview.enabled={str(preview).lower()}")
     m = re.search(r"\(([\d.]+) images/s", out)
     return float(m.group(1)) if m else None
 
@@ -138,7 +141,8 @@ def main(argv=None) -> int:
         for res, subjects in ((64, 40), (256, 10)):
             for preset in PRESETS.values():
                 store = work / f"speed_{preset}_{res}"
-                speeds[(preset, res, subjects * 4)] = synth(store, preset, subjects, 4, res, args.workers, preview=False)
+                speeds[(preset, res, subjects * 4)] = synth(store, preset, subjects, 4, res, args.workers,
+                                                            preview=False)
     if speeds:
         lines += ["## Generation speed (images/s as difareli-synth prints it; shared, loaded 2-core CPU)", "",
                   "| preset | resolution | images | images/s |", "|---|---:|---:|---:|"]

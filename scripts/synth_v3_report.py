@@ -69,15 +69,18 @@ def main(argv=None) -> None:
     se = lambda v: np.nanstd(v) / np.sqrt(np.isfinite(v).sum())  # noqa: E731
     lines = [f"Estimated vs exact inputs on {store.root}: {len(rows)} records (every {args.every}), estimation "
              f"resolution {store.store_meta.get('estimation_resolution')} px, {fallback} record(s) where an "
-             "estimator failed (exact inputs kept, flagged)", "", "| quantity | mean ± SE | median |", "|---|---:|---:|"]
+             "estimator failed (exact inputs kept, flagged)", "", "| quantity | mean ± SE | median |",
+             "|---|---:|---:|"]
     labels = {"normal_deg": "normal angle error (deg, pixels with both)", "face_iou": "face-mask IoU",
               "parts_agree": "part-label agreement on the foreground", "pose_deg": "head pose error (deg, mean of 3)",
               "cam_scale_rel": "camera scale error (relative)", "light_rel": "SH light error (relative)"}
     for k, label in labels.items():
         lines.append(f"| {label} | {np.nanmean(col[k]):.3f} ± {se(col[k]):.3f} | {np.nanmedian(col[k]):.3f} |")
     ok = col["c_gt"] > -6.5
-    lines += [f"| estimated vs exact c: correlation (records with c_gt > -6.5) | {np.corrcoef(col['c'][ok], col['c_gt'][ok])[0, 1]:.3f} | |",
-              f"| dlib identity distance, same subject (other light) | {np.mean(within):.3f} | {np.median(within):.3f} |",
+    lines += ["| estimated vs exact c: correlation (records with c_gt > -6.5) | "
+              f"{np.corrcoef(col['c'][ok], col['c_gt'][ok])[0, 1]:.3f} | |",
+              f"| dlib identity distance, same subject (other light) | {np.mean(within):.3f} | "
+              f"{np.median(within):.3f} |",
               f"| dlib identity distance, other subjects | {np.mean(between):.3f} | {np.median(between):.3f} |"]
     if secs:
         lines.append(f"| estimators' seconds per record (one process, from meta) | {np.mean(secs):.3f} | "

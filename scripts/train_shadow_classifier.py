@@ -23,7 +23,8 @@ import numpy as np
 from difareli.estimators.geometry import FaceMeshGeometry
 from difareli.estimators.light import SkinSHLight
 from difareli.estimators.masks import FaceMeshSelfieMasks
-from difareli.estimators.shadow import DEFAULT_WEIGHTS, FEATURES, LABEL_C, LABEL_S, LogisticShadowClassifier, ShadowEstimator, features
+from difareli.estimators.shadow import (DEFAULT_WEIGHTS, FEATURES, LABEL_C, LABEL_S, LogisticShadowClassifier,
+                                        ShadowEstimator, features)
 from difareli.data.store import EncodingStore
 
 

@@ -13,9 +13,9 @@ import torch
 
 
 def auto_precision(device: torch.device | str) -> str:
-    """``runtime.precision=auto`` (the default): bf16 where the hardware has native bf16 arithmetic (a CUDA GPU that supports
-    it; a CPU with ``avx512_bf16`` or ``amx_bf16``), else fp32. On such a CPU a whole ffhq128 relight took 0.81x
-    the fp32 time (0.62x compiled), and a trained model's relight changed by the error docs/official_code.md
+    """``runtime.precision=auto`` (the default): bf16 where the hardware has native bf16 arithmetic (a CUDA GPU that
+    supports it; a CPU with ``avx512_bf16`` or ``amx_bf16``), else fp32. On such a CPU a whole ffhq128 relight took
+    0.81x the fp32 time (0.62x compiled), and a trained model's relight changed by the error docs/official_code.md
     states."""
     device = torch.device(device)
     if device.type == "cuda":

@@ -78,7 +78,8 @@ def test_api_relights_a_record_with_seconds_and_reconstruction_error(record_app)
                                                   "shadow": 0.5})
         assert status == 200, out
         assert set(out["seconds"]) >= {"invert", "decode", "total"} and out["seconds"]["total"] > 0
-        assert 0 <= out["error"]["mse"] < 1 and 0 <= out["error"]["dssim"] <= 1 and out["error"]["region"] == "face mask"
+        assert (0 <= out["error"]["mse"] < 1 and 0 <= out["error"]["dssim"] <= 1
+                and out["error"]["region"] == "face mask")
         results.append(_png(out["image"]).astype(float))
     assert results[0].shape == (32, 32, 3) and np.abs(results[0] - results[1]).mean() > 0.5  # the light matters
     assert out["seconds"]["invert"] < 0.05  # the second relight reuses the inversion

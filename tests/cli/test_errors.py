@@ -189,7 +189,8 @@ def test_check_out_dir(tmp_path, monkeypatch):
 def test_check_finite_names_input_and_index():
     a = np.zeros((9, 3))
     a[4, 1] = np.nan
-    with pytest.raises(errors.NonFiniteError, match=r"target light: 1 of 27 values are NaN or Inf \(first at index \(4, 1\)\)"):
+    with pytest.raises(errors.NonFiniteError,
+                       match=r"target light: 1 of 27 values are NaN or Inf \(first at index \(4, 1\)\)"):
         errors.check_finite(a, "target light")
     with pytest.raises(errors.NonFiniteError, match="magnitude 1e\\+300 exceeds"):
         errors.check_light(np.full((9, 3), 1e300), "light file x")
@@ -261,7 +262,8 @@ def test_train_refuses_test_only_store_and_nonfinite_records(synth_store, tmp_pa
         p = root / "records" / rid / "meta.json"
         p.write_text(p.read_text().replace('"train"', '"test"').replace('"val"', '"test"'))
     dm = EncodingsDataModule(str(root), ["shading"], ["shape", "cam"])
-    with pytest.raises(UserError, match=r"has no records in split 'train' \(splits: \['test'\]\).*allow_split_fallback"):
+    with pytest.raises(UserError,
+                       match=r"has no records in split 'train' \(splits: \['test'\]\).*allow_split_fallback"):
         dm.setup()
     ok = EncodingsDataModule(str(root), ["shading"], ["shape", "cam"], allow_split_fallback=True)
     ok.setup()
@@ -272,7 +274,8 @@ def test_train_refuses_test_only_store_and_nonfinite_records(synth_store, tmp_pa
     shape[5] = np.nan
     np.save(root / "records" / rid / "shape.npy", shape)
     bad = EncodingsDataModule(str(root), ["shading"], ["shape", "cam"], allow_split_fallback=True)
-    with pytest.raises(UserError, match=f"1 training record\\(s\\) .* non-finite \\['shape', 'cam'\\] values: \\['{rid}'\\]"):
+    with pytest.raises(UserError,
+                       match=f"1 training record\\(s\\) .* non-finite \\['shape', 'cam'\\] values: \\['{rid}'\\]"):
         bad.nonspatial_stats()
     with pytest.raises(UserError, match=f"record '{rid}', encoding 'shape' in store {root}: 1 of"):
         bad.train_set[3]

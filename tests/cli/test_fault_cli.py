@@ -30,7 +30,8 @@ def test_trainer_gpu_without_a_gpu_is_one_line(tmp_path, monkeypatch):
 
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     cfg = compose_train(tmp_path, ["trainer=gpu", "debug=fdr"])
-    with pytest.raises(UserError, match=r"trainer.accelerator=gpu but this machine has no usable CUDA GPU.*trainer=cpu"):
+    with pytest.raises(UserError,
+                       match=r"trainer.accelerator=gpu but this machine has no usable CUDA GPU.*trainer=cpu"):
         train(cfg)
 
 

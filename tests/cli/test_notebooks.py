@@ -120,7 +120,8 @@ def test_relight_notebook(tiny_checkpoint, synth_store, jupyter_path, tmp_path, 
     torch.set_num_threads(1)
     try:
         relighter = Relighter(ckpt, {"name": "ddim", "steps": STEPS}, device="cpu")
-        expected = [float(relighter.relight(relighter.source(store, rid), Targets.of(lights, shadows))[0].mean() / 255.0)
+        expected = [float(relighter.relight(relighter.source(store, rid),
+                                            Targets.of(lights, shadows))[0].mean() / 255.0)
                     for lights, shadows in targets]
     finally:
         torch.set_num_threads(threads)

@@ -48,7 +48,8 @@ def test_preempted_slurm_job_requeues_and_resumes(synth_store, tmp_path):
             "data.synth=null", "data.num_workers=0", "data.batch_size=4", "model.preset=tiny", "sample_grid=false",
             "trainer.val_check_interval=2", "trainer.limit_val_batches=1", "logger=[]", "~callbacks.progress_bar",
             "~callbacks.reconstruction_grid", f"hydra.run.dir={run_dir}", f"paths.log_dir={tmp_path}"]
-    first = subprocess.run([*base, "trainer.max_steps=6", "+callbacks.preempt._target_=tests.cli.test_scale_slurm.Preempt"],
+    first = subprocess.run([*base, "trainer.max_steps=6",
+                            "+callbacks.preempt._target_=tests.cli.test_scale_slurm.Preempt"],
                            cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
     assert first.returncode == 0, first.stderr[-4000:]
     assert log.read_text().split() == ["requeue", "4242"]  # Lightning asked SLURM to requeue this job id

@@ -81,7 +81,8 @@ def test_retarget_many_equals_one_target_at_a_time(synth_store):
     store = EncodingStore.open(synth_store)
     names = ["shading", "shadow_map", "masks", "light", "shadow"]
     arrays = {k: np.asarray(v) for k, v in store.read("s00006_l0", names + ["normal", "depth", "cam"]).items()}
-    pairs = [(sh.yaw(arrays["light"].astype(np.float64), a), c) for a, c in [(-80, 1.0), (0, None), (35, -2.0), (80, 3.0)]]
+    pairs = [(sh.yaw(arrays["light"].astype(np.float64), a), c)
+             for a, c in [(-80, 1.0), (0, None), (35, -2.0), (80, 3.0)]]
     many = retarget_many(arrays, names, pairs)
     assert len(many) == 4 and any(m["shadow_map"].any() for m in many)
     for got, (light, c) in zip(many, pairs):

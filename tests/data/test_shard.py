@@ -36,7 +36,8 @@ def test_shard_of_is_a_stable_hash_golden_values():
     assert [shard.shard_of(f"s{i:05d}", 4) for i in range(8)] == [3, 2, 0, 1, 2, 1, 1, 0]
     assert shard.shard_of("s00000_l0", 7) == 1 and shard.shard_of("abc", 1000) == 721
     # Not Python's per-process salted hash: a fresh interpreter gives the same answer.
-    out = subprocess.run([sys.executable, "-c", "from difareli.data.shard import shard_of; print(shard_of('abc', 1000))"],
+    out = subprocess.run([sys.executable, "-c",
+                          "from difareli.data.shard import shard_of; print(shard_of('abc', 1000))"],
                          capture_output=True, text=True, env={**os.environ, "PYTHONPATH": SRC, "PYTHONHASHSEED": "7"})
     assert out.stdout.strip() == "721"
 

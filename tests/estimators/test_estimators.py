@@ -146,10 +146,12 @@ def test_albedo_prior_is_the_synthfaces_mean():
 def test_masks_cover_the_face(results, name):
     arrays, _, ctx = results[name]
     m, lm = arrays["masks"], ctx["landmarks"]
-    oval = masks.fill(lm[masks.outline(__import__("mediapipe").solutions.face_mesh.FACEMESH_FACE_OVAL, lm[:, :2])][:, :2],
+    oval = masks.fill(lm[masks.outline(__import__("mediapipe").solutions.face_mesh.FACEMESH_FACE_OVAL,
+                                       lm[:, :2])][:, :2],
                       m.shape)
     assert arrays["face_mask"][oval].mean() > 0.99 and arrays["face_mask"][~oval].mean() < 0.01
-    at = lambda i, j=None: m[tuple(np.floor(lm[i, 1::-1] if j is None else (lm[i, 1::-1] + lm[j, 1::-1]) / 2).astype(int))]  # noqa: E731
+    at = lambda i, j=None: m[tuple(np.floor(lm[i, 1::-1] if j is None  # noqa: E731
+                                            else (lm[i, 1::-1] + lm[j, 1::-1]) / 2).astype(int))]
     assert at(473) == PART_INDEX["l_eye"] and at(468) == PART_INDEX["r_eye"]  # iris centres
     assert at(50) == PART_INDEX["skin"] and at(280) == PART_INDEX["skin"]     # cheeks
     assert at(4) == PART_INDEX["nose"] and at(0, 13) == PART_INDEX["u_lip"] and at(17, 14) == PART_INDEX["l_lip"]

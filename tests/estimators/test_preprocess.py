@@ -105,7 +105,8 @@ def test_cli_two_photos_plus_bad_files_then_rerun_does_nothing(tmp_path):
     # Every encoding a photo can give: all of the schema but the synthetic ground truth (*_gt).
     assert set(store.encodings) == {n for n, e in ENCODINGS.items() if not e.oracle}
     rec = store.read("grace_hopper")
-    assert rec["image"].shape == (256, 256, 3) and rec["identity"].shape == (128,) and rec["shape"].shape == (53,)  # BFM fit: the SynthFaces layout
+    assert (rec["image"].shape == (256, 256, 3) and rec["identity"].shape == (128,)
+            and rec["shape"].shape == (53,))  # BFM fit: the SynthFaces layout
     report = json.loads((out / "preprocess_report.json").read_text())
     by_file = {Path(e["file"]).name: e for e in report["images"]}
     assert report["written"] == 2 and report["failed"] == len(bad)

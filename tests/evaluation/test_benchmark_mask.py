@@ -80,8 +80,9 @@ def test_a_mask_the_store_lacks_is_refused_naming_its_masks(synth_store, tmp_pat
         with pytest.raises(SystemExit) as e:
             errors.cli_entry("benchmark")(lambda cfg=cfg: run(cfg))()
         assert e.value.code == 2
-        assert capsys.readouterr().err == (f"difareli-benchmark: score_mask={key}: store {synth_store} {what}; give one "
-                                           "of its masks: face_mask, shadow_visible_gt (default score_mask=face_mask)\n")
+        assert capsys.readouterr().err == (
+            f"difareli-benchmark: score_mask={key}: store {synth_store} {what}; give one "
+            "of its masks: face_mask, shadow_visible_gt (default score_mask=face_mask)\n")
         assert not (tmp_path / key / SETTINGS).exists() and not (tmp_path / key / "metrics_per_image.csv").exists()
 
 

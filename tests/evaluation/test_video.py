@@ -1,5 +1,5 @@
-"""Moving-light videos (difareli.evaluation.video, difareli-video): IoU on known shapes, temporal change closed forms, the
-shadow rule against exact SynthFaces cast maps, the typical-c policy and the CLI's frame count and outputs."""
+"""Moving-light videos (difareli.evaluation.video, difareli-video): IoU on known shapes, temporal change closed forms,
+the shadow rule against exact SynthFaces cast maps, the typical-c policy and the CLI's frame count and outputs."""
 
 from __future__ import annotations
 
@@ -114,7 +114,8 @@ def test_shadow_rule_finds_exact_cast_shadows(rotation):
 def test_target_shadow_policy(synth_store):
     store = EncodingStore.open(synth_store)
     c, note = targets.video_shadow(store, -6.9, None)
-    want = targets.typical_shadowed_c(np.array([store.read(r, ["shadow"])["shadow"][0] for r in store.ids(split="train")]))
+    want = targets.typical_shadowed_c(np.array([store.read(r, ["shadow"])["shadow"][0]
+                                                for r in store.ids(split="train")]))
     assert c == pytest.approx(want) and "median c of the train split" in note
     assert targets.video_shadow(store, -2.0, None)[0] == -2.0
     assert targets.video_shadow(store, -6.9, -1.5) == (-1.5, "target c' = -1.500 (given: target.shadow)")

@@ -54,7 +54,8 @@ def test_visible_maps_are_the_exact_visible_shadows_times_c(store):
     for rid in store.ids()[:4]:
         a = store.read(rid, ["shadow_visible_gt", "shadow_gt", rep.name])
         c = encodings.shadow_logit(a, "shadow_gt")
-        np.testing.assert_array_equal(a[rep.name], (a["shadow_visible_gt"] * encodings.normalise_c(c, rng)).astype(np.float32))
+        np.testing.assert_array_equal(a[rep.name],
+                                      (a["shadow_visible_gt"] * encodings.normalise_c(c, rng)).astype(np.float32))
 
 
 def test_a_store_without_what_a_maker_reads_is_refused_by_name(store):

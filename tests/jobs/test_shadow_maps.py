@@ -313,7 +313,8 @@ def test_defaults_and_a_weak_difareli_is_refused_with_its_contrast(store):
         sm.compute(Weak(), store, None, provenance={"checkpoint": "weak"}, progress=False)
     rep = sm.compute(Weak(), store, None, provenance={"checkpoint": "weak"}, min_contrast=0, progress=False)
     prov = EncodingStore.open(store.root).derived[rep.name]
-    assert prov["threshold"] == pytest.approx(sm.RELATIVE * prov["response_p99"], rel=0.02) and prov["centre"] == "median"
+    assert (prov["threshold"] == pytest.approx(sm.RELATIVE * prov["response_p99"], rel=0.02)
+            and prov["centre"] == "median")
     assert prov["median"] == 1 and prov["zero_parts"] == list(sm.ZERO_PARTS)
     assert prov["contrast"] < 0.01 and prov["c_norm_range"] == "fixed"  # a pre-v3 store: the fixed range
     recipe = sm.compute(Weak(), store, None, provenance={"checkpoint": "weak"}, centre="none", threshold=0.05,

@@ -1,4 +1,5 @@
-"""SH lighting (difareli.lighting.sh) against closed forms: constants, clamped-cosine lobes, rotations, env maps, fits."""
+"""SH lighting (difareli.lighting.sh) against closed forms: constants, clamped-cosine lobes, rotations, env maps,
+fits."""
 
 import math
 

@@ -79,7 +79,8 @@ def test_killed_benchmark_resumes_without_redoing_pairs(store_copy, tmp_path):
     assert [(r.record_id, r.dssim, r.mse, r.lpips) for r in res.records] == \
         [(r.record_id, r.dssim, r.mse, r.lpips) for r in ref.records]
     assert not (out / PARTIAL_CSV).exists()
-    assert (out / "comparison_same_subject.png").read_bytes() == (tmp_path / "ref" / "comparison_same_subject.png").read_bytes()
+    assert ((out / "comparison_same_subject.png").read_bytes()
+            == (tmp_path / "ref" / "comparison_same_subject.png").read_bytes())
 
 
 def test_guard_names_batch_records():
@@ -92,7 +93,8 @@ def test_guard_names_batch_records():
 
     g.on_train_batch_start(T_(), None, {"record_id": ["s00001_l0", "s00002_l1"]}, 3)
     g.on_before_backward(T_(), None, torch.tensor(0.5))
-    with pytest.raises(NonFiniteLossError, match=r"training loss is nan at step 7 \(batch 3, records: s00001_l0, s00002_l1\)"):
+    with pytest.raises(NonFiniteLossError,
+                       match=r"training loss is nan at step 7 \(batch 3, records: s00001_l0, s00002_l1\)"):
         g.on_before_backward(T_(), None, torch.tensor(float("nan")))
     p = torch.nn.Parameter(torch.zeros(3))
     p.grad = torch.tensor([1.0, float("inf"), 0.0])
@@ -108,9 +110,9 @@ def test_nonfinite_loss_stops_training_and_keeps_last_ckpt(store_copy, tmp_path,
 
     from tests.helpers import compose_train
 
-    base = [f"data.root={store_copy}", "callbacks.reconstruction_grid=null", "data.resolution=32", "data.synth=null", "data.num_workers=0",
-            "data.batch_size=4", "model=difareli_pp", "model.preset=tiny", "trainer=cpu", "sample_grid=false",
-            "logger=[]", "trainer.limit_val_batches=1", "trainer.val_check_interval=2"]
+    base = [f"data.root={store_copy}", "callbacks.reconstruction_grid=null", "data.resolution=32", "data.synth=null",
+            "data.num_workers=0", "data.batch_size=4", "model=difareli_pp", "model.preset=tiny", "trainer=cpu",
+            "sample_grid=false", "logger=[]", "trainer.limit_val_batches=1", "trainer.val_check_interval=2"]
     train(compose_train(tmp_path, [*base, "trainer.max_steps=2"]))
     last = tmp_path / "checkpoints" / "last.ckpt"
     good = last.read_bytes()
@@ -187,7 +189,8 @@ def test_killed_synth_leaves_no_worker_and_a_consistent_store(tmp_path, sig):
     env = {**os.environ, "PYTHONPATH": str(ROOT / "src"), "OMP_NUM_THREADS": "1"}
     out = tmp_path / "store"
     proc = subprocess.Popen([sys.executable, "-m", "difareli.cli.synth", f"out_dir={out}", "subjects=6", "lights=2",
-                             "resolution=32", "workers=2", f"hydra.run.dir={tmp_path / 'run'}", "preview.enabled=false"],
+                             "resolution=32", "workers=2", f"hydra.run.dir={tmp_path / 'run'}",
+                             "preview.enabled=false"],
                             env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     workers: list[int] = []
     deadline = time.monotonic() + 120

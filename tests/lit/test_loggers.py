@@ -114,4 +114,5 @@ def test_benchmark_logs_summary_table_and_comparisons(synth_store, tmp_path):
     ea = _events(tmp_path / "tensorboard")
     assert set(ea.Tags()["images"]) == {"benchmark/comparison_same_subject", "benchmark/comparison_different_subject"}
     assert _text(ea, "benchmark/summary") == result.table.to_markdown(digits=4)
-    assert "_target_: difareli.evaluation.baselines.Identity" in _text(ea, "config") and "git commit" in _text(ea, "config")
+    assert ("_target_: difareli.evaluation.baselines.Identity" in _text(ea, "config")
+            and "git commit" in _text(ea, "config"))

@@ -46,7 +46,8 @@ def test_scores_at_the_shortest_runs_wall_time(tmp_path):
     assert "| model.loss.weighting=min_snr | 0.2200 | 0.4400 | 20 | 250 |" in table
     assert (tmp_path / "out" / "recipe_curves.png").stat().st_size > 1000
     _script().main([str(a), str(b), "--seconds", "150", "--out", str(tmp_path / "o2")])
-    assert "| model.loss.weighting=min_snr | 0.2800 | 0.5600 | 10 | 120 |" in (tmp_path / "o2" / "recipe_table.md").read_text()
+    assert ("| model.loss.weighting=min_snr | 0.2800 | 0.5600 | 10 | 120 |"
+            in (tmp_path / "o2" / "recipe_table.md").read_text())
 
 
 def test_refuses_folders_without_runs(tmp_path):

@@ -117,7 +117,8 @@ def _check_parity(run, synth_store, ckpt, sampler):
     return cb
 
 
-@pytest.mark.slow  # a training run with relight metrics and a benchmark: the default run has to finish in minutes at load 4
+@pytest.mark.slow  # a training run with relight metrics and a benchmark: the default run has to finish in minutes at
+# load 4
 def test_training_logs_relight_metrics_and_grid_and_they_match_the_benchmark(synth_store, tmp_path, capsys):
     run = _train(tmp_path, synth_store)
     rows = _logged(tmp_path)

@@ -312,7 +312,8 @@ def test_student_through_relight_cli(student_ckpt, synth_store, tmp_path):
     o = store.read(other, ["light", "shadow"])
     tgt = retarget(src, SP + NS, np.asarray(o["light"]), float(o["shadow"][0]))
     with torch.no_grad():
-        want = model.relight_once(image_to_tensor(src["image"])[None], model.condition(*condition_tensors(model, [src])),
+        want = model.relight_once(image_to_tensor(src["image"])[None],
+                                  model.condition(*condition_tensors(model, [src])),
                                   model.condition(*condition_tensors(model, [tgt])))[0]
     assert np.abs(relit.astype(int) - viz.to_uint8(want.clamp(-1, 1))).max() <= 1
     # A GIF merges identical consecutive frames (two lights from behind can both leave the face unlit): count the

@@ -78,7 +78,8 @@ def test_overfit_eight_images_loss_falls_tenfold(synth_store, tmp_path):
     cfg = compose_train(tmp_path, [*_cpu_overrides(synth_store), "model=difareli_pp", "data.batch_size=8",
                                    "model.optimizer.lr=3e-3", "+model.net_overrides.base_channels=16",
                                    "+model.net_overrides.channel_mult=[1,2]", "+model.net_overrides.norm_groups=8",
-                                   "+model.net_overrides.adagn_hidden=64", "+model.net_overrides.attention_resolutions=[]"])
+                                   "+model.net_overrides.adagn_hidden=64",
+                                   "+model.net_overrides.attention_resolutions=[]"])
     L.seed_everything(0)
     dm = instantiate(cfg.data)
     dm.setup()

@@ -261,7 +261,8 @@ def test_modulator_runs_once_and_is_time_independent():
         net.spatial.forward = lambda *a, **k: calls.append(1) or orig(*a, **k)
         seen = {}
         orig_mod = net.spatial.modulate
-        net.spatial.modulate = lambda lvl, h, st: seen.setdefault(int(t_now[0]), []).append(st[lvl]) or orig_mod(lvl, h, st)
+        net.spatial.modulate = lambda lvl, h, st: (seen.setdefault(int(t_now[0]), []).append(st[lvl])
+                                                   or orig_mod(lvl, h, st))
         outs = {}
         for t_now in (torch.tensor([3, 3]), torch.tensor([700, 700])):
             outs[int(t_now[0])] = net(x, t_now, cond)

@@ -107,7 +107,8 @@ def test_store_cases_target_is_same_subject_other_light(synth_store):
     assert torch.equal(c.target_cond[0][0, 4:], c.source[0][0, 4:])  # masks: the input's
     assert torch.equal(c.target_cond[1], c.source[1])  # shape, cam, identity: the input's
     assert torch.equal(c.mask[0], torch.from_numpy(np.array(src["face_mask"])))
-    assert torch.equal(((c.gt[0] + 1) * 127.5).round().byte().permute(1, 2, 0), torch.from_numpy(np.array(tgt["image"])))
+    assert torch.equal(((c.gt[0] + 1) * 127.5).round().byte().permute(1, 2, 0),
+                       torch.from_numpy(np.array(tgt["image"])))
     assert len(speed.store_cases(store, model, limit=1)) == 1  # default: the test split
 
 

@@ -1,5 +1,5 @@
-"""difareli.perf.measure: variant configs composed without Hydra, untrained models equal to Hydra-built ones, random inputs
-of their shapes, timing, and the benchmark scripts built on them (bench_train, ablation_report)."""
+"""difareli.perf.measure: variant configs composed without Hydra, untrained models equal to Hydra-built ones, random
+inputs of their shapes, timing, and the benchmark scripts built on them (bench_train, ablation_report)."""
 
 from __future__ import annotations
 

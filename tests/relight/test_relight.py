@@ -220,7 +220,8 @@ def _batched_vs_separate(model, source, targets, x0, sp) -> float:
 @pytest.mark.parametrize("name", ["ddim", "unipc_bh2"])
 def test_batched_targets_equal_separate_toy(name):
     model = ToyModel(PP)
-    assert _batched_vs_separate(model, toy_inputs(model), toy_inputs(model, 4, seed=3), toy_image(), spec(name, 8)) < 1e-5
+    assert _batched_vs_separate(model, toy_inputs(model), toy_inputs(model, 4, seed=3), toy_image(),
+                                spec(name, 8)) < 1e-5
 
 
 def test_batched_targets_equal_separate_checkpoint(pp_model, depth_store):
@@ -323,8 +324,8 @@ def test_bf16_autocast_matches_float32_checkpoint(name, pp_model, depth_store):
     light = np.asarray(store.read("s00006_l1", ["light"])["light"])
     from difareli.relight.targets import retarget
 
-    args = (model, x0, condition_tensors(r.model, [arrays]), condition_tensors(r.model, [retarget(arrays, r.model_inputs, light)]),
-            r.spec)
+    args = (model, x0, condition_tensors(r.model, [arrays]),
+            condition_tensors(r.model, [retarget(arrays, r.model_inputs, light)]), r.spec)
     ref = relight(*args)
     with torch.autocast("cpu", dtype=torch.bfloat16):
         low = relight(*args)

@@ -27,8 +27,8 @@ def test_a_given_sun_is_where_the_map_is_marched_and_the_shading_stays_the_light
     light = sh.directional_light(_direction(20, 30), 1.0)
     sun = _direction(50, 200)
     hit = arrays["depth"] != 0
-    toward = lambda d: march_shadows(arrays["depth"].astype(np.float64), hit, OrthoCamera(1.0, 0.0, 0.0), d[None],  # noqa: E731
-                                     normal=arrays["normal"].astype(np.float64))[0]
+    toward = lambda d: march_shadows(arrays["depth"].astype(np.float64), hit, OrthoCamera(1.0, 0.0, 0.0),  # noqa: E731
+                                     d[None], normal=arrays["normal"].astype(np.float64))[0]
     given = Targets.of([light, light], [3.0, 3.0], suns=[sun, None]).retarget(arrays, NAMES)  # one batched march
     peak = retarget(arrays, NAMES, light, 3.0)
     assert toward(sun).sum() > 30 and (toward(sun) != toward(sun_direction(light))).sum() > 30

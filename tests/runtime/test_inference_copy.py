@@ -1,6 +1,6 @@
-"""The runtime's inference copy (difareli.runtime.inference_copy): weights cast once to the autocast dtype and channels-last
-give the passes autocast gives on the original network, follow every change of the original's weights, and never
-touch the caller's network."""
+"""The runtime's inference copy (difareli.runtime.inference_copy): weights cast once to the autocast dtype and
+channels-last give the passes autocast gives on the original network, follow every change of the original's weights,
+and never touch the caller's network."""
 
 from __future__ import annotations
 

@@ -153,7 +153,8 @@ def test_lights_of_a_subject_share_everything_but_light(records):
         for a in arrs[1:]:
             np.testing.assert_array_equal(a[name], arrs[0][name], err_msg=name)
     assert not np.allclose(arrs[0]["light"], arrs[1]["light"])
-    assert abs(np.linalg.norm(arrs[0]["identity"]) - 1) < 1e-6 and arrs[0]["identity"].shape == (synth_config.IDENTITY_DIM,)
+    assert (abs(np.linalg.norm(arrs[0]["identity"]) - 1) < 1e-6
+            and arrs[0]["identity"].shape == (synth_config.IDENTITY_DIM,))
     # Subjects 0 and 1 form one light group: same lights, different faces.
     a0 = next(arr for _, arr, _ in gen.render_records(0, [1], CFG, "train"))
     np.testing.assert_array_equal(a0["light"], arrs[1]["light"])

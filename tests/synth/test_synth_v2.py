@@ -142,7 +142,8 @@ def test_realism_lambertian_is_v1_bit_for_bit():
 
 @pytest.fixture(scope="module")
 def full_records():
-    cfg = synth_config.SynthConfig(subjects=2, lights=3, resolution=48, seed=3, realism="full", inputs="estimated_light")
+    cfg = synth_config.SynthConfig(subjects=2, lights=3, resolution=48, seed=3, realism="full",
+                                   inputs="estimated_light")
     subject = synth_subject.build_subject(1, cfg)
     recs = list(gen.render_records(1, [0, 1, 2], cfg, "train"))
     return cfg, subject, recs
@@ -155,7 +156,8 @@ def test_full_preset_is_deterministic_and_records_its_effects(full_records):
         assert m == m2
         for name in a:
             np.testing.assert_array_equal(a[name], b[name])
-    other = synth_config.SynthConfig(subjects=2, lights=3, resolution=48, seed=4, realism="full", inputs="estimated_light")
+    other = synth_config.SynthConfig(subjects=2, lights=3, resolution=48, seed=4, realism="full",
+                                     inputs="estimated_light")
     assert not np.array_equal(next(gen.render_records(1, [0], other, "train"))[1]["image"], recs[0][1]["image"])
     for _, arrays, meta in recs:
         assert meta["effects"] == {"specular": True, "subsurface": True, "ambient_occlusion": True, "multi_sun": True}
@@ -216,7 +218,8 @@ def test_config_rejects_unknown_presets_and_effects():
         synth_config.SynthConfig(subjects=1, lights=1, resolution=32, effects={"bloom": True})
     with pytest.raises(synth_config.ConfigError, match="inputs='guessed'"):
         synth_config.SynthConfig(subjects=1, lights=1, resolution=32, inputs="guessed")
-    cfg = synth_config.SynthConfig(subjects=1, lights=1, resolution=32, realism="full", effects={"specular": False, "multi_sun": None})
+    cfg = synth_config.SynthConfig(subjects=1, lights=1, resolution=32, realism="full",
+                                   effects={"specular": False, "multi_sun": None})
     assert cfg.effects == {"specular": False, "subsurface": True, "ambient_occlusion": True, "multi_sun": True}
 
 

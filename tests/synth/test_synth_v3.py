@@ -87,7 +87,8 @@ def test_v2_stores_open_and_refuse_a_v3_resume(synth_store, tmp_path):
     header["meta"].pop("synthfaces_version")
     header_path.write_text(json.dumps(header))
     assert len(EncodingStore.open(tmp_path / "v2").ids()) == 16  # reads as before
-    with pytest.raises(synth_config.ConfigError, match=r"SynthFaces v2 store.*difareli-synth out_dir=<new dir> subjects=8"):
+    with pytest.raises(synth_config.ConfigError,
+                       match=r"SynthFaces v2 store.*difareli-synth out_dir=<new dir> subjects=8"):
         gen.generate(str(tmp_path / "v2"), 8, 2, 32, seed=0)
 
 
@@ -95,7 +96,8 @@ def test_config_checks_and_the_resolved_estimation_resolution():
     cfg = synth_config.SynthConfig(subjects=1, lights=1, resolution=64, inputs="estimated")
     assert cfg.estimation_resolution == 128 and "normal_gt" in cfg.encodings
     assert synth_config.SynthConfig(subjects=1, lights=1, resolution=256).estimation_resolution == 256
-    assert "normal_gt" not in synth_config.SynthConfig(subjects=1, lights=1, resolution=64, inputs="estimated_light").encodings
+    assert "normal_gt" not in synth_config.SynthConfig(subjects=1, lights=1, resolution=64,
+                                                       inputs="estimated_light").encodings
     for bad in ({"estimation_resolution": 96}, {"inputs": "guessed"}, {"shadow_visible": 1.5}):
         with pytest.raises(synth_config.ConfigError):
             synth_config.SynthConfig(subjects=1, lights=1, resolution=64, **bad)

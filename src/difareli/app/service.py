@@ -290,7 +290,8 @@ class Service:
             self._errors[key] = reconstruction_error(relit[1], arrays)
         out = {"crop": png_data_url(relit[0]), "what": s.source.what, "how": relighter.describe(),
                "error": self._errors[key],
-               "warnings": list(dict.fromkeys(str(w.message) for w in caught if issubclass(w.category, RuntimeWarning)))}
+               "warnings": list(dict.fromkeys(str(w.message) for w in caught
+                                              if issubclass(w.category, RuntimeWarning)))}
         if s.prepared is not None:
             out["image"] = png_data_url(relit.composite(self.composite.get("mode", "ratio"),
                                                         self.composite.get("feather", 0.03), images=relit[:1])[0])

@@ -27,7 +27,8 @@ SHIPPED_DIR = Path(__file__).resolve().parent  # the weights ship beside this mo
 
 def available() -> list[str]:
     """Names of the shipped checkpoints."""
-    return sorted({p.stem for p in SHIPPED_DIR.glob("*.ckpt")} | {p.name for p in SHIPPED_DIR.iterdir() if is_folder(p)})
+    folders = {p.name for p in SHIPPED_DIR.iterdir() if is_folder(p)}
+    return sorted({p.stem for p in SHIPPED_DIR.glob("*.ckpt")} | folders)
 
 
 def resolve(checkpoint: str | Path, key: str = "checkpoint", prefer_folder: bool = False) -> Path:

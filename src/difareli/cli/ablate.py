@@ -73,7 +73,8 @@ def train_row(cfg: DictConfig, model: str, resolution: int | None) -> Path:
     last = out / "checkpoints" / "last.ckpt"
     # A row trained with other settings (steps, preset, store, overrides) is not this row: refuse, naming them.
     provenance.ensure(out, {"table": str(cfg.table), "model": model, "store": _store_id(cfg.store),
-                            "preset": cfg.preset, "steps": cfg.steps, "train_overrides": list(cfg.train_overrides or [])},
+                            "preset": cfg.preset, "steps": cfg.steps,
+                            "train_overrides": list(cfg.train_overrides or [])},
                       f"the training of row {model}", name=ROW_PROVENANCE)
     if (out / "done.json").is_file() and last.is_file():
         print(f"[{model}] trained: {last}")

@@ -59,7 +59,8 @@ def run(cfg: DictConfig) -> dict:
                                   device=device, oracle_target=bool(cfg.get("oracle_target", False)))
         reference = (cfg.reference.sampler, int(cfg.reference.steps)) if cfg.reference is not None else None
         if reference is not None and reference[0] not in configured:
-            raise errors.MissingError(f"reference.sampler={reference[0]!r} is not configured under samplers ({sorted(configured)})")
+            raise errors.MissingError(f"reference.sampler={reference[0]!r} is not configured under samplers "
+                                      f"({sorted(configured)})")
         what = f"{cfg.checkpoint} on {len(cases)} record(s) of {cfg.store} ({cases[0].inputs})"
     else:
         model_cfg = OmegaConf.to_container(cfg.model, resolve=True)

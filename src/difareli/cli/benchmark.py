@@ -1,6 +1,7 @@
 """difareli-benchmark: one relighting method on a store's protocols (SynthFaces, or Multi-PIE
 from difareli-multipie)
--> relit images, per-image CSV, tables; scored under ``metrics.rule`` (paper | composite, difareli.evaluation.metrics)."""
+-> relit images, per-image CSV, tables; scored under ``metrics.rule`` (paper | composite,
+difareli.evaluation.metrics)."""
 
 from __future__ import annotations
 

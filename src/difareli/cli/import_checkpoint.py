@@ -8,8 +8,8 @@ The official code (github.com/diffusion-face-relighting/difareli_code) saves the
 plain state dicts; the Modulator file is found beside the UNet by name unless ``encoder=`` gives it. ``config=`` is
 the YAML the checkpoint was trained with (e.g. ``config/difareli/difareli_128.yaml``). ``shape_parts`` (or
 ``store=``, read from its ``shape_layout``) is the order of the DECA parts in the ``shape`` encoding of the
-stores the model will relight (``difareli.official.importers`` writes shape, exp, pose). ``verify`` (default on) reloads the
-written file the normal way and checks that its eps equals the converted network's exactly.
+stores the model will relight (``difareli.official.importers`` writes shape, exp, pose). ``verify`` (default on) reloads
+the written file the normal way and checks that its eps equals the converted network's exactly.
 Any CLI given an official file as ``checkpoint=`` stops with a message naming this command.
 """
 

@@ -64,7 +64,8 @@ def run(cfg: DictConfig):
           f"than the rest of the face, coherence {summary['coherence']:.2f} (0: speckle)")
     print(f"relit {rep.relit} record(s) at 2 shadow strengths in {rep.seconds:.1f} s "
           f"({rep.images_per_second:.2f} images/s); wrote {rep.written} map(s) as {rep.name}")
-    print(f"train on them: data.versions={{shadow_map: {version}}}   (relight/video: versions={{shadow_map: {version}}})")
+    print(f"train on them: data.versions={{shadow_map: {version}}}   "
+          f"(relight/video: versions={{shadow_map: {version}}})")
     return rep
 
 
@@ -139,7 +140,8 @@ def validate(cfg: DictConfig) -> None:
 
     bad = [p for p in (cfg.zero_parts or []) if p not in PART_INDEX]
     if bad:
-        raise errors.UserError(f"zero_parts={list(cfg.zero_parts)}: unknown parts {bad}; use names of {list(PART_INDEX)}")
+        raise errors.UserError(f"zero_parts={list(cfg.zero_parts)}: unknown parts {bad}; "
+                               f"use names of {list(PART_INDEX)}")
     errors.check_int(cfg.batch_size, "batch_size", 1)
     errors.check_int(cfg.check_after, "check_after", 0)
     errors.check_number(cfg.c_quantile, "c_quantile", allow_none=False)

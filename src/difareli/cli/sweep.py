@@ -1,8 +1,8 @@
 """Multiruns that report every job: a bad job does not stop the sweep, and the sweep ends with a summary.
 
 Inside a Hydra multirun, :func:`difareli.errors.cli_entry` prints a job's user error, records it with
-:func:`difareli.errors.record_failure` in ``<sweep dir>/failed_jobs.jsonl`` (a file, so launchers that run jobs in other processes
-report too) and lets the next job run. :class:`SweepSummary`, a Hydra callback (``conf/hydra/default.yaml``),
+:func:`difareli.errors.record_failure` in ``<sweep dir>/failed_jobs.jsonl`` (a file, so launchers that run jobs in other
+processes report too) and lets the next job run. :class:`SweepSummary`, a Hydra callback (``conf/hydra/default.yaml``),
 prints ``N jobs: K completed, F failed`` with each failed job's overrides and message at the end, writes
 ``sweep_summary.json`` and exits with status 2 when any job failed.
 """

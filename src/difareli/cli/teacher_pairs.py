@@ -28,7 +28,8 @@ def run(cfg: DictConfig) -> dict:
     relighter = Relighter(cfg.checkpoint, cfg.sampler, runtime=cfg.runtime, mean_matching=cfg.mean_matching)
     if not isinstance(relighter.model, DiffusionRelightable):
         raise errors.UserError(f"checkpoint {cfg.checkpoint} is not a diffusion teacher "
-                               f"({type(relighter.model).__name__}); give a difareli-train model=difareli_pp checkpoint")
+                               f"({type(relighter.model).__name__}); "
+                               "give a difareli-train model=difareli_pp checkpoint")
     return generate_teacher_pairs(relighter, EncodingStore.open(cfg.store), cfg.out, split=cfg.split,
                                   per_record=cfg.per_record, limit=cfg.limit, batch_size=cfg.batch_size,
                                   seed=cfg.seed, progress=cfg.progress, target_sun=cfg.target_sun)

@@ -195,7 +195,8 @@ _ENCODINGS = (
     Encoding("shape", ("S",), "float32", "face shape / expression / pose parameters (source-specific length S)"),
     Encoding("cam", (3,), "float32", "orthographic camera (scale, tx, ty), DECA convention"),
     Encoding("identity", ("D",), "float32", "identity embedding (length D)"),
-    Encoding("shadow", (1,), "float32", "cast-shadow intensity c, a logit", rerender="difareli.relight.targets:render_shadow"),
+    Encoding("shadow", (1,), "float32", "cast-shadow intensity c, a logit",
+             rerender="difareli.relight.targets:render_shadow"),
     Encoding("background", ("H", "W", 3), "uint8", "image with face, hair and neck pixels set to 0", spatial=True),
     Encoding("masks", ("H", "W"), "uint8", "part label per pixel, indices into MASK_PARTS", spatial=True,
              onehot=NUM_MASK_PARTS),
@@ -217,7 +218,8 @@ _ENCODINGS = (
              rerender="difareli.relight.targets:render_shadow", oracle=True),
     Encoding("shadow_map_gt", ("H", "W"), "float32", "exact cast-shadow map (union over suns) times "
              "normalised shadow_gt, as `shadow_map`", spatial=True,
-             rerender="difareli.relight.targets:render_shadow_map", needs=("depth", "normal", "cam", "shadow"), oracle=True),
+             rerender="difareli.relight.targets:render_shadow_map", needs=("depth", "normal", "cam", "shadow"),
+             oracle=True),
     # SynthFaces v3 (docs/synthfaces_v3.md): geometry is estimated too; the renderer's values for oracle studies.
     Encoding("shape_gt", ("S",), "float32", "exact BFM shape / expression / pose parameters, as `shape`", oracle=True),
     Encoding("cam_gt", (3,), "float32", "exact camera, as `cam`", oracle=True),
@@ -267,4 +269,5 @@ def get(name: str) -> Encoding:
     try:
         return ENCODINGS[name]
     except KeyError:
-        raise MissingError(f"unknown encoding {name!r}; the schema (v{SCHEMA_VERSION}) has: {', '.join(ENCODINGS)}") from None
+        raise MissingError(f"unknown encoding {name!r}; the schema (v{SCHEMA_VERSION}) has: "
+                           f"{', '.join(ENCODINGS)}") from None

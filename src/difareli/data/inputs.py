@@ -44,8 +44,8 @@ def prepare_nonspatial(names: Sequence[str], arrays: Mapping[str, np.ndarray]) -
 def condition_tensors(model: Any, arrays_list: Sequence[Mapping[str, np.ndarray]],
                       device: torch.device | str = "cpu") -> Condition:
     """Stack the inputs a model declares (its ``spatial_inputs`` / ``nonspatial_inputs``: any
-    :class:`~difareli.relight.relightable.Relightable`) of several records (or retargeted records) into ``(spatial, nonspatial)``;
-    ``None`` for a kind the model does not consume."""
+    :class:`~difareli.relight.relightable.Relightable`) of several records (or retargeted records) into ``(spatial,
+    nonspatial)``; ``None`` for a kind the model does not consume."""
     spatial, nonspatial = model.spatial_inputs, model.nonspatial_inputs
     sp = torch.stack([prepare_spatial(spatial, a) for a in arrays_list]).to(device) if spatial else None
     ns = torch.stack([prepare_nonspatial(nonspatial, a) for a in arrays_list]).to(device) if nonspatial else None

@@ -34,7 +34,8 @@ def file_digest(path: str | Path, chars: int = 16) -> str:
 
 
 def checkpoint_identity(checkpoint: Any) -> str:
-    """``sha256:<digest>`` of a checkpoint given as a path or a shipped name (:func:`difareli.checkpoints.zoo.resolve`)."""
+    """``sha256:<digest>`` of a checkpoint given as a path or a shipped name
+    (:func:`difareli.checkpoints.zoo.resolve`)."""
     from difareli.checkpoints import zoo
 
     return f"sha256:{file_digest(zoo.resolve(str(checkpoint)))}"

@@ -129,7 +129,8 @@ class EncodingStore:
         if version not in READABLE_VERSIONS:
             raise UserError(
                 f"store {root} has schema_version {header['schema_version']} but this code reads versions "
-                f"{list(READABLE_VERSIONS)} (it writes version {enc.SCHEMA_VERSION}, difareli.data.encodings.SCHEMA_VERSION); "
+                f"{list(READABLE_VERSIONS)} (it writes version {enc.SCHEMA_VERSION}, "
+                "difareli.data.encodings.SCHEMA_VERSION); "
                 "regenerate the store with this code, or use the code version that wrote it"
             )
         store = cls(root, header, durable=durable)
@@ -236,7 +237,8 @@ class EncodingStore:
     def _all_ids(self) -> list[str]:
         if self._ids is None:
             # One scandir for the whole store; names starting with '.' are scratch folders, never records.
-            self._ids = sorted(e.name for e in os.scandir(self.records_dir) if not e.name.startswith(".") and e.is_dir())
+            self._ids = sorted(e.name for e in os.scandir(self.records_dir)
+                               if not e.name.startswith(".") and e.is_dir())
         return self._ids
 
     @property
@@ -291,7 +293,8 @@ class EncodingStore:
             except FileNotFoundError:
                 if stem != name or "@" in name:
                     raise MissingError(f"record {record_id!r} of store {self.root} has no derived {stem!r} yet (a run "
-                                       "computing it did not reach it); resume that run or choose another version") from None
+                                       "computing it did not reach it); resume that run or choose another "
+                                       "version") from None
                 declared = "declared in the header" if self.available(name) else "not in the header either"
                 raise MissingError(
                     f"encoding {name!r} missing for record {record_id!r} in store {self.root} ({declared}; "

@@ -217,7 +217,8 @@ class FaceAligner:
             return found[0] if found else None
         cx, cy = box[0] + box[2] / 2, box[1] + box[3] / 2
         half = self.crop_factor * max(box[2], box[3]) / 2
-        quad = np.array([[cx - half, cy - half], [cx - half, cy + half], [cx + half, cy + half], [cx + half, cy - half]])
+        quad = np.array([[cx - half, cy - half], [cx - half, cy + half], [cx + half, cy + half],
+                         [cx + half, cy - half]])
         found = self.mesh(warp_quad(rgb, quad, self.mesh_crop))
         if not found:
             return None

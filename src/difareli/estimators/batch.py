@@ -3,7 +3,8 @@ in this process or in ``workers`` processes.
 
 The estimators in worker processes (``difareli-preprocess workers=n``): each worker builds the same pipeline
 once (``Pipeline.config``) and processes whole images, one at a time, with one BLAS thread; results come back in
-input order and the parent writes the store. Workers die with their parent (:func:`difareli.utils.processes.die_with_parent`).
+input order and the parent writes the store. Workers die with their parent
+(:func:`difareli.utils.processes.die_with_parent`).
 
 Processes, not threads: mediapipe's graphs and dlib are not thread-safe, and numpy releases the GIL only in
 parts of the work. ``spawn``: a fork would copy a parent's loaded mediapipe/torch thread pools.
@@ -183,5 +184,6 @@ def run(pipeline: Pipeline, in_dir: str, out_dir: str, *, overwrite: bool = Fals
               "failed": summary.failed, "images_per_second": round(summary.images_per_second, 3),
               "wall_seconds": round(time.perf_counter() - t_start, 3),
               "stage_ms_per_image": summary.stage_ms(), "images": summary.entries}
-    write_json_atomic(out / (REPORT if spec is None else REPORT.replace(".json", f".{spec.suffix}.json")), report, indent=1)
+    name = REPORT if spec is None else REPORT.replace(".json", f".{spec.suffix}.json")
+    write_json_atomic(out / name, report, indent=1)
     return summary

@@ -69,7 +69,8 @@ def describe_direction(yaw: float, pitch: float) -> str:
     side = "" if abs(yaw) < SIDE_DEGREES or abs(yaw) > 180 - SIDE_DEGREES else ("right" if yaw > 0 else "left")
     behind = " behind" if abs(yaw) > 90 else ""
     if side:
-        where = f"the image's {vert + ' ' if vert else ''}{side}{behind} (the subject's {'left' if yaw > 0 else 'right'})"
+        where = (f"the image's {vert + ' ' if vert else ''}{side}{behind} "
+                 f"(the subject's {'left' if yaw > 0 else 'right'})")
     elif vert:
         where = ("above" if vert == "upper" else "below") + (", behind" if behind else ", in front")
     else:

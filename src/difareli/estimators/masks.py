@@ -3,9 +3,9 @@
 No face parser with shipped weights exists offline (OFFLINE.md), so:
 
 - face parts are polygons of FaceMesh landmark sets (``face_mesh_connections``): the face oval is ``skin``,
-  painted over in this order by ``nose`` (convex hull of FACEMESH_NOSE), brows, eyes, ``u_lip``/``l_lip`` (between the outer and inner lip
-  contours) and ``mouth`` (inside the inner contour). Left/right are the subject's, as in mediapipe and
-  SynthFaces (``l_eye`` is on the image right).
+  painted over in this order by ``nose`` (convex hull of FACEMESH_NOSE), brows, eyes, ``u_lip``/``l_lip`` (between the
+  outer and inner lip contours) and ``mouth`` (inside the inner contour). Left/right are the subject's, as in mediapipe
+  and SynthFaces (``l_eye`` is on the image right).
 - non-facial parts come from the selfie-segmentation person mask (``person``, probability > 0.5) outside
   the face oval, by fixed rules in units of the face height ``h`` (forehead top to chin) and width ``w``:
   ``hair`` = person pixels above the jaw line (midway between mouth corners and chin); ``neck`` = person
@@ -237,7 +237,8 @@ class FaceMeshSelfieMasks:
             jaw = 0.5 * (chin[1] + 0.5 * (lm[61, 1] + lm[291, 1]))
             rest = person & ~face
             above = rows < jaw
-            neck = rest & ~above & (rows < chin[1] + self.neck_depth * h) & (np.abs(cols - chin[0]) < self.neck_halfwidth * w)
+            neck = (rest & ~above & (rows < chin[1] + self.neck_depth * h)
+                    & (np.abs(cols - chin[0]) < self.neck_halfwidth * w))
             labels[rest & above] = PART_INDEX["hair"]
             labels[neck] = PART_INDEX["neck"]
             labels[rest & ~above & ~neck] = PART_INDEX["clothes"]

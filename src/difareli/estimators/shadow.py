@@ -6,7 +6,8 @@ FaceMesh surface (``features``), trained on SynthFaces by ``scripts/train_shadow
 face's light (``synth/subject.py`` defines ``c`` as the logit of that fraction). ``c`` is the
 classifier's logit, as in the paper; with ``c_scale: synthfaces`` (default) it is mapped by the affine
 calibration fitted at training time onto the SynthFaces ``c`` scale, so that ``encodings.normalise_c``
-(fixed range [SHADOW_C_LO, SHADOW_C_HI]) means the same on real and synthetic records; ``c_scale: logit`` keeps the raw logit.
+(fixed range [SHADOW_C_LO, SHADOW_C_HI]) means the same on real and synthetic records; ``c_scale: logit`` keeps the raw
+logit.
 
 ``shadow_map`` = cast-shadow rays from the FaceMesh surface toward ``sh.dominant_direction(light)``
 (``render.cast_shadow``) times ``encodings.normalise_c(c)``, exactly as SynthFaces builds its maps.

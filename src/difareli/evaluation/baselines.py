@@ -125,8 +125,8 @@ class DiffusionMethod:
     needs_light, needs_light_fit = True, False
 
     def __init__(self, checkpoint: str | None = None, sampler: Mapping[str, Any] | None = None, *,
-                 name: str | None = None, runtime: Mapping[str, Any] | None = None, mean_matching: bool = True, batch_size: int = 16,
-                 model_name: str | None = None):
+                 name: str | None = None, runtime: Mapping[str, Any] | None = None, mean_matching: bool = True,
+                 batch_size: int = 16, model_name: str | None = None):
         from difareli.relight.relightable import OnePassRelightable
         from difareli.relight.relighter import Relighter
 

@@ -5,15 +5,16 @@ For each pair of ``protocols.json`` (written with the store by ``synth.splits``)
 light estimated from ``light_source`` (protocol (i) ``same_subject``: the same person under the target light;
 (ii) ``different_subject``: another person under that very light) and score the result against ``target``
 on the target's ``face_mask`` (``score_mask``: another mask key of the store, e.g. ``face_mask_gt``, the
-renderer's exact face region that SynthFaces v3 stores beside its estimated ``face_mask``). The light is fitted from the light-source image (:class:`baselines.LightFit`)
-as a user would get it, with the shadow strength c a user has (``targets.target_shadow_of``: the estimated c of
-a v2 ``inputs=estimated`` store, else the training split's median shadowed c); ``oracle_light`` takes the exact
-light and c instead (``light_gt``/``shadow_gt`` in SynthFaces v2 stores, whose ``light``/``shadow`` are estimated),
-``oracle_shadow`` the exact c alone. ``summary.md`` and ``provenance.json`` state which inputs were used, the
-metric rule (``rule``: :data:`difareli.evaluation.metrics.RULES`, default ``paper``, the authors' evaluator) and the data set.
-Scores go through the torchmetrics ``Metric`` s of :func:`difareli.evaluation.metrics.relight_metrics`. A store without exact
-lights (``"exact_lights": false`` in ``protocols.json``: Multi-PIE) gets no light-estimation errors and no oracle.
-The pairs, the records a method is given and the pairs' lights: :mod:`difareli.evaluation.pairs`.
+renderer's exact face region that SynthFaces v3 stores beside its estimated ``face_mask``). The light is fitted from the
+light-source image (:class:`baselines.LightFit`) as a user would get it, with the shadow strength c a user has
+(``targets.target_shadow_of``: the estimated c of a v2 ``inputs=estimated`` store, else the training split's median
+shadowed c); ``oracle_light`` takes the exact light and c instead (``light_gt``/``shadow_gt`` in SynthFaces v2 stores,
+whose ``light``/``shadow`` are estimated), ``oracle_shadow`` the exact c alone. ``summary.md`` and ``provenance.json``
+state which inputs were used, the metric rule (``rule``: :data:`difareli.evaluation.metrics.RULES`, default ``paper``,
+the authors' evaluator) and the data set. Scores go through the torchmetrics ``Metric`` s of
+:func:`difareli.evaluation.metrics.relight_metrics`. A store without exact lights (``"exact_lights": false`` in
+``protocols.json``: Multi-PIE) gets no light-estimation errors and no oracle. The pairs, the records a method is given
+and the pairs' lights: :mod:`difareli.evaluation.pairs`.
 
 Beyond DSSIM / MSE / LPIPS (:mod:`difareli.evaluation.extras`), each row carries the identity cosines of
 the relit face (vs the input, vs the ground truth), the lighting error of the relit image against the target light
@@ -112,7 +113,8 @@ def score(pred: np.ndarray, target: np.ndarray, face_mask: np.ndarray, rule: str
     """DSSIM / MSE / LPIPS of one uint8 image against the ground truth on the mask under ``rule``; through
     ``scorer`` (a :func:`metrics.relight_metrics` collection, which also accumulates the score) when given."""
     scorer = scorer if scorer is not None else metrics.relight_metrics(rule)
-    scorer.update(metrics.unit_tensor(pred), metrics.unit_tensor(target), torch.from_numpy(np.array(face_mask, dtype=bool))[None])
+    mask = torch.from_numpy(np.array(face_mask, dtype=bool))[None]
+    scorer.update(metrics.unit_tensor(pred), metrics.unit_tensor(target), mask)
     return {k: float(m.last[0]) for k, m in scorer.items()}
 
 
@@ -153,7 +155,8 @@ def _pm(s: tables.Stat) -> str:
 
 
 def run_benchmark(store: EncodingStore, method: Method, protocols: Sequence[str], out_dir: str | Path, *,
-                  limit: int | None = None, oracle_light: bool = False, oracle_shadow: bool = False, estimator: LightFit | None = None,
+                  limit: int | None = None, oracle_light: bool = False, oracle_shadow: bool = False,
+                  estimator: LightFit | None = None,
                   grid_pairs: int = 4, save_images: bool = True, progress: bool = True,
                   shard: str | None = None, rule: str | None = None, score_mask: str | None = None,
                   target_sun: str = "shadows") -> BenchmarkResult:

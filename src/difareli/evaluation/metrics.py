@@ -18,7 +18,8 @@ The two rules (:data:`RULES`, config key ``metrics.rule``):
   map is averaged over the mask; MSE = sum(((pred - gt) * mask)^2) / sum(mask) over the 3 channels. Pixels outside
   the face reach DSSIM and LPIPS through windows and receptive fields that straddle the face border.
 - ``composite``: both images are composited onto black outside the mask first, then the same maps and masked
-  means, so pixels outside the face can never change a score (this project's rule before the paper rule became the default).
+  means, so pixels outside the face can never change a score (this project's rule before the paper rule became the
+  default).
 
 MSE is the same under both rules. :class:`MaskedDSSIM`, :class:`MaskedMSE` and :class:`MaskedLPIPS` are
 torchmetrics ``Metric`` s over these per-image scores with summed states, so they reduce correctly under DDP.

@@ -3,8 +3,8 @@ SynthFaces store's test pairs of both protocols, and the facts a model card stat
 
 The one home of this comparison for ``difareli-demo``, ``scripts/release_reference.py`` (the shipped references'
 model cards) and ``scripts/gpu_train_reference.py``: every method runs through
-:func:`difareli.evaluation.benchmark.run_benchmark` with one shared light estimator, so the three rows see the same fitted
-target lights, and the rows merge into one :class:`~difareli.evaluation.tables.Table`.
+:func:`difareli.evaluation.benchmark.run_benchmark` with one shared light estimator, so the three rows see the same
+fitted target lights, and the rows merge into one :class:`~difareli.evaluation.tables.Table`.
 """
 
 from __future__ import annotations
@@ -64,8 +64,8 @@ def compare_to_baselines(store: EncodingStore | str | Path, checkpoint: Any, sam
 
     Target lights are fitted to the light-source images and the target c is what a user has (the benchmark's
     defaults), unless ``oracle_light`` / ``oracle_shadow``; the card facts say which. Each method's run is written
-    under ``out_dir/<method name>`` (resumable, as :func:`~difareli.evaluation.benchmark.run_benchmark` is); ``reuse``: a
-    method's finished run there with the same settings is read back instead of relit again. ``model_name`` names the
+    under ``out_dir/<method name>`` (resumable, as :func:`~difareli.evaluation.benchmark.run_benchmark` is); ``reuse``:
+    a method's finished run there with the same settings is read back instead of relit again. ``model_name`` names the
     model's row (``<model_name>/<sampler>``; default: its config's variant name)."""
     from difareli.evaluation.baselines import DiffusionMethod, Identity, LambertianRatio
     from difareli.evaluation.benchmark import finished_run, run_benchmark

@@ -85,7 +85,8 @@ class EncodingsDataModule(L.LightningDataModule):
         # The student's pair sampler (difareli.lit.pairs.PAIR_SAMPLERS: teacher | gt | mix | identity); None: records.
         self.pairs, self.teacher_pairs, self.gt_light, self.gt_identity = pairs, teacher_pairs, gt_light, gt_identity
         self.gt_maps = gt_maps
-        #: derived encoding versions read in place of their base (``{"shadow_map": "diff-1a2b"}``; difareli.data.derived)
+        #: derived encoding versions read in place of their base (``{"shadow_map": "diff-1a2b"}``;
+        #: difareli.data.derived)
         self.versions = {k: v for k, v in dict(versions or {}).items() if v is not None}
         self.store: EncodingStore | None = None
         self.train_set = self.val_set = None

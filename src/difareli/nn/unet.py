@@ -250,7 +250,8 @@ class Block(nn.ModuleList):
     """A sequence of layers; :class:`TimestepBlock` layers (residual blocks) also receive the time embedding and
     the non-spatial vector."""
 
-    def forward(self, h: Tensor, emb: Tensor | None = None, nonspatial: Tensor | None = None) -> Tensor:  # type: ignore[override]
+    def forward(self, h: Tensor, emb: Tensor | None = None,  # type: ignore[override]
+                nonspatial: Tensor | None = None) -> Tensor:
         for layer in self:
             h = layer(h, emb, nonspatial) if isinstance(layer, TimestepBlock) else layer(h)
         return h

@@ -53,7 +53,8 @@ log = logging.getLogger(__name__)
 BISENET_CLASSES = ("background", "skin", "l_brow", "r_brow", "l_eye", "r_eye", "eye_g", "l_ear", "r_ear", "ear_r",
                    "nose", "mouth", "u_lip", "l_lip", "neck", "neck_l", "cloth", "hair", "hat")
 #: Where each BiSeNet class goes among MASK_PARTS: glasses, ears and earrings are skin (SPEC 7).
-BISENET_TO_PART = {"eye_g": "skin", "l_ear": "skin", "r_ear": "skin", "ear_r": "skin", "neck_l": "neck", "cloth": "clothes"}
+BISENET_TO_PART = {"eye_g": "skin", "l_ear": "skin", "r_ear": "skin", "ear_r": "skin", "neck_l": "neck",
+                   "cloth": "clothes"}
 #: Lookup table from BiSeNet label to MASK_PARTS index.
 BISENET_LUT = np.array([E.PART_INDEX[BISENET_TO_PART.get(c, c)] for c in BISENET_CLASSES], dtype=np.uint8)
 
@@ -258,7 +259,8 @@ def import_difareli(
             if paths["shading"] is None:
                 problems.append(f"{shading_dir / f'{stem}.npy'} missing")
         if images_dir is not None:
-            paths["image"] = img_files.get(name) or next((img_files[stem + e] for e in _IMAGE_EXTS if stem + e in img_files), None)
+            paths["image"] = img_files.get(name) or next(
+                (img_files[stem + e] for e in _IMAGE_EXTS if stem + e in img_files), None)
             if paths["image"] is None:
                 problems.append(f"no image {name!r} (or {stem}.png/.jpg) in {images_dir}")
         if problems:

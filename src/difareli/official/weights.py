@@ -248,7 +248,8 @@ def convert(unet_sd: Mapping[str, Any], modulator_sd: Mapping[str, Any], cfg: Of
 
 
 def shape_parts_of(store: str | Path) -> list[str]:
-    """The part order of ``shape`` in a store written by :mod:`difareli.official.importers` (its ``shape_layout`` meta)."""
+    """The part order of ``shape`` in a store written by :mod:`difareli.official.importers` (its ``shape_layout``
+    meta)."""
     from difareli.data.store import EncodingStore
 
     layout = EncodingStore.open(store).store_meta.get("shape_layout")

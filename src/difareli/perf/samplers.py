@@ -176,9 +176,10 @@ def benchmark(model, cases: Sequence[Case], samplers: Mapping[str, Mapping[str, 
     """Time every ``samplers`` entry (name -> sampler config) at every step count on every case.
 
     ``reference`` = (sampler name, steps); its config is ``samplers[name]`` unless ``reference_config`` gives
-    one (a reference sampler that is not benchmarked itself). Returns ``(rows, outputs)``: one row per (sampler, steps) with the mean seconds per relight, the network
-    evaluations per relight (UNet passes) and, when available, mean errors against the reference relight and
-    the ground truth; ``outputs[(sampler, steps)]`` holds the relit images (one per case).
+    one (a reference sampler that is not benchmarked itself). Returns ``(rows, outputs)``: one row per (sampler, steps)
+    with the mean seconds per relight, the network evaluations per relight (UNet passes) and, when available, mean
+    errors against the reference relight and the ground truth; ``outputs[(sampler, steps)]`` holds the relit images (one
+    per case).
     """
     if not cases:
         raise UserError("no cases to benchmark")

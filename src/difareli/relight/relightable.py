@@ -3,8 +3,8 @@ modules share. Low in the house so the modules that implement them can check the
 
 A model offers :class:`Relightable`: the encodings it consumes (``spatial_inputs``, ``nonspatial_inputs``) and
 ``condition(spatial, nonspatial)``, run once per condition. A diffusion model adds ``denoiser(cond)`` and
-``schedule`` (:class:`DiffusionRelightable`); a one-pass model adds ``relight_once(x0, source_cond, target_cond, runtime=None)``
-(:class:`OnePassRelightable`).
+``schedule`` (:class:`DiffusionRelightable`); a one-pass model adds ``relight_once(x0, source_cond, target_cond,
+runtime=None)`` (:class:`OnePassRelightable`).
 """
 
 from __future__ import annotations

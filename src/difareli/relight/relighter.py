@@ -188,8 +188,8 @@ class Relighter:
         if missing:  # first: this names the command that writes them, where check_store_fits names only the gap
             fix = (f"{redo} writes them (at the checkpoint's {self.resolution} px)" if redo else
                    "use a store that has them (difareli-synth writes every encoding)")
-            raise errors.MissingError(f"relighting with checkpoint={self.checkpoint} needs encoding(s) {missing}, which "
-                                      f"the store at {store.root} does not have; {fix}")
+            raise errors.MissingError(f"relighting with checkpoint={self.checkpoint} needs encoding(s) {missing}, "
+                                      f"which the store at {store.root} does not have; {fix}")
         check_store_fits(self.config, store, self.checkpoint)  # an imported official checkpoint on a SynthFaces store
         line = photos.resolution_warning(self.checkpoint, self.resolution, f"the store {store.root}",
                                          int(store.dims.get("H", 0)), f"preprocess at {self.resolution} px: {redo}"

@@ -110,7 +110,8 @@ def load_sh_file(path: str | Path) -> np.ndarray:
         arr = np.load(path, allow_pickle=False) if path.suffix == ".npy" else np.loadtxt(path, dtype=np.float64)
         arr = np.asarray(arr, dtype=np.float64).reshape(-1)
     except (ValueError, TypeError, EOFError, OSError) as e:
-        raise UserError(f"target light file {path} is not 27 numbers ({(str(e).splitlines() or [type(e).__name__])[0][:120]}); give a "
+        why = (str(e).splitlines() or [type(e).__name__])[0][:120]
+        raise UserError(f"target light file {path} is not 27 numbers ({why}); give a "
                         ".npy 9x3 array or a text file of 27 numbers") from None
     if arr.size != 27:
         raise UserError(f"target light file {path} holds {arr.size} numbers; a 9x3 SH light needs 27 "

@@ -22,7 +22,8 @@ from difareli.data.encodings import C_RANGE_KEY, normalise_c, shadow_logit, stor
 
 
 def train_c_range(store, quantile: float, split: str = "train") -> dict:
-    """``{"lo", "hi", "split", "quantile", "records"}`` of the stored ``shadow`` over ``split`` (all records if empty)."""
+    """``{"lo", "hi", "split", "quantile", "records"}`` of the stored ``shadow`` over ``split`` (all records if
+    empty)."""
     ids = store.ids(split=split) or store.ids()
     c = np.array([shadow_logit(store.read(r, ["shadow"])) for r in ids], dtype=np.float64)
     c = c[np.isfinite(c)]

@@ -11,10 +11,10 @@ estimators of ``difareli-preprocess`` (``estimators.pipeline.default_estimators`
   BFM geometry estimator upsamples anything below 192 px for FaceMesh itself). The estimated surface is then
   rendered at the stored resolution through the estimated camera (``cam`` is in NDC, so no resampling of normals
   or depth is needed) and the part labels are resampled by the mode of each block.
-- ``light``: :class:`difareli.lighting.light_fit.LightFit` on the stored (estimated) arrays, the fit ``difareli-benchmark``
-  makes on that record; ``shading`` its shading reference on the estimated normals; ``shadow``/``shadow_map``:
-  :class:`difareli.estimators.shadow.ShadowEstimator` on the estimated surface. The map is stored binary until
-  the store's c range is known (``synth/c_norm.py`` scales it once the store is complete).
+- ``light``: :class:`difareli.lighting.light_fit.LightFit` on the stored (estimated) arrays, the fit
+  ``difareli-benchmark`` makes on that record; ``shading`` its shading reference on the estimated normals;
+  ``shadow``/``shadow_map``: :class:`difareli.estimators.shadow.ShadowEstimator` on the estimated surface. The map is
+  stored binary until the store's c range is known (``synth/c_norm.py`` scales it once the store is complete).
 
 ``inputs: estimated_light`` (SynthFaces v2, :func:`estimate_inputs`): only ``light``, ``shading``, ``shadow`` and
 ``shadow_map`` are estimated; geometry, masks and identity are the renderer's.
