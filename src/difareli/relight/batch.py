@@ -81,16 +81,16 @@ def relight_photos(paths: Sequence[Path], out_dir: str | Path, *, progress: bool
     csv_path = out_dir / CSV_NAME
     before = fileio.read_csv_rows(csv_path, "photo")
     counts = {"done": 0, "skipped": 0, "resumed": 0}
-    stems: dict[str, int] = {}
-    bar = tqdm(paths, desc="photos", unit="photo", disable=not progress, file=sys.stderr)
-    for path in bar:
-        stem = path.stem if path.stem not in stems else f"{path.stem}_{path.suffix.lstrip('.')}"
-        stems[stem] = 1
-        target = out_dir / f"{stem}_composite.png"
+    todo = []  # the bar counts only these: photos relit before would make its rate and time left untrue
+    for path, stem in zip(paths, output_stems(paths)):
         prior = before.get(str(path))
-        if prior is not None and prior["status"] == "relit" and target.is_file():
+        if prior is not None and prior["status"] == "relit" and (out_dir / f"{stem}_composite.png").is_file():
             counts["resumed"] += 1  # a photo skipped before is tried again: the user may have fixed it
-            continue
+        else:
+            todo.append((path, stem))
+    bar = tqdm(todo, desc="photos", unit="photo", disable=not progress, file=sys.stderr)
+    for path, stem in bar:
+        target = out_dir / f"{stem}_composite.png"
         start = time.perf_counter()
         try:
             full, crops, row = relight_one(path, say=lambda s: bar.write(s), **kwargs)
@@ -109,6 +109,15 @@ def relight_photos(paths: Sequence[Path], out_dir: str | Path, *, progress: bool
         counts["done"] += 1
     bar.close()
     return counts
+
+
+def output_stems(paths: Sequence[Path]) -> list[str]:
+    """Each photo's name in ``out_dir``: its stem, or ``<stem>_<suffix>`` where an earlier photo has that stem
+    (``a.jpg`` and ``a.png``)."""
+    stems: list[str] = []
+    for path in paths:
+        stems.append(path.stem if path.stem not in stems else f"{path.stem}_{path.suffix.lstrip('.')}")
+    return stems
 
 
 def _formatted(row: Mapping[str, Any]) -> dict[str, Any]:
