@@ -36,8 +36,7 @@ def _ground_truth(cfg: DictConfig, store: EncodingStore, rid: str, rots: np.ndar
 
 def run(cfg: DictConfig) -> dict[str, Path]:
     """Relight, render the ground truth, measure and write; returns the paths written."""
-    validate(cfg)
-    store = EncodingStore.open(cfg.store).use_versions(cfg.get("versions"))
+    store = validate(cfg)
     rid = cfg.record or (store.ids(split="test") or store.ids())[0]
     synth = store.store_meta.get("generator") == "synthfaces"
     with_gt = bool(cfg.ground_truth) and synth
@@ -131,9 +130,10 @@ OUTPUTS = ("relit.gif", "relit.mp4", "relit.png", "contact_sheet.png", "ground_t
            "side_by_side.gif", "side_by_side.mp4", "frames.csv", "temporal.png", "summary.json")
 
 
-def validate(cfg: DictConfig) -> None:
+def validate(cfg: DictConfig) -> EncodingStore:
     """Config values and input files, checked before any work: the outputs, the rotation, the target, the store and
-    its record (as a relight request checks them); the relighter checks its own (sampler, batch size, checkpoint)."""
+    its record (as a relight request checks them; the store is returned, open); the relighter checks its own
+    (sampler, batch size, checkpoint)."""
     viz.video_format(cfg.format)
     errors.check_out_dir(cfg.out_dir)
     errors.check_int(cfg.fps, "fps", 1)
@@ -144,8 +144,7 @@ def validate(cfg: DictConfig) -> None:
     errors.check_int(cfg.sheet_columns, "sheet_columns", 1)
     if cfg.rotation.envmap is not None:
         errors.check_file(cfg.rotation.envmap, "rotation.envmap")
-    versions = cfg.get("versions")
-    check_store(cfg.store, None if versions is None else dict(versions), record=cfg.record)
+    return check_store(cfg.store, cfg.get("versions"), record=cfg.record)
 
 
 @hydra.main(version_base="1.3", config_path=common.CONFIG_PATH, config_name="video")

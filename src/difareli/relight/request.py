@@ -153,9 +153,9 @@ class Request:
 MAX_FRAMES = 3600
 
 
-def check_store(root: str, versions: Mapping[str, Any] | None, **records: str | None) -> None:
+def check_store(root: str, versions: Mapping[str, Any] | None, **records: str | None):
     """A source store that opens (its header, the derived ``versions`` asked for) and holds the ``records`` named
-    (``record``, ``target_record``: None for none; the key is said as the config spells it)."""
+    (``record``, ``target_record``: None for none; the key is said as the config spells it); returned, open."""
     from difareli.data.store import EncodingStore
 
     store = EncodingStore.open(root).use_versions(versions)
@@ -164,6 +164,7 @@ def check_store(root: str, versions: Mapping[str, Any] | None, **records: str | 
             some = ", ".join(store.ids()[:3])
             raise errors.UserError(f"{key.replace('_', '.')}={rid}: no such record in the store {root} ({len(store)} "
                                    f"records{', e.g. ' + some if some else ''}); give one of its record ids")
+    return store
 
 
 def check_composite(c: Mapping[str, Any]) -> None:

@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from difareli.errors import UserError
+from difareli.utils.fileio import atomic_path
 
 
 def to_uint8(img) -> np.ndarray:
@@ -134,8 +135,6 @@ def draw_text(canvas: np.ndarray, text: str, xy: tuple[int, int], size: int, col
 def save_png(image: np.ndarray, path: str | Path) -> Path:
     """Write a uint8 image atomically (beside the target, then renamed: a full disk or a kill never leaves a
     truncated PNG), creating parent folders."""
-    from difareli.utils.fileio import atomic_path
-
     path = Path(path)
     with atomic_path(path) as tmp:
         iio.imwrite(tmp, image, extension=path.suffix or ".png")
@@ -203,12 +202,10 @@ def write_gif(frames: np.ndarray, path, fps: int = 20):
     from PIL import Image
 
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     ims = [Image.fromarray(np.ascontiguousarray(f)).quantize(256, method=Image.Quantize.FASTOCTREE,
                                                             dither=Image.Dither.NONE) for f in frames]
-    tmp = path.with_name(f".{path.name}.tmp")
-    ims[0].save(tmp, format="GIF", save_all=True, append_images=ims[1:], duration=round(1000 / fps), loop=0)
-    tmp.replace(path)
+    with atomic_path(path) as tmp:  # a kill or a full disk leaves no half GIF and no scratch file
+        ims[0].save(tmp, format="GIF", save_all=True, append_images=ims[1:], duration=round(1000 / fps), loop=0)
     return path
 
 
