@@ -157,6 +157,16 @@ def test_stale_tmp_cleaned_only_when_writer_dead(tmp_path, rng):
     assert not dead.exists() and live.exists()
 
 
+def test_a_store_without_its_records_folder_reads_empty_and_opening_it_creates_nothing(tmp_path, rng):
+    # git keeps no empty folder: a cloned empty store has its header only, and may sit on a read-only disk.
+    EncodingStore.create(tmp_path / "s", DIMS, NAMES, durable=False).records_dir.rmdir()
+    st = EncodingStore.open(tmp_path / "s")
+    assert st.ids() == [] and len(st) == 0 and not st.has("r0") and "r0" not in st
+    assert sorted(p.name for p in (tmp_path / "s").iterdir()) == ["store.json"]
+    assert st.write("r0", record(rng)) and st.ids() == ["r0"]  # a writer makes the folder it needs
+    assert EncodingStore.open(tmp_path / "s").ids() == ["r0"]
+
+
 def test_interrupted_overwrite_restores_old_record(tmp_path, rng):
     st = EncodingStore.create(tmp_path / "s", DIMS, NAMES, durable=False)
     arrs = record(rng)

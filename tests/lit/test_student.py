@@ -302,7 +302,8 @@ def test_student_through_relight_cli(student_ckpt, synth_store, tmp_path):
     rid = store.ids(split="test")[0]
     other = [o for o in store.ids(subject=store.meta(rid)["subject"]) if o != rid][0]
     cfg = compose_train(tmp_path, [f"checkpoint={student_ckpt}", f"store={synth_store}", f"record={rid}",
-                                   f"target.record={other}", "video.axis=yaw", "video.frames=4", "progress=false",
+                                   f"target.record={other}", "video.axis=yaw", "video.frames=4", "video.format=gif",
+                                   "progress=false",
                                    "runtime.device=cpu"], config_name="relight")
     written = run(cfg)
     relit = iio.imread(written["image"])[..., :3]

@@ -39,3 +39,22 @@ def test_write_video_mp4_keeps_odd_sized_frames_at_their_size(tmp_path):
     frames = np.full((5, 9, 11, 3), 128, np.uint8)
     back = iio.imread(vid.write_video(frames, tmp_path / "v.mp4", fps=10), index=None)
     assert back.shape[:3] == (5, 10, 12)  # padded by one edge row and column (H.264 needs even sides), not resized
+    assert [p.name for p in tmp_path.iterdir()] == ["v.mp4"]  # written under a scratch name, renamed when whole
+
+
+@pytest.mark.skipif(importlib.util.find_spec("imageio_ffmpeg") is None, reason="MP4 needs imageio-ffmpeg")
+def test_write_video_mp4_that_fails_leaves_neither_a_half_file_nor_its_scratch(tmp_path):
+    (tmp_path / "v.mp4").write_bytes(b"the video of an earlier run")
+    with pytest.raises(Exception):
+        vid.write_video(np.zeros((3, 8, 8, 5), np.uint8), tmp_path / "v.mp4")  # five channels: ffmpeg refuses
+    assert [p.name for p in tmp_path.iterdir()] == ["v.mp4"]
+    assert (tmp_path / "v.mp4").read_bytes() == b"the video of an earlier run"
+
+
+def test_write_video_names_a_missing_encoder_and_an_unknown_suffix(tmp_path, monkeypatch):
+    monkeypatch.setattr(vid, "has_mp4", lambda: False)
+    with pytest.raises(RuntimeError, match=r"v\.mp4: MP4 needs imageio's ffmpeg plugin \(pip install imageio-ffmpeg\)"):
+        vid.write_video(np.zeros((2, 8, 8, 3), np.uint8), tmp_path / "v.mp4")
+    with pytest.raises(ValueError, match=r"v\.avi: a video is \.gif or \.mp4"):
+        vid.write_video(np.zeros((2, 8, 8, 3), np.uint8), tmp_path / "v.avi")
+    assert list(tmp_path.iterdir()) == []

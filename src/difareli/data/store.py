@@ -134,8 +134,8 @@ class EncodingStore:
                 "regenerate the store with this code, or use the code version that wrote it"
             )
         store = cls(root, header, durable=durable)
-        (root / RECORDS).mkdir(exist_ok=True)
-        if writable:
+        if writable:  # a reader creates nothing: a store may sit on a read-only disk, or lack an empty records/
+            (root / RECORDS).mkdir(exist_ok=True)
             store.clean_scratch()
         return store
 
@@ -193,6 +193,7 @@ class EncodingStore:
             return False
         checked = self._validate_arrays(record_id, arrays)
         meta_text = records.dump_meta(record_id, meta)
+        self.records_dir.mkdir(exist_ok=True)  # opened to read, then written to
         written = records.write_atomic(self.records_dir, record_id, checked, meta_text, overwrite=overwrite,
                                        durable=self.durable)
         if written:
@@ -238,7 +239,7 @@ class EncodingStore:
         if self._ids is None:
             # One scandir for the whole store; names starting with '.' are scratch folders, never records.
             self._ids = sorted(e.name for e in os.scandir(self.records_dir)
-                               if not e.name.startswith(".") and e.is_dir())
+                               if not e.name.startswith(".") and e.is_dir()) if self.records_dir.is_dir() else []
         return self._ids
 
     @property

@@ -16,13 +16,14 @@ import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterable, Sequence
+from typing import Callable, Iterable, Sequence
 
 from difareli.errors import UserError
 from difareli.multipie import layout, protocols
 from difareli.multipie.layout import Image
 from difareli.data.store import EncodingStore
 from difareli.data.protocols import PROTOCOLS_FILE
+from difareli.utils.fileio import write_json_atomic
 
 REPORT = "multipie_report.json"
 #: why an image was skipped -> the word used in its line and in the counts
@@ -159,15 +160,10 @@ def build(root: str | Path, out_dir: str | Path, pipeline, pairs: Sequence[str |
     if not usable:
         raise UserError(f"no usable pair: all {len(triples)} pair(s) lost an image ({len(report.skipped)} skipped, "
                         f"e.g. {report.lines()[0] if report.skipped else 'none'}); check root={root}")
-    _write_json(Path(out_dir) / PROTOCOLS_FILE, doc)
-    _write_json(Path(out_dir) / REPORT, {"root": str(root), "data": str(data), "how": report.how,
-                                         "written": report.written, "kept": report.kept, "pairs": report.pairs,
-                                         "dropped_pairs": report.dropped, "seconds": round(report.seconds, 3),
-                                         "skipped": [dict(zip(("kind", "path", "reason"), s)) for s in report.skipped]})
+    write_json_atomic(Path(out_dir) / PROTOCOLS_FILE, doc, indent=1)
+    write_json_atomic(Path(out_dir) / REPORT, {
+        "root": str(root), "data": str(data), "how": report.how, "written": report.written, "kept": report.kept,
+        "pairs": report.pairs, "dropped_pairs": report.dropped, "seconds": round(report.seconds, 3),
+        "skipped": [dict(zip(("kind", "path", "reason"), s)) for s in report.skipped]}, indent=1)
     return report
 
-
-def _write_json(path: Path, obj: Any) -> None:
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    tmp.write_text(json.dumps(obj, indent=1) + "\n")
-    os.replace(tmp, path)

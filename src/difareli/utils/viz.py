@@ -179,19 +179,21 @@ def describe_file(path: str | Path) -> str:
 
 def write_video(frames: np.ndarray, path: str | Path, fps: int = 20) -> Path:
     """Write frames (N, H, W, 3) uint8 as a GIF (``.gif``: :func:`write_gif`, one fast palette per
-    frame) or an MP4 (H.264 through imageio's ffmpeg plugin)."""
+    frame) or an MP4 (``.mp4``: H.264 through imageio's ffmpeg plugin), renamed into place when whole."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     if path.suffix == ".gif":
-        write_gif(frames, path, fps)
-    else:
-        try:
-            # H.264 needs even sides: a 64 px crop is, a whole photo may not be (padded by one edge row/column).
-            f = np.asarray(frames)
-            f = np.pad(f, ((0, 0), (0, f.shape[1] % 2), (0, f.shape[2] % 2), (0, 0)), mode="edge")
-            iio.imwrite(path, f, fps=fps, codec="libx264", macro_block_size=1)
-        except Exception as e:  # no ffmpeg backend
-            raise RuntimeError(f"cannot write {path} ({e}); install imageio[ffmpeg] or use a .gif path") from e
+        return write_gif(frames, path, fps)
+    if path.suffix != ".mp4":
+        raise ValueError(f"cannot write {path}: a video is .gif or .mp4")
+    if not has_mp4():
+        raise RuntimeError(f"cannot write {path}: MP4 needs imageio's ffmpeg plugin (pip install imageio-ffmpeg); "
+                           "or use a .gif path")
+    # H.264 needs even sides: a 64 px crop is, a whole photo may not be (padded by one edge row/column).
+    f = np.asarray(frames)
+    f = np.pad(f, ((0, 0), (0, f.shape[1] % 2), (0, f.shape[2] % 2), (0, 0)), mode="edge")
+    with atomic_path(path) as tmp:  # a kill or a full disk leaves no half video; ffmpeg is told the container
+        iio.imwrite(tmp, f, fps=fps, codec="libx264", macro_block_size=1, extension=".mp4",
+                    output_params=["-f", "mp4"])  # (it picks it from the name, which the scratch name hides)
     return path
 
 
