@@ -43,7 +43,7 @@ def export_folder(checkpoint: str | Path, folder: str | Path) -> Path:
 
     from difareli.checkpoints import zoo
     from difareli.checkpoints.loading import read_checkpoint
-    from difareli.utils.fileio import write_text_atomic
+    from difareli.utils.fileio import atomic_path, write_text_atomic
 
     source = zoo.resolve(checkpoint)
     if source.is_dir():
@@ -55,10 +55,9 @@ def export_folder(checkpoint: str | Path, folder: str | Path) -> Path:
     folder.mkdir(parents=True, exist_ok=True)
     # Own contiguous copies: safetensors refuses tensors that share storage or are strided views.
     state = {k: v.detach().to("cpu").contiguous().clone() for k, v in ckpt["state_dict"].items()}
-    tmp = folder / f".{WEIGHTS}.tmp"
-    save_file(state, str(tmp), metadata={"format": FOLDER_FORMAT})
-    os.chmod(tmp, 0o644)  # package data: readable by all, as the .ckpt files beside it
-    os.replace(tmp, folder / WEIGHTS)
+    with atomic_path(folder / WEIGHTS) as tmp:
+        save_file(state, str(tmp), metadata={"format": FOLDER_FORMAT})
+        os.chmod(tmp, 0o644)  # package data: readable by all, as the .ckpt files beside it
     config = {"format": FOLDER_FORMAT, "version": FOLDER_VERSION,
               "source": {"file": source.name, "sha256": _sha256(source)},
               **{k: ckpt[k] for k in CONFIG_KEYS if k in ckpt}}
