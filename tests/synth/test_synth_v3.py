@@ -133,7 +133,7 @@ def test_v3_store_estimates_every_input(tmp_path):
 def test_missing_estimators_stop_before_any_work(tmp_path, monkeypatch):
     import difareli.synth.estimated as est
 
-    monkeypatch.setattr(est, "missing_estimators", lambda: "inputs=estimated needs the photo estimators; " + est.FIX)
+    monkeypatch.setattr(gen, "missing_estimators", lambda: "inputs=estimated needs the photo estimators; " + est.FIX)
     with pytest.raises(synth_config.ConfigError, match="DIFARELI_PREPROCESS=1 bash scripts/install.sh"):
         gen.generate(str(tmp_path / "s"), 1, 1, 32, inputs="estimated")
     assert not (tmp_path / "s").exists()

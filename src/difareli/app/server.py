@@ -36,12 +36,11 @@ from typing import Any
 from . import checks, examples, presets
 from .checks import MAX_BODY, Guard, RequestError  # noqa: F401 (MAX_BODY re-exported)
 from .service import Service
+from difareli.errors import user_message
 
 
 def error_message(exc: BaseException) -> str | None:
     """The one-line message of a user error (as the CLIs print it after ``difareli-<name>: ``), else None."""
-    from difareli.errors import user_message
-
     if isinstance(exc, RequestError):
         return str(exc)
     return user_message(exc)

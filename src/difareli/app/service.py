@@ -32,11 +32,17 @@ from difareli.utils.viz import png_data_url
 from difareli.lighting import sh
 from difareli.diffusion.spec import DEFAULT_SAMPLER, PRESETS
 from difareli.utils.lru import LRU
+from difareli.checkpoints import zoo
+from difareli.data.store import EncodingStore
+from difareli.relight import photo_check
+from difareli.relight.photo import read_photo
+from difareli.relight.targets import Targets
 
 from . import checks
 from .cache import CancelScope, attach
 from .checks import RequestError
 from .envmaps import ENVMAPS, envmap_light
+from .examples import EXAMPLES, example_png
 
 SAMPLERS = ("unipc", "ddim", "dpm_solver", "dpm_solver_pp")
 #: What the page starts with and a request without sampler / steps gets: the default preset, the cards' sampler.
@@ -102,8 +108,6 @@ class Service:
 
     def served_checkpoints(self, limit: int = 200) -> list[str]:
         """The checkpoints the page may offer: shipped names, start-up files, ``*.ckpt`` under start-up folders."""
-        from difareli.checkpoints import zoo
-
         out = [self.checkpoint, *zoo.available()]
         for c in self.checkpoints:
             p = Path(str(c)).expanduser()
@@ -128,8 +132,6 @@ class Service:
         return self._relighters[key]
 
     def open_store(self):
-        from difareli.data.store import EncodingStore
-
         if self.store is None:
             raise RequestError("no store: start the app with store=<encodings store> to pick records")
         if self._store is None:
@@ -180,8 +182,6 @@ class Service:
     def upload(self, name: str, data: bytes, checkpoint: str | None = None) -> AppSource:
         """An uploaded photo, decoded with the CLI's checks and preprocessed once for ``checkpoint``'s model;
         a bad upload raises the CLI's UserError (``image=<name>: ...``)."""
-        from difareli.relight.photo import read_photo
-
         name = Path(str(name or "upload")).name or "upload"
         if len(data) > MAX_UPLOAD_BYTES:
             raise RequestError(f"image={name}: {len(data) / 2 ** 20:.0f} MiB is over the {MAX_UPLOAD_BYTES >> 20} MiB "
@@ -256,8 +256,6 @@ class Service:
         shadow strength with its checkpoint / sampler / steps; returns the images (data URLs), the seconds per
         stage and the reconstruction error (the source relit under its own light, against itself). The whole
         request is checked, and its source found, before any relighter is built."""
-        from difareli.relight.targets import Targets
-
         t_all = time.perf_counter()
         checks.only(request, RELIGHT_FIELDS)
         sid = checks.text(request, "id", limit=256)
@@ -314,8 +312,6 @@ class Service:
     def example(self, name: str, checkpoint: str | None = None) -> AppSource:
         """A shipped example photo (:mod:`difareli.app.examples`; ``name`` is checked against its fixed list, never
         read as a path), prepared like an upload of it."""
-        from .examples import EXAMPLES, example_png
-
         name = checks.choice({"name": name}, "name", EXAMPLES)
         return self.upload(f"{name}.png", example_png(name), checkpoint)
 
@@ -323,10 +319,6 @@ class Service:
         """``POST /api/source`` as the page uses it: :meth:`source_request`, or ``{"kind": "example", "name"}``;
         the answer also carries the whole input photo (``photo``: the before of the page's before/after) and, for
         a photo, the photo check's verdict (``check``) with the estimators' notes among the ``warnings``."""
-        from difareli.relight import photo_check
-
-        from .examples import EXAMPLES
-
         kind = checks.choice(body, "kind", ("upload", "record", "example"))
         if kind == "example":
             checks.only(body, ("kind", "name", "checkpoint"))
@@ -348,8 +340,6 @@ class Service:
 
 def _zoo_name(value: str) -> bool:
     """A shipped checkpoint's name (no path)."""
-    from difareli.checkpoints import zoo
-
     return "/" not in value and os.sep not in value and value in zoo.available()
 
 

@@ -24,6 +24,8 @@ from pathlib import Path
 from difareli.checkpoints.format import (  # noqa: F401
     CARD, CONFIG, CONFIG_KEYS, FOLDER_FORMAT, FOLDER_VERSION, WEIGHTS, is_folder, read_folder)
 from difareli.errors import UserError
+from difareli.checkpoints import zoo
+from difareli.utils.fileio import atomic_path, write_text_atomic
 
 
 def _sha256(path: Path) -> str:
@@ -41,10 +43,7 @@ def export_folder(checkpoint: str | Path, folder: str | Path) -> Path:
     to a temporary name beside it and renamed, so a failed export never leaves a half-written file."""
     from safetensors.torch import save_file
 
-    from difareli.checkpoints import zoo
     from difareli.checkpoints.loading import read_checkpoint
-    from difareli.utils.fileio import atomic_path, write_text_atomic
-
     source = zoo.resolve(checkpoint)
     if source.is_dir():
         raise UserError(f"checkpoint={checkpoint} is already a weights folder ({source}); copy it instead")

@@ -37,6 +37,8 @@ from difareli.utils import viz
 from difareli.cli import common
 from difareli.configs import CONFIG_DIR
 from difareli.utils.fileio import folder_lock
+from difareli.data.store import EncodingStore
+from difareli.evaluation.pairs import load_pairs
 
 EXPERIMENTS = CONFIG_DIR / "experiment"
 #: Each row's train/ and bench/ folder records the settings that made it (difareli.data.provenance).
@@ -156,9 +158,6 @@ def figure(run_dirs: dict[str, Path], store_root: str, protocols: list[str], lim
     benchmarked pairs (the benchmark's selection for ``limit``), the ground truth."""
     import imageio.v3 as iio
 
-    from difareli.evaluation.pairs import load_pairs
-    from difareli.data.store import EncodingStore
-
     store = EncodingStore.open(store_root)
     lines = []
     for proto, pairs in load_pairs(store, protocols, limit=limit).items():
@@ -210,8 +209,6 @@ def _run_rows(cfg: DictConfig, models: list[str], labels: dict[str, str], captio
 
 def _store_id(store: str) -> str | None:
     """The store's identity, or None while it is still to be generated (by the first row's training)."""
-    from difareli.data.store import EncodingStore
-
     return provenance.store_identity(EncodingStore.open(store)) if (Path(store) / "store.json").is_file() else None
 
 

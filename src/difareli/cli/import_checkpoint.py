@@ -20,7 +20,7 @@ passive_openmp()  # before torch loads: idle OpenMP threads sleep (docs/scaling_
 import sys
 
 from difareli.cli.argv import argv_or_help
-from difareli.errors import UserError, cli_entry
+from difareli.errors import UserError, check_int, cli_entry
 
 KEYS = ("official", "config", "out", "encoder", "step", "ema", "shape_parts", "store", "verify")
 USAGE = ("usage: difareli-import-checkpoint <ImgCond_ema_0.9999_<step>.pt | folder> config=<official YAML> "
@@ -60,8 +60,6 @@ def main(argv: list[str] | None = None) -> int:
     if argv is None:
         return 0
     from difareli.official import weights as official
-    from difareli.errors import check_int
-
     opts = parse(argv)
     step = check_int(int(opts["step"]) if opts.get("step", "").isdigit() else opts.get("step"), "step", 0,
                      allow_none=True)

@@ -17,6 +17,7 @@ from difareli.cli.common import CONFIG_PATH
 from difareli.errors import check_int, check_out_dir, cli_entry
 from difareli.multipie import layout, protocols
 from difareli.multipie.build import BuildReport, build, check_root
+from difareli.cli.preprocess import build_pipeline
 
 
 def pair_files(value) -> list[str] | None:
@@ -36,8 +37,6 @@ def run(cfg: DictConfig, pipeline=None) -> BuildReport:
     if pair_files(cfg.pairs):
         protocols.read_lists(pair_files(cfg.pairs))
     if pipeline is None:
-        from difareli.cli.preprocess import build_pipeline
-
         pipeline = build_pipeline(cfg)
     ill = layout.ILLUMINATIONS if cfg.illuminations is None else list(cfg.illuminations)
     report = build(cfg.root, cfg.out_dir, pipeline, pair_files(cfg.pairs), seed=int(cfg.seed),

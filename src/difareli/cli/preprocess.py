@@ -22,6 +22,8 @@ from omegaconf import DictConfig, open_dict
 
 from difareli.cli.common import CONFIG_PATH
 from difareli.errors import UserError, check_int, check_out_dir, cli_entry
+from difareli.data.shard import parse as parse_shard
+from difareli.estimators.loading import IMAGE_SUFFIXES
 
 #: The crop size without a checkpoint to take it from.
 DEFAULT_SIZE = 256
@@ -67,8 +69,6 @@ def requested_encodings(cfg: DictConfig) -> list[str] | None:
 
 def check_in_dir(in_dir) -> None:
     """``in_dir`` is a folder or one image file; anything else is a UserError naming the fix."""
-    from difareli.estimators.loading import IMAGE_SUFFIXES
-
     p = Path(str(in_dir))
     if p.is_dir():
         return
@@ -95,8 +95,6 @@ def build_pipeline(cfg: DictConfig):
 @cli_entry("preprocess")
 def main(cfg: DictConfig) -> None:
     from difareli.estimators.batch import REPORT, run
-    from difareli.data.shard import parse as parse_shard
-
     check_in_dir(cfg.in_dir)
     check_out_dir(cfg.out_dir)
 

@@ -15,15 +15,17 @@ from difareli.checkpoints import zoo
 from difareli.cli import common
 from difareli.utils.fileio import write_json_atomic
 from difareli.data.store import EncodingStore
+from difareli.data.encodings import PART_INDEX
+from difareli.data.provenance import model_identity
+from difareli.diffusion.relight import SamplerSpec
+from difareli.jobs.shadow_response import check_centre
+from difareli.runtime.core import Runtime
 
 
 def run(cfg: DictConfig):
     """Compute the maps as configured; prints the summary and returns the report."""
     from difareli.jobs import shadow_maps
-    from difareli.diffusion.relight import SamplerSpec
     from difareli.lit import load_checkpoint
-    from difareli.runtime.core import Runtime
-
     validate(cfg)
     store = EncodingStore.open(cfg.store, writable=True)
     ids = record_ids(cfg, store)  # the splits named, checked before the checkpoint is loaded
@@ -34,8 +36,6 @@ def run(cfg: DictConfig):
     runtime = Runtime.from_config(cfg.runtime)
     ckpt = load_checkpoint(cfg.checkpoint, runtime.torch_device)
     spec = SamplerSpec.from_config(cfg.sampler)
-    from difareli.data.provenance import model_identity
-
     # The weights by content: retrained weights at the same path make another version (never "relit 0").
     provenance = {"checkpoint": str(Path(cfg.checkpoint).resolve()), "weights": model_identity(ckpt.model),
                   "global_step": ckpt.global_step,
@@ -133,11 +133,7 @@ def validate(cfg: DictConfig) -> None:
     if not 0.0 < float(cfg.relative) < 1.0:
         raise errors.UserError(f"relative={cfg.relative} is out of range: the cut is this share of the response's 99th "
                                "percentile, strictly between 0 and 1 (e.g. 0.5)")
-    from difareli.jobs.shadow_response import check_centre
-
     check_centre(cfg.centre)
-    from difareli.data.encodings import PART_INDEX
-
     bad = [p for p in (cfg.zero_parts or []) if p not in PART_INDEX]
     if bad:
         raise errors.UserError(f"zero_parts={list(cfg.zero_parts)}: unknown parts {bad}; "

@@ -10,6 +10,8 @@ from omegaconf import DictConfig, OmegaConf
 from difareli.cli.common import CONFIG_PATH
 from difareli.errors import check_out_dir, cli_entry
 from difareli.data.shard import parse as parse_shard
+from difareli.synth.config import INPUTS, ConfigError
+from difareli.synth.effects import Effects
 
 
 #: Integer keys and their smallest valid values, checked before any work starts.
@@ -18,8 +20,6 @@ _MINIMA = {"subjects": 1, "lights": 1, "resolution": 16, "workers": 1, "light_gr
 
 def validate(cfg: DictConfig) -> None:
     """Raise ConfigError (a ValueError) naming the first invalid key."""
-    from difareli.synth.config import ConfigError
-
     if OmegaConf.is_missing(cfg, "out_dir") or not str(cfg.out_dir):
         raise ConfigError("out_dir is required: the store root, e.g. out_dir=data/synthfaces_64")
     check_out_dir(cfg.out_dir)
@@ -29,14 +29,10 @@ def validate(cfg: DictConfig) -> None:
             raise ConfigError(f"{key}={value!r} is invalid: must be an integer >= {lo}")
     if cfg.shading_region not in ("face", "mesh"):
         raise ConfigError(f"shading_region={cfg.shading_region!r} is invalid: use 'face' or 'mesh'")
-    from difareli.synth.effects import Effects
-
     try:
         Effects.resolve(cfg.realism, OmegaConf.to_container(cfg.effects))
     except ValueError as e:
         raise ConfigError(str(e)) from None
-    from difareli.synth.config import INPUTS
-
     if cfg.inputs not in INPUTS:
         raise ConfigError(f"inputs={cfg.inputs!r} is invalid: use one of {list(INPUTS)}")
     try:

@@ -15,7 +15,7 @@ import hydra
 from omegaconf import DictConfig, ListConfig
 
 from difareli import errors
-from difareli.evaluation import paired, tables
+from difareli.evaluation import paired, published, tables
 from difareli.data import shard as sharding
 from difareli.cli import common
 
@@ -41,8 +41,6 @@ def expand_runs(patterns: Iterable[str]) -> list[Path]:
 def published_methods(value) -> list[str] | None | bool:
     """``published``: null/false (no rows), ``all``, ``ours`` (DiFaReli, DiFaReli++, DiFaReli++_ss) or a list of
     names; anything else (``published=0``, a number) is a UserError saying what it accepts."""
-    from difareli.evaluation import published
-
     accepts = (f"published= accepts null or false (no published rows), all, ours, or a list of names from "
                f"{list(published.FIGURES)}")
     # `is`, not ==: 0 == False and 1 == True would read published=0 as "none" and published=1 as "all".
@@ -89,8 +87,6 @@ def run(cfg: DictConfig) -> tables.Table:
                                        bins=bins, with_records=True, labels=run_labels(cfg.get("label")))
     chosen = published_methods(cfg.get("published"))
     if chosen is not False:
-        from difareli.evaluation import published
-
         check_multipie(dirs, table.rule)
         published.add_to(table, chosen)
     out = Path(cfg.out)

@@ -10,15 +10,14 @@ from difareli import errors
 from difareli.checkpoints import zoo
 from difareli.cli import common
 from difareli.render.sun_fit import TARGET_SUNS
+from difareli.data.store import EncodingStore
+from difareli.relight.relightable import DiffusionRelightable
 
 
 def run(cfg: DictConfig) -> dict:
     """Generate (or resume) the pair store as configured; returns the counts and pairs/s."""
     from difareli.jobs.teacher_pairs import generate_teacher_pairs
-    from difareli.relight.relightable import DiffusionRelightable
     from difareli.relight.relighter import Relighter
-    from difareli.data.store import EncodingStore
-
     check_sampler(cfg.sampler)
     zoo.resolve(cfg.checkpoint, "checkpoint")  # a file or a shipped name, as in every other CLI
     errors.check_int(cfg.batch_size, "batch_size", 1)

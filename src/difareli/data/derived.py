@@ -24,6 +24,7 @@ import numpy as np
 from difareli.data import encodings as enc
 from difareli.errors import MissingError, UserError
 from difareli.utils.fileio import save_npy_atomic, write_text_atomic
+from difareli.data.store import HEADER
 
 SEP = "@"
 KEY = "derived"
@@ -53,8 +54,6 @@ def content_version(prefix: str, provenance: Mapping[str, Any], length: int = 8)
 
 def update_header(store, key: str, value: Any) -> None:
     """Set ``meta[key]`` of a store's header (atomic rename) and of the open ``store``."""
-    from difareli.data.store import HEADER
-
     path = Path(store.root) / HEADER
     header = json.loads(path.read_text())
     header.setdefault("meta", {})[key] = json.loads(json.dumps(value, default=str))
@@ -76,8 +75,6 @@ def declare(store, base: str, version: str, provenance: Mapping[str, Any]) -> st
 
     Declaring an existing version again with the same provenance is a no-op (a resumed run); with another
     provenance it is refused (a different computation must get a different version)."""
-    from difareli.data.store import HEADER
-
     name = version_name(base, version)
     if base not in store.encodings:
         raise UserError(f"store {store.root} has no encoding {base!r} to derive a version of")

@@ -15,7 +15,7 @@ import torch
 from torch import Tensor
 
 from difareli.data import encodings as enc
-from difareli.errors import MissingError, UserError
+from difareli.errors import MissingError, UserError, check_record
 
 Condition = tuple[Tensor | None, Tensor | None]  # (spatial [B, C, H, W], non-spatial [B, D]), raw encodings
 
@@ -56,8 +56,6 @@ def read_record(store, record_id: str, names: Sequence[str]) -> dict[str, np.nda
     """A store record's encodings ``names`` as checked arrays (finite, plausible lights), with the store's c range
     beside them (``encodings.C_RANGE_KEY``) when its header records one: every reader that re-renders a target
     shadow map from a record then scales it as the store's own maps are (SynthFaces v3)."""
-    from difareli.errors import check_record
-
     arrays = {k: np.asarray(v) for k, v in store.read(record_id, list(names)).items()}
     return {**check_record(arrays, record_id, store.root), **enc.c_range_arrays(store.store_meta)}
 

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from difareli.errors import UserError
+from difareli.utils.fileio import write_json_atomic
 
 PROVENANCE = "provenance.json"
 _DIGESTS: dict[tuple[str, int, int], str] = {}
@@ -104,6 +105,4 @@ def ensure(folder: str | Path, want: Mapping[str, Any], what: str, *, has_result
     if has_results:
         raise UserError(f"{folder} holds {what} without a record of what made them ({name}); give another "
                         f"output folder or remove {folder}")
-    from difareli.utils.fileio import write_json_atomic
-
     write_json_atomic(path, want)

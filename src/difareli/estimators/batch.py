@@ -27,14 +27,14 @@ from difareli.errors import UserError
 
 from .loading import BadInput, list_inputs, load_image, record_ids
 from .pipeline import PREVIEWS, REPORT, Pipeline
+from difareli.data import shard as sharding
+from difareli.utils.processes import die_with_parent
 
 _PIPELINE = None
 
 
 def _init(parent_pid: int, config: Mapping) -> None:
     global _PIPELINE
-    from difareli.utils.processes import die_with_parent
-
     die_with_parent(parent_pid)
     _PIPELINE = Pipeline.from_config(config["estimators"], config["encodings"], **config["kwargs"])
 
@@ -121,7 +121,6 @@ def run(pipeline: Pipeline, in_dir: str, out_dir: str, *, overwrite: bool = Fals
     processes (:mod:`.workers`, images in order); this process writes the store."""
     from tqdm import tqdm
 
-    from difareli.data import shard as sharding
 
     out = Path(out_dir)
     spec = sharding.parse(shard)

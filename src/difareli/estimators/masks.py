@@ -22,6 +22,7 @@ import numpy as np
 
 from difareli.data.encodings import FACE_PARTS, FOREGROUND_PARTS, PART_INDEX
 from difareli.errors import UserError
+from difareli.utils.imageops import rgb2lab_u8 as rgb2lab
 
 # Lip contours (FACEMESH_LIPS is four chains; tests check these against it), corners first and last.
 LIPS_OUTER_UPPER = (61, 185, 40, 39, 37, 0, 267, 269, 270, 409, 291)
@@ -304,7 +305,6 @@ class FaceMeshSelfieMasks:
         unlike the hair beside the face); ``real``: bool mask of the crop pixels inside the photo (None: all)."""
         from scipy import ndimage
 
-        from difareli.utils.imageops import rgb2lab_u8 as rgb2lab  # scikit-image's rgb2lab, bit for bit, for uint8
 
         skin = labels == PART_INDEX["skin"]
         if skin.sum() < 50:

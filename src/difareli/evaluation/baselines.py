@@ -23,6 +23,10 @@ from difareli.lighting import sh
 from difareli.lighting.light_fit import LightFit, face_normals
 from difareli.errors import UserError
 from difareli.evaluation.pairs import StoredFace, exact_light_name
+from difareli.data import encodings
+from difareli.relight.targets import Targets
+from difareli.data.inputs import check_store_fits
+from difareli.relight.relightable import OnePassRelightable
 
 
 @runtime_checkable
@@ -127,7 +131,6 @@ class DiffusionMethod:
     def __init__(self, checkpoint: str | None = None, sampler: Mapping[str, Any] | None = None, *,
                  name: str | None = None, runtime: Mapping[str, Any] | None = None, mean_matching: bool = True,
                  batch_size: int = 16, model_name: str | None = None):
-        from difareli.relight.relightable import OnePassRelightable
         from difareli.relight.relighter import Relighter
 
         if not checkpoint or checkpoint == "???":
@@ -147,8 +150,6 @@ class DiffusionMethod:
     @property
     def target_maps(self) -> str:
         """How the target's light-dependent encodings are made (stated in the benchmark's tables)."""
-        from difareli.data import encodings
-
         names = encodings.light_dependent(self.relighter.model_inputs)
         maps = "re-rendered on the input's geometry under the target light: " + ", ".join(names)
         if "shadow_map" in names:
@@ -157,13 +158,9 @@ class DiffusionMethod:
 
     def check_store(self, store) -> None:
         """The checkpoint reads this store's encodings (else one line naming both; before any pair is relit)."""
-        from difareli.data.inputs import check_store_fits
-
         check_store_fits(self.relighter.config, store, self.relighter.checkpoint)
 
     def relight(self, source, target_light, target_shadow=None, target=None, target_sun=None) -> np.ndarray:
-        from difareli.relight.targets import Targets
-
         record = self.relighter.source(source.store, source.id)  # what this model reads of it, checked
         return self.relighter.relight(record, Targets.of([target_light], [target_shadow], record.what,
                                                          suns=[target_sun]))[0]

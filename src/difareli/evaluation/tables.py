@@ -34,6 +34,7 @@ from difareli.evaluation.records import (  # noqa: F401
     TABLE_BAD_ROW_FIX, Record, Stat, TableError, extra_columns, header, mean_se, read_records, read_records_checked,
     read_runs, record_row, write_records)
 from difareli.evaluation.records import PROTOCOL_LABELS, _protocol_key, protocol_label  # noqa: F401
+from difareli.evaluation import paired
 
 
 @dataclass
@@ -299,8 +300,6 @@ def merge_runs(run_dirs: Iterable[str | Path], filename: str = PER_IMAGE_CSV,
     records, dropped, named, where = read_runs(run_dirs, filename, drop_bad_rows, labels)
     _one_rule(records, where)  # names a run dir of each rule
     if strata not in (None, "protocol"):
-        from difareli.evaluation import paired
-
         records = paired.stratify(records, strata, paired.SHADOW_BINS if bins is None else bins)
     table = summarize(records, methods)
     table.dropped = dropped

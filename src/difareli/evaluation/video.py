@@ -44,6 +44,7 @@ from difareli.lighting.suns import Suns
 from difareli.data.encodings import known_normals
 from difareli.utils.viz import write_rotation
 from difareli.utils.imageops import LUMA
+from difareli.evaluation.adherence import shadow_scores
 
 #: The share of a pixel's light its cast shadows must take to count as visible (SynthFaces' ``shadow_visible``).
 VISIBLE = 0.25
@@ -98,7 +99,7 @@ def detect_cast_shadow(frames: np.ndarray, arrays: Mapping[str, np.ndarray], lig
 
 def iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Per-item IoU of boolean masks (N, ...) -> (N,); NaN where both are empty (``metrics.binary_scores``)."""
-    from difareli.evaluation.metrics import binary_scores
+    from difareli.evaluation.metrics import binary_scores  # the image metrics load torchmetrics and LPIPS: 0.9 s
 
     return binary_scores(a, b)["iou"]
 
@@ -143,7 +144,7 @@ def measure(relit: np.ndarray, gt: np.ndarray, arrays: Mapping[str, np.ndarray],
     darkening against the ground truth's under the same map, and ``map_iou``, the shadow found in the frame against
     the map); ``shadowless`` (N, H, W, 3) the GT frames rendered without cast shadows: their shadow IoU
     (``floor_iou``) is what a relight that draws no cast shadow scores."""
-    from difareli.evaluation import metrics
+    from difareli.evaluation import metrics  # (as in iou)
 
     if relit.shape != gt.shape:
         raise UserError(f"relit frames {relit.shape} and ground truth {gt.shape} differ in shape")
@@ -158,8 +159,6 @@ def measure(relit: np.ndarray, gt: np.ndarray, arrays: Mapping[str, np.ndarray],
     if shadowless is not None:
         scores["floor_iou"] = iou(detect_cast_shadow(shadowless, arrays, lights, input_light)[0], truth)
     if maps is not None:
-        from difareli.evaluation.adherence import shadow_scores
-
         follow = [shadow_scores(r, g, mask, np.asarray(m) > 0) for r, g, m in zip(relit, gt, maps)]
         scores["map_adherence"] = np.array([f["shadow_adherence"] for f in follow])
         scores["map_iou"] = np.array([f["shadow_iou"] for f in follow])

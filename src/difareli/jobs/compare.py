@@ -17,9 +17,11 @@ from pathlib import Path
 from typing import Any
 
 from difareli.evaluation import tables
-from difareli.evaluation.benchmark import BenchmarkResult
+from difareli.evaluation.benchmark import BenchmarkResult, finished_run, run_benchmark
 from difareli.data.protocols import PROTOCOLS
 from difareli.data.store import EncodingStore
+from difareli.evaluation.baselines import DiffusionMethod, Identity, LambertianRatio
+from difareli.lighting.light_fit import LightFit
 
 #: Both evaluation protocols: (i) relit toward the same subject's other light, (ii) toward another subject's light.
 
@@ -67,10 +69,6 @@ def compare_to_baselines(store: EncodingStore | str | Path, checkpoint: Any, sam
     under ``out_dir/<method name>`` (resumable, as :func:`~difareli.evaluation.benchmark.run_benchmark` is); ``reuse``:
     a method's finished run there with the same settings is read back instead of relit again. ``model_name`` names the
     model's row (``<model_name>/<sampler>``; default: its config's variant name)."""
-    from difareli.evaluation.baselines import DiffusionMethod, Identity, LambertianRatio
-    from difareli.evaluation.benchmark import finished_run, run_benchmark
-    from difareli.lighting.light_fit import LightFit
-
     start = time.perf_counter()
     store = store if isinstance(store, EncodingStore) else EncodingStore.open(store)
     fit = LightFit()  # one estimator: every row is scored under the same fitted target lights

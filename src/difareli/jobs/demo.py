@@ -27,8 +27,10 @@ from difareli.utils import viz
 from difareli.relight.relighter import Relighter
 from difareli.data.store import EncodingStore
 from difareli.data.encodings import shadow_logit
-from difareli.relight.targets import Targets, rotation_targets
+from difareli.relight.targets import Targets, rotation_targets, target_lights
 from difareli.evaluation.video import rotation_video
+from difareli.relight.photo import preprocess_photo
+from difareli.jobs.compare import compare_to_baselines
 
 
 @dataclass
@@ -71,7 +73,6 @@ def run_demo(checkpoint: Any, out_dir: str | Path, *, sampler: Mapping[str, Any]
              subjects: int = 30, resolution: int = 64, seed: int = 2026, frames: int = 60, pairs: int = 8,
              rows: int = 3, photo: bool = True, progress: bool = True) -> DemoResult:
     """Run the demo into ``out_dir``; see the module docstring."""
-    from difareli.jobs.compare import compare_to_baselines
     from difareli.lit import load_checkpoint
 
     out, res = Path(out_dir), DemoResult()
@@ -144,8 +145,6 @@ def relight_photo(relighter: Relighter, path: Path, resolution: int) -> Path:
     """scikit-image's astronaut, preprocessed in memory and relit under yaw -60, -30, +30, +60 degrees."""
     from skimage import data
 
-    from difareli.relight.photo import preprocess_photo
-    from difareli.relight.targets import target_lights
 
     arrays = preprocess_photo(data.astronaut(), relighter.needed_encodings(), size=resolution)
     source = relighter.source_from_arrays(arrays, "the astronaut photo", key=("photo", "astronaut"))

@@ -20,6 +20,8 @@ from difareli.errors import UserError, UserFileNotFoundError, check_record
 from difareli.data.inputs import (MissingEncodingError, check_store_fits, image_to_tensor, input_dims,
                                   prepare_nonspatial, prepare_spatial)
 from difareli.data.store import EncodingStore
+from difareli.lit.pairs import pair_dataset
+from difareli.synth.config import ConfigError, SynthConfig
 
 
 class EncodingsDataset(Dataset):
@@ -117,7 +119,6 @@ class EncodingsDataModule(L.LightningDataModule):
             return
         from dataclasses import fields
 
-        from difareli.synth.config import ConfigError, SynthConfig
 
         asked = {k: v for k, v in self.synth.items() if k in {f.name for f in fields(SynthConfig)}}
         asked.setdefault("resolution", self.resolution)
@@ -199,8 +200,6 @@ class EncodingsDataModule(L.LightningDataModule):
         store = self._open()
         train, val = self._split_ids()
         if self.pairs:
-            from difareli.lit.pairs import pair_dataset
-
             teacher = EncodingStore.open(self.teacher_pairs) if self.teacher_pairs else None
             self.train_set = pair_dataset(self.pairs, store, train, self.spatial, self.nonspatial, teacher,
                                           self.gt_light, self.gt_identity, self.gt_maps)

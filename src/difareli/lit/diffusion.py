@@ -22,6 +22,7 @@ from difareli.checkpoints.format import stamp, upgrade_checkpoint
 from difareli.diffusion.schedule import DiffusionSchedule
 from difareli.errors import UserError
 from difareli.nn import build_network
+from difareli.data import encodings
 
 #: The public code's optimizer (guided-diffusion TrainLoop: AdamW, constant LR, no weight decay).
 DEFAULT_OPTIMIZER = {"_target_": "torch.optim.AdamW", "_partial_": True, "lr": 1e-4, "weight_decay": 0.0}
@@ -215,8 +216,6 @@ class DiffusionModule(RelightingModule):
     def _nonspatial_widths(self, dim: int) -> list[int]:
         """Each non-spatial encoding's width (cross-attention makes tokens per encoding), at the producers'
         dimensions; one block of ``dim`` when a store's dimensions differ (e.g. another identity length)."""
-        from difareli.data import encodings
-
         dims = {"H": 1, "W": 1, **encodings.PRODUCER_DIMS}
         widths = [encodings.channels(n, dims) for n in self.nonspatial_inputs]
         return widths if sum(widths) == dim else ([dim] if dim else [])

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from difareli.configs import instantiate_group
 
 Target = Any  # a lightning Trainer, or an iterable of Lightning loggers
 
@@ -126,8 +127,6 @@ def log_run_info(target: Target, cfg) -> dict[str, Any]:
 def log_benchmark(cfg, result) -> list[Any]:
     """``difareli-benchmark`` with a ``logger`` group: its resolved config, git commit, summary table and
     comparison grids go to those loggers (no Trainer there); returns the loggers, finalised."""
-    from difareli.configs import instantiate_group
-
     loggers = instantiate_group(cfg.logger)
     log_run_info(loggers, cfg)
     log_table(loggers, "benchmark/summary", result.table, step=0)

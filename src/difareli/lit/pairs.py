@@ -35,6 +35,7 @@ from difareli.data.inputs import image_to_tensor, prepare_nonspatial, prepare_sp
 from difareli.errors import UserError, check_record
 from difareli.data.store import EncodingStore
 from difareli.relight.targets import retarget
+from difareli.data.provenance import PROVENANCE, store_identity
 
 #: Meta keys of a teacher-pair record: the input record and the record the target light was taken from.
 SOURCE_KEY, LIGHT_FROM_KEY = "source", "light_from"
@@ -153,8 +154,6 @@ class GroundTruthPairs(PairDataset):
 def check_pair_source(pair_store: EncodingStore, store: EncodingStore) -> None:
     """A teacher-pair store must come from this training store (its provenance, or for pair stores written
     before provenance was recorded, the source path in its header)."""
-    from difareli.data.provenance import PROVENANCE, store_identity
-
     prov = Path(pair_store.root) / PROVENANCE
     if prov.is_file():
         made_from = json.loads(prov.read_text()).get("source_store")

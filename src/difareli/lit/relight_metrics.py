@@ -34,18 +34,21 @@ from difareli.evaluation import metrics
 from difareli.utils import viz
 from difareli.diffusion.spec import SamplerSpec, as_spec
 from difareli.data.inputs import condition_tensors, image_to_tensor, read_record, relight_reads
-from difareli.data.protocols import PROTOCOLS
+from difareli.data.protocols import PROTOCOLS, protocol_pairs
 from difareli.lit.logging import log_image
 from difareli.relight.relightable import OnePassRelightable, Relightable, model_inputs
 from difareli.errors import UserError
+from difareli.evaluation.extras import PairExtras
+from difareli.lighting.light_fit import LightFit
+from difareli.relight.core import relight
+from difareli.relight.targets import retarget, target_shadow_of
+from difareli.runtime.core import Runtime
 
 
 
 def validation_pairs(store, split: str, n: int) -> list[dict[str, str]]:
     """``n`` sources of ``split`` (evenly spread), each with a target record and the light source of both
     protocols: ``{"source", "target", "same", "different"}`` (record ids); [] without SynthFaces light groups."""
-    from difareli.data.protocols import protocol_pairs
-
     meta = store.store_meta
     group, lights = meta.get("light_group_size"), meta.get("lights")
     ids = set(store.ids(split=split))
@@ -108,8 +111,6 @@ class RelightMetrics(L.Callback):
         rank, world = trainer.global_rank, trainer.world_size
         self.cases = [self._prepare(store, pl_module, p) for p in pairs[rank::world]]
         if self.extras:
-            from difareli.evaluation.extras import PairExtras
-
             self.scorer = PairExtras(store)
         self._clock = time.perf_counter()
 
@@ -119,9 +120,6 @@ class RelightMetrics(L.Callback):
 
     def _prepare(self, store, model, pair: Mapping[str, str]) -> dict[str, Any]:
         """The source's condition, both protocols' target conditions, the ground truth and its mask."""
-        from difareli.lighting.light_fit import LightFit
-        from difareli.relight.targets import retarget, target_shadow_of
-
         names = relight_reads(model_inputs(model))
         arrays = read_record(store, pair["source"], names)
         fit, targets, lights = LightFit(), [], []
@@ -150,9 +148,6 @@ class RelightMetrics(L.Callback):
     @torch.no_grad()
     def evaluate(self, trainer: L.Trainer, pl_module) -> dict[str, float]:
         """Relight the prepared pairs with ``pl_module``'s current weights; log and return the metrics."""
-        from difareli.relight.core import relight
-        from difareli.runtime.core import Runtime
-
         since = time.perf_counter() - (self._clock or time.perf_counter())
         t0 = time.perf_counter()
         dev = pl_module.device

@@ -21,6 +21,7 @@ from difareli.data import encodings as enc
 from difareli.errors import UserError
 from difareli.lit.diffusion import DEFAULT_OPTIMIZER, RelightingModule, factory_config
 from difareli.nn import build_network
+from difareli.nn.lpips import get_lpips
 
 
 def _slices(names: Sequence[str], dims: Mapping[str, int]) -> list[int]:
@@ -137,8 +138,6 @@ class StudentModule(RelightingModule):
         out["loss"] = out["l2"]
         if self.hparams.lpips_weight > 0:
             if self._lpips is None:
-                from difareli.nn.lpips import get_lpips
-
                 self._lpips = [get_lpips("alex", str(pred.device))]  # a list: not a submodule, not in checkpoints
             out["lpips"] = self._lpips[0](pred.float().clamp(-1, 1), batch["target_image"].float()).mean()
             out["loss"] = out["loss"] + self.hparams.lpips_weight * out["lpips"]

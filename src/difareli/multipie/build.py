@@ -24,6 +24,7 @@ from difareli.multipie.layout import Image
 from difareli.data.store import EncodingStore
 from difareli.data.protocols import PROTOCOLS_FILE
 from difareli.utils.fileio import write_json_atomic
+from difareli.estimators.loading import BadInput, load_image
 
 REPORT = "multipie_report.json"
 #: why an image was skipped -> the word used in its line and in the counts
@@ -66,8 +67,6 @@ def _kind(reason: str) -> str:
 
 def _process(pipeline, store: EncodingStore, img: Image, path: Path) -> tuple[str, str] | None:
     """Preprocess one image into ``store``; ``(kind, reason)`` when it is skipped."""
-    from difareli.estimators.loading import BadInput, load_image
-
     try:
         rgb, notes = load_image(path, pipeline.min_side, pipeline.max_side)
         arrays, meta, ctx = pipeline.process(rgb)

@@ -34,11 +34,15 @@ from pathlib import Path
 from typing import Any
 
 from difareli.checkpoints.format import OFFICIAL_REPO as REPO
-from difareli.checkpoints.format import is_official
-from difareli.errors import UserError, check_file
+from difareli.checkpoints.format import is_official, load_torch_file, stamp
+from difareli.errors import UserError, check_file, check_out_dir
 # read_config and PARAM_WIDTHS are also named from here (scripts/bench_official.py, docs/official_code.md).
 from difareli.official.config import DEFAULTS, PARAM_ENCODING, PARAM_WIDTHS, OfficialConfig, read_config
 from difareli.utils.fileio import torch_save_atomic
+from difareli.official import safety
+from difareli.data import encodings
+from difareli.data.store import EncodingStore
+from difareli.nn.presets import get_config
 
 #: ``shape``'s part order in a store written by ``difareli.official.importers`` (its default ``shape_parts``).
 STORE_SHAPE_PARTS = ("shape", "exp", "pose")
@@ -46,8 +50,6 @@ STORE_SHAPE_PARTS = ("shape", "exp", "pose")
 
 # ---------------------------------------------------------------------------------------------- files
 def _load(path: Path, what: str) -> dict[str, Any]:
-    from difareli.checkpoints.format import load_torch_file
-
     obj = load_torch_file(path, what)
     if isinstance(obj, Mapping) and "hyper_parameters" in obj and "state_dict" in obj:
         raise UserError(f"{what}={path} is already a difareli checkpoint; use it directly: checkpoint={path}")
@@ -155,8 +157,6 @@ def nonspatial_columns(selector: Sequence[str], inputs: Sequence[str], shape_par
 # ---------------------------------------------------------------------------------------------- conversion
 def _preset(net: Mapping[str, Any]) -> tuple[str, dict[str, Any]]:
     """The preset this network is (no overrides), else ffhq128 with the fields that differ."""
-    from difareli.nn.presets import get_config
-
     def diff(name: str) -> dict[str, Any]:
         base = get_config(name, {"image_size": net["image_size"]})
         return {k: v for k, v in net.items() if k != "image_size" and getattr(base, k) != v}
@@ -170,8 +170,6 @@ def _preset(net: Mapping[str, Any]) -> tuple[str, dict[str, Any]]:
 def hyper_parameters(cfg: OfficialConfig, shape_parts: Sequence[str] = STORE_SHAPE_PARTS) -> dict[str, Any]:
     """The :class:`~difareli.lit.DiffusionModule` arguments of the official network (raw non-spatial vector:
     identity statistics, as the official code feeds ``cond_params`` unnormalised)."""
-    from difareli.data import encodings
-
     inputs = cfg.nonspatial_inputs
     width = nonspatial_columns(cfg.selector, inputs, shape_parts)[2] if cfg.selector else 0
     channels = sum(encodings.channels(e, {"H": 1, "W": 1}) for e in cfg.spatial_inputs)
@@ -199,7 +197,6 @@ def convert(unet_sd: Mapping[str, Any], modulator_sd: Mapping[str, Any], cfg: Of
 
     import torch
 
-    from difareli.checkpoints.format import stamp
     from difareli.lit.diffusion import DiffusionModule
 
     files = dict(files or {"unet": "the UNet file", "modulator": "the Modulator file"})
@@ -250,8 +247,6 @@ def convert(unet_sd: Mapping[str, Any], modulator_sd: Mapping[str, Any], cfg: Of
 def shape_parts_of(store: str | Path) -> list[str]:
     """The part order of ``shape`` in a store written by :mod:`difareli.official.importers` (its ``shape_layout``
     meta)."""
-    from difareli.data.store import EncodingStore
-
     layout = EncodingStore.open(store).store_meta.get("shape_layout")
     if not layout:
         raise UserError(f"store={store} records no shape_layout (not written by difareli.official.importers); give "
@@ -264,10 +259,6 @@ def import_checkpoint(official: str | Path, config: str | Path, out: str | Path,
                       verify: bool = True) -> dict[str, Any]:
     """Convert an official UNet + Modulator pair to a difareli checkpoint at ``out`` (written atomically) and,
     with ``verify``, check that ``load_checkpoint(out)`` predicts exactly the eps of the converted network."""
-    from difareli.errors import check_out_dir
-
-    from difareli.official import safety
-
     cfg = read_config(config)
     out = Path(str(out))
     check_out_dir(out.parent if str(out.parent) else ".", "out")

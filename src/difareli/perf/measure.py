@@ -28,6 +28,9 @@ from difareli.configs import read_yaml
 from difareli.runtime.inference_copy import to_channels_last
 from difareli.data.inputs import Condition, input_dims
 from difareli.errors import UserError
+from difareli.hardware import peak_flops
+from difareli.nn import get_config
+from difareli.runtime.core import Runtime, count_flops
 
 #: The model variant of the GPU report and the training benchmark (the paper's DiFaReli++).
 DEFAULT_VARIANT = "difareli_pp"
@@ -117,8 +120,6 @@ def build_model(model: str | Mapping[str, Any], preset: str | None = None, resol
     preset's image size), input sizes from the encoding registry at the producers' dimensions
     (:func:`difareli.data.inputs.input_dims`; ``dims`` overrides them), ``options`` replacing config keys (e.g.
     ``compile=True``); ``seed`` seeds torch before the weights are drawn (None: the caller's RNG state)."""
-    from difareli.nn import get_config
-
     cfg = variant_config(model) if isinstance(model, str) else dict(model)
     target = cfg.get("_target_")
     if not target:
@@ -193,8 +194,6 @@ def _channels_last(items: list[dict]) -> dict:
 def train_step_flops(module, batch: dict) -> int:
     """FLOPs of one training step's forward and backward of ``L_simple`` (counted exactly on the module's device;
     the optimizer update is not counted)."""
-    from difareli.runtime.core import count_flops
-
     def step():
         module.diffusion_loss(batch).backward()
 
@@ -208,8 +207,6 @@ def gemm_ceiling(device: str | torch.device = "cpu", precision: str = "bf16", n:
     """Measured FLOP/s of the fastest of ``repeats`` dense ``n x n`` matmuls (``2 n^3`` FLOPs each) at ``precision``
     (``bf16`` or ``fp32``) on ``device``, after one warm-up: what this machine's BLAS / oneDNN reaches on the
     friendliest shape, a ceiling for any network on it (the nominal peak counts instructions, not what runs)."""
-    from difareli.runtime.core import Runtime
-
     dev = torch.device(device)
     dtype = torch.bfloat16 if precision.startswith("bf16") else torch.float32
     gen = torch.Generator().manual_seed(0)
@@ -230,7 +227,6 @@ def gemm_ceiling(device: str | torch.device = "cpu", precision: str = "bf16", n:
 def _step_timer(warmup: int, device: torch.device):
     import lightning as L
 
-    from difareli.runtime.core import Runtime
 
     runtime = Runtime(device=str(device))
 
@@ -266,7 +262,6 @@ def train_throughput(preset: str, res: int, batch: int, precision: str, device: 
 
     import lightning as L
 
-    from difareli.hardware import peak_flops
 
     dev = torch.device(device)
     flags = {o for o in opts.split(",") if o}

@@ -44,6 +44,8 @@ from difareli.relight.core import relight
 from difareli.runtime.core import Runtime
 from difareli.data.store import EncodingStore
 from difareli.errors import MissingError, UserError
+from difareli.relight.targets import retarget, target_shadow_of
+from difareli.lighting.light_fit import LightFit
 
 #: Error columns (present only when cases carry a reference or a ground truth).
 ERROR_COLUMNS = ("ref/mse", "ref/dssim", "gt/mse", "gt/dssim")
@@ -89,14 +91,12 @@ def store_cases(store: EncodingStore, model, records: Iterable[str] | None = Non
     """Cases for ``records`` (default: the test split, else every record) under another light of the same subject.
 
     By default the target is what a user would have: the light fitted to the target record's image
-    (:class:`baselines.LightFit`), the c of :func:`targets.target_shadow_of`, and the light-dependent encodings
-    re-rendered on the source's geometry (shadow map ray-marched on its depth). ``oracle_target`` takes the
-    target record's stored light-dependent encodings instead. The ground truth is the target record's image and
-    the mask the source's ``face_mask``; each case's ``inputs`` says which target was used.
+    (:class:`~difareli.lighting.light_fit.LightFit`), the c of :func:`targets.target_shadow_of`, and the
+    light-dependent encodings re-rendered on the source's geometry (shadow map ray-marched on its depth).
+    ``oracle_target`` takes the target record's stored light-dependent encodings instead. The ground truth is the
+    target record's image and the mask the source's ``face_mask``; each case's ``inputs`` says which target was
+    used.
     """
-    from difareli.evaluation.baselines import LightFit
-    from difareli.relight.targets import retarget, target_shadow_of
-
     ids = list(records) if records is not None else (store.ids(split="test") or store.ids())
     inputs = [*model.spatial_inputs, *model.nonspatial_inputs]
     rerender = encodings.light_dependent(inputs)

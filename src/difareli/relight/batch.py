@@ -22,6 +22,7 @@ import numpy as np
 from difareli.errors import UserError
 from difareli.relight import photo, photo_check
 from difareli.utils import fileio, viz
+from difareli.estimators.loading import IMAGE_SUFFIXES
 
 CSV_NAME = "relight.csv"
 FIELDS = ("photo", "status", "seconds", "faces", "relit_faces", "verdict", *photo_check.LIMITS, "reason")
@@ -29,8 +30,6 @@ FIELDS = ("photo", "status", "seconds", "faces", "relit_faces", "verdict", *phot
 
 def photo_paths(value: str) -> list[Path] | None:
     """The photos of a folder (its image files, sorted) or of a glob pattern; None for one file."""
-    from difareli.estimators.loading import IMAGE_SUFFIXES
-
     p = Path(str(value))
     if p.is_dir():
         found = sorted(q for q in p.iterdir() if q.is_file() and q.suffix.lower() in IMAGE_SUFFIXES)

@@ -27,8 +27,13 @@ from typing import Any
 
 import numpy as np
 
-from difareli.errors import UserError
+from difareli.errors import UserError, check_file
 from difareli.estimators.light import describe_light, is_grey, light_direction  # noqa: F401 (re-exported)
+from difareli.estimators.loading import BadInput, load_image
+from difareli.utils.imageops import LUMA
+from difareli.estimators.align import inside_photo
+from difareli.estimators.quiet import native_logs
+from difareli.relight.composite import DEFAULT_PARTS, Compositor
 
 BORDERS = ("reflect", "mask")
 EXTRAS_FIX = "install the photo estimators: DIFARELI_PREPROCESS=1 bash scripts/install.sh"
@@ -45,8 +50,6 @@ def resolution_warning(checkpoint: Any, trained: int | None, what: str, size: in
 
 def grey_like(images: np.ndarray) -> np.ndarray:
     """uint8 images (..., 3) as their Rec. 709 luminance in all three channels (a grey photo's relights)."""
-    from difareli.utils.imageops import LUMA
-
     a = np.asarray(images)
     y = np.clip(np.round(a.astype(np.float64) @ np.asarray(LUMA, np.float64)), 0, 255).astype(np.uint8)
     return np.repeat(y[..., None], 3, axis=-1)
@@ -82,8 +85,6 @@ class PreparedPhoto:
 
     def compositor(self, mode: str = "ratio", feather: float = 0.03, parts: Sequence[str] | None = None):
         """A :class:`difareli.relight.composite.Compositor` putting relit crops of this photo back into it."""
-        from difareli.relight.composite import DEFAULT_PARTS, Compositor
-
         return Compositor(self.rgb, np.asarray(self.arrays["image"]), np.asarray(self.arrays["masks"]), self.quad,
                           mode=mode, feather=float(feather), parts=tuple(parts or DEFAULT_PARTS),
                           inside=self.inside)
@@ -95,8 +96,6 @@ def detect_faces(rgb: np.ndarray, size: int, estimators: Mapping[str, Any] | Non
     in photo pixels) ordered left to right: ``face=<index>`` counts in this order."""
     try:
         aligner = pipeline_for(["masks"], size, estimators).aligner
-        from difareli.estimators.quiet import native_logs
-
         with native_logs():
             found = aligner.detect(np.ascontiguousarray(np.asarray(rgb)[..., :3]))
     except ImportError as e:
@@ -138,9 +137,6 @@ def prepare_photo(rgb: np.ndarray, encodings: Sequence[str], *, size: int,
     ``border``: ``reflect`` leaves the crop's padding past the photo's edge to the estimators, ``mask`` labels it
     background (module doc). Errors: a UserError naming ``what`` (no face...), or an ImportError naming the
     install command."""
-    from difareli.estimators.align import inside_photo
-    from difareli.estimators.loading import BadInput
-
     if border not in BORDERS:
         raise UserError(f"border must be one of {BORDERS}, got {border!r}")
     rgb = np.ascontiguousarray(np.asarray(rgb)[..., :3])
@@ -184,8 +180,6 @@ def read_photo(path: str | Path, key: str = "image", name: str | None = None) ->
     import stat
     import warnings
 
-    from difareli.errors import check_file
-    from difareli.estimators.loading import BadInput, load_image
 
     shown = name or str(path)
     try:

@@ -32,11 +32,12 @@ from tqdm.auto import tqdm
 from difareli import errors
 from difareli.utils import viz
 from difareli.utils.lru import LRU
-from difareli.data.inputs import condition_tensors, image_to_tensor, read_record, relight_reads
+from difareli.data.inputs import check_store_fits, condition_tensors, image_to_tensor, read_record, relight_reads
 from difareli.diffusion.relight import Inversion, SamplerSpec
 from difareli.diffusion.spec import DEFAULT_SAMPLER, PRESETS
 from difareli.relight.core import invert_image, relight  # noqa: F401 (callers import the tensor-level call here too)
 from difareli.relight import photo as photos
+from difareli.relight import photo_check
 from difareli.relight.relightable import OnePassRelightable, Relightable, model_inputs
 from difareli.relight.relit import Relit
 from difareli.relight.request import Answer, Request, answer
@@ -44,6 +45,8 @@ from difareli.runtime.core import Runtime
 from difareli.data.store import EncodingStore
 from difareli.relight.targets import Targets, check_maker
 from difareli.render import sun_fit
+from difareli.data.encodings import known_normals
+from difareli.lighting import sh
 
 
 def needed_encodings(model: Relightable) -> list[str]:
@@ -78,9 +81,6 @@ def implausible_lights(arrays: Mapping[str, np.ndarray], lights: np.ndarray) -> 
     """Target lights a face cannot be lit with, judged on the source's stored normals: index -> why, in terms of
     the light (negative irradiance on much of the face, or far brighter than the source's own light). Empty
     without normals (a model that reads no shading)."""
-    from difareli.data.encodings import known_normals
-    from difareli.lighting import sh
-
     if "normal" not in arrays or "light" not in arrays:
         return {}
     normal = np.asarray(arrays["normal"], np.float64)
@@ -180,8 +180,6 @@ class Relighter:
         ``record_id=None``: the first record of the test split (said in its notes). The store must hold what
         this model reads (else a UserError naming the fix); a store at another resolution than the checkpoint's
         is said in the notes."""
-        from difareli.data.inputs import check_store_fits
-
         notes = []
         missing = [n for n in self.needed_encodings() if not store.available(n)]
         redo = self._redo(store)
@@ -237,8 +235,6 @@ class Relighter:
         (:mod:`~difareli.relight.photo_check`: one line in its notes; ``strict``: a poor photo is refused).
         Its ``photo`` composites the relights back (:meth:`Relit.composite`); ``also``: encodings estimated beyond
         the model's (e.g. ``face_mask`` for scoring)."""
-        from difareli.relight import photo_check
-
         is_path = isinstance(image, (str, Path))
         what = what or (f"image={image}" if is_path else "photo")
         rgb = photos.read_photo(image) if is_path else np.asarray(image)

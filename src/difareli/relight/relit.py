@@ -11,6 +11,7 @@ import time
 from typing import Any, Sequence
 
 import numpy as np
+from difareli.errors import UserError
 
 
 class Relit(np.ndarray):
@@ -55,8 +56,6 @@ class Relit(np.ndarray):
         ``onto``: composite into this image instead of the original photo (another face of it already relit);
         ``images``: composite these crops (e.g. a video's frames) instead of these. A UserError for a source that
         is not a photo."""
-        from difareli.errors import UserError
-
         prepared = getattr(self.source, "photo", None)
         if prepared is None:
             what = getattr(self.source, "what", "this source")

@@ -28,6 +28,7 @@ from difareli.relight.targets import Targets, rotation_targets, target_lights
 from difareli.render import sun_fit
 from difareli.render.sun_fit import TARGET_SUNS
 from difareli.utils import viz
+from difareli.data.store import EncodingStore
 
 #: The keys that give a target; exactly one of them (or a video alone).
 TARGET_KEYS = ("light", "record", "yaw", "roll", "envmap")
@@ -156,8 +157,6 @@ MAX_FRAMES = 3600
 def check_store(root: str, versions: Mapping[str, Any] | None, **records: str | None):
     """A source store that opens (its header, the derived ``versions`` asked for) and holds the ``records`` named
     (``record``, ``target_record``: None for none; the key is said as the config spells it); returned, open."""
-    from difareli.data.store import EncodingStore
-
     store = EncodingStore.open(root).use_versions(versions)
     for key, rid in records.items():
         if rid is not None and not store.has(str(rid)):
@@ -206,8 +205,6 @@ def answer(relighter, request: Request, say: Callable[[str], None] | None = None
     """``request`` answered by ``relighter`` (module doc): the source read and checked once, its target relit
     (its map toward the key sun found from the cast shadows of the image whose light it is, turned with a yaw or
     a roll), the video's frames relit, a photo's relights composited back; a batch of photos: :func:`answer_photos`."""
-    from difareli.data.store import EncodingStore
-
     if request.photos is not None:
         return Answer(counts=answer_photos(relighter, request), say=say)
     store = None if request.store is None else EncodingStore.open(request.store).use_versions(request.versions)

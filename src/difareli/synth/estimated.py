@@ -28,6 +28,9 @@ import numpy as np
 from difareli.lighting import sh
 from difareli.data.encodings import FACE_PARTS, FOREGROUND_PARTS, NUM_MASK_PARTS, PART_INDEX
 from difareli.errors import UserError
+from difareli.estimators.loading import BadInput
+from difareli.lighting.light_fit import LightFit
+from difareli.render import OrthoCamera, render_gbuffer
 
 _SHADOW = None
 _FACE_IDX = np.array([PART_INDEX[p] for p in FACE_PARTS])
@@ -101,8 +104,6 @@ def estimate_light_and_shadow(arrays: dict, region: np.ndarray, gbuffer, scene) 
     """``light`` (LightFit on the stored ``image``/``normal``/``face_mask``/``masks``), ``shading`` on ``region``,
     ``shadow``/``shadow_map`` (the classifier on ``gbuffer``/``scene``, map = cast * fixed-range normalised c) and
     meta. Raises ValueError when the light fit has too few usable skin pixels."""
-    from difareli.lighting.light_fit import LightFit
-
     fit = LightFit()
     light = fit({k: arrays[k] for k in LightFit.ENCODINGS}).astype(np.float32)
     shading = np.asarray(sh.shading_reference(light, arrays["normal"], mask=region), dtype=np.float32)
@@ -125,9 +126,6 @@ def estimate_all(image: np.ndarray, est_image: np.ndarray | None = None) -> tupl
     """Every model input of a v3 record from its stored ``image`` (HxWx3 uint8) alone; ``est_image`` is the same
     render at the estimation resolution (None: ``image`` itself). Returns (arrays, meta); ``shadow_map`` is the
     binary cast map (scaled by the store's c range later). Raises ValueError naming the failing estimator."""
-    from difareli.estimators.loading import BadInput
-    from difareli.render import OrthoCamera, render_gbuffer
-
     big = image if est_image is None else est_image
     try:
         got, meta, ctx = pipeline(big.shape[0]).process(np.ascontiguousarray(big))

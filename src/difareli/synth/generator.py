@@ -23,6 +23,8 @@ from difareli.synth.blas import single_thread_blas
 from difareli.synth.config import IDENTITY_DIM, ConfigError, SynthConfig
 from difareli.synth.lights import add_suns, extra_sun_rng, light_rng, sample_light
 from difareli.synth.subject import build_subject, estimation_images, shade
+from difareli.synth.c_norm import finalise
+from difareli.synth.estimated import missing_estimators
 
 
 def render_records(k: int, light_indices: list[int], cfg: SynthConfig, split: str) -> Iterator[tuple[str, dict, dict]]:
@@ -123,8 +125,6 @@ def _generate(out_dir: str, subjects: int, lights: int, resolution: int, seed: i
     except ValueError as e:
         raise ConfigError(str(e)) from None
     if cfg.inputs == "estimated":
-        from difareli.synth.estimated import missing_estimators
-
         if why := missing_estimators():
             raise ConfigError(why)
     store = _open_store(out_dir, cfg, durable)
@@ -167,8 +167,6 @@ def _generate(out_dir: str, subjects: int, lights: int, resolution: int, seed: i
                if not store.has(sp.record_id(k, j))]
     problems = [f"{rid}: missing" for rid in missing]
     if cfg.inputs == "estimated" and not problems and len(store.ids()) == cfg.subjects * cfg.lights:
-        from difareli.synth.c_norm import finalise
-
         with on_full_disk(f"{out_dir}/store.json (the c range) and the records' shadow maps", scratch=[out_dir],
                           fix="free space and rerun the same command to finish scaling the maps"):
             finalise(store, cfg.c_quantile)  # every record is there: the train split's c range, maps scaled by it

@@ -33,6 +33,7 @@ from difareli.synth.subject import build_subject, shade
 from difareli.synth.blas import single_thread_blas
 from difareli.synth.lights import Light, add_suns, extra_sun_rng, light_rng, sample_light
 from difareli.errors import UserError
+from difareli.render import cast_shadows
 
 #: Exact per-frame target encodings returned with the frames.
 TARGETS = ("light", "shading", "shadow", "shadow_map")
@@ -111,8 +112,6 @@ def light_from_sh(light_sh: np.ndarray, category: str = "sh") -> Light:
 def render_lights(cfg: SynthConfig, k: int, lights: Sequence[Light], shadows: bool = True) -> GroundTruthFrames:
     """Subject ``k`` of ``cfg`` rendered under each light (cast shadows ray-traced per sun; none with
     ``shadows=False``: what a relight that draws no cast shadow would be at best)."""
-    from difareli.render import cast_shadows
-
     exact = dataclasses.replace(cfg, inputs="exact")  # the image does not depend on it; skip the estimators
     frames, targets = [], {n: [] for n in TARGETS}
     with single_thread_blas():  # bit-identical to the generator's own records

@@ -56,6 +56,8 @@ from difareli.synth.appearance import albedo_image, sample_appearance, sample_ba
 from difareli.synth.config import GEOMETRY_GT, IDENTITY_DIM, S_MIN, SynthConfig
 from difareli.synth.lights import Light
 from difareli.errors import UserError
+from difareli.render.ao import ambient_occlusion
+from difareli.synth.estimated import estimate_all, estimate_inputs
 
 _FACE_IDX = np.array([PART_INDEX[p] for p in FACE_PARTS])
 _FG_IDX = np.array([PART_INDEX[p] for p in FOREGROUND_PARTS])
@@ -118,8 +120,6 @@ def build_subject(k: int, cfg: SynthConfig, pose: tuple[float, float, float] | N
                       np.asarray(head.shape_vector, np.float32), cam.to_array(), identity.astype(np.float32), meta)
     fx = cfg.fx  # v2 effects: their own streams, so the v1 draws above stay the same
     if fx.ambient_occlusion:
-        from difareli.render.ao import ambient_occlusion
-
         subject.ao = ambient_occlusion(scene, gb, fx_mod.AO_RAYS, fx_mod.AO_DISTANCE, seed=[cfg.seed, k, 3])
     if fx.specular:
         subject.spec_ks, subject.spec_s = fx_mod.specular_maps(gb.label, gb.points, gb.hit)
@@ -214,8 +214,6 @@ def shade(subject: Subject, light: Light, cast, cfg: SynthConfig,
               float((subject.albedo * (e_amb_open - e_amb))[face].sum()) / total}
     meta = {"c_gt": c, "energy": {k: round(v, 6) for k, v in energy.items()}}
     if cfg.inputs == "estimated":
-        from difareli.synth.estimated import estimate_all
-
         for k in GEOMETRY_GT:
             arrays[k] = arrays[k[:-3]]
         arrays["shadow_map_gt"] = visible.astype(np.float32)  # binary until the store's c range is known
@@ -227,8 +225,6 @@ def shade(subject: Subject, light: Light, cast, cfg: SynthConfig,
             arrays["shadow_map"] = cast_any.astype(np.float32)
             meta["inputs_fallback"] = f"exact inputs stored: {err}"
     elif cfg.inputs == "estimated_light":
-        from difareli.synth.estimated import estimate_inputs
-
         try:
             est, info = estimate_inputs(arrays, region, gb, subject.scene)
             arrays.update(est)
