@@ -121,7 +121,6 @@ def run(pipeline: Pipeline, in_dir: str, out_dir: str, *, overwrite: bool = Fals
     processes (:mod:`.workers`, images in order); this process writes the store."""
     from tqdm import tqdm
 
-
     out = Path(out_dir)
     spec = sharding.parse(shard)
     files = list_inputs(in_dir)

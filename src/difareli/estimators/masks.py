@@ -305,7 +305,6 @@ class FaceMeshSelfieMasks:
         unlike the hair beside the face); ``real``: bool mask of the crop pixels inside the photo (None: all)."""
         from scipy import ndimage
 
-
         skin = labels == PART_INDEX["skin"]
         if skin.sum() < 50:
             return

@@ -145,7 +145,6 @@ def relight_photo(relighter: Relighter, path: Path, resolution: int) -> Path:
     """scikit-image's astronaut, preprocessed in memory and relit under yaw -60, -30, +30, +60 degrees."""
     from skimage import data
 
-
     arrays = preprocess_photo(data.astronaut(), relighter.needed_encodings(), size=resolution)
     source = relighter.source_from_arrays(arrays, "the astronaut photo", key=("photo", "astronaut"))
     lights = [target_lights(arrays["light"], yaw=a) for a in (-60, -30, 30, 60)]

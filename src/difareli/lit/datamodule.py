@@ -119,7 +119,6 @@ class EncodingsDataModule(L.LightningDataModule):
             return
         from dataclasses import fields
 
-
         asked = {k: v for k, v in self.synth.items() if k in {f.name for f in fields(SynthConfig)}}
         asked.setdefault("resolution", self.resolution)
         try:

@@ -227,7 +227,6 @@ def gemm_ceiling(device: str | torch.device = "cpu", precision: str = "bf16", n:
 def _step_timer(warmup: int, device: torch.device):
     import lightning as L
 
-
     runtime = Runtime(device=str(device))
 
     class StepTimer(L.Callback):
@@ -261,7 +260,6 @@ def train_throughput(preset: str, res: int, batch: int, precision: str, device: 
     import resource
 
     import lightning as L
-
 
     dev = torch.device(device)
     flags = {o for o in opts.split(",") if o}

@@ -180,7 +180,6 @@ def read_photo(path: str | Path, key: str = "image", name: str | None = None) ->
     import stat
     import warnings
 
-
     shown = name or str(path)
     try:
         mode = os.stat(str(path)).st_mode
