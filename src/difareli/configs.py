@@ -11,6 +11,7 @@ shipped ones without touching the installation.
 from __future__ import annotations
 
 import os
+import secrets
 from datetime import datetime
 from importlib import resources
 from pathlib import Path
@@ -40,8 +41,6 @@ def run_stamp(pattern: str = "%Y-%m-%d_%H-%M-%S") -> str:
     them apart on one machine, the random digits across the nodes of a cluster writing to one log folder. Hydra
     caches the value per config (``use_cache``) and copies that cache into every job of a sweep, so one run (or
     one multirun) sees one name; each new composition draws a new one."""
-    import secrets
-
     return f"{datetime.now().strftime(pattern)}_{os.getpid()}-{secrets.token_hex(2)}"
 
 

@@ -24,11 +24,13 @@ from __future__ import annotations
 
 import errno
 import functools
+import json
 import math
 import os
 import re
 import signal
 import sys
+import threading
 import warnings
 from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
@@ -173,8 +175,6 @@ def in_multirun() -> bool:
 
 def record_failure(message: str) -> None:
     """Append this job's failure (number, overrides, message) to the sweep's ``failed_jobs.jsonl``."""
-    import json
-
     from hydra.core.hydra_config import HydraConfig
 
     hc = HydraConfig.get()
@@ -189,8 +189,6 @@ def record_failure(message: str) -> None:
 
 def threading_main() -> bool:
     """Signal handlers can only be installed from the main thread."""
-    import threading
-
     return threading.current_thread() is threading.main_thread()
 
 

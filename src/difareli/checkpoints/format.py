@@ -75,8 +75,6 @@ OFFICIAL_REPO = "github.com/diffusion-face-relighting/difareli_code"
 
 def is_official(obj: Any) -> str | None:
     """``"unet"`` / ``"modulator"`` if ``obj`` is an official state dict (UNet / Modulator), else None."""
-    from collections.abc import Mapping
-
     if not isinstance(obj, Mapping) or "hyper_parameters" in obj or "input_blocks.0.0.weight" not in obj:
         return None
     return "unet" if "time_embed.0.weight" in obj else "modulator"

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import importlib
 import math
 from typing import Any, Mapping
 
@@ -170,8 +171,6 @@ class Encoding:
         """This encoding under a target ``light`` (and shadow logit ``shadow``) from a record's ``arrays``."""
         if self.rerender is None:
             raise UserError(f"encoding {self.name!r} does not depend on the light; nothing to re-render")
-        import importlib
-
         module, func = self.rerender.split(":")
         return getattr(importlib.import_module(module), func)(arrays, light, shadow)
 

@@ -9,6 +9,7 @@ estimator only if something requested depends on one of its outputs.
 from __future__ import annotations
 
 import contextlib
+import sys
 import time
 from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
@@ -67,8 +68,6 @@ def _one_torch_thread():
     graph calls the second OpenMP thread sleeps and is woken per convolution, which on a 2-core VM made the
     descriptor 2-7x slower than the same call in a loop (34 against 62-108 ms per image for the identity stage,
     docs/photos.md); parallelism comes from worker processes (``workers=``), which start with one thread."""
-    import sys
-
     torch = sys.modules.get("torch")  # not imported yet: nothing to limit (and no reason to import it here)
     before = torch.get_num_threads() if torch is not None else 1
     if before > 1:

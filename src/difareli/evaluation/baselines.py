@@ -15,6 +15,7 @@ Target (and source) lights "as a user gets them" come from :class:`difareli.ligh
 
 from __future__ import annotations
 
+import inspect
 from typing import Any, Mapping, Protocol, runtime_checkable
 
 import numpy as np
@@ -179,8 +180,6 @@ def build_method(cfg: Mapping[str, Any], *, sampler: Mapping[str, Any] | None = 
     ``estimator`` (the Lambertian baseline's source-light fit; None: stored light). ``name_suffix`` is appended
     to the name (e.g. to mark ground-truth lighting).
     """
-    import inspect
-
     from hydra.utils import get_class, instantiate
 
     cfg = dict(cfg)

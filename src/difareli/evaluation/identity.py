@@ -15,6 +15,7 @@ left out of every table (never a fake value).
 from __future__ import annotations
 
 import functools
+import os
 
 import numpy as np
 
@@ -37,8 +38,6 @@ def unavailable() -> str | None:
     except Exception as e:  # ImportError, or pkg_resources missing under setuptools >= 81
         return (f"identity columns left out: dlib's face descriptor is not installed ({type(e).__name__}: "
                 f"{str(e)[:80]}); install the photo extras: DIFARELI_PREPROCESS=1 scripts/install.sh")
-    import os
-
     missing = [p for p in (path, pose) if not os.path.isfile(p)]
     if missing:
         return f"identity columns left out: the descriptor's weight files are missing ({', '.join(missing)})"

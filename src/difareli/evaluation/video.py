@@ -31,6 +31,8 @@ is a measurement, not a model input.
 
 from __future__ import annotations
 
+import csv
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Mapping, Sequence
@@ -169,8 +171,6 @@ def measure(relit: np.ndarray, gt: np.ndarray, arrays: Mapping[str, np.ndarray],
 
 def write_csv(report: VideoReport, path: str | Path, angles: np.ndarray | None = None) -> Path:
     """One row per frame: angle, the per-frame scores and the change to the next frame."""
-    import csv
-
     path = Path(path)
     n = len(next(iter(report.per_frame.values())))
     tmp = path.with_name(path.name + ".tmp")
@@ -200,8 +200,6 @@ def rotation_video(relighter, source, targets, out_dir: str | Path, name: str, *
                    fps: int = 20, fmt: str = "auto", zoom: int = 1, columns: int = 10) -> RotationVideo:
     """Relight ``source`` under every frame's target (``relighter.relight``) and write the frames
     (:func:`write_rotation`)."""
-    import time
-
     start = time.perf_counter()
     relit = relighter.relight(source, targets)
     frames = np.asarray(relit)

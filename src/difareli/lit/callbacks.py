@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
@@ -185,13 +186,9 @@ class Throughput(L.Callback):
         self._fit_start: float | None = None
 
     def on_fit_start(self, trainer, module):
-        import time
-
         self._fit_start = time.perf_counter()
 
     def wall_seconds(self) -> float:
-        import time
-
         return self._wall_before + (time.perf_counter() - self._fit_start if self._fit_start is not None else 0.0)
 
     def on_validation_epoch_end(self, trainer, module):
@@ -210,14 +207,10 @@ class Throughput(L.Callback):
 
     def on_train_batch_start(self, trainer, module, batch, batch_idx):
         if self._start is None:
-            import time
-
             self._sync(module)
             self._start = time.perf_counter()
 
     def on_train_batch_end(self, trainer, module, outputs, batch, batch_idx):
-        import time
-
         self._steps += 1
         self._images += int(batch["image"].shape[0]) if isinstance(batch, Mapping) else 0
         if self._steps >= self.every:

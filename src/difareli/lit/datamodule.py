@@ -8,6 +8,7 @@ model (and so in the checkpoint).
 
 from __future__ import annotations
 
+from dataclasses import fields
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
@@ -117,8 +118,6 @@ class EncodingsDataModule(L.LightningDataModule):
         ``data.synth.subjects=8`` on a root that already held a 250-subject store trained on the 250 silently."""
         if self.synth is None:  # data.synth=null: the store as it is
             return
-        from dataclasses import fields
-
         asked = {k: v for k, v in self.synth.items() if k in {f.name for f in fields(SynthConfig)}}
         asked.setdefault("resolution", self.resolution)
         try:

@@ -9,7 +9,9 @@ step, rank 0 only) or a plain list of loggers (e.g. ``difareli-benchmark``, whic
 
 from __future__ import annotations
 
+import csv
 import functools
+import io
 import subprocess
 from pathlib import Path
 from typing import Any
@@ -80,9 +82,6 @@ def log_table(target: Target, key: str, table, step: int | None = None, digits: 
     loggers, step = _loggers_and_step(target, step)
     if not loggers:
         return
-    import csv
-    import io
-
     rows = list(csv.reader(io.StringIO(table.to_csv())))
     for lg in loggers:
         if callable(getattr(lg, "log_table", None)):

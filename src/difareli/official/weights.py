@@ -28,6 +28,7 @@ our network must be filled with the right shape, else the file is refused naming
 
 from __future__ import annotations
 
+import json
 import re
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -193,8 +194,6 @@ def convert(unet_sd: Mapping[str, Any], modulator_sd: Mapping[str, Any], cfg: Of
             files: Mapping[str, str] | None = None) -> tuple[dict[str, Any], Any]:
     """``(difareli checkpoint dict, the DiffusionModule holding the weights)`` from the two official state dicts;
     a tensor missing, left over or of the wrong shape is a UserError naming it and the file it belongs to."""
-    import json
-
     import torch
 
     from difareli.lit.diffusion import DiffusionModule

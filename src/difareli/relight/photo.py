@@ -19,7 +19,10 @@ the composite never takes the padding back.
 
 from __future__ import annotations
 
+import os
+import stat
 import time
+import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -176,10 +179,6 @@ def read_photo(path: str | Path, key: str = "image", name: str | None = None) ->
     file (``name``: how to name it instead of its path, e.g. an uploaded file's name). A folder or a special file
     (``/dev/zero``, a FIFO) is named as what it is, an animation (several frames) is refused, and an alpha channel
     composited over grey is said in a UserWarning."""
-    import os
-    import stat
-    import warnings
-
     shown = name or str(path)
     try:
         mode = os.stat(str(path)).st_mode

@@ -18,6 +18,7 @@ The :class:`~difareli.runtime.core.Runtime` decides device, precision, compile a
 from __future__ import annotations
 
 import dataclasses
+import json
 import time
 import warnings
 from dataclasses import dataclass
@@ -206,8 +207,6 @@ class Relighter:
 
     def _redo(self, store: EncodingStore) -> str | None:
         """For a store difareli-preprocess wrote, the command that writes it again for this checkpoint; else None."""
-        import json
-
         if store.store_meta.get("source") != "difareli-preprocess":
             return None
         try:

@@ -9,6 +9,7 @@ radiance peak (the input's own map is used for inversion only).
 
 from __future__ import annotations
 
+import inspect
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -203,8 +204,6 @@ def shadow_maker() -> dict:
     peak), with the march's settings (its defaults, read from its signature, so a change of them is a change of
     maker). A store records it beside maps it made, a checkpoint the maker of the maps it trained on; a relight
     warns when the two differ (:func:`check_maker`)."""
-    import inspect
-
     params = inspect.signature(march_shadows).parameters
     settings = {k: v.default for k, v in params.items() if v.default is not inspect.Parameter.empty and k != "normal"}
     return {"name": "march", "toward": "every sun of the light (an SH light: one toward its radiance peak)",

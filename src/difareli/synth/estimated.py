@@ -23,6 +23,8 @@ The exact values are kept under ``*_gt`` either way.
 
 from __future__ import annotations
 
+import importlib.util
+
 import numpy as np
 
 from difareli.lighting import sh
@@ -69,8 +71,6 @@ def shadow_estimator():
 
 def missing_estimators() -> str | None:
     """Why the photo estimators cannot run here (a sentence naming the fix), or None."""
-    import importlib.util
-
     gone = [m for m in ("mediapipe", "cv2", "face_recognition", "dlib") if importlib.util.find_spec(m) is None]
     return f"inputs=estimated needs the photo estimators ({', '.join(gone)} not installed); {FIX}" if gone else None
 

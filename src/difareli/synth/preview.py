@@ -7,6 +7,7 @@ so one can check that shadows fall where the sun says. Cells are upscaled with n
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -69,8 +70,6 @@ def write_preview(store_root: str | Path, path: str | Path | None = None, *, sub
 
 
 def _test_subjects(root: Path) -> list[str]:
-    import json
-
     f = root / sp.SPLITS_FILE
     if not f.is_file():
         return []

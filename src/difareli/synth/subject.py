@@ -41,8 +41,9 @@ c range is its training split's (``synth/c_norm.py``). Every mode stores what "v
 
 from __future__ import annotations
 
+import dataclasses
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -86,8 +87,6 @@ class Subject:
 def build_subject(k: int, cfg: SynthConfig, pose: tuple[float, float, float] | None = None) -> Subject:
     """Sample and render subject ``k`` (geometry, appearance, camera); deterministic in ``(cfg.seed, k)``;
     ``pose``: (yaw, pitch, roll) degrees in place of the sampled head pose (the other draws stay the same)."""
-    import dataclasses
-
     from difareli.synth.accessories import build_head, default_camera, sample_accessories
     from difareli.render.face_model import FaceModel
 
@@ -240,8 +239,6 @@ def estimation_images(k: int, lights: list, cfg) -> list[np.ndarray] | None:
     r = int(cfg.estimation_resolution)
     if cfg.inputs != "estimated" or r == cfg.resolution:
         return None
-    from dataclasses import replace
-
     big = replace(cfg, resolution=r, inputs="exact")
     subject = build_subject(k, big)
     dirs = [d for light in lights for d, _ in light.suns()]

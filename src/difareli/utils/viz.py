@@ -5,6 +5,8 @@ fast palette per frame), with the line a command ends with for each file. Every 
 
 from __future__ import annotations
 
+import base64
+import importlib.util
 from pathlib import Path
 from typing import Sequence
 
@@ -143,8 +145,6 @@ def save_png(image: np.ndarray, path: str | Path) -> Path:
 
 def png_data_url(image: np.ndarray) -> str:
     """A uint8 image as a ``data:image/png;base64,...`` URL (what the app's page shows)."""
-    import base64
-
     return "data:image/png;base64," + base64.b64encode(iio.imwrite("<bytes>", image, extension=".png")).decode()
 
 
@@ -156,8 +156,6 @@ VIDEO_FORMATS = ("auto", "mp4", "gif")
 
 def has_mp4() -> bool:
     """Whether MP4 can be written here (imageio's ffmpeg plugin is installed)."""
-    import importlib.util
-
     return importlib.util.find_spec("imageio_ffmpeg") is not None
 
 
