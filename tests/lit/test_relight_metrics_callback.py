@@ -7,6 +7,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+import torch
 
 from difareli.lit.relight_metrics import RelightMetrics, validation_pairs
 from difareli.data.store import EncodingStore
@@ -45,6 +46,42 @@ def test_due_every_n_steps():
         RelightMetrics(sampler="nope")
     with pytest.raises(ValueError, match="every_n_steps=0 must be null or an int >= 1"):
         RelightMetrics(every_n_steps=0)
+    with pytest.raises(ValueError, match="target_sun='sun': use one of shadows, peak"):
+        RelightMetrics(target_sun="sun")
+    with pytest.raises(ValueError, match="precision='fp16': use one of auto, fp32, bf16"):
+        RelightMetrics(precision="fp16")
+
+
+def test_targets_are_the_benchmarks_and_a_non_finite_relight_skips_the_evaluation(synth_store, tiny_checkpoint):
+    from difareli.checkpoints.loading import load_checkpoint
+    from difareli.evaluation.pairs import Lights, Pair
+    from difareli.lighting.light_fit import LightFit
+
+    store = EncodingStore.open(synth_store)
+    model = load_checkpoint(tiny_checkpoint("difareli_pp")).model.eval()
+    pairs = validation_pairs(store, "val", 2)
+    marched = RelightMetrics(extras=False, precision="fp32")
+    marched.prepare(store, model, pairs)
+    peak = RelightMetrics(extras=False, precision="fp32", target_sun="peak")
+    peak.prepare(store, model, pairs)
+    lights = Lights(store, LightFit(), sun_from_shadows=True)
+    for case, p in zip(marched.cases, pairs):
+        want = [Pair(long, p["source"], p[short], p["target"]) for long, short in
+                (("same_subject", "same"), ("different_subject", "different"))]
+        t = case["targets"]
+        assert np.allclose(t.lights, [lights.for_pair(w)[0] for w in want])
+        assert t.shadows == tuple(lights.for_pair(w)[1] for w in want)
+        assert all(np.allclose(a, b) for a, b in zip(t.suns, [lights.sun(w) for w in want]))
+    assert all(s is None for c in peak.cases for s in c["targets"].suns)
+    assert any(s is not None for c in marched.cases for s in c["targets"].suns)  # a shadowed record has a key sun
+    # A diverging model: the evaluation is skipped with a warning, nothing is logged, training mode comes back.
+    with torch.no_grad():
+        next(model.parameters()).fill_(float("nan"))
+    model.train()
+    trainer = SimpleNamespace(global_step=7, is_global_zero=True, default_root_dir="unused", loggers=[])
+    with pytest.warns(RuntimeWarning, match="relight metrics skipped: relight of .*NaN or Inf"):
+        assert marched.evaluate(trainer, model) == {}
+    assert model.training and marched.history == [] and marched._last_step == 7
 
 
 def _train(out: Path, synth_store, *extra):
@@ -64,22 +101,29 @@ def _logged(out: Path) -> list[dict]:
 
 
 def _independent(ckpt, store, pairs, sampler):
-    """What difareli-benchmark computes for the same pairs: its diffusion Method relights (uint8, one target per
-    call), its LightFit and target c, benchmark.score."""
+    """What difareli-benchmark computes for the same pairs, written out here: its diffusion Method relights (uint8,
+    one target per call), the light fitted to the light-source image, its target c, the key sun found from that
+    image's cast shadows (the model reads shadow maps), benchmark.score."""
     from difareli.evaluation.baselines import DiffusionMethod
     from difareli.evaluation.benchmark import score
     from difareli.evaluation.pairs import StoredFace
     from difareli.lighting.light_fit import LightFit
     from difareli.relight.targets import target_shadow_of
+    from difareli.render.sun_fit import record_sun
 
     method = DiffusionMethod(str(ckpt), sampler, runtime={"device": "cpu", "precision": "fp32"})
-    fit, out = LightFit(), {"same": [], "different": []}
+    marches = "shadow_map" in method.relighter.model_inputs
+    fit, out, suns = LightFit(), {"same": [], "different": []}, 0
     for p in pairs:
         gt = store.read(p["target"], ["image", "face_mask"])
         for k in ("same", "different"):
-            relit = method.relight(StoredFace(store, p["source"]), fit.from_store(store, p[k]),
-                                   target_shadow_of(store, p[k])[0])
+            light = fit.from_store(store, p[k])
+            found = record_sun(store, p[k], light, fit=fit) if marches else None
+            suns += found is not None
+            relit = method.relight(StoredFace(store, p["source"]), light, target_shadow_of(store, p[k])[0],
+                                   target_sun=None if found is None else found.direction)
             out[k].append(score(relit, gt["image"], gt["face_mask"]))
+    assert suns == (2 * len(pairs) if marches else 0)
     return {f"val/{m}/{k}": float(np.mean([s[m] for s in v])) for k, v in out.items()
             for m in ("dssim", "mse", "lpips")}
 
@@ -95,10 +139,7 @@ def _check_parity(run, synth_store, ckpt, sampler):
     model = load_checkpoint(ckpt).model.eval()
     # Both sides in fp32: the same computation to float rounding (bf16 rounds batch 2 and batch 1 differently).
     fresh = RelightMetrics(pairs=2, sampler=sampler["name"], steps=sampler.get("steps"), precision="fp32")
-    fresh.cases = [fresh._prepare(store, model, p) for p in pairs]
-    from difareli.evaluation.extras import PairExtras
-
-    fresh.scorer = PairExtras(store)  # what on_fit_start makes (extras=true, the default)
+    fresh.prepare(store, model, pairs)  # what on_fit_start does (extras=true, the default)
     assert {"val/light_angle/same", "val/light_rel_error/different"} <= set(cb.history[-1])  # logged in training
     trainer = SimpleNamespace(global_step=99, is_global_zero=True, default_root_dir=str(ckpt.parent), loggers=[],
                               sanity_checking=False)

@@ -13,7 +13,14 @@ With ``extras`` (default) it also logs the metrics beyond DSSIM / MSE / LPIPS th
 ``val/shadow_adherence/same``, ...; each where the store and the installed extras allow it, a metric undefined on
 every pair is not logged).
 
-The pairs and their target conditions are prepared once, at fit start. Under DDP every process relights its share
+The module relights through the relight door (:class:`~difareli.relight.relighter.Relighter` around the live
+module: its sources read and checked there, ``relight_many`` inverting every source once for both of its targets),
+and its targets are the benchmark's (:class:`~difareli.evaluation.pairs.Lights`: the light fitted to the
+light-source image, its shadow strength c and, for a model that reads shadow maps, the key sun its map is marched
+toward): the validation numbers are the benchmark's computation on other records. A relight that is not finite
+skips that evaluation with a warning; training goes on.
+
+The pairs and their targets are prepared once, at fit start. Under DDP every process relights its share
 of the sources and the Metrics' summed states reduce over all of them. A store without SynthFaces light groups in its
 validation split (a photo store) gets one warning and no relight metrics.
 """
@@ -30,20 +37,21 @@ import lightning as L
 import numpy as np
 import torch
 
-from difareli.evaluation import metrics
-from difareli.utils import viz
-from difareli.diffusion.spec import SamplerSpec, as_spec
-from difareli.data.inputs import condition_tensors, image_to_tensor, read_record, relight_reads
+from difareli import errors
+from difareli.checkpoints.loading import LoadedCheckpoint
 from difareli.data.protocols import PROTOCOLS, protocol_pairs
-from difareli.lit.logging import log_image
-from difareli.relight.relightable import OnePassRelightable, Relightable, model_inputs
-from difareli.errors import UserError
+from difareli.diffusion.spec import SamplerSpec, as_spec
+from difareli.evaluation import metrics
 from difareli.evaluation.extras import PairExtras
+from difareli.evaluation.pairs import Lights, Pair
 from difareli.lighting.light_fit import LightFit
-from difareli.relight.core import relight
-from difareli.relight.targets import retarget, target_shadow_of
+from difareli.lit.logging import log_image
+from difareli.relight.relightable import OnePassRelightable, Relightable
+from difareli.relight.relighter import Relighter
+from difareli.relight.targets import Targets
+from difareli.render.sun_fit import TARGET_SUNS
 from difareli.runtime.core import Runtime
-
+from difareli.utils import viz
 
 
 def validation_pairs(store, split: str, n: int) -> list[dict[str, str]]:
@@ -74,21 +82,26 @@ class RelightMetrics(L.Callback):
 
     ``sampler``/``steps``: a preset name, a sampler config or a spec (diffusion models only); ``rule``: the metric
     rule (``paper`` | ``composite``); ``precision``: the relights' :class:`~difareli.runtime.core.Runtime` precision
-    (``auto``, as every relighting command: bf16 where the hardware has it natively; ``fp32`` | ``bf16``).
+    (``auto``, as every relighting command: bf16 where the hardware has it natively; ``fp32`` | ``bf16``);
+    ``target_sun``: where a model that reads shadow maps has its target maps marched, as difareli-benchmark's
+    option of that name (``shadows``: toward the key sun found from the light-source image's cast shadows;
+    ``peak``: the fitted light's radiance peak).
     """
 
     def __init__(self, pairs: int = 4, every_n_steps: int | None = None, sampler: Any = "unipc", steps: int | None = 10,
                  rule: str | None = None, precision: str = "auto", grid: bool = True, enabled: bool = True,
-                 extras: bool = True):
+                 extras: bool = True, target_sun: str = "shadows"):
         self.spec: SamplerSpec = as_spec(sampler, steps=steps)  # a bad sampler fails before training
         self.rule = metrics.check_rule(rule)
-        if precision not in ("auto", "fp32", "bf16"):
-            raise UserError(f"callbacks.relight_metrics.precision={precision!r} is not auto, fp32 or bf16")
+        key = "callbacks.relight_metrics"
+        errors.check_choice(precision, f"{key}.precision", ("auto", "fp32", "bf16"))
+        self.target_sun = errors.check_choice(target_sun, f"{key}.target_sun", TARGET_SUNS)
         if every_n_steps is not None and (not isinstance(every_n_steps, int) or every_n_steps < 1):
-            raise UserError(f"callbacks.relight_metrics.every_n_steps={every_n_steps!r} must be null or an int >= 1")
+            raise errors.UserError(f"{key}.every_n_steps={every_n_steps!r} must be null or an int >= 1")
         self.pairs, self.every_n_steps, self.precision = int(pairs), every_n_steps, precision
         self.grid, self.enabled, self.extras = bool(grid), bool(enabled), bool(extras)
         self.scorer = None  # difareli.evaluation.extras.PairExtras of the store, made at fit start
+        self.relighter: Relighter | None = None  # the training module behind the relight door, made at fit start
         self.cases: list[dict[str, Any]] = []
         self.history: list[dict[str, Any]] = []
         self._last_step: int | None = None
@@ -109,28 +122,37 @@ class RelightMetrics(L.Callback):
             self._disable(f"store {store.root} has no SynthFaces light groups in its {split!r} split")
             return
         rank, world = trainer.global_rank, trainer.world_size
-        self.cases = [self._prepare(store, pl_module, p) for p in pairs[rank::world]]
-        if self.extras:
-            self.scorer = PairExtras(store)
+        self.prepare(store, pl_module, pairs[rank::world], step=trainer.global_step)
         self._clock = time.perf_counter()
 
     def _disable(self, why: str) -> None:
         warnings.warn(f"relight metrics off: {why}", stacklevel=2)
         self.enabled = False
 
-    def _prepare(self, store, model, pair: Mapping[str, str]) -> dict[str, Any]:
-        """The source's condition, both protocols' target conditions, the ground truth and its mask."""
-        names = relight_reads(model_inputs(model))
-        arrays = read_record(store, pair["source"], names)
-        fit, targets, lights = LightFit(), [], []
-        for proto in PROTOCOLS.values():
-            light = fit.from_store(store, pair[proto])
-            shadow, _ = target_shadow_of(store, pair[proto])
-            targets.append(retarget(arrays, model_inputs(model), light, shadow))
-            lights.append(light)
+    def prepare(self, store, model, pairs, step: int = 0) -> None:
+        """The relighter of ``model`` (its live weights: nothing is copied or cached between evaluations) and,
+        per pair, the source read and checked through it, both protocols' targets as difareli-benchmark makes
+        them (:class:`~difareli.evaluation.pairs.Lights`: the light fitted to the light-source image, its c, its
+        key sun), the ground truth and its mask. Once per fit: the pairs are fixed."""
+        dev = model.device
+        runtime = Runtime(device="cpu" if dev.type == "cpu" else str(dev), precision=self.precision)
+        config = {k: v for k, v in dict(getattr(model, "hparams", {}) or {}).items() if k != "compile"}
+        self.relighter = Relighter(LoadedCheckpoint(model, config, {}, int(step)), self.spec, runtime=runtime,
+                                   batch_size=max(1, len(pairs)))
+        marches = "shadow_map" in self.relighter.model_inputs
+        fit = LightFit()
+        lights = Lights(store, fit, sun_from_shadows=marches and self.target_sun == "shadows")
+        self.cases = [self._prepare(store, lights, p) for p in pairs]
+        self.scorer = PairExtras(store, fit=fit) if self.extras else None
+
+    def _prepare(self, store, lights: Lights, pair: Mapping[str, str]) -> dict[str, Any]:
+        source = self.relighter.source(store, pair["source"])
+        chosen = [Pair(proto, pair["source"], pair[short], pair["target"]) for proto, short in PROTOCOLS.items()]
+        found = [lights.for_pair(p) for p in chosen]
+        targets = Targets.of([light for light, _ in found], [c for _, c in found], f"pair {pair['source']}",
+                             suns=[lights.sun(p) for p in chosen])
         gt = store.read(pair["target"], ["image", "face_mask"])
-        return {"pair": dict(pair), "lights": lights, "x0": image_to_tensor(arrays["image"])[None],
-                "source": condition_tensors(model, [arrays]), "targets": condition_tensors(model, targets),
+        return {"pair": dict(pair), "lights": [light for light, _ in found], "source": source, "targets": targets,
                 "gt": metrics.unit_tensor(gt["image"]),
                 "mask": torch.from_numpy(np.array(gt["face_mask"], dtype=bool))[None]}
 
@@ -145,32 +167,44 @@ class RelightMetrics(L.Callback):
         if self._due(trainer):
             self.evaluate(trainer, pl_module)
 
+    def _relight(self, pl_module) -> np.ndarray | None:
+        """The prepared pairs relit by the module's current weights through the relight door's many-sources call
+        (S, 2, H, W, 3) uint8; None, with a warning, where a relight is not finite (a diverging or bf16-overflowing
+        model: the metrics of that evaluation are not logged, and training goes on)."""
+        was_training = pl_module.training
+        pl_module.eval()
+        try:
+            return self.relighter.relight_many([c["source"] for c in self.cases], [c["targets"] for c in self.cases])
+        except errors.NonFiniteError as e:
+            warnings.warn(f"relight metrics skipped: {str(e).splitlines()[0]}", RuntimeWarning, stacklevel=2)
+            return None
+        finally:
+            pl_module.train(was_training)
+
     @torch.no_grad()
     def evaluate(self, trainer: L.Trainer, pl_module) -> dict[str, float]:
         """Relight the prepared pairs with ``pl_module``'s current weights; log and return the metrics."""
         since = time.perf_counter() - (self._clock or time.perf_counter())
         t0 = time.perf_counter()
+        step = trainer.global_step
+        relit = self._relight(pl_module)
+        if relit is None:
+            self._last_step, self._clock = step, time.perf_counter()
+            return {}
         dev = pl_module.device
-        runtime = Runtime(device="cpu" if dev.type == "cpu" else str(dev), precision=self.precision)
         scores = {p: metrics.relight_metrics(self.rule).to(dev) for p in PROTOCOLS.values()}
         extra: dict[str, dict[str, metrics.FiniteMean]] = {p: {} for p in PROTOCOLS.values()}
-        was_training = pl_module.training
-        pl_module.eval()
         rows: dict[str, list] = {p: [] for p in PROTOCOLS.values()}
-        to = lambda c: tuple(None if v is None else v.to(dev) for v in c)  # noqa: E731
-        for case in self.cases:
-            out = relight(pl_module, case["x0"].to(dev), to(case["source"]), to(case["targets"]),
-                          None if isinstance(pl_module, OnePassRelightable) else self.spec, runtime=runtime)
-            images = [viz.to_uint8(x.clamp(-1, 1)) for x in out]  # scored as saved, like difareli-benchmark
-            relit = metrics.unit_tensor(np.stack(images)).to(dev)
+        for case, images in zip(self.cases, relit):  # scored as saved (uint8), like difareli-benchmark
+            relit_unit = metrics.unit_tensor(images).to(dev)
             for k, proto in enumerate(PROTOCOLS.values()):
-                scores[proto].update(relit[k:k + 1], case["gt"].to(dev), case["mask"].to(dev))
+                scores[proto].update(relit_unit[k:k + 1], case["gt"].to(dev), case["mask"].to(dev))
                 if self.scorer is not None:  # the benchmark's extra scores of the same uint8 image
                     ex, _ = self.scorer(images[k], case["pair"]["source"], case["pair"]["target"], case["lights"][k])
                     for name, v in ex.items():
                         extra[proto].setdefault(name, metrics.FiniteMean().to(dev)).update(v)
-                rows[proto].append([viz.to_uint8(case["x0"][0]), images[k], viz.to_uint8(case["gt"][0] * 2 - 1)])
-        pl_module.train(was_training)
+                rows[proto].append([case["source"].arrays["image"], images[k],
+                                    viz.to_uint8(case["gt"][0] * 2 - 1)])
         values = {f"val/{k}/{proto}": float(v) for proto, coll in scores.items() for k, v in coll.compute().items()}
         values.update({f"val/{k}/{proto}": float(m.compute()) for proto, ms in extra.items() for k, m in ms.items()})
         seconds = time.perf_counter() - t0
@@ -178,17 +212,20 @@ class RelightMetrics(L.Callback):
             if math.isfinite(v):
                 pl_module.log(name, v, on_step=False, on_epoch=True, batch_size=1)
         pl_module.log("perf/relight_metrics_s", seconds, on_step=False, on_epoch=True, batch_size=1)
-        step = trainer.global_step
         if self.grid and trainer.is_global_zero and rows["same"]:
             path = Path(trainer.default_root_dir) / "grids" / f"relight_metrics_step{step:07d}.png"
             log_image(trainer, "val/relight_metrics_grid", viz.save_png(viz.grid(rows["same"] + rows["different"]),
                                                                          path))
         relights = len(self.cases) * len(PROTOCOLS)
-        how = "one pass" if isinstance(pl_module, OnePassRelightable) else f"{self.spec.name}-{self.spec.steps}"
         share = f" = {100 * seconds / since:.1f}% of the {since:.0f} s since the last one" if since > 0 else ""
         if trainer.is_global_zero:
-            print(f"relight metrics at step {step}: {relights} relights ({how}, rule {self.rule}) in {seconds:.2f} s"
-                  f"{share}; " + ", ".join(f"{k} {v:.4f}" for k, v in values.items()))
+            print(f"relight metrics at step {step}: {relights} relights ({self._how()}, rule {self.rule}) in "
+                  f"{seconds:.2f} s{share}; " + ", ".join(f"{k} {v:.4f}" for k, v in values.items()))
         self.history.append({"step": step, "seconds": seconds, "since": since, **values})
         self._last_step, self._clock = step, time.perf_counter()
         return values
+
+    def _how(self) -> str:
+        if isinstance(self.relighter.model, OnePassRelightable):
+            return "one pass"
+        return f"{self.spec.name}-{self.spec.steps}"
