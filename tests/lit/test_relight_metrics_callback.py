@@ -74,11 +74,14 @@ def test_targets_are_the_benchmarks_and_a_non_finite_relight_skips_the_evaluatio
         assert all(np.allclose(a, b) for a, b in zip(t.suns, [lights.sun(w) for w in want]))
     assert all(s is None for c in peak.cases for s in c["targets"].suns)
     assert any(s is not None for c in marched.cases for s in c["targets"].suns)  # a shadowed record has a key sun
+    trainer = SimpleNamespace(global_step=7, is_global_zero=True, default_root_dir="unused", loggers=[])
+    other = load_checkpoint(tiny_checkpoint("difareli_pp")).model.eval()
+    with pytest.raises(ValueError, match="the module it was prepared with"):
+        marched.evaluate(trainer, other)
     # A diverging model: the evaluation is skipped with a warning, nothing is logged, training mode comes back.
     with torch.no_grad():
         next(model.parameters()).fill_(float("nan"))
     model.train()
-    trainer = SimpleNamespace(global_step=7, is_global_zero=True, default_root_dir="unused", loggers=[])
     with pytest.warns(RuntimeWarning, match="relight metrics skipped: relight of .*NaN or Inf"):
         assert marched.evaluate(trainer, model) == {}
     assert model.training and marched.history == [] and marched._last_step == 7

@@ -171,6 +171,8 @@ class RelightMetrics(L.Callback):
         """The prepared pairs relit by the module's current weights through the relight door's many-sources call
         (S, 2, H, W, 3) uint8; None, with a warning, where a relight is not finite (a diverging or bf16-overflowing
         model: the metrics of that evaluation are not logged, and training goes on)."""
+        if self.relighter.model is not pl_module:  # its sources were checked against that module's inputs
+            raise ValueError("RelightMetrics.evaluate takes the module it was prepared with (prepare / on_fit_start)")
         was_training = pl_module.training
         pl_module.eval()
         try:
