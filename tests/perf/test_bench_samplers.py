@@ -92,11 +92,20 @@ def test_face_errors_known_values():
     assert speed.face_errors(wild_pred, ref, None)["mse"] > errs["mse"]  # no mask: the whole image counts
 
 
+def _door(model):
+    """``model`` behind the relight door (what difareli-bench-samplers builds from a checkpoint)."""
+    from difareli.checkpoints.loading import LoadedCheckpoint
+    from difareli.relight.relighter import Relighter
+
+    return Relighter(LoadedCheckpoint(model, {}, {}, 0))
+
+
 def test_store_cases_target_is_same_subject_other_light(synth_store):
     store = EncodingStore.open(synth_store)
     model = SleepyModel()
     model.spatial_inputs, model.nonspatial_inputs = ["shading", "shadow_map", "masks"], ["shape", "cam", "identity"]
-    cases = speed.store_cases(store, model, records=["s00006_l1", "s00007_l0"], limit=None, oracle_target=True)
+    relighter = _door(model)
+    cases = speed.store_cases(store, relighter, records=["s00006_l1", "s00007_l0"], limit=None, oracle_target=True)
     assert [(c.record, c.target) for c in cases] == [("s00006_l1", "s00006_l0"), ("s00007_l0", "s00007_l1")]
     assert cases[0].inputs.startswith("oracle target")
     c = cases[0]
@@ -109,7 +118,7 @@ def test_store_cases_target_is_same_subject_other_light(synth_store):
     assert torch.equal(c.mask[0], torch.from_numpy(np.array(src["face_mask"])))
     assert torch.equal(((c.gt[0] + 1) * 127.5).round().byte().permute(1, 2, 0),
                        torch.from_numpy(np.array(tgt["image"])))
-    assert len(speed.store_cases(store, model, limit=1)) == 1  # default: the test split
+    assert len(speed.store_cases(store, relighter, limit=1)) == 1  # default: the test split
 
 
 def test_store_cases_default_target_is_what_a_user_has(synth_store):
@@ -121,7 +130,7 @@ def test_store_cases_default_target_is_what_a_user_has(synth_store):
     store = EncodingStore.open(synth_store)
     model = SleepyModel()
     model.spatial_inputs, model.nonspatial_inputs = ["shading", "shadow_map", "masks"], ["shape", "cam", "identity"]
-    c = speed.store_cases(store, model, records=["s00006_l1"], limit=None)[0]
+    c = speed.store_cases(store, _door(model), records=["s00006_l1"], limit=None)[0]
     light = LightFit().from_store(store, "s00006_l0")
     cval, how = targets.target_shadow_of(store, "s00006_l0")
     src = {k: np.asarray(v) for k, v in store.read("s00006_l1").items()}

@@ -16,8 +16,10 @@ from difareli import errors
 from difareli.perf import measure as perf
 from difareli.perf import samplers as speed
 from difareli.checkpoints import zoo
+from difareli.checkpoints.loading import LoadedCheckpoint
 from difareli.cli import common
 from difareli.relight.relightable import OnePassRelightable
+from difareli.relight.relighter import Relighter
 from difareli.runtime.core import Runtime
 from difareli.data.store import EncodingStore
 
@@ -45,18 +47,17 @@ def run(cfg: DictConfig) -> dict:
     samplers = {n: configured[n] for n in names}
     steps = sorted({int(n) for n in cfg.steps})
     if cfg.checkpoint is not None:
-        from difareli.lit import load_checkpoint
-
         if cfg.store is None:
             raise errors.UserError("store=... is required with a checkpoint (the records to relight)")
-        model = load_checkpoint(cfg.checkpoint, device).model.to(device)
+        relighter = Relighter(cfg.checkpoint, runtime=runtime)  # the cases are read and checked at its door
+        model = relighter.model
         if isinstance(model, OnePassRelightable):  # every sampler row would time the same single pass
             raise errors.UserError(f"checkpoint={cfg.checkpoint} is a one-pass student: it has no sampler or step "
                                    "count to sweep; time it beside its teacher: checkpoint=<teacher> "
                                    f"student={cfg.checkpoint}")
-        cases = speed.store_cases(EncodingStore.open(cfg.store), model,
+        cases = speed.store_cases(EncodingStore.open(cfg.store), relighter,
                                   records=list(cfg.records) if cfg.records is not None else None, limit=cfg.limit,
-                                  device=device, oracle_target=bool(cfg.get("oracle_target", False)))
+                                  oracle_target=bool(cfg.get("oracle_target", False)))
         reference = (cfg.reference.sampler, int(cfg.reference.steps)) if cfg.reference is not None else None
         if reference is not None and reference[0] not in configured:
             raise errors.MissingError(f"reference.sampler={reference[0]!r} is not configured under samplers "
@@ -71,7 +72,7 @@ def run(cfg: DictConfig) -> dict:
     print(f"bench-samplers: {what}, device {device}, {runtime.precision}"
           f"{', compiled' if runtime.compile else ''}{', CUDA graphs' if runtime.cuda_graphs else ''}")
     # The student and its cases are prepared before the teacher's rows, so that a bad student fails in seconds.
-    student, student_cases = _student(cfg, cases, device) if cfg.get("student") is not None else (None, None)
+    student, student_cases = _student(cfg, cases, runtime) if cfg.get("student") is not None else (None, None)
     rows, outputs = speed.benchmark(model, cases, samplers, steps, reference=reference,
                                     reference_config=configured[reference[0]] if reference else None,
                                     mean_matching=cfg.mean_matching, runtime=runtime, repeats=cfg.repeats,
@@ -92,9 +93,10 @@ def run(cfg: DictConfig) -> dict:
     return {"rows": rows, "paths": paths}
 
 
-def _student(cfg: DictConfig, cases: list, device) -> tuple:
+def _student(cfg: DictConfig, cases: list, runtime: Runtime) -> tuple:
     """The student (a checkpoint, or ``untrained``: conf/model/student at the teacher's preset and resolution)
-    and its cases: the teacher's records and targets, conditions prepared for the student."""
+    and its cases: the teacher's records and targets, conditions prepared for the student at its own door."""
+    device = runtime.torch_device
     if cfg.student == "untrained":
         model_cfg = OmegaConf.to_container(cfg.student_model, resolve=True)
         preset = cfg.model.preset if cfg.checkpoint is None else model_cfg.pop("preset")
@@ -102,17 +104,17 @@ def _student(cfg: DictConfig, cases: list, device) -> tuple:
         student, res = perf.untrained_model(model_cfg, preset, cases[0].x0.shape[-1], device, seed=cfg.seed)
         if cfg.checkpoint is None:
             return student, speed.random_cases(len(cases), student, res, device, seed=cfg.seed)
+        checkpoint = LoadedCheckpoint(student, dict(student.hparams), {}, 0)
     else:
-        from difareli.lit import load_checkpoint
-
-        student = load_checkpoint(zoo.resolve(cfg.student, "student"), device).model.to(device)
         if cfg.checkpoint is None:
             raise errors.UserError("student=<checkpoint> is timed against a teacher checkpoint: give checkpoint=... "
                                    "and store=..., or student=untrained for timing only")
-    if not isinstance(student, OnePassRelightable):
+        checkpoint = zoo.resolve(cfg.student, "student")
+    relighter = Relighter(checkpoint, runtime=runtime)
+    if not isinstance(relighter.model, OnePassRelightable):
         raise errors.UserError(f"student={cfg.student} is not a one-pass model; give a model=student checkpoint")
-    return student, speed.store_cases(EncodingStore.open(cfg.store), student, records=[c.record for c in cases],
-                                      limit=None, device=device)
+    return relighter.model, speed.store_cases(EncodingStore.open(cfg.store), relighter,
+                                              records=[c.record for c in cases], limit=None)
 
 
 @hydra.main(version_base="1.3", config_path=common.CONFIG_PATH, config_name="bench_samplers")

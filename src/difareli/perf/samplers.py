@@ -3,7 +3,9 @@
 A *relight* is the whole per-image pipeline of :func:`difareli.relight.relighter.relight` at batch 1: Modulator on the
 source condition, inversion, the mean-matching self-decode, Modulator on the target condition, and the decode,
 run by a :class:`~difareli.runtime.core.Runtime` (device, precision, compile, CUDA graphs). ``time/seconds`` times these
-network passes: encodings are read, retargeted and moved to the device beforehand (:class:`Case`), the device is
+network passes: encodings are read and checked at the relight door (:meth:`Relighter.source
+<difareli.relight.relighter.Relighter.source>`), retargeted (:class:`~difareli.relight.targets.Targets`) and moved
+to the device beforehand (:class:`Case`), the device is
 synchronised around the timed region, and each sampler runs once untimed first. On store cases the retargeting is
 timed too (``time/targets``: the target shadow map ray-marched on the source's depth and the shading re-rendered,
 what every relight toward a new light pays on top), and ``time/end_to_end`` is the sum; with a student,
@@ -44,7 +46,8 @@ from difareli.relight.core import relight
 from difareli.runtime.core import Runtime
 from difareli.data.store import EncodingStore
 from difareli.errors import MissingError, UserError
-from difareli.relight.targets import retarget, target_shadow_of
+from difareli.relight.relighter import Relighter
+from difareli.relight.targets import Targets, target_shadow_of
 from difareli.lighting.light_fit import LightFit
 
 #: Error columns (present only when cases carry a reference or a ground truth).
@@ -86,22 +89,22 @@ def same_subject_target(store: EncodingStore, record_id: str) -> str | None:
     return others[0] if others else None
 
 
-def store_cases(store: EncodingStore, model, records: Iterable[str] | None = None, limit: int | None = 2,
-                device: str | torch.device = "cpu", *, oracle_target: bool = False) -> list[Case]:
-    """Cases for ``records`` (default: the test split, else every record) under another light of the same subject.
+def store_cases(store: EncodingStore, relighter: Relighter, records: Iterable[str] | None = None,
+                limit: int | None = 2, *, oracle_target: bool = False) -> list[Case]:
+    """Cases for ``records`` (default: the test split, else every record) under another light of the same subject,
+    prepared through ``relighter``'s door (each source read and checked by :meth:`Relighter.source`, its target
+    checked by :class:`~difareli.relight.targets.Targets` and :meth:`Relighter.check_inputs`), on its device.
 
     By default the target is what a user would have: the light fitted to the target record's image
     (:class:`~difareli.lighting.light_fit.LightFit`), the c of :func:`targets.target_shadow_of`, and the
-    light-dependent encodings re-rendered on the source's geometry (shadow map ray-marched on its depth).
-    ``oracle_target`` takes the target record's stored light-dependent encodings instead. The ground truth is the
-    target record's image and the mask the source's ``face_mask``; each case's ``inputs`` says which target was
-    used.
+    light-dependent encodings re-rendered on the source's geometry (shadow map ray-marched on its depth, toward
+    the light's radiance peak). ``oracle_target`` takes the target record's stored light-dependent encodings
+    instead. The ground truth is the target record's image and the mask the source's ``face_mask``; each case's
+    ``inputs`` says which target was used.
     """
     ids = list(records) if records is not None else (store.ids(split="test") or store.ids())
-    inputs = [*model.spatial_inputs, *model.nonspatial_inputs]
+    model, device, inputs = relighter.model, relighter.device, relighter.model_inputs
     rerender = encodings.light_dependent(inputs)
-    names = list(dict.fromkeys(["image", *inputs, *([] if oracle_target else encodings.rerender_needs(rerender))]
-                               + (["face_mask"] if store.available("face_mask") else [])))
     fit = LightFit()
     cases = []
     for rid in ids:
@@ -110,23 +113,25 @@ def store_cases(store: EncodingStore, model, records: Iterable[str] | None = Non
         tid = same_subject_target(store, rid)
         if tid is None:
             continue
-        src = store.read(rid, names)
+        source = relighter.source(store, rid)
+        src = source.arrays
         if oracle_target:
-            tgt = store.read(tid, names)
-            tgt = {**src, **{k: tgt[k] for k in rerender}}
+            tgt = {**src, **store.read(tid, rerender)}
             note = "oracle target: the target record's stored light-dependent encodings"
             target_seconds = None
         else:
             c, how = target_shadow_of(store, tid)
-            light = fit.from_store(store, tid)
+            targets = Targets.of([fit.from_store(store, tid)], [c], f"target record {tid}")
+            relighter.check_inputs(source, targets)
             # What a relight toward a new light pays besides the network: the target shadow map ray-marched on
             # the source's depth (and the shading re-rendered), timed so rows can report the end-to-end relight.
             clock = time.perf_counter()
-            tgt = {**src, **retarget(src, rerender, light, c)}
+            tgt = targets.retarget(src, inputs)[0]
             target_seconds = time.perf_counter() - clock
             note = (f"target light fitted to the target image (LightFit); {how}; "
-                                f"re-rendered on the source: {', '.join(rerender) or 'nothing'}")
-        mask = torch.from_numpy(np.array(src["face_mask"]))[None].bool().to(device) if "face_mask" in src else None
+                    f"re-rendered on the source: {', '.join(rerender) or 'nothing'}")
+        mask = (torch.from_numpy(np.array(store.read(rid, ["face_mask"])["face_mask"]))[None].bool().to(device)
+                if store.available("face_mask") else None)
         cases.append(Case(rid, tid, image_to_tensor(src["image"])[None].to(device),
                           condition_tensors(model, [src], device), condition_tensors(model, [tgt], device),
                           gt=image_to_tensor(store.read(tid, ["image"])["image"])[None].to(device), mask=mask,
