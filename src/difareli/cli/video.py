@@ -3,7 +3,6 @@ its SynthFaces ground truth, and measure the sequence (difareli.evaluation.video
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import hydra
@@ -21,7 +20,7 @@ from difareli.relight.request import MAX_FRAMES, check_store
 from difareli.data.encodings import shadow_logit
 from difareli.data.store import EncodingStore
 from difareli.synth import rotation
-from difareli.utils.fileio import staged_outputs
+from difareli.utils.fileio import staged_outputs, write_json_atomic
 from difareli.relight.targets import Targets, load_envmap, video_shadow
 
 _MEASURE = ("image", "light", "normal", "face_mask", "shadow_map", "shadow")
@@ -115,10 +114,7 @@ def run(cfg: DictConfig) -> dict[str, Path]:
                 "exact visible shadows (difareli/evaluation/video.py)"))
             print("GT rows: top = ground truth, bottom = relit.  " + ", ".join(
                 f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in report.summary().items()))
-        tmp = out / "summary.json.tmp"
-        tmp.write_text(json.dumps(summary, indent=2, default=str))
-        tmp.replace(out / "summary.json")
-        written["summary"] = out / "summary.json"
+        written["summary"] = write_json_atomic(out / "summary.json", summary)
     written = {k: Path(cfg.out_dir) / Path(v).name for k, v in written.items()}
     for k, p in written.items():
         print(f"{k}: {p}")

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from difareli.data.encodings import NUM_MASK_PARTS
+from difareli.utils.fileio import atomic_path
 
 #: One colour per MASK_PARTS entry (background black, skin tan, hair brown, ...).
 PALETTE = np.array([
@@ -123,12 +124,11 @@ def panels(ctx: dict) -> list[np.ndarray]:
 
 
 def save_preview(path: str | Path, ctx: dict) -> None:
-    """Write the preview strip PNG (atomically: a temp file renamed into place)."""
+    """Write the preview strip PNG atomically (:func:`~difareli.utils.fileio.atomic_path`)."""
     from PIL import Image
 
     path = Path(path)
     strip = np.concatenate([np.concatenate([p, np.full((p.shape[0], 2, 3), 255, np.uint8)], axis=1)
                             for p in (label(p, t) for p, t in zip(panels(ctx), labels(ctx)))], axis=1)[:, :-2]
-    tmp = path.with_name(f".{path.stem}.tmp.png")
-    Image.fromarray(strip).save(tmp)
-    tmp.replace(path)
+    with atomic_path(path) as tmp:  # the scratch name hides the suffix PIL would choose the format by
+        Image.fromarray(strip).save(tmp, format="PNG")

@@ -44,6 +44,7 @@ from difareli.errors import UserError
 from difareli.lighting import sh
 from difareli.lighting.suns import Suns
 from difareli.data.encodings import known_normals
+from difareli.utils.fileio import atomic_path
 from difareli.utils.viz import write_rotation
 from difareli.utils.imageops import LUMA
 from difareli.evaluation.adherence import shadow_scores
@@ -173,8 +174,7 @@ def write_csv(report: VideoReport, path: str | Path, angles: np.ndarray | None =
     """One row per frame: angle, the per-frame scores and the change to the next frame."""
     path = Path(path)
     n = len(next(iter(report.per_frame.values())))
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "w", newline="") as f:
+    with atomic_path(path) as tmp, open(tmp, "w", newline="") as f:  # a killed run never leaves half a CSV
         w = csv.writer(f)
         cols = list(report.per_frame)
         w.writerow(["frame", "angle", *cols, *(f"change_{k}" for k in report.changes)])
@@ -182,7 +182,6 @@ def write_csv(report: VideoReport, path: str | Path, angles: np.ndarray | None =
             ch = [f"{v[i]:.6g}" if i < len(v) else "" for v in report.changes.values()]
             w.writerow([i, "" if angles is None else f"{angles[i]:.3f}",
                         *(f"{report.per_frame[c][i]:.6g}" for c in cols), *ch])
-    tmp.replace(path)  # atomic: a killed run never leaves half a CSV
     return path
 
 
