@@ -42,6 +42,19 @@ def _cli(name, run, cfg, monkeypatch, capsys):
     return e.value.code, capsys.readouterr().err
 
 
+def _fill_disk_at(monkeypatch, prefix: str) -> None:
+    """``Path.write_text`` into a file named ``prefix...`` writes 20 characters, then fails with ENOSPC."""
+    real = Path.write_text
+
+    def full(self, text, *a, **kw):
+        if self.name.startswith(prefix):
+            real(self, text[:20], *a, **kw)
+            raise ENOSPC
+        return real(self, text, *a, **kw)
+
+    monkeypatch.setattr(Path, "write_text", full)
+
+
 def _synth_cfg(out):
     from hydra import compose, initialize_config_dir
 
@@ -144,15 +157,7 @@ def test_benchmark_summary_on_a_full_disk_exits_2_and_keeps_the_previous_one(sto
     run(cfg)
     shutil.copy(out / "metrics_per_image.csv", tmp_path / "first.csv")
     before = _files(out)
-    real = Path.write_text
-
-    def full(self, text, *a, **kw):
-        if self.name.startswith(".summary.md.tmp-"):
-            real(self, text[:20], *a, **kw)
-            raise ENOSPC
-        return real(self, text, *a, **kw)
-
-    monkeypatch.setattr(Path, "write_text", full)
+    _fill_disk_at(monkeypatch, ".summary.md.tmp-")
     code, err = _cli("benchmark", run, cfg, monkeypatch, capsys)
     monkeypatch.undo()
     assert code == 2
@@ -165,6 +170,25 @@ def test_benchmark_summary_on_a_full_disk_exits_2_and_keeps_the_previous_one(sto
         return [(r.record_id, r.dssim, r.mse, r.lpips) for r in tables.read_records(path)]
 
     assert score(out / "metrics_per_image.csv") == score(tmp_path / "first.csv")  # rewritten whole (new timings)
+
+
+def test_table_outputs_on_a_full_disk_keep_the_previous_ones(store, tmp_path, monkeypatch, capsys):
+    # difareli-table publishes its outputs together (fileio.staged_outputs): a full disk keeps the earlier ones.
+    from difareli.cli.table import run
+
+    run_benchmark(store, Identity(), ["same_subject"], tmp_path / "bench", **KW)
+    out = tmp_path / "table"
+    cfg = compose_train(out, [f"runs=[{tmp_path / 'bench'}]", "paired=off"], config_name="table")
+    run(cfg)
+    before = _files(out)
+    _fill_disk_at(monkeypatch, ".table.tex.tmp-")  # table.md and table.csv are written whole, then the disk fills
+    code, err = _cli("table", run, cfg, monkeypatch, capsys)
+    monkeypatch.undo()
+    assert code == 2 and err == (f"difareli-table: no space left on the device writing {out / 'table.tex'} (No space "
+                                 "left on device); free space or write elsewhere (the previous outputs are kept as "
+                                 "they were)\n")
+    after = _files(out)
+    assert after == before and "table.tex" in after  # the earlier outputs all kept, no scratch folder
 
 
 # ------------------------------------------------------------------------------------------ a real full disk

@@ -36,7 +36,7 @@ from difareli.evaluation import tables
 from difareli.utils import viz
 from difareli.cli import common
 from difareli.configs import CONFIG_DIR
-from difareli.utils.fileio import folder_lock
+from difareli.utils.fileio import folder_lock, write_json_atomic, write_text_atomic
 from difareli.data.store import EncodingStore
 from difareli.evaluation.pairs import load_pairs
 
@@ -97,7 +97,7 @@ def train_row(cfg: DictConfig, model: str, resolution: int | None) -> Path:
     if not last.is_file():
         raise errors.UserError(f"training row {model} left no {last}; a debug run (fast_dev_run) saves no "
                                "checkpoint: drop debug=... from train_overrides")
-    (out / "done.json").write_text(json.dumps({"model": model, "checkpoint": str(last)}) + "\n")
+    write_json_atomic(out / "done.json", {"model": model, "checkpoint": str(last)}, indent=None)
     return last
 
 
@@ -146,9 +146,9 @@ def merged_table(run_dirs: dict[str, Path], labels: dict[str, str]) -> tables.Ta
 def write_table(table: tables.Table, out: Path, caption: str, digits: int = 4) -> dict[str, Path]:
     out.mkdir(parents=True, exist_ok=True)
     paths = {"md": out / "table.md", "csv": out / "table.csv", "tex": out / "table.tex"}
-    paths["md"].write_text(f"{caption}\n\n" + table.to_markdown(digits=digits))
+    write_text_atomic(paths["md"], f"{caption}\n\n" + table.to_markdown(digits=digits))
     table.to_csv(paths["csv"])
-    paths["tex"].write_text(table.to_latex(digits=digits, caption=caption))
+    write_text_atomic(paths["tex"], table.to_latex(digits=digits, caption=caption))
     return paths
 
 
@@ -201,7 +201,7 @@ def _run_rows(cfg: DictConfig, models: list[str], labels: dict[str, str], captio
     paths = write_table(table, out, caption)
     fig = figure(run_dirs, store, list(cfg.protocols), cfg.limit, out / "figure.png")
     legend = "figure.png, per line (one per protocol): input | " + " | ".join(labels.get(m, m) for m in models)
-    (out / "figure.txt").write_text(legend + " | ground truth\n")
+    write_text_atomic(out / "figure.txt", legend + " | ground truth\n")
     print(paths["md"].read_text())
     print(f"written: {paths['md']}, table.csv, table.tex" + (f", {fig}" if fig else ""))
     return table

@@ -21,6 +21,7 @@ from difareli.cli import common
 from difareli.relight.relightable import OnePassRelightable
 from difareli.relight.relighter import Relighter
 from difareli.runtime.core import Runtime
+from difareli.utils.fileio import write_text_atomic
 from difareli.data.store import EncodingStore
 
 
@@ -82,7 +83,7 @@ def run(cfg: DictConfig) -> dict:
                            runtime=runtime, repeats=max(cfg.repeats, cfg.student_repeats), warmup=cfg.warmup)
     out = Path(cfg.out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "inputs.txt").write_text(what + "\n")  # which inputs (estimated or oracle) the table used
+    write_text_atomic(out / "inputs.txt", what + "\n")  # which inputs (estimated or oracle) the table used
     paths = {"csv": speed.write_csv(rows, out / "bench_samplers.csv"),
              "plot": speed.pareto_plot(rows, out / "bench_samplers.png")}
     if cfg.checkpoint is not None:

@@ -17,6 +17,7 @@ from typing import Any
 from hydra.experimental.callback import Callback
 
 from difareli.errors import FAILED_JOBS as FAILED
+from difareli.utils.fileio import write_json_atomic
 
 SUMMARY = "sweep_summary.json"
 
@@ -36,7 +37,7 @@ class SweepSummary(Callback):
         failed = [json.loads(line) for line in path.read_text().splitlines() if line.strip()] if path.is_file() else []
         jobs = max(self.jobs, len(failed))
         summary = {"jobs": jobs, "completed": jobs - len(failed), "failed": failed}
-        (sweep / SUMMARY).write_text(json.dumps(summary, indent=2) + "\n")
+        write_json_atomic(sweep / SUMMARY, summary)
         if not failed:
             return
         print(f"sweep {sweep}: {jobs} job(s): {jobs - len(failed)} completed, {len(failed)} failed", file=sys.stderr)

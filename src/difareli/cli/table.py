@@ -18,6 +18,7 @@ from difareli import errors
 from difareli.evaluation import paired, published, tables
 from difareli.data import shard as sharding
 from difareli.cli import common
+from difareli.utils.fileio import staged_outputs, write_text_atomic
 
 
 def expand_runs(patterns: Iterable[str]) -> list[Path]:
@@ -72,8 +73,12 @@ def check_multipie(dirs: list[Path], rule: str) -> None:
                                    "not Multi-PIE; the paper's rows go beside Multi-PIE runs (difareli-multipie)")
 
 
+#: What difareli-table writes into ``out`` (a rerun replaces all of them, never some).
+OUTPUTS = ("table.md", "table.csv", "table.tex", "paired.md", "paired.csv")
+
+
 def run(cfg: DictConfig) -> tables.Table:
-    """Merge, print the Markdown table, write table.{md,csv,tex} into ``cfg.out``."""
+    """Merge, print the Markdown table, write table.{md,csv,tex} (and paired.{md,csv}) into ``cfg.out``."""
     errors.check_int(cfg.digits, "digits", 0)
     errors.check_out_dir(cfg.out, "out")
     if not isinstance(cfg.runs, (str, ListConfig)):
@@ -90,21 +95,25 @@ def run(cfg: DictConfig) -> tables.Table:
         check_multipie(dirs, table.rule)
         published.add_to(table, chosen)
     out = Path(cfg.out)
-    out.mkdir(parents=True, exist_ok=True)
     md = table.to_markdown(digits=int(cfg.digits))
-    (out / "table.md").write_text(md)
-    table.to_csv(out / "table.csv")
-    (out / "table.tex").write_text(table.to_latex(digits=int(cfg.digits), caption=cfg.caption))
-    print(f"{len(dirs)} run(s): " + ", ".join(str(d) for d in dirs) + "\n")
-    print(md)
-    written = f"written: {out / 'table.md'}, table.csv, table.tex"
+    pmd = None
     if mode != "off":
         n_boot, seed = int(cfg.get("n_boot", paired.N_BOOT)), int(cfg.get("seed", 0))
         rows, notes = paired.compare(records, table.metrics, n_boot=n_boot, seed=seed, strict=mode == "strict",
                                      methods=table.methods)
         pmd = paired.to_markdown(rows, notes, n_boot, seed)
-        (out / "paired.md").write_text(pmd)
-        (out / "paired.csv").write_text(paired.to_csv(rows))
+    # Published together: a rerun never leaves one run's table beside another's paired comparisons.
+    with staged_outputs(out, OUTPUTS) as stage:  # each file written by a writer that names it on a full disk
+        write_text_atomic(stage / "table.md", md)
+        table.to_csv(stage / "table.csv")
+        write_text_atomic(stage / "table.tex", table.to_latex(digits=int(cfg.digits), caption=cfg.caption))
+        if pmd is not None:
+            write_text_atomic(stage / "paired.md", pmd)
+            write_text_atomic(stage / "paired.csv", paired.to_csv(rows))
+    print(f"{len(dirs)} run(s): " + ", ".join(str(d) for d in dirs) + "\n")
+    print(md)
+    written = f"written: {out / 'table.md'}, table.csv, table.tex"
+    if pmd is not None:
         print("Paired comparisons\n\n" + pmd)
         written += ", paired.md, paired.csv"
     print(written)

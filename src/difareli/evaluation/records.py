@@ -35,6 +35,7 @@ import numpy as np
 from difareli.data import shard as sharding
 from difareli.errors import UserError, UserFileNotFoundError
 from difareli.evaluation.metrics import DEFAULT_RULE, RULES
+from difareli.utils.fileio import atomic_path
 
 PER_IMAGE_CSV = "metrics_per_image.csv"
 COLUMNS = ("method", "protocol", "record_id", "dssim", "mse", "lpips", "seconds")
@@ -220,7 +221,7 @@ def write_records(path: str | Path, records: Iterable[Record]) -> Path:
     # The status column only when a row failed: runs without failures keep the original format.
     status = any(r.status != "ok" for r in records)
     extra = extra_columns(records)
-    with open(path, "w", newline="") as f:
+    with atomic_path(path) as tmp, open(tmp, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(header(extra, status))
         for r in records:

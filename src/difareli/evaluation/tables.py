@@ -35,6 +35,7 @@ from difareli.evaluation.records import (  # noqa: F401
     read_runs, record_row, write_records)
 from difareli.evaluation.records import PROTOCOL_LABELS, _protocol_key, protocol_label  # noqa: F401
 from difareli.evaluation import paired
+from difareli.utils.fileio import write_text_atomic
 
 
 @dataclass
@@ -228,7 +229,7 @@ class Table:
             w.writerow(row)
         text = buf.getvalue()
         if path is not None:
-            Path(path).write_text(text)
+            write_text_atomic(path, text)
         return text
 
 

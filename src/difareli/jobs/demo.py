@@ -31,6 +31,7 @@ from difareli.relight.targets import Targets, rotation_targets, target_lights
 from difareli.evaluation.video import rotation_video
 from difareli.relight.photo import preprocess_photo
 from difareli.jobs.compare import compare_to_baselines
+from difareli.utils.fileio import write_text_atomic
 
 
 @dataclass
@@ -125,7 +126,7 @@ def run_demo(checkpoint: Any, out_dir: str | Path, *, sampler: Mapping[str, Any]
     comparison = compare_to_baselines(store, loaded, sampler, out / "benchmark", pairs=pairs, runtime=runtime,
                                       progress=progress)
     res.table = comparison.table
-    (out / "benchmark.md").write_text(res.table.to_markdown() + "\n")
+    write_text_atomic(out / "benchmark.md", res.table.to_markdown() + "\n")
     res.table.to_csv(out / "benchmark.csv")
     res.paths["benchmark"] = out / "benchmark.md"
     res.seconds["benchmark"] = comparison.seconds["total"]

@@ -49,6 +49,7 @@ from difareli.errors import MissingError, UserError
 from difareli.relight.relighter import Relighter
 from difareli.relight.targets import Targets, target_shadow_of
 from difareli.lighting.light_fit import LightFit
+from difareli.utils.fileio import atomic_path
 
 #: Error columns (present only when cases carry a reference or a ground truth).
 ERROR_COLUMNS = ("ref/mse", "ref/dssim", "gt/mse", "gt/dssim")
@@ -277,7 +278,7 @@ def columns(rows: Sequence[Mapping[str, Any]]) -> list[str]:
 def write_csv(rows: Sequence[Mapping[str, Any]], path: str | Path) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "w", newline="") as f:
+    with atomic_path(path) as tmp, open(tmp, "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=columns(rows), extrasaction="ignore")
         w.writeheader()
         w.writerows(rows)

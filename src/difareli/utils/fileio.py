@@ -224,16 +224,25 @@ def staged_outputs(out_dir: str | Path, names: Iterable[str], last: str | None =
     """Write a command's outputs into a scratch folder inside ``out_dir`` and publish them only when the block
     succeeds: the previous run's files of ``names`` are removed, then the new ones renamed into place (``last``,
     e.g. the summary, last of all), so the folder never mixes two runs; a block that fails (a full disk, a kill)
-    leaves the previous outputs as they were and removes the scratch folder. Renames and removals need no space."""
+    leaves the previous outputs as they were and removes the scratch folder. Renames and removals need no space.
+    A full disk in the block is one :class:`NoSpaceError` naming the output (not its scratch copy)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     stage = out / f".partial-{os.getpid()}"
     stage.mkdir(exist_ok=True)
     try:
         yield stage
-    except BaseException:
+    except BaseException as e:
         shutil.rmtree(stage, ignore_errors=True)
-        raise
+        full = e if isinstance(e, NoSpaceError) else None
+        if full is None and isinstance(e, OSError) and is_no_space(e):
+            full = NoSpaceError(e.filename or out, e)
+        if full is None:
+            raise
+        where = Path(full.path)
+        where = out / where.name if where.parent == stage else where
+        raise NoSpaceError(where, full.err, "free space or write elsewhere (the previous outputs are kept as they "
+                                            "were)") from None
     made = sorted(p.name for p in stage.iterdir())
     for name in set(names) | set(made):
         if (out / name).is_file():
