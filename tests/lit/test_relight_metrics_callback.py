@@ -82,9 +82,46 @@ def test_targets_are_the_benchmarks_and_a_non_finite_relight_skips_the_evaluatio
     with torch.no_grad():
         next(model.parameters()).fill_(float("nan"))
     model.train()
-    with pytest.warns(RuntimeWarning, match="relight metrics skipped: relight of .*NaN or Inf"):
+    with pytest.warns(RuntimeWarning, match="relight metrics at step 7 skipped: relight of .*NaN or Inf"):
         assert marched.evaluate(trainer, model) == {}
     assert model.training and marched.history == [] and marched._last_step == 7
+    # Under DDP the processes decide together: one process's NaN makes every process skip (none waits alone).
+    decided = []
+    ddp = SimpleNamespace(**vars(trainer), world_size=2, strategy=SimpleNamespace(
+        reduce_boolean_decision=lambda d, all=True: decided.append((d, all)) or True))
+    with torch.no_grad():
+        next(peak.relighter.model.parameters()).copy_(next(other.parameters()))  # finite again here
+    with pytest.warns(RuntimeWarning, match="another process is not finite"):
+        assert peak.evaluate(ddp, peak.relighter.model) == {}
+    assert decided == [(False, False)]  # this process's relights were finite: "any" of the processes decided
+
+
+def test_every_process_gets_a_pair_or_none_does(synth_store):
+    store = EncodingStore.open(synth_store)
+    have = len(validation_pairs(store, "val", 100))
+    datamodule = SimpleNamespace(store=store, val_split="val")
+
+    def start(world):
+        cb = RelightMetrics(pairs=1, extras=False)
+        cb.prepare = lambda store, module, pairs, step: setattr(cb, "cases", list(pairs))
+        tr = SimpleNamespace(fast_dev_run=False, datamodule=datamodule, global_rank=world - 1, world_size=world,
+                             global_step=0)
+        cb.on_fit_start(tr, _relightable())
+        return cb
+
+    assert len(start(2).cases) == 1  # pairs=1, 2 processes: 2 pairs asked for, the last process's share is one
+    with pytest.warns(UserWarning, match=f"gives {have} validation pair\\(s\\) for {have + 1} processes"):
+        cb = start(have + 1)
+    assert not cb.enabled and cb.cases == []
+
+
+def _relightable():
+    from difareli.relight.relightable import Relightable
+
+    class Module(Relightable):
+        spatial_inputs, nonspatial_inputs = ["shading"], ["cam"]
+
+    return Module()
 
 
 def _train(out: Path, synth_store, *extra):

@@ -21,7 +21,8 @@ toward): the validation numbers are the benchmark's computation on other records
 skips that evaluation with a warning; training goes on.
 
 The pairs and their targets are prepared once, at fit start. Under DDP every process relights its share
-of the sources and the Metrics' summed states reduce over all of them. A store without SynthFaces light groups in its
+of the sources (at least one: a process without one would never join the reduction) and the Metrics' summed states
+reduce over all of them; a skip is decided by all processes together. A store without SynthFaces light groups in its
 validation split (a photo store) gets one warning and no relight metrics.
 """
 
@@ -117,11 +118,16 @@ class RelightMetrics(L.Callback):
             self._disable("no encodings store on the datamodule or the module is not a Relightable")
             return
         split = getattr(trainer.datamodule, "val_split", "val")
-        pairs = validation_pairs(store, split, self.pairs)
+        rank, world = trainer.global_rank, trainer.world_size
+        # At least one pair per process: a process without one would never join the metrics' reduction (a hang).
+        # Every process computes the same list, so they all decide alike.
+        pairs = validation_pairs(store, split, max(self.pairs, world))
         if not pairs:
             self._disable(f"store {store.root} has no SynthFaces light groups in its {split!r} split")
             return
-        rank, world = trainer.global_rank, trainer.world_size
+        if len(pairs) < world:
+            self._disable(f"its {split!r} split gives {len(pairs)} validation pair(s) for {world} processes")
+            return
         self.prepare(store, pl_module, pairs[rank::world], step=trainer.global_step)
         self._clock = time.perf_counter()
 
@@ -167,19 +173,19 @@ class RelightMetrics(L.Callback):
         if self._due(trainer):
             self.evaluate(trainer, pl_module)
 
-    def _relight(self, pl_module) -> np.ndarray | None:
+    def _relight(self, pl_module) -> tuple[np.ndarray | None, str | None]:
         """The prepared pairs relit by the module's current weights through the relight door's many-sources call
-        (S, 2, H, W, 3) uint8; None, with a warning, where a relight is not finite (a diverging or bf16-overflowing
-        model: the metrics of that evaluation are not logged, and training goes on)."""
+        (S, 2, H, W, 3) uint8; (None, why) where a relight is not finite (a diverging or bf16-overflowing model:
+        the metrics of that evaluation are not logged, and training goes on)."""
         if self.relighter.model is not pl_module:  # its sources were checked against that module's inputs
             raise ValueError("RelightMetrics.evaluate takes the module it was prepared with (prepare / on_fit_start)")
         was_training = pl_module.training
         pl_module.eval()
         try:
-            return self.relighter.relight_many([c["source"] for c in self.cases], [c["targets"] for c in self.cases])
+            return self.relighter.relight_many([c["source"] for c in self.cases],
+                                               [c["targets"] for c in self.cases]), None
         except errors.NonFiniteError as e:
-            warnings.warn(f"relight metrics skipped: {str(e).splitlines()[0]}", RuntimeWarning, stacklevel=2)
-            return None
+            return None, str(e).splitlines()[0]
         finally:
             pl_module.train(was_training)
 
@@ -189,8 +195,15 @@ class RelightMetrics(L.Callback):
         since = time.perf_counter() - (self._clock or time.perf_counter())
         t0 = time.perf_counter()
         step = trainer.global_step
-        relit = self._relight(pl_module)
-        if relit is None:
+        relit, why = self._relight(pl_module)
+        strategy = getattr(trainer, "strategy", None)
+        if getattr(trainer, "world_size", 1) > 1:  # every process skips or none does: each joins the reduction
+            skip = strategy.reduce_boolean_decision(relit is None, all=False)
+        else:
+            skip = relit is None
+        if skip:
+            why = why or "a relight of another process is not finite"
+            warnings.warn(f"relight metrics at step {step} skipped: {why}", RuntimeWarning, stacklevel=2)
             self._last_step, self._clock = step, time.perf_counter()
             return {}
         dev = pl_module.device
