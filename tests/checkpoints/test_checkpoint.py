@@ -125,3 +125,19 @@ def test_relightable_interface_and_bad_stats():
     with pytest.raises(ValueError, match="model.optimizer must be a Hydra partial"):
         DiffusionModule(input_dims=dims, spatial_inputs=["shading", "background"],
                         optimizer={"lr": 1e-3})
+
+
+def test_a_module_in_memory_as_a_loaded_checkpoint(tiny_checkpoint):
+    # What the relight-metrics callback and the store-wide jobs hand the Relighter: the module itself (nothing
+    # copied), with the config and statistics that loading its checkpoint gives.
+    from difareli.checkpoints.loading import LoadedCheckpoint
+
+    loaded = load_checkpoint(tiny_checkpoint("difareli_pp"))
+    module = loaded.model
+    module.hparams["compile"] = True  # as a run trained with compile=true records it
+    live = LoadedCheckpoint.of_module(module, global_step=7)
+    assert live.model is module and live.global_step == 7 and live.resolution == loaded.resolution
+    assert "compile" not in live.config and live.config == loaded.config
+    assert live.stats.keys() == loaded.stats.keys() and live.stats
+    assert all(torch.equal(live.stats[k], loaded.stats[k]) for k in loaded.stats)
+    assert LoadedCheckpoint.of_module(torch.nn.Linear(1, 1)).config == {}  # a module without hyperparameters

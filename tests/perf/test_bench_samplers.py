@@ -97,7 +97,7 @@ def _door(model):
     from difareli.checkpoints.loading import LoadedCheckpoint
     from difareli.relight.relighter import Relighter
 
-    return Relighter(LoadedCheckpoint(model, {}, {}, 0))
+    return Relighter(LoadedCheckpoint.of_module(model))
 
 
 def test_store_cases_target_is_same_subject_other_light(synth_store):

@@ -40,6 +40,21 @@ class LoadedCheckpoint:
         """The image size (px) it was trained at (:func:`~difareli.checkpoints.format.training_resolution`)."""
         return training_resolution(self.config)
 
+    @classmethod
+    def of(cls, model: L.LightningModule, config: Mapping[str, Any], global_step: int = 0) -> "LoadedCheckpoint":
+        """``model`` with its hyperparameters ``config`` as a loaded checkpoint: the config as inference reads it
+        (``compile`` dropped: inference never compiles implicitly) and the normalisation statistics it holds."""
+        config = _inference_config(config)
+        raw = config.get("nonspatial_stats") or {}
+        stats = {k: torch.as_tensor(v, dtype=torch.float32) for k, v in raw.items()}
+        return cls(model=model, config=config, stats=stats, global_step=int(global_step))
+
+    @classmethod
+    def of_module(cls, module: L.LightningModule, global_step: int = 0) -> "LoadedCheckpoint":
+        """A module already in memory (the one in training, an untrained one) as a loaded checkpoint, its own
+        hyperparameters the config; nothing is copied."""
+        return cls.of(module, getattr(module, "hparams", None) or {}, global_step)
+
 
 def module_class(path: str) -> type[L.LightningModule]:
     """Import the LightningModule class named ``package.module.Class`` (``difareli.`` namespace only)."""
@@ -78,15 +93,16 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     normalisation statistics of the training split (as tensors).
     """
     ckpt = read_checkpoint(path, map_location)
-    config = dict(ckpt["hyper_parameters"])
-    config.pop("compile", None)  # inference never compiles implicitly
+    config = _inference_config(ckpt["hyper_parameters"])
     model = module_class(ckpt[MODULE_KEY])(**config)
     model.load_state_dict(ckpt["state_dict"])
     model.eval().requires_grad_(False)
-    model.to(map_location)
-    raw = config.get("nonspatial_stats") or {}
-    stats = {k: torch.as_tensor(v, dtype=torch.float32) for k, v in raw.items()}
-    return LoadedCheckpoint(model=model, config=config, stats=stats, global_step=int(ckpt.get("global_step", 0)))
+    return LoadedCheckpoint.of(model.to(map_location), config, ckpt.get("global_step", 0))
+
+
+def _inference_config(hparams: Mapping[str, Any]) -> dict[str, Any]:
+    # Inference never compiles implicitly: a model trained with compile=true is built without it.
+    return {k: v for k, v in dict(hparams).items() if k != "compile"}
 
 
 def check_resume(ckpt_path: Any, model: Any, ckpt: Mapping[str, Any] | None = None) -> None:

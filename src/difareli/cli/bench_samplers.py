@@ -105,7 +105,7 @@ def _student(cfg: DictConfig, cases: list, runtime: Runtime) -> tuple:
         student, res = perf.untrained_model(model_cfg, preset, cases[0].x0.shape[-1], device, seed=cfg.seed)
         if cfg.checkpoint is None:
             return student, speed.random_cases(len(cases), student, res, device, seed=cfg.seed)
-        checkpoint = LoadedCheckpoint(student, dict(student.hparams), {}, 0)
+        checkpoint = LoadedCheckpoint.of_module(student)
     else:
         if cfg.checkpoint is None:
             raise errors.UserError("student=<checkpoint> is timed against a teacher checkpoint: give checkpoint=... "

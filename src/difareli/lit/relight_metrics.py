@@ -142,8 +142,7 @@ class RelightMetrics(L.Callback):
         key sun), the ground truth and its mask. Once per fit: the pairs are fixed."""
         dev = model.device
         runtime = Runtime(device="cpu" if dev.type == "cpu" else str(dev), precision=self.precision)
-        config = {k: v for k, v in dict(getattr(model, "hparams", {}) or {}).items() if k != "compile"}
-        self.relighter = Relighter(LoadedCheckpoint(model, config, {}, int(step)), self.spec, runtime=runtime,
+        self.relighter = Relighter(LoadedCheckpoint.of_module(model, step), self.spec, runtime=runtime,
                                    batch_size=max(1, len(pairs)))
         marches = "shadow_map" in self.relighter.model_inputs
         fit = LightFit()
