@@ -157,7 +157,7 @@ class RelightMetrics(L.Callback):
         targets = Targets.of([light for light, _ in found], [c for _, c in found], f"pair {pair['source']}",
                              suns=[lights.sun(p) for p in chosen])
         gt = store.read(pair["target"], ["image", "face_mask"])
-        return {"pair": dict(pair), "lights": [light for light, _ in found], "source": source, "targets": targets,
+        return {"pair": dict(pair), "source": source, "targets": targets,
                 "gt": metrics.unit_tensor(gt["image"]),
                 "mask": torch.from_numpy(np.array(gt["face_mask"], dtype=bool))[None]}
 
@@ -195,11 +195,9 @@ class RelightMetrics(L.Callback):
         t0 = time.perf_counter()
         step = trainer.global_step
         relit, why = self._relight(pl_module)
-        strategy = getattr(trainer, "strategy", None)
+        skip = relit is None
         if getattr(trainer, "world_size", 1) > 1:  # every process skips or none does: each joins the reduction
-            skip = strategy.reduce_boolean_decision(relit is None, all=False)
-        else:
-            skip = relit is None
+            skip = trainer.strategy.reduce_boolean_decision(skip, all=False)
         if skip:
             why = why or "a relight of another process is not finite"
             warnings.warn(f"relight metrics at step {step} skipped: {why}", RuntimeWarning, stacklevel=2)
@@ -214,7 +212,8 @@ class RelightMetrics(L.Callback):
             for k, proto in enumerate(PROTOCOLS.values()):
                 scores[proto].update(relit_unit[k:k + 1], case["gt"].to(dev), case["mask"].to(dev))
                 if self.scorer is not None:  # the benchmark's extra scores of the same uint8 image
-                    ex, _ = self.scorer(images[k], case["pair"]["source"], case["pair"]["target"], case["lights"][k])
+                    ex, _ = self.scorer(images[k], case["pair"]["source"], case["pair"]["target"],
+                                        case["targets"].lights[k])
                     for name, v in ex.items():
                         extra[proto].setdefault(name, metrics.FiniteMean().to(dev)).update(v)
                 rows[proto].append([case["source"].arrays["image"], images[k],

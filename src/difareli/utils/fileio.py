@@ -234,15 +234,15 @@ def staged_outputs(out_dir: str | Path, names: Iterable[str], last: str | None =
         yield stage
     except BaseException as e:
         shutil.rmtree(stage, ignore_errors=True)
-        full = e if isinstance(e, NoSpaceError) else None
-        if full is None and isinstance(e, OSError) and is_no_space(e):
-            full = NoSpaceError(e.filename or out, e)
-        if full is None:
+        if isinstance(e, NoSpaceError):
+            where, err = Path(e.path), e.err
+        elif isinstance(e, OSError) and is_no_space(e):
+            where, err = Path(e.filename or out), e
+        else:
             raise
-        where = Path(full.path)
         where = out / where.name if where.parent == stage else where
-        raise NoSpaceError(where, full.err, "free space or write elsewhere (the previous outputs are kept as they "
-                                            "were)") from None
+        raise NoSpaceError(where, err, "free space or write elsewhere (the previous outputs are kept as they "
+                                       "were)") from None
     made = sorted(p.name for p in stage.iterdir())
     for name in set(names) | set(made):
         if (out / name).is_file():
