@@ -222,7 +222,7 @@ def test_relight_validates_before_any_work(tmp_path):
         kind = FileNotFoundError if "target.light" in override else UserError  # a user error either way
         with pytest.raises(kind, match=want.replace("(", r"\(").replace(")", r"\)")):
             Request.from_config(cfg)
-    # The relighter's own values, at its door before it reads the checkpoint.
+    # How it is relit (sampler, runtime, batch size): the request's values too, checked before the checkpoint is read.
     relighter = {"sampler.steps=2.7": r"sampler steps must be an integer >= 1, got 2.7 \(e.g. sampler.steps=50\)",
                  "sampler.name=euler": "unknown sampler 'euler'; choose from ddim",
                  "+sampler.foo=1": "unknown option 'foo' for sampler",

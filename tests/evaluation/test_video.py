@@ -147,14 +147,17 @@ def test_video_cli_frames_and_outputs(tiny_checkpoint, synth_store, tmp_path):
     assert summary["target_sun"] == "shadows" and summary["target_maps"].startswith("target shadow maps marched toward")
 
 
-def test_video_cli_checks_its_store_and_record_before_the_checkpoint(synth_store, tmp_path):
+def test_video_cli_checks_its_store_record_and_sampler_before_the_checkpoint(synth_store, tmp_path):
     from difareli.cli.video import run
 
     ckpt = tmp_path / "c.ckpt"
     ckpt.write_bytes(b"x")  # read, it would be refused as "not a readable PyTorch file": the store is said first
     for override, want in {"record=s9_l9": r"^record=s9_l9: no such record in the store .*; give one of its record ids",
                            f"store={tmp_path}/none": "no encoding store at",
-                           "versions.shadow_map=v9": "versions.shadow_map='v9'"}.items():
+                           "versions.shadow_map=v9": "versions.shadow_map='v9'",
+                           "sampler.name=euler": "sampler.name='euler' is not a sampler",
+                           "runtime.precision=fp8": "runtime.precision='fp8' is not one of",
+                           "batch_size=0": "batch_size=0 is invalid"}.items():
         store = [] if override.startswith("store=") else [f"store={synth_store}"]
         cfg = compose_train(tmp_path / "run", [f"checkpoint={ckpt}", *store, override], config_name="video")
         with pytest.raises(UserError, match=want):

@@ -84,7 +84,9 @@ def cfg(**over):
             "strict": False, "video": {"axis": None, "frames": 8, "fps": 20, "format": "gif"}, "out_dir": "out",
             "target": {"light": None, "record": None, "yaw": None, "roll": None, "envmap": None, "shadow": None,
                        "sun": "shadows"},
-            "composite": {"mode": "ratio", "feather": 0.03, "parts": None}}
+            "composite": {"mode": "ratio", "feather": 0.03, "parts": None}, "checkpoint": "difareli_pp-synth64",
+            "sampler": {"preset": "default"}, "runtime": {"precision": "fp32"}, "mean_matching": True,
+            "batch_size": 4, "progress": False}
     return OmegaConf.merge(base, OmegaConf.from_dotlist([f"{k}={v}" for k, v in over.items()]))
 
 
@@ -135,6 +137,27 @@ def test_a_request_is_checked_once_naming_the_key(store, tmp_path):
         c.target[key] = float("nan")
         with pytest.raises(UserError, match=f"target.{key}=nan is invalid"):
             Request.from_config(c)
+
+
+def test_how_a_request_is_relit_is_checked_with_it(store):
+    """The sampler (whole, by its spec), the runtime and the batch size are the request's values, checked by
+    from_config before any work and handed to the relighter as typed values."""
+    from difareli.diffusion.spec import PRESETS, SamplerSpec
+    from difareli.runtime.core import Runtime
+
+    r = Request.from_config(cfg(store=store, **{"target.yaw": 30, "sampler.steps": 7}))
+    assert r.sampler == SamplerSpec.preset("default", steps=7) and r.sampler != PRESETS["default"]
+    assert r.runtime == Runtime(precision="fp32") and (r.batch_size, r.mean_matching, r.progress) == (4, True, False)
+    assert r.checkpoint == "difareli_pp-synth64"
+    assert Request.from_config(cfg(store=store, sampler="null", **{"target.yaw": 30})).sampler is None
+    for override, want in {"sampler.name": ("euler", "unknown sampler 'euler'"),
+                           "sampler.steps": (0, "steps must be an integer >= 1"),
+                           "runtime.precision": ("fp8", "runtime.precision='fp8' is not one of"),
+                           "batch_size": (0, "batch_size=0 is invalid"),
+                           "sampler": ("fast", "sampler='fast' is not a sampler config: give a mapping")}.items():
+        value, message = want
+        with pytest.raises(UserError, match=message):
+            Request.from_config(cfg(store=store, **{override: value, "target.yaw": 30}))
 
 
 def test_the_key_sun_is_found_once_per_source_key(monkeypatch):

@@ -24,8 +24,8 @@ from difareli.utils import viz
 def run(cfg: DictConfig) -> dict[str, Path]:
     """Relight as configured; returns the paths written."""
     request = Request.from_config(cfg)  # every value of the request checked, before any work
-    relighter = Relighter(cfg.checkpoint, cfg.sampler, runtime=cfg.runtime, mean_matching=cfg.mean_matching,
-                          batch_size=cfg.batch_size, progress=cfg.progress)
+    relighter = Relighter(request.checkpoint, request.sampler, runtime=request.runtime,
+                          mean_matching=request.mean_matching, batch_size=request.batch_size, progress=request.progress)
     answer = relighter.answer(request, say=say)
     return write(answer, request)
 

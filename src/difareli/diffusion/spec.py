@@ -141,6 +141,9 @@ class SamplerSpec:
     def from_config(cls, cfg: Mapping[str, Any]) -> "SamplerSpec":
         """From a ``conf/sampler/*.yaml`` mapping: the spec fields, plus the sampler's options as top-level
         keys; ``preset: <name>`` starts from a named preset. Keys set to None count as absent."""
+        if not isinstance(cfg, Mapping):
+            raise SamplerConfigError(f"sampler={cfg!r} is not a sampler config: give a mapping with a name (a sampler: "
+                                     f"{', '.join(SAMPLERS)}) or a preset ({', '.join(PRESETS)}), e.g. sampler=ddim")
         cfg = {k: v for k, v in dict(cfg).items() if v is not None}
         if "preset" in cfg:
             base = _preset(cfg.pop("preset")).to_config()

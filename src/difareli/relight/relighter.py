@@ -121,7 +121,9 @@ class Relighter:
                  cache_size: int | None = None):
         from difareli.checkpoints.loading import LoadedCheckpoint, load_checkpoint
 
-        # Its own values first (the runtime, the sampler whole by its spec, the batch size): said before any loading.
+        # The checkpoint first: a command's values (sampler, runtime, batch size) were checked before any work by its
+        # config (Request.from_config); the conversions and checks here serve a caller that passes mappings.
+        ckpt = checkpoint if isinstance(checkpoint, LoadedCheckpoint) else load_checkpoint(checkpoint)
         rt = runtime if isinstance(runtime, Runtime) else Runtime.from_config(runtime)
         if device is not None:  # the older keyword: the device alone
             rt = dataclasses.replace(rt, device=device)
@@ -130,7 +132,6 @@ class Relighter:
         errors.check_int(batch_size, "batch_size", 1)
         self.runtime = rt
         self.device = rt.torch_device
-        ckpt = checkpoint if isinstance(checkpoint, LoadedCheckpoint) else load_checkpoint(checkpoint, self.device)
         self.model = ckpt.model.to(self.device)
         self.config = ckpt.config
         self.checkpoint = "the given checkpoint" if isinstance(checkpoint, LoadedCheckpoint) else checkpoint

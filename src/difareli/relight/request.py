@@ -4,8 +4,9 @@
 light file, another record's light, the source's own light turned by a yaw or a roll, an environment map; its
 shadow strength and where its shadow map is marched), a rotation video of the source's light, how a photo's
 relights go back into it, and where and how the answer is written (the output folder, the video's frame rate and
-format). :meth:`Request.from_config` takes it from a command's config (``conf/relight.yaml``) and checks it, each
-value once (how it is relit, the sampler, runtime and batch size, is the relighter's to check). :func:`answer` (the
+format), and how it is relit (the checkpoint, the sampler by its spec, the runtime: what
+a :class:`~difareli.relight.relighter.Relighter` is built with). :meth:`Request.from_config` takes it from a
+command's config (``conf/relight.yaml``) and checks it, each value once, before any work. :func:`answer` (the
 relighter's door :meth:`~difareli.relight.relighter.Relighter.answer`) reads the source once, builds the targets,
 relights, composites, and returns an :class:`Answer` that a command only writes out; a batch of photos is answered
 photo by photo into the request's ``out_dir`` (:mod:`difareli.relight.batch`), its answer the counts.
@@ -20,6 +21,7 @@ from typing import Any, Callable, Mapping
 import numpy as np
 
 from difareli import errors
+from difareli.diffusion.spec import SamplerSpec
 from difareli.lighting import sh
 from difareli.relight import photo
 from difareli.relight.batch import photo_paths, relight_photos
@@ -27,6 +29,7 @@ from difareli.relight.composite import MODES, part_mask
 from difareli.relight.targets import Targets, rotation_targets, target_lights
 from difareli.render import sun_fit
 from difareli.render.sun_fit import TARGET_SUNS
+from difareli.runtime.core import Runtime
 from difareli.utils import viz
 from difareli.data.store import EncodingStore
 
@@ -84,7 +87,9 @@ class Target:
 class Request:
     """One relight request (module doc). ``store``/``record`` or ``image`` is the source; ``video_axis`` adds a
     360-degree rotation of its light; ``composite`` (mode, feather, parts) puts a photo's relights back; ``out_dir``
-    gets the answer (a batch's as it goes), its video at ``video_fps`` as ``video_format`` (``mp4`` or ``gif``)."""
+    gets the answer (a batch's as it goes), its video at ``video_fps`` as ``video_format`` (``mp4`` or ``gif``).
+    ``checkpoint`` (a path or a shipped name), ``sampler`` (None: the model's default), ``runtime``,
+    ``mean_matching``, ``batch_size`` and ``progress`` say how it is relit (the relighter's arguments)."""
 
     store: str | None = None
     record: str | None = None
@@ -101,14 +106,21 @@ class Request:
     video_fps: int = 20
     video_format: str = "gif"
     composite: Mapping[str, Any] = field(default_factory=lambda: {"mode": "ratio", "feather": 0.03, "parts": None})
+    checkpoint: Any = None
+    sampler: SamplerSpec | None = None
+    runtime: Runtime = field(default_factory=Runtime)
+    mean_matching: bool = True
+    batch_size: int = 16
+    progress: bool = False
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any]) -> "Request":
         """The request of a relight command's config, checked before any work, each value once: one source (a
         folder or glob of photos, or ``face=all|<index>``: a batch under one target light), a store that opens and
         holds the records named, a target or a video, a target record only with a store, the photos' compositing,
-        the target's sun, numbers and files, the video's frame count; where the answer goes (the output folder, the
-        video's frame rate and format)."""
+        the target's sun, numbers and files, the video's frame count; how it is relit (the sampler whole by its
+        spec, the runtime, the batch size); where the answer goes (the output folder, the video's frame rate and
+        format). The checkpoint is read by the relighter, the first work."""
         t, c, v, image = cfg["target"], cfg["composite"], cfg["video"], cfg["image"]
         if (image is None) == (cfg["store"] is None):
             raise errors.UserError("give the source as either store=<encodings store> (and record=) or "
@@ -131,7 +143,10 @@ class Request:
                 raise errors.UserError(f"image={image} face={cfg['face']}: a folder or several faces take a target "
                                        "light (target.light|yaw|roll|envmap), not video.axis or target.record")
             check_composite(c)
+        sampler = None if cfg["sampler"] is None else SamplerSpec.from_config(cfg["sampler"])
+        runtime = Runtime.from_config(cfg["runtime"])
         fmt = viz.video_format(v["format"], "video.format")
+        errors.check_int(cfg["batch_size"], "batch_size", 1)
         errors.check_out_dir(cfg["out_dir"])
         errors.check_choice(t["sun"], "target.sun", TARGET_SUNS)
         errors.check_int(v["frames"], "video.frames", 1, maximum=MAX_FRAMES)
@@ -147,7 +162,10 @@ class Request:
                    target=Target(**{k: t[k] for k in (*TARGET_KEYS, "shadow", "sun")}),
                    video_axis=v["axis"], video_frames=int(v["frames"]), video_fps=int(v["fps"]), video_format=fmt,
                    composite={"mode": c["mode"], "feather": float(c["feather"]),
-                              "parts": list(c["parts"]) if c["parts"] else None})
+                              "parts": list(c["parts"]) if c["parts"] else None},
+                   checkpoint=cfg["checkpoint"], sampler=sampler, runtime=runtime,
+                   mean_matching=bool(cfg["mean_matching"]), batch_size=int(cfg["batch_size"]),
+                   progress=bool(cfg["progress"]))
 
 
 #: The longest rotation video a command makes (60 s at 60 fps): anything longer is a typo, and would fill the disk.
