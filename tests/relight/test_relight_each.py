@@ -63,7 +63,7 @@ def test_implausible_target_lights_are_said_in_terms_of_the_light():
     import numpy as np
 
     from difareli.lighting import sh
-    from difareli.relight.relighter import implausible_lights
+    from difareli.lighting.plausible import implausible_lights
 
     yy, xx = np.mgrid[-1:1:32j, -1:1:32j]
     zz = np.sqrt(np.clip(1 - xx ** 2 - yy ** 2, 0, None))

@@ -46,8 +46,7 @@ from difareli.runtime.core import Runtime
 from difareli.data.store import EncodingStore
 from difareli.relight.targets import Targets, check_maker
 from difareli.render import sun_fit
-from difareli.data.encodings import known_normals
-from difareli.lighting import sh
+from difareli.lighting.plausible import implausible_lights
 
 
 def needed_encodings(model: Relightable) -> list[str]:
@@ -71,34 +70,6 @@ class Source:
 
 #: Share of clipped values above which a relit image is reported as saturated (a warning, not an error).
 SATURATED_SHARE = 0.5
-#: A target light is said to be implausible for a face when its irradiance is negative on more than this share of
-#: the face's known normals (an SH light whose ambient term is too small or negative) ...
-NEGATIVE_SHARE = 0.5
-#: ... or when its mean irradiance on the face is over this many times the source's own (an absurd ambient).
-BRIGHTER_MAX = 10.0
-
-
-def implausible_lights(arrays: Mapping[str, np.ndarray], lights: np.ndarray) -> dict[int, str]:
-    """Target lights a face cannot be lit with, judged on the source's stored normals: index -> why, in terms of
-    the light (negative irradiance on much of the face, or far brighter than the source's own light). Empty
-    without normals (a model that reads no shading)."""
-    if "normal" not in arrays or "light" not in arrays:
-        return {}
-    normal = np.asarray(arrays["normal"], np.float64)
-    n = normal[known_normals(normal)]
-    if len(n) == 0:
-        return {}
-    own = float(sh.irradiance(np.asarray(arrays["light"], np.float64), n).mean())
-    out = {}
-    for k, light in enumerate(np.asarray(lights, np.float64)):
-        e = sh.irradiance(light, n).mean(axis=-1)  # (M,) grey irradiance per face pixel
-        if (e < 0).mean() > NEGATIVE_SHARE:
-            out[k] = (f"target light {k} gives negative irradiance on {(e < 0).mean():.0%} of the face (its ambient, "
-                      "SH band 0, is too small or negative): give a light with a larger ambient term")
-        elif own > 0 and e.mean() > BRIGHTER_MAX * own:
-            out[k] = (f"target light {k} is {e.mean() / own:.0f}x brighter on the face than the source's own light: "
-                      "the relight saturates; scale the light down")
-    return out
 
 
 def _cached(cache: dict, key: Any, make):
@@ -314,8 +285,8 @@ class Relighter:
         """The one check of a request at the door, each bound once: the source's encodings (present and finite:
         checked when the :class:`Source` was made), the targets (lights and shadows: checked by
         :meth:`Targets.of`), what only the pair can tell (given target maps at the source's resolution; a target
-        light this face cannot be lit with: :func:`implausible_lights`, warned about and returned as target indices)
-        and the sampler a diffusion model needs. A UserError naming the input."""
+        light this face cannot be lit with: :func:`~difareli.lighting.plausible.implausible_lights`, warned about
+        and returned as target indices) and the sampler a diffusion model needs. A UserError naming the input."""
         if not isinstance(source, Source) or not isinstance(targets, Targets):
             raise errors.UserError(f"relight takes a Source (Relighter.source / photo_source / source_from_arrays) "
                                    f"and Targets (Targets.of); got {type(source).__name__}, {type(targets).__name__}")
