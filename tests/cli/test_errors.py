@@ -249,6 +249,20 @@ def test_benchmark_limit_and_out_dir_checked_first(tmp_path):
     assert f.read_text() == "keep"
 
 
+def test_teacher_pairs_and_a_diffusion_benchmark_check_their_runtime_before_the_checkpoint(tmp_path):
+    from difareli.cli.benchmark import run as benchmark
+    from difareli.cli.teacher_pairs import run as teacher_pairs
+
+    ckpt = tmp_path / "c.ckpt"
+    ckpt.write_bytes(b"x")  # read, it would be refused as "not a readable PyTorch file": the runtime is said first
+    for run, name, args in ((teacher_pairs, "teacher_pairs", [f"checkpoint={ckpt}", f"store={tmp_path}/missing"]),
+                            (benchmark, "benchmark", [f"store={tmp_path}/missing", "method=diffusion",
+                                                      f"method.checkpoint={ckpt}"])):
+        cfg = compose_train(tmp_path / "run", [*args, "runtime.precision=fp8"], config_name=name)
+        with pytest.raises(UserError, match="runtime.precision='fp8' is not one of"):
+            run(cfg)
+
+
 def test_train_refuses_test_only_store_and_nonfinite_records(synth_store, tmp_path):
     import shutil
 

@@ -13,6 +13,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from difareli import errors
 from difareli.diffusion.spec import check_sampler
+from difareli.runtime.core import Runtime
 from difareli.evaluation import metrics
 from difareli.checkpoints import zoo
 from difareli.data import shard as sharding
@@ -93,8 +94,9 @@ def validate(cfg: DictConfig) -> None:
     errors.check_int(cfg.num_threads, "num_threads", 1, allow_none=True)
     errors.check_out_dir(cfg.out_dir)
     errors.check_choice(cfg.get("target_sun", "shadows"), "target_sun", TARGET_SUNS)
-    if "checkpoint" in cfg.method:  # a trained model (the diffusion method): its sampler and file
+    if "checkpoint" in cfg.method:  # a trained model (the diffusion method): its sampler, runtime and file
         check_sampler(cfg.sampler)
+        Runtime.from_config(cfg.runtime)
         zoo.resolve(cfg.method.get("checkpoint") or "", "method.checkpoint")
 
 
