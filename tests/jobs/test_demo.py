@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from difareli.checkpoints import zoo
+from difareli.errors import UserError
 
 from tests.helpers import HAS_ESTIMATORS, compose_train
 
@@ -42,6 +43,15 @@ def test_demo_refuses_an_unknown_checkpoint_name(tmp_path):
     cfg = compose_train(tmp_path, ["checkpoint=not-a-model"], config_name="demo")
     with pytest.raises(FileNotFoundError, match="shipped checkpoint"):
         run(cfg)
+
+
+def test_demo_checks_its_runtime_before_any_work(tmp_path):
+    from difareli.cli.demo import run
+
+    cfg = compose_train(tmp_path, ["runtime.precision=fp8", f"out_dir={tmp_path / 'out'}"], config_name="demo")
+    with pytest.raises(UserError, match="runtime.precision='fp8' is not one of"):
+        run(cfg)
+    assert not (tmp_path / "out").exists()  # no store made, nothing written
 
 
 def test_relight_image_without_estimators_says_how_to_install(tiny_checkpoint, tmp_path, monkeypatch):
