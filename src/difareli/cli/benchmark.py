@@ -12,8 +12,6 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from difareli import errors
-from difareli.diffusion.spec import check_sampler
-from difareli.runtime.core import Runtime
 from difareli.evaluation import metrics
 from difareli.checkpoints import zoo
 from difareli.data import shard as sharding
@@ -95,8 +93,7 @@ def validate(cfg: DictConfig) -> None:
     errors.check_out_dir(cfg.out_dir)
     errors.check_choice(cfg.get("target_sun", "shadows"), "target_sun", TARGET_SUNS)
     if "checkpoint" in cfg.method:  # a trained model (the diffusion method): its sampler, runtime and file
-        check_sampler(cfg.sampler)
-        Runtime.from_config(cfg.runtime)
+        common.check_relighting(cfg)
         zoo.resolve(cfg.method.get("checkpoint") or "", "method.checkpoint")
 
 

@@ -9,8 +9,6 @@ import hydra
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from difareli.diffusion.spec import check_sampler
-from difareli.runtime.core import Runtime
 from difareli import errors
 from difareli.checkpoints import zoo
 from difareli.checkpoints.format import load_torch_file
@@ -84,8 +82,7 @@ def card_benchmark(checkpoint: str) -> str | None:
 
 def validate(cfg: DictConfig) -> None:
     """Config values, checked before any work."""
-    check_sampler(cfg.sampler)
-    Runtime.from_config(cfg.runtime)  # said before the store is made and the checkpoint read, as the sampler
+    common.check_relighting(cfg)  # before the store is made and the checkpoint read
     zoo.resolve(cfg.checkpoint)
     for key, low in (("subjects", 10), ("resolution", 16), ("frames", 1), ("pairs", 1), ("rows", 1)):
         errors.check_int(cfg[key], key, low)

@@ -5,8 +5,6 @@ from __future__ import annotations
 import hydra
 from omegaconf import DictConfig
 
-from difareli.diffusion.spec import check_sampler
-from difareli.runtime.core import Runtime
 from difareli import errors
 from difareli.checkpoints import zoo
 from difareli.cli import common
@@ -19,8 +17,7 @@ def run(cfg: DictConfig) -> dict:
     """Generate (or resume) the pair store as configured; returns the counts and pairs/s."""
     from difareli.jobs.teacher_pairs import generate_teacher_pairs
     from difareli.relight.relighter import Relighter
-    check_sampler(cfg.sampler)
-    Runtime.from_config(cfg.runtime)  # checked before the checkpoint is read, as the sampler
+    common.check_relighting(cfg)
     zoo.resolve(cfg.checkpoint, "checkpoint")  # a file or a shipped name, as in every other CLI
     errors.check_int(cfg.batch_size, "batch_size", 1)
     errors.check_int(cfg.per_record, "per_record", 1)

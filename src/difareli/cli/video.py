@@ -19,8 +19,6 @@ from difareli.relight.relighter import Relighter
 from difareli.relight.request import MAX_FRAMES, check_store
 from difareli.data.encodings import shadow_logit
 from difareli.data.store import EncodingStore
-from difareli.diffusion.spec import check_sampler
-from difareli.runtime.core import Runtime
 from difareli.synth import rotation
 from difareli.utils.fileio import staged_outputs, write_json_atomic
 from difareli.relight.targets import Targets, load_envmap, video_shadow
@@ -132,8 +130,7 @@ def validate(cfg: DictConfig) -> EncodingStore:
     """Config values and input files, checked before any work: the outputs, the rotation, the target, the store and
     its record (as a relight request checks them; the store is returned, open), the sampler, runtime and batch size
     (the relighter reads the checkpoint first, then takes these)."""
-    check_sampler(cfg.sampler)
-    Runtime.from_config(cfg.runtime)
+    common.check_relighting(cfg)
     errors.check_int(cfg.batch_size, "batch_size", 1)
     viz.video_format(cfg.format)
     errors.check_out_dir(cfg.out_dir)
