@@ -156,6 +156,7 @@ def test_video_cli_checks_its_store_record_and_sampler_before_the_checkpoint(syn
                            f"store={tmp_path}/none": "no encoding store at",
                            "versions.shadow_map=v9": "versions.shadow_map='v9'",
                            "sampler.name=euler": "sampler.name='euler' is not a sampler",
+                           "+sampler.foo=1": "unknown option 'foo' for sampler",
                            "runtime.precision=fp8": "runtime.precision='fp8' is not one of",
                            "batch_size=0": "batch_size=0 is invalid"}.items():
         store = [] if override.startswith("store=") else [f"store={synth_store}"]
