@@ -1,4 +1,4 @@
-"""Whole relights side by side with the official DiFaReli code, in one process, on the same weights (issue 26).
+"""Whole relights side by side with the official DiFaReli code, in one process, on the same weights.
 
     python scripts/bench_official.py --official <your checkout of diffusion-face-relighting/difareli_code>
         [--config ffhq128 | tiny64 | <official YAML>] [--steps 20] [--rounds 2] [--threads 2]

@@ -6,9 +6,9 @@
 Both sides run the default estimators (all encodings) in a fresh process each, on the same photos: scikit-image's
 astronaut and cameraman, matplotlib's Grace Hopper, and their mirror images, after one warm-up image (which builds
 the mediapipe graphs and loads dlib), without store writes or previews. The baseline is the package as it was at
-git ``--baseline`` (default: the commit before issue 25), extracted with ``git archive`` into a temporary folder
-(nothing in the checkout changes). ``--workers n`` also times this tree's ``difareli-preprocess`` run with ``n``
-worker processes on the same photos (store writes included, previews off; wall-clock images/s). The rows
+git ``--baseline`` (default: the commit before the estimators' speed-ups), extracted with ``git archive`` into a
+temporary folder (nothing in the checkout changes). ``--workers n`` also times this tree's ``difareli-preprocess``
+run with ``n`` worker processes on the same photos (store writes included, previews off; wall-clock images/s). The rows
 "mediapipe graphs" and "identity network" are the wall time inside those third-party calls (part of the stages
 above them, hence "within the stages"), and "networks alone" the images/s this tree would reach if everything else
 were free: the bound on what changing our own code can give. Time it under
@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-BASELINE = "bf71096"  # the estimators before issue 25
+BASELINE = "bf71096"  # the estimators before their speed-ups
 
 
 def photos() -> list[np.ndarray]:

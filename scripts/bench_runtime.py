@@ -1,4 +1,4 @@
-"""Seconds per relight of one checkpoint under several runtimes, side by side in one process (issue 9).
+"""Seconds per relight of one checkpoint under several runtimes, side by side in one process.
 
     python scripts/bench_runtime.py --checkpoint <ckpt> --store <store> [--sampler unipc --steps 20]
         [--modes fp32 bf16 fp32+compile] [--repeats 3] [--records 2]

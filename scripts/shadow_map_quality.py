@@ -1,4 +1,4 @@
-"""Quality of cast-shadow maps against SynthFaces' exact ones (issue 12): IoU / precision / recall per record and
+"""Quality of cast-shadow maps against SynthFaces' exact ones: IoU / precision / recall per record and
 on average for
 
 - ``difference``: derived difference-method versions (``--version [LABEL=]VERSION``, repeatable: one row each,

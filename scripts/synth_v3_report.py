@@ -1,4 +1,4 @@
-"""How far a SynthFaces v3 store's estimated inputs are from the renderer's (``*_gt``), record by record (issue 23).
+"""How far a SynthFaces v3 store's estimated inputs are from the renderer's (``*_gt``), record by record.
 
 Per record: mean angle between estimated and exact normals where both exist, face-mask IoU, part-label agreement
 on the union of the two foregrounds, head-pose error (``shape``'s last three entries, radians), camera-scale error,

@@ -1,4 +1,4 @@
-"""The preprocessing estimators as they were before issue 25's speed-ups (commit cfd1140), kept verbatim where
+"""The preprocessing estimators as they were before their speed-ups (commit cfd1140), kept verbatim where
 they changed, as references for tests/estimators/test_preprocess_speed.py. Slow on purpose: never use them elsewhere."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""difareli-app (issue 25): the light math, the JSON API over HTTP, and the page end to end in a headless chromium
+"""difareli-app: the light math, the JSON API over HTTP, and the page end to end in a headless chromium
 (Debian's chromium + chromium-driver through selenium; skipped, with the reason, where they are absent)."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""difareli-app against hostile requests (issue 42), over loopback with raw http.client requests: foreign Host and
+"""difareli-app against hostile requests, over loopback with raw http.client requests: foreign Host and
 Origin, wrong body types and lengths, deep JSON, wrong field types and ranges, checkpoint paths outside the served
 set (no existence oracle), bounded caches, huge lights, an abandoned relight, a port in use, an imported official
 checkpoint beside a store it cannot read."""

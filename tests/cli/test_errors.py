@@ -1,4 +1,4 @@
-"""Issue 15: one error style for every CLI, config values checked before any work, checkpoints named."""
+"""One error style for every CLI, config values checked before any work, checkpoints named."""
 
 from __future__ import annotations
 

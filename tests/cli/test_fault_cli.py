@@ -1,4 +1,4 @@
-"""Issue 27's cases that used to end silently or with a traceback: each is now a one-line error (or a warning)
+"""Cases that used to end silently or with a traceback: each is now a one-line error (or a warning)
 naming the input and the fix, and nothing is written half."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Honest defaults (issue 12): the target c a user has (targets.target_shadow_of), oracle inputs only behind
+"""Honest defaults: the target c a user has (targets.target_shadow_of), oracle inputs only behind
 oracle_* flags, and the benchmark's tables stating which inputs were used."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Run folders cannot collide (issue 42): two commands started in the same second get different run and multirun
+"""Run folders cannot collide: two commands started in the same second get different run and multirun
 folders, and one run sees one folder name however often its config is read."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""A full disk in difareli-synth and difareli-benchmark (issue 27): one line naming the file, exit 2, and on disk
+"""A full disk in difareli-synth and difareli-benchmark: one line naming the file, exit 2, and on disk
 the records and rows already written whole, no partial record, row or file. Simulated by a writer that writes a
 few bytes and then fails with ENOSPC; and, where this process may mount one, on a real small tmpfs."""
 

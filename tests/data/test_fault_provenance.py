@@ -1,4 +1,4 @@
-"""Resumable outputs refuse to mix provenance, and one output folder has one writer (issue 27)."""
+"""Resumable outputs refuse to mix provenance, and one output folder has one writer."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""One default sampler (issue 24): every relighting command, the app, the notebook and a bare ``Relighter`` use
+"""One default sampler: every relighting command, the app, the notebook and a bare ``Relighter`` use
 ``PRESETS["default"]``, and every shipped diffusion checkpoint's card was benchmarked with it, so a command with no
 sampler options reproduces the card's rows."""
 

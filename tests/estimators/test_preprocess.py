@@ -110,7 +110,7 @@ def test_cli_two_photos_plus_bad_files_then_rerun_does_nothing(tmp_path):
     report = json.loads((out / "preprocess_report.json").read_text())
     by_file = {Path(e["file"]).name: e for e in report["images"]}
     assert report["written"] == 2 and report["failed"] == len(bad)
-    # Per-stage times in the report and on the console (issue 25): alignment, then every estimator that ran.
+    # Per-stage times in the report and on the console: alignment, then every estimator that ran.
     stages = report["stage_ms_per_image"]
     assert list(stages)[:2] == ["align", "BFMGeometry"] and {"DlibIdentity", "ShadowEstimator"} <= set(stages)
     assert all(v > 0 for v in stages.values()) and "per image: align " in log

@@ -1,4 +1,4 @@
-"""Issue 25 item 2: the faster estimators give what the old computations gave (tests/reference_preprocess.py keeps
+"""The faster estimators give what the old computations gave (tests/reference_preprocess.py keeps
 them) on the astronaut, Grace Hopper and the cameraman at 256 px, within these tolerances:
 
 - masks, skin, face mask, person, background, the light fit's pixels, the G-buffer's hits and triangles: equal;

@@ -1,4 +1,4 @@
-"""Issue 43's per-image metrics against closed forms: lighting error, shadow darkening / adherence / IoU, identity."""
+"""The per-image metrics against closed forms: lighting error, shadow darkening / adherence / IoU, identity."""
 
 import math
 

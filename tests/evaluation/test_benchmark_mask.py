@@ -1,4 +1,4 @@
-"""difareli-benchmark's score_mask (issue 27): the mask key pairs are scored on (face_mask by default, or a v3
+"""difareli-benchmark's score_mask: the mask key pairs are scored on (face_mask by default, or a v3
 store's exact face_mask_gt); refused when the store lacks it, recorded in the settings a resume must match and
 stated in the summary."""
 

@@ -1,4 +1,4 @@
-"""The map-response probe (issue 41): a record relit with its shadow map and with the map zeroed; a model that
+"""The map-response probe: a record relit with its shadow map and with the map zeroed; a model that
 darkens exactly inside its map by a known amount scores that amount, one that ignores its map scores 0."""
 
 from __future__ import annotations
@@ -67,8 +67,8 @@ def test_real_removal_is_what_the_shadow_took_from_a_linear_image():
 
 @torch.no_grad()
 def old_respond(relighter, store, rid, kinds=mr.MAPS):
-    """map_response.respond before issue 40 (on the tensor core, the record's stored encodings as its targets'),
-    the independent reference."""
+    """map_response.respond as it was before the relight door (on the tensor core, the record's stored encodings as
+    its targets'), the independent reference."""
     model, device = relighter.model, relighter.device
     arrays = read_record(store, rid, list(dict.fromkeys([*relighter.needed_encodings(), "image", *mr.READS])))
     x0 = image_to_tensor(arrays["image"])[None].to(device)

@@ -1,4 +1,4 @@
-"""Paper ablation variants (issue 14): ControlNet / CN-mod, cross-attention, the Table II/IV configs and
+"""Paper ablation variants: ControlNet / CN-mod, cross-attention, the Table II/IV configs and
 difareli-ablate's table."""
 
 from __future__ import annotations

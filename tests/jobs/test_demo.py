@@ -108,7 +108,7 @@ def test_relight_a_photo_in_one_command(tmp_path):
 
 
 def test_the_demo_labels_its_live_table_and_prints_the_cards():
-    """The demo's few pairs cannot rank methods: it says so and prints the card's measured table (issue 27)."""
+    """The demo's few pairs cannot rank methods: it says so and prints the card's measured table."""
     from difareli.cli.demo import card_benchmark
 
     card = card_benchmark("difareli_pp-synth64")

@@ -1,4 +1,4 @@
-"""One shadow-map maker (issue 41): difareli-shadow-maps maker=march writes each record's training map with the
+"""One shadow-map maker: difareli-shadow-maps maker=march writes each record's training map with the
 very function a relight makes its target maps with, records that maker, and a relight of a model trained on
 another maker's maps says so, naming both."""
 

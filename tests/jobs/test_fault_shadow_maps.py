@@ -1,4 +1,4 @@
-"""difareli-shadow-maps refuses what used to give silently wrong maps (issue 27): a threshold outside (0, 1), a
+"""difareli-shadow-maps refuses what used to give silently wrong maps: a threshold outside (0, 1), a
 store without a train split, a misspelt split; and a second concurrent writer into the same store."""
 
 from __future__ import annotations

@@ -326,7 +326,7 @@ def test_defaults_and_a_weak_difareli_is_refused_with_its_contrast(store):
 
 class Brightening(Crafted):
     """What a DiFaReli trained on SynthFaces does: raising c darkens the shadow (the square) and brightens the
-    rest of the face a little (issue 41: +0.062 inside shadows, -0.021 elsewhere on the shipped one)."""
+    rest of the face a little (+0.062 inside shadows, -0.021 elsewhere on the shipped one)."""
 
     def relight_once(self, x0, source, target):
         out = super().relight_once(x0, source, target)

@@ -1,4 +1,4 @@
-"""The difference method through the relight door (issue 40): ``shadow_maps.compute`` relights through
+"""The difference method through the relight door: ``shadow_maps.compute`` relights through
 ``Relighter.relight_many`` and writes the same raw differences, in float, as the tensor-core path it replaced
 (kept below as the reference), for a trained tiny DiFaReli and for a one-pass model."""
 
@@ -23,7 +23,7 @@ from difareli.utils import imageops
 
 @torch.no_grad()
 def old_relight_pairs(model, records, c_min, c_max, spec, *, runtime=None, mean_matching=True, device="cpu"):
-    """shadow_maps.relight_pairs before issue 40 (on the tensor core), the independent reference."""
+    """shadow_maps.relight_pairs as it was on the tensor core, before the relight door, the independent reference."""
     names = model_inputs(model)
     x0 = torch.stack([image_to_tensor(a["image"]) for a in records]).to(device)
     targets = [retarget(a, names, np.asarray(a["light"]), c) for a in records for c in (c_max, c_min)]

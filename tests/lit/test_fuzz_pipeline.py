@@ -1,4 +1,4 @@
-"""Issue 15: NaN inputs in the benchmark are failed rows, a killed benchmark resumes, a non-finite loss stops
+"""NaN inputs in the benchmark are failed rows, a killed benchmark resumes, a non-finite loss stops
 training without touching the checkpoint, and workers die with their parent."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The single-shot student DiFaReli++_ss (issue 13): pairs, training, resumable teacher pairs, one-pass relighting
+"""The single-shot student DiFaReli++_ss: pairs, training, resumable teacher pairs, one-pass relighting
 through the relight CLI, the benchmark and bench-samplers."""
 
 from __future__ import annotations

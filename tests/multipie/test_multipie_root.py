@@ -1,5 +1,5 @@
 """difareli-multipie records the Multi-PIE copy a store was built from and refuses to resume it from another one
-(issue 42: the kept records were the first copy's while the report named the second); a pair whose src and dst
+(before: the kept records were the first copy's while the report named the second); a pair whose src and dst
 are the same image is refused."""
 
 from __future__ import annotations

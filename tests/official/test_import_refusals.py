@@ -1,4 +1,4 @@
-"""difareli-import-checkpoint refuses what would import silently wrong (issue 42): NaN/Inf weights, out= equal to
+"""difareli-import-checkpoint refuses what would import silently wrong: NaN/Inf weights, out= equal to
 an input or a folder (before anything is written), and says what the tensors cannot show: the config keys that
 change no shape, the UNet and Modulator of different steps."""
 

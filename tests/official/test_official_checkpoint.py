@@ -1,4 +1,4 @@
-"""Importing the authors' DiFaReli checkpoints (difareli.official.weights, difareli-import-checkpoint; issue 26).
+"""Importing the authors' DiFaReli checkpoints (difareli.official.weights, difareli-import-checkpoint).
 
 The official state dicts here are built from the official layout as its code defines it (names and shapes of
 ``UNetModel_SpatialCondition_Hadamart`` / ``EncoderUNet_SpatialCondition``, written out below, values random), and

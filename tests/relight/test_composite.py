@@ -1,4 +1,4 @@
-"""The whole photo back (difareli.relight.composite, issue 25): the relit crop warped through the inverse alignment and
+"""The whole photo back (difareli.relight.composite): the relit crop warped through the inverse alignment and
 blended with a feathered mask; an identity relight gives back the photo."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Issue 15 fuzz suite: random corruptions of light files, per-image CSVs and store records must end in an
+"""Fuzz suite: random corruptions of light files, per-image CSVs and store records must end in an
 error naming the input (or, for CSVs with drop_bad_rows, a table whose n says what was left out), never in
 silently changed numbers, and must leave what was already written unchanged."""
 

@@ -1,4 +1,4 @@
-"""Crops that run past the photo's edge (issue 44): the padding is reflected, never a constant block, and the
+"""Crops that run past the photo's edge: the padding is reflected, never a constant block, and the
 composite's mask does not fade at the photo's edge; forehead skin above FaceMesh's oval is skin, not hair/hat."""
 
 from __future__ import annotations

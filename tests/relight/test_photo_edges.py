@@ -1,4 +1,4 @@
-"""Issue 27, the rough edges of the photo and store path: a variant's preprocessed store relights, the checkpoint's
+"""The rough edges of the photo and store path: a variant's preprocessed store relights, the checkpoint's
 resolution drives the photo size (and a store at another resolution is named), a single file is an input, the
 fitted light's direction is printed / reported / drawn, a grey photo stays grey, hats and necks by colour,
 third-party noise silenced, the install's last pip steps."""

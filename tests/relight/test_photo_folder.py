@@ -1,4 +1,4 @@
-"""A folder of photos in one command and every face of a group photo (issue 44), with the shipped one-pass
+"""A folder of photos in one command and every face of a group photo, with the shipped one-pass
 student: skip lines, the CSV, the exit status, resuming after a kill, face=all on two astronauts side by side."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""read_photo says what an odd input is (issue 42): an animated GIF is refused (which frame is the face is a
+"""read_photo says what an odd input is: an animated GIF is refused (which frame is the face is a
 guess), an alpha channel composited over grey is said, a folder or a device is named as what it is."""
 
 from __future__ import annotations

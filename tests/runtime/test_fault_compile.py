@@ -1,4 +1,4 @@
-"""runtime.compile=true on a machine without a working C++ compiler (issue 27): one warning saying why and how
+"""runtime.compile=true on a machine without a working C++ compiler: one warning saying why and how
 to get compile, then the eager result; torch.compile itself is simulated (a real compile takes minutes here)."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""SynthFaces v3 (issue 23): the visibly-shadowed ground truth, the store's own c range, v2 stores kept apart,
+"""SynthFaces v3: the visibly-shadowed ground truth, the store's own c range, v2 stores kept apart,
 and (slow, needs the photo estimators) every input estimated from the rendered image."""
 
 from __future__ import annotations
