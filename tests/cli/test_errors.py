@@ -168,6 +168,9 @@ def test_check_sampler_names_valid_ones():
         check_sampler({"name": "euler", "steps": 10})
     with pytest.raises(UserError, match="sampler.steps=2.7"):
         check_sampler({"name": "ddim", "steps": 2.7})
+    with pytest.raises(UserError, match="unknown option 'foo' for sampler"):  # then whole, by its spec
+        check_sampler({"name": "ddim", "steps": 10, "foo": 1})
+    check_sampler({"name": "unipc", "steps": 10, "order": 2})
 
 
 def test_check_out_dir(tmp_path, monkeypatch):

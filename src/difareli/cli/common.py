@@ -5,7 +5,7 @@ from __future__ import annotations
 from omegaconf import DictConfig, OmegaConf
 
 from difareli.configs import CONFIG_PATH, instantiate_group
-from difareli.diffusion.spec import SamplerSpec, check_sampler
+from difareli.diffusion.spec import check_sampler
 from difareli.runtime.core import Runtime
 
 __all__ = ["CONFIG_PATH", "check_relighting", "instantiate_group", "log_hyperparameters", "metric_value"]
@@ -13,10 +13,9 @@ __all__ = ["CONFIG_PATH", "check_relighting", "instantiate_group", "log_hyperpar
 
 def check_relighting(cfg: DictConfig) -> None:
     """How a command relights, checked before any work (the Relighter reads its checkpoint before it takes these):
-    its ``sampler`` (a known name and integer steps, named by key; then whole, its options too) and its ``runtime``
-    (known keys and values)."""
+    its ``sampler`` (:func:`~difareli.diffusion.spec.check_sampler`: by key, then whole) and its ``runtime`` (known
+    keys and values)."""
     check_sampler(cfg.sampler)
-    SamplerSpec.from_config(cfg.sampler)
     Runtime.from_config(cfg.runtime)
 
 

@@ -232,8 +232,10 @@ def as_spec(sampler: "SamplerSpec | str | Mapping[str, Any]", **overrides) -> Sa
 
 
 def check_sampler(cfg: Mapping[str, Any], key: str = "sampler") -> None:
-    """A sampler config: a registered ``name`` and an integer ``steps`` >= 1 (the CLIs' one sampler check)."""
+    """A sampler config: a registered ``name`` and an integer ``steps`` >= 1, said by key, then the whole spec
+    (its options too: :meth:`SamplerSpec.from_config`). The CLIs' one sampler check, before any work."""
     if cfg.get("name") not in SAMPLERS:
         raise UserError(f"{key}.name={cfg.get('name')!r} is not a sampler; choose from {sorted(SAMPLERS)} "
                         f"(or pick a config: {key}={'|'.join(PRESETS)})")
     check_int(cfg.get("steps"), f"{key}.steps", 1)
+    SamplerSpec.from_config(cfg)
