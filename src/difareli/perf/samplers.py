@@ -131,8 +131,10 @@ def store_cases(store: EncodingStore, relighter: Relighter, records: Iterable[st
             target_seconds = time.perf_counter() - clock
             note = (f"target light fitted to the target image (LightFit); {how}; "
                     f"re-rendered on the source: {', '.join(rerender) or 'nothing'}")
-        mask = (torch.from_numpy(np.array(store.read(rid, ["face_mask"])["face_mask"]))[None].bool().to(device)
-                if store.available("face_mask") else None)
+        # The source already holds its face mask where finding its key sun reads it (a shadow-map model).
+        face = (src["face_mask"] if "face_mask" in src else
+                store.read(rid, ["face_mask"])["face_mask"] if store.available("face_mask") else None)
+        mask = None if face is None else torch.from_numpy(np.array(face))[None].bool().to(device)
         cases.append(Case(rid, tid, image_to_tensor(src["image"])[None].to(device),
                           condition_tensors(model, [src], device), condition_tensors(model, [tgt], device),
                           gt=image_to_tensor(store.read(tid, ["image"])["image"])[None].to(device), mask=mask,
