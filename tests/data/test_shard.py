@@ -153,9 +153,14 @@ def test_sharded_benchmark_merges_to_the_unsharded_table(synth_store, tmp_path):
             assert got.n == s.n and got.mean == pytest.approx(s.mean, rel=1e-12)
             assert got.se == pytest.approx(s.se, rel=1e-9)
     assert tables.read_records(tmp_path / "shards" / "0" / tables.PER_IMAGE_CSV)  # per-shard per-image CSV
-    # A missing shard is refused, naming it.
-    with pytest.raises(ValueError, match=r"1/2'\] missing"):
+    # A missing shard is refused in one short line naming the run dir, the job's method and the missing shard
+    # (not the job's whole settings).
+    with pytest.raises(ValueError, match=r"1/2 missing") as e:
         table_run(compose_train(tmp_path / "t2", [f"runs=[{tmp_path}/shards/0]"], config_name="table"))
+    msg = str(e.value)
+    head = (f"run dir(s) {tmp_path / 'shards' / '0'} hold shards of one benchmark job (method LambertianRatio, "
+            f"store {synth_store}): shard(s) 1/2 missing; ")
+    assert msg.startswith(head) and "\n" not in msg and len(msg) < len(head) + 100
 
 
 class _CentreCrop:

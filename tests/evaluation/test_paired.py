@@ -149,3 +149,36 @@ def test_significance_sentence_names_orderings_from_the_numbers():
     assert c.p < 0.05 and c.lo < 0 < c.hi
     assert P.significance([c]).endswith("not significant: (i) same subject DSSIM: X vs Y (p=" + P._p(c.p)
                                         + ") (the CI and p disagree).")
+
+
+def _scored_on(run_dir, identity, store):
+    """Record in ``run_dir`` the store it was scored on, as difareli-benchmark does (settings and provenance)."""
+    import json
+
+    (run_dir / "benchmark_settings.json").write_text(json.dumps({"store": identity}))
+    (run_dir / "provenance.json").write_text(json.dumps({"store": f"{store} ({identity})"}))
+
+
+def test_runs_on_stores_of_different_identities_are_not_paired(tmp_path):
+    """The same record ids in another store are other images: strict refuses naming both runs and stores, auto
+    compares nothing across them and says why; runs of one store still pair."""
+    from difareli.cli.table import run
+
+    a = np.linspace(0.1, 0.3, 12)
+    for name, v in (("A", a), ("B", a + 0.01), ("C", a + 0.02)):
+        T.write_records(tmp_path / name / T.PER_IMAGE_CSV, _rows(name, v))
+    _scored_on(tmp_path / "A", "sha256:aaaa", "/data/storeA")
+    _scored_on(tmp_path / "B", "sha256:bbbb", "/data/storeB")
+    _scored_on(tmp_path / "C", "sha256:aaaa", "/data/storeA")
+    runs = [tmp_path / "A", tmp_path / "B"]
+    with pytest.raises(UserError) as e:
+        run(_table_cfg(tmp_path / "x", runs, "paired=strict", "n_boot=200"))
+    assert str(e.value) == (f"paired comparison: A (run dir {tmp_path / 'A'}) was scored on store /data/storeA "
+                            f"(sha256:aaaa) and B (run dir {tmp_path / 'B'}) on store /data/storeB (sha256:bbbb), so "
+                            "their rows of one record id are not the same pair; compare runs benchmarked on one "
+                            "store, or pass paired=auto to skip such pairs of methods")
+    assert not (tmp_path / "x" / "paired.md").exists()
+    run(_table_cfg(tmp_path / "y", [*runs, tmp_path / "C"], "n_boot=200"))
+    text = (tmp_path / "y" / "paired.md").read_text()
+    assert "| DSSIM | A | C | 12 | +0.02 |" in text and "DSSIM | A | B |" not in text and "DSSIM | B | C |" not in text
+    assert text.count("not compared: A (run dir") == 1 and "not compared: B (run dir" in text

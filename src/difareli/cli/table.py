@@ -16,6 +16,7 @@ from omegaconf import DictConfig, ListConfig
 
 from difareli import errors
 from difareli.evaluation import paired, published, tables
+from difareli.evaluation.benchmark import SETTINGS
 from difareli.data import shard as sharding
 from difareli.cli import common
 from difareli.utils.fileio import staged_outputs, write_text_atomic
@@ -100,7 +101,7 @@ def run(cfg: DictConfig) -> tables.Table:
     if mode != "off":
         n_boot, seed = int(cfg.get("n_boot", paired.N_BOOT)), int(cfg.get("seed", 0))
         rows, notes = paired.compare(records, table.metrics, n_boot=n_boot, seed=seed, strict=mode == "strict",
-                                     methods=table.methods)
+                                     methods=table.methods, origins=origins(table.runs))
         pmd = paired.to_markdown(rows, notes, n_boot, seed)
     # Published together: a rerun never leaves one run's table beside another's paired comparisons.
     with staged_outputs(out, OUTPUTS) as stage:  # each file written by a writer that names it on a full disk
@@ -118,6 +119,38 @@ def run(cfg: DictConfig) -> tables.Table:
         written += ", paired.md, paired.csv"
     print(written)
     return table
+
+
+def recorded_store(run_dir: Path) -> tuple[str | None, str]:
+    """(the store identity ``run_dir`` records in its benchmark settings or None, the store as its provenance names
+    it: path and identity)."""
+    def read(name: str) -> dict:
+        try:
+            doc = json.loads((run_dir / name).read_text())
+        except (OSError, ValueError):
+            return {}
+        return doc if isinstance(doc, dict) else {}
+
+    identity = read(SETTINGS).get("store")
+    identity = identity if isinstance(identity, str) else None
+    return identity, str(read("provenance.json").get("store") or identity or "unrecorded")
+
+
+def origins(runs: dict[str, list[Path]]) -> dict[str, paired.Origin]:
+    """Where each method's rows were scored (paired comparisons join rows by record id: only rows of one store
+    are the same pairs); the shards of one method on two stores are refused."""
+    out = {}
+    for method, dirs in runs.items():
+        seen = {d: recorded_store(d) for d in dirs}
+        ids = {i for i, _ in seen.values() if i}
+        if len(ids) > 1:
+            (a, (_, sa)), (b, (_, sb)) = [next((d, v) for d, v in seen.items() if v[0] == i) for i in sorted(ids)][:2]
+            raise errors.UserError(f"{method}: run dirs {a} and {b}, shards of one job, were scored on different "
+                                   f"stores ({sa}; {sb}); rerun every shard on one store")
+        identity = next(iter(ids), None)
+        store = next((s for i, s in seen.values() if i == identity), "unrecorded")
+        out[method] = paired.Origin(", ".join(map(str, dirs)), identity, store)
+    return out
 
 
 def run_labels(value) -> list[str] | None:

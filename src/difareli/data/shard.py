@@ -108,7 +108,7 @@ def check_complete(run_dirs: Sequence[str | Path]) -> dict[str, list[Path]]:
     """Group sharded run dirs by job and check every job has each of its shards exactly once.
 
     Run dirs without a :data:`MARKER` are ignored (unsharded runs). Returns ``{job json: [dirs]}``; raises
-    ValueError naming the job and the missing or repeated shards.
+    a UserError naming the job's run dirs and the missing or repeated shards.
     """
     groups: dict[str, dict[int, list[Path]]] = {}
     counts: dict[str, int] = {}
@@ -116,19 +116,35 @@ def check_complete(run_dirs: Sequence[str | Path]) -> dict[str, list[Path]]:
         path = Path(d) / MARKER
         if not path.is_file():
             continue
-        doc = json.loads(path.read_text())
-        spec = parse(doc["shard"])
-        job = json.dumps(doc["job"], sort_keys=True)
+        try:
+            doc = json.loads(path.read_text())
+            spec, job = parse(doc["shard"]), json.dumps(doc["job"], sort_keys=True)
+        except (ValueError, KeyError, TypeError):
+            raise UserError(f"{path}: not a shard marker (JSON with 'shard' and 'job'); rerun that shard's benchmark "
+                            "or leave its run dir out") from None
         if counts.setdefault(job, spec.count) != spec.count:
             raise UserError(f"{path}: shard {spec} but other shards of the same job are out of {counts[job]}")
         groups.setdefault(job, {}).setdefault(spec.index, []).append(Path(d))
     for job, by_index in groups.items():
         n = counts[job]
-        missing = [i for i in range(n) if i not in by_index]
-        repeated = {i: [str(p) for p in ps] for i, ps in by_index.items() if len(ps) > 1}
+        missing = [f"{i}/{n}" for i in range(n) if i not in by_index]
+        repeated = [f"{i}/{n} ({', '.join(map(str, ps))})" for i, ps in by_index.items() if len(ps) > 1]
         if missing or repeated:
-            raise UserError(f"sharded job {job}: " + (f"shards {[f'{i}/{n}' for i in missing]} missing; "
-                                                      if missing else "")
-                            + (f"shards listed twice: {repeated}; " if repeated else "")
-                            + "merge all n shard run dirs exactly once (rerun the missing ones with shard=i/n)")
+            # The job is named by what a user recognises (its run dirs, method and store), not its whole settings.
+            dirs = ", ".join(str(p) for ps in by_index.values() for p in ps[:1])
+            raise UserError(f"run dir(s) {dirs} hold shards of one benchmark job ({_job_name(job)}): "
+                            + (f"shard(s) {', '.join(missing)} missing" if missing else "")
+                            + ("; " if missing and repeated else "")
+                            + (f"shard(s) listed twice: {'; '.join(repeated)}" if repeated else "")
+                            + "; list every shard's run dir exactly once (rerun a missing one with shard=i/n)")
     return {job: [p for i in sorted(ix) for p in ix[i]] for job, ix in groups.items()}
+
+
+def _job_name(job: str) -> str:
+    """A sharded job in a few words: its method and store (from the marker's job description)."""
+    doc = json.loads(job)
+    method = doc.get("method")
+    name = (method.get("name") or str(method.get("_target_") or "").rpartition(".")[2]
+            if isinstance(method, Mapping) else method)
+    store = doc.get("store")
+    return ", ".join(x for x in (f"method {name}" if name else "", f"store {store}" if store else "") if x) or "?"

@@ -7,7 +7,8 @@ signed-rank p-value (``scipy.stats.wilcoxon``; NaN when every difference is 0). 
 undefined (a failed relight, a shadow metric with no target shadow) is left out of that metric's n.
 
 Refused, naming the rows: a (method, protocol, record id) that appears twice, and two methods whose pair sets of a
-protocol differ (``strict``; otherwise those method pairs are skipped and named in a note).
+protocol differ or whose runs record stores of different identities (the same record ids in another store are other
+images; ``strict``; otherwise those method pairs are skipped and named in a note).
 
 :func:`stratify` relabels each row's protocol ``"<protocol> | <stratum>"`` (the target light's category, a bin of the
 target shadow's share of the face), so every table (summary and paired) breaks down by it.
@@ -19,7 +20,7 @@ import csv
 import io
 import math
 from dataclasses import dataclass, replace
-from typing import Sequence
+from typing import Mapping, Sequence
 
 import numpy as np
 
@@ -91,12 +92,30 @@ def _mismatch(a: str, b: str, p: str, ia: set[str], ib: set[str]) -> str:
             f"{len(only_b)} only in {b}, e.g. {only_b[:3]})")
 
 
+@dataclass(frozen=True)
+class Origin:
+    """Where a method's rows were scored: its run dir(s) and the store's identity as the run records it (None: the
+    run records none), with the store as a user knows it (its path)."""
+
+    runs: str
+    identity: str | None
+    store: str
+
+
+def _other_store(a: str, b: str, oa: Origin, ob: Origin) -> str:
+    return (f"{a} (run dir {oa.runs}) was scored on store {oa.store} and {b} (run dir {ob.runs}) on store "
+            f"{ob.store}, so their rows of one record id are not the same pair")
+
+
 def compare(records: Sequence[Record], metrics: Sequence[str], *, n_boot: int = N_BOOT, seed: int = 0,
-            strict: bool = True, methods: Sequence[str] | None = None) -> tuple[list[Comparison], list[str]]:
+            strict: bool = True, methods: Sequence[str] | None = None,
+            origins: Mapping[str, Origin] | None = None) -> tuple[list[Comparison], list[str]]:
     """Every method pair x protocol x metric scored on the same pairs -> (comparisons, notes on skipped pairs).
 
-    ``strict``: two methods of one protocol with different pair sets are a UserError naming them; otherwise they
-    are skipped and named in the notes."""
+    ``strict``: two methods of one protocol with different pair sets, or (``origins``: method -> where it was
+    scored) scored on stores of different identities, are a UserError naming them; otherwise they are skipped and
+    named in the notes."""
+    origins = origins or {}
     index = _index(records)
     order = list(methods or dict.fromkeys(r.method for r in records))
     protocols = sorted({p for _, p in index}, key=_protocol_key)
@@ -106,6 +125,14 @@ def compare(records: Sequence[Record], metrics: Sequence[str], *, n_boot: int = 
         for i, a in enumerate(here):
             for b in here[i + 1:]:
                 ra, rb = index[(a, p)], index[(b, p)]
+                oa, ob = origins.get(a), origins.get(b)
+                if oa and ob and oa.identity and ob.identity and oa.identity != ob.identity:
+                    why = _other_store(a, b, oa, ob)
+                    if strict:
+                        raise UserError(f"paired comparison: {why}; compare runs benchmarked on one store, or pass "
+                                        "paired=auto to skip such pairs of methods")
+                    notes.append(f"not compared: {why}")
+                    continue
                 if set(ra) != set(rb):
                     why = _mismatch(a, b, p, set(ra), set(rb))
                     if strict:
@@ -120,7 +147,7 @@ def compare(records: Sequence[Record], metrics: Sequence[str], *, n_boot: int = 
                         continue
                     lo, hi = bootstrap_ci(d, n_boot, seed)
                     out.append(Comparison(p, k, a, b, int(d.size), float(d.mean()), lo, hi, wilcoxon_p(d)))
-    return out, notes
+    return out, list(dict.fromkeys(notes))  # a store mismatch is noted once, not once per protocol
 
 
 def to_markdown(rows: Sequence[Comparison], notes: Sequence[str] = (), n_boot: int = N_BOOT, seed: int = 0) -> str:

@@ -58,6 +58,8 @@ class Table:
     metrics: list[str] = field(default_factory=lambda: list(METRICS))
     #: lines saying why a metric is absent or how a breakdown was made (printed under the table)
     remarks: list[str] = field(default_factory=list)
+    #: the run dirs each measured method's rows came from (:func:`merge_runs`)
+    runs: dict[str, list[Path]] = field(default_factory=dict)
 
     def add_published(self, rows: dict[tuple[str, str], dict[str, Stat]], source: str) -> None:
         """Append rows quoted from ``source`` (``{(method, protocol): {metric: Stat}}``) after the measured ones."""
@@ -304,6 +306,10 @@ def merge_runs(run_dirs: Iterable[str | Path], filename: str = PER_IMAGE_CSV,
         records = paired.stratify(records, strata, paired.SHADOW_BINS if bins is None else bins)
     table = summarize(records, methods)
     table.dropped = dropped
+    for (m, _, _), csv_path in where.items():
+        table.runs.setdefault(m, [])
+        if csv_path.parent not in table.runs[m]:
+            table.runs[m].append(csv_path.parent)
     if named:
         table.remarks.append("Rows labelled per run dir (label=): " + "; ".join(named) + ".")
     if strata not in (None, "protocol"):
