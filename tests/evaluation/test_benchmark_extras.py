@@ -70,3 +70,26 @@ def test_rescore_refuses_another_store_and_bad_rows(runs, synth_store, tmp_path)
     first = tables.read_records(root / "identity" / tables.PER_IMAGE_CSV)
     assert [(r.record_id, r.dssim) for r in again.records] == [(r.record_id, r.dssim) for r in first]
     assert np.allclose([r.extra["light_angle"] for r in again.records], [r.extra["light_angle"] for r in first])
+
+
+def test_rescore_refuses_a_row_of_another_method_or_rule_naming_its_line(runs, synth_store, tmp_path):
+    """A per-image CSV whose row was edited to another method (or rule) is refused naming the line, instead of
+    rescoring the run's image under that name (the table gained a row of a method that was never run)."""
+    from difareli.cli.benchmark import run
+
+    root, _ = runs
+    for column, value in (("method", "identity"), ("rule", "composite")):
+        bad = tmp_path / f"bad_{column}"
+        shutil.copytree(root / "oracle", bad)
+        lines = (bad / tables.PER_IMAGE_CSV).read_text().splitlines(keepends=True)
+        head = lines[0].rstrip("\n").split(",")
+        row = lines[3].rstrip("\n").split(",")
+        was, row[head.index(column)] = row[head.index(column)], value
+        lines[3] = ",".join(row) + "\n"
+        (bad / tables.PER_IMAGE_CSV).write_text("".join(lines))
+        with pytest.raises(UserError) as e:
+            run(_bench_cfg(tmp_path / f"re_{column}", synth_store, "method=identity", f"rescore={bad}"))
+        assert str(e.value) == (f"rescore={bad}: {tables.PER_IMAGE_CSV} line 4 ({row[1]} {row[2]}) has {column} "
+                                f"{value!r}, the run recorded {was!r} (benchmark_settings.json); the CSV was edited: "
+                                "restore it or rerun the benchmark")
+        assert not (tmp_path / f"re_{column}" / tables.PER_IMAGE_CSV).exists()

@@ -1,6 +1,7 @@
 """``difareli-benchmark rescore=<run dir>``: a finished run's saved relit PNGs scored again (another metric rule or
 mask, and the extra columns of :mod:`difareli.evaluation.extras`) without relighting, against the run's own store only
-and from a per-image CSV that holds each of the run's pairs exactly once."""
+and from a per-image CSV that holds each of the run's pairs exactly once, each row of the method and rule the run
+recorded."""
 
 from __future__ import annotations
 
@@ -84,8 +85,22 @@ def _check_same_store(store: EncodingStore, run_dir: Path, settings: dict) -> No
                                f"is another one ({now}); rescore against the run's own store")
 
 
+def _check_recorded(run_dir: Path, rows: Sequence[tables.Record], settings: dict) -> None:
+    """Every row is the run's: its method and metric rule are the ones the run recorded (an edited row would be
+    scored from another method's image under its own name)."""
+    want = {"method": settings.get("method"), "rule": settings.get("rule")}
+    for line, r in enumerate(rows, start=2):  # line 1 is the header; every row was read (bad rows are refused)
+        for key, value in want.items():
+            if value is not None and getattr(r, key) != value:
+                raise errors.UserError(f"rescore={run_dir}: {tables.PER_IMAGE_CSV} line {line} ({r.protocol} "
+                                       f"{r.record_id}) has {key} {getattr(r, key)!r}, the run recorded {value!r} "
+                                       f"({SETTINGS}); the CSV was edited: restore it or rerun the benchmark")
+
+
 def _check_rows(store: EncodingStore, run_dir: Path, rows: Sequence[tables.Record], settings: dict) -> None:
-    """Each pair of the run exactly once, as difareli-table requires: duplicated or missing rows are refused."""
+    """Each pair of the run exactly once, as difareli-table requires: duplicated or missing rows are refused; each
+    row of the run's method and rule (:func:`_check_recorded`)."""
+    _check_recorded(run_dir, rows, settings)
     seen: dict[tuple[str, str], int] = {}
     for r in rows:
         seen[(r.protocol, r.record_id)] = seen.get((r.protocol, r.record_id), 0) + 1
