@@ -22,9 +22,10 @@ pip install -q --upgrade pip
 if [ -z "${DIFARELI_KEEP_TORCH:-}" ]; then
   pip install -q "torch==2.13.0"
 fi
-# A constraints file keeps every later install from replacing the torch we have.
+# A constraints file keeps every later install from replacing the torch we have. Its version is read from the
+# installed metadata: importing torch before numpy is installed prints torch's "Failed to initialize NumPy" warning.
 cons=$(mktemp)
-python -c "import torch; print('torch==' + torch.__version__.split('+')[0])" > "$cons"
+python -c "from importlib.metadata import version; print('torch==' + version('torch').split('+')[0])" > "$cons"
 # mediapipe 0.10.21 (the photo extras) is the last release that ships its models; it pins numpy<2 and protobuf<5.
 # tensorboard >= 2.20 and wandb >= 0.29 ship protobuf-6 generated code (import errors under protobuf 4) while their
 # metadata still accepts protobuf 4. The base install resolves against the same protobuf<5 stack: the README's
