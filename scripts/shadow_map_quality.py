@@ -4,11 +4,11 @@ on average for
 - ``difference``: derived difference-method versions (``--version [LABEL=]VERSION``, repeatable: one row each,
   e.g. the maps of DiFaReli checkpoints at several training steps),
 - ``ray-marched``: screen-space ray marching on the stored depth toward the record's fitted light
-  (``targets.target_shadow_map``), and toward the exact light (``light_gt``, where stored: an oracle light),
+  (``retarget.target_shadow_map``), and toward the exact light (``light_gt``, where stored: an oracle light),
 - ``mesh``: the store's own ``shadow_map`` (SynthFaces ``inputs=estimated``: mesh rays toward the fitted light, on
   the estimated surface in v3; in an ``inputs=exact`` store it is the ground truth itself, flagged),
 - ``ray-marched on the exact depth toward the exact key sun`` (SynthFaces v3 stores): the same march
-  (``targets.target_shadow_map``, stored normals applied after it as ``targets.cast_shadows`` does) on the exact
+  (``retarget.target_shadow_map``, stored normals applied after it as ``retarget.cast_shadows`` does) on the exact
   depth toward the key sun's direction from the record's header (empty without a sun, as the upper bound): what
   the screen-space march itself loses against mesh ray casting, with no light or geometry estimation error,
 - ``ray-marched on the exact depth toward every exact sun, visibly shadowed`` (SynthFaces stores with suns in
@@ -49,7 +49,7 @@ from difareli.lighting.suns import Suns, sun_direction
 from difareli.render import sun_fit
 from difareli.render.camera import OrthoCamera
 from difareli.render.visible import visible_march
-from difareli.relight.targets import target_shadow_map
+from difareli.render.retarget import target_shadow_map
 
 #: The row of a map covering every mesh pixel: scored, not drawn in the figure.
 BASELINE = "whole face (baseline)"

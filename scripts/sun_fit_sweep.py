@@ -16,7 +16,7 @@ from tqdm import tqdm
 from difareli.data.store import EncodingStore
 from difareli.evaluation.metrics import binary_scores
 from difareli.lighting.suns import Suns
-from difareli.relight.targets import target_shadow_map
+from difareli.render.retarget import target_shadow_map
 from difareli.render import sun_fit
 
 

@@ -16,7 +16,7 @@ from difareli.relight.relightable import DiffusionRelightable, OnePassRelightabl
 from difareli.relight.relighter import (Relighter, needed_encodings,
                                  relight)
 from difareli.data.store import EncodingStore
-from difareli.relight.targets import retarget
+from difareli.render.retarget import RENDERERS, retarget
 from difareli.relight.targets import Targets
 
 DIMS = {"H": 8, "W": 8, **encodings.PRODUCER_DIMS}
@@ -27,13 +27,11 @@ def test_light_dependence_is_declared_once_and_resolves():
                                            "shadow_gt", "shadow_map_gt"]
     for name in encodings.light_dependent():
         e = encodings.get(name)
-        module, func = e.rerender.split(":")
-        assert callable(getattr(__import__(module, fromlist=[func]), func))
+        assert callable(RENDERERS[e.rerender])  # the renderer takes each kind from the registry, below it
         assert all(n in ENCODINGS for n in e.needs)
     assert encodings.rerender_needs(["shading", "masks"]) == ["normal"]
     assert encodings.rerender_needs(["shadow_map", "shading"]) == ["depth", "normal", "cam", "shadow"]
-    with pytest.raises(ValueError, match="does not depend on the light"):
-        encodings.get("masks").render({}, np.zeros((9, 3)), None)
+    assert not encodings.get("masks").light_dependent and encodings.get("masks").rerender is None
 
 
 def test_channels_follow_the_schema_shapes():
@@ -76,7 +74,7 @@ def test_retarget_rerenders_only_light_dependent(synth_store):
 
 def test_retarget_many_equals_one_target_at_a_time(synth_store):
     """The batched march behind a video's targets gives each target exactly its own re-render."""
-    from difareli.relight.targets import retarget_many
+    from difareli.render.retarget import retarget_many
 
     store = EncodingStore.open(synth_store)
     names = ["shading", "shadow_map", "masks", "light", "shadow"]

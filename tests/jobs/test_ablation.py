@@ -23,7 +23,7 @@ from difareli.relight.relightable import model_inputs
 from difareli.relight.relighter import relight
 from difareli.data.store import EncodingStore
 from difareli.evaluation.tables import Record, write_records
-from difareli.relight.targets import retarget
+from difareli.render.retarget import retarget
 
 from tests.helpers import CONF, compose_train
 

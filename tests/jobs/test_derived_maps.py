@@ -16,7 +16,7 @@ from difareli.data.store import EncodingStore
 from difareli.errors import UserError
 from difareli.lighting.suns import Suns
 from difareli.jobs import derived_maps
-from difareli.relight.targets import check_maker, shadow_maker, target_shadow_map
+from difareli.render.retarget import check_maker, shadow_maker, target_shadow_map
 
 
 @pytest.fixture

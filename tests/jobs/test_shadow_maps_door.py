@@ -17,7 +17,7 @@ from difareli.diffusion.spec import SamplerSpec
 from difareli.jobs import shadow_maps as sm
 from difareli.relight.core import invert_image, relight
 from difareli.relight.relightable import OnePassRelightable, model_inputs
-from difareli.relight.targets import retarget
+from difareli.render.retarget import retarget
 from difareli.utils import imageops
 
 

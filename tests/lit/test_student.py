@@ -21,7 +21,7 @@ from difareli.relight.relightable import DiffusionRelightable, OnePassRelightabl
 from difareli.relight.relighter import Relighter
 from difareli.data.store import EncodingStore
 from difareli.errors import UserError
-from difareli.relight.targets import render_shading, retarget
+from difareli.render.retarget import render_shading, retarget
 from difareli.relight.targets import Targets
 
 from tests.helpers import compose_train, tiny_cpu_overrides
@@ -421,7 +421,7 @@ def test_one_pass_relight_runs_through_the_runtime_denoiser(student_ckpt, synth_
 def test_teacher_pairs_march_toward_the_light_records_found_sun(synth_store, tiny_checkpoint, tmp_path):
     """Each pair's target map is marched toward the key sun found from the cast shadows of the record whose light
     it is (its meta keeps the direction), as the benchmark's; ``target_sun=peak``: toward the radiance peak."""
-    from difareli.relight.targets import retarget
+    from difareli.render.retarget import retarget
     from difareli.render import sun_fit
 
     store = EncodingStore.open(synth_store)

@@ -125,6 +125,7 @@ def test_store_cases_default_target_is_what_a_user_has(synth_store):
     # Not the target record's stored maps: the light fitted to its image, the policy c, maps re-rendered on
     # the source's geometry (the shadow map ray-marched on the source's depth).
     from difareli.relight import targets
+    from difareli.render import retarget
     from difareli.lighting.light_fit import LightFit
 
     store = EncodingStore.open(synth_store)
@@ -135,8 +136,8 @@ def test_store_cases_default_target_is_what_a_user_has(synth_store):
     cval, how = targets.target_shadow_of(store, "s00006_l0")
     src = {k: np.asarray(v) for k, v in store.read("s00006_l1").items()}
     np.testing.assert_allclose(c.target_cond[0][0, :3].permute(1, 2, 0).numpy(),
-                               targets.render_shading(src, light), atol=1e-6)
-    np.testing.assert_allclose(c.target_cond[0][0, 3].numpy(), targets.target_shadow_map(src, light, cval), atol=1e-6)
+                               retarget.render_shading(src, light), atol=1e-6)
+    np.testing.assert_allclose(c.target_cond[0][0, 3].numpy(), retarget.target_shadow_map(src, light, cval), atol=1e-6)
     # This conftest store is inputs=exact: the stored c is exact, so the policy takes the train split's median.
     assert "median shadowed c" in how and how in c.inputs and "fitted" in c.inputs
     assert not np.allclose(light, store.read("s00006_l0", ["light"])["light"], atol=1e-3)  # a fit, not the record's

@@ -228,7 +228,7 @@ def test_batched_targets_equal_separate_checkpoint(pp_model, depth_store):
     store = EncodingStore.open(depth_store)
     r = Relighter(pp_model, {"name": "dpm_solver_pp", "steps": 6, "order": 2}, device="cpu")
     arrays = r.read(store, "s00006_l0")
-    from difareli.relight.targets import retarget
+    from difareli.render.retarget import retarget
 
     lights = sh.yaw(np.asarray(arrays["light"]), [45.0, 120.0, 250.0])
     targets = condition_tensors(r.model, [retarget(arrays, r.model_inputs, l) for l in lights])
@@ -322,7 +322,7 @@ def test_bf16_autocast_matches_float32_checkpoint(name, pp_model, depth_store):
     model = pp_model.model
     x0 = torch.from_numpy(np.array(arrays["image"])).permute(2, 0, 1)[None].float() / 127.5 - 1
     light = np.asarray(store.read("s00006_l1", ["light"])["light"])
-    from difareli.relight.targets import retarget
+    from difareli.render.retarget import retarget
 
     args = (model, x0, condition_tensors(r.model, [arrays]),
             condition_tensors(r.model, [retarget(arrays, r.model_inputs, light)]), r.spec)
@@ -347,7 +347,7 @@ def test_extreme_images_finite(mean_matching, pp_model, depth_store):
         inv = r.inversion(r.source(store, rid))
         assert torch.isfinite(inv.x_T).all()
         assert inv.offsets is None if not mean_matching else bool(torch.isfinite(inv.offsets).all())
-        from difareli.relight.targets import retarget
+        from difareli.render.retarget import retarget
 
         cond = model.condition(*condition_tensors(r.model, [retarget(r.read(store, rid), r.model_inputs, light)]))
         x = decode(model.denoiser(cond), inv, model.schedule)
@@ -364,7 +364,7 @@ def test_extreme_target_lights_finite(pp_model, depth_store):
     negative = own.copy()
     negative[1:4] *= -4.0  # a strong negative lobe: the (unclipped) shading goes negative on one side
     lights = {"zero": np.zeros((9, 3)), "bright10x": 10 * own, "negative_lobe": negative}
-    from difareli.relight.targets import retarget
+    from difareli.render.retarget import retarget
 
     arrays = r.read(store, "s00006_l0")
     shading = {k: retarget(arrays, r.model_inputs, l)["shading"] for k, l in lights.items()}

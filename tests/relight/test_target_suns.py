@@ -9,7 +9,8 @@ import pytest
 from difareli.errors import UserError, check_choice
 from difareli.lighting import sh
 from difareli.lighting.suns import sun_direction
-from difareli.relight.targets import Targets, retarget
+from difareli.relight.targets import Targets
+from difareli.render.retarget import retarget
 from difareli.render.camera import OrthoCamera
 from difareli.render.screen_shadow import march_shadows
 from tests.render.test_sun_fit import _direction, _scene

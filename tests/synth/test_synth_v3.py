@@ -40,7 +40,7 @@ def test_normalise_c_ranges_and_target_maps_use_the_records_range():
 
 
 def test_finalise_scales_maps_by_the_train_split_range(synth_store, tmp_path):
-    from difareli.relight.targets import target_shadow_map
+    from difareli.render.retarget import target_shadow_map
 
     shutil.copytree(synth_store, tmp_path / "s")
     store = EncodingStore.open(tmp_path / "s", writable=True, durable=False)

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import importlib
 import math
 from typing import Any, Mapping
 
@@ -115,11 +114,11 @@ class Encoding:
     and, for encodings that depend on the light, how it is re-rendered under a target light.
 
     ``onehot``: number of classes when a label map is fed to a network one-hot (0: fed as values);
-    ``rerender``: ``"module:function"`` computing the encoding under a target light as
-    ``function(arrays, light, shadow) -> array`` (``shadow``: the target logit c', or the input's own when the
-    user gave none); ``needs``: the encodings that function reads besides the light; ``oracle``: a ground-truth
-    value of synthetic data, never estimated from a photo. An encoding is
-    light-dependent exactly when it has a ``rerender`` (this table is the only list of them).
+    ``rerender``: the kind of re-render that computes the encoding under a target light (``light``, ``shadow``,
+    ``shadow_map`` or ``shading``: a key of ``difareli.render.retarget.RENDERERS``, the renderer above this schema,
+    which takes it from here); ``needs``: the encodings that re-render reads besides the light; ``oracle``: a
+    ground-truth value of synthetic data, never estimated from a photo. An encoding is light-dependent exactly
+    when it has a ``rerender`` (this table is the only list of them).
     """
 
     name: str
@@ -167,13 +166,6 @@ class Encoding:
         t = t.float() / 127.5 - 1.0 if a.dtype == np.uint8 else t.float()
         return t.permute(2, 0, 1) if t.ndim == 3 else t[None]
 
-    def render(self, arrays, light: np.ndarray, shadow: float | None) -> np.ndarray:
-        """This encoding under a target ``light`` (and shadow logit ``shadow``) from a record's ``arrays``."""
-        if self.rerender is None:
-            raise UserError(f"encoding {self.name!r} does not depend on the light; nothing to re-render")
-        module, func = self.rerender.split(":")
-        return getattr(importlib.import_module(module), func)(arrays, light, shadow)
-
     def validate(self, array: np.ndarray, dims: dict[str, int]) -> np.ndarray:
         """Return ``array`` cast to the schema dtype, or raise naming the encoding and the mismatch."""
         arr = np.asarray(array)
@@ -190,19 +182,19 @@ class Encoding:
 _ENCODINGS = (
     Encoding("image", ("H", "W", 3), "uint8", "the face photo, RGB", spatial=True),
     Encoding("light", (9, 3), "float32", "2nd-order SH lighting, DECA basis order and constants (sh.py)",
-             rerender="difareli.relight.targets:render_light"),
+             rerender="light"),
     Encoding("shape", ("S",), "float32", "face shape / expression / pose parameters (source-specific length S)"),
     Encoding("cam", (3,), "float32", "orthographic camera (scale, tx, ty), DECA convention"),
     Encoding("identity", ("D",), "float32", "identity embedding (length D)"),
     Encoding("shadow", (1,), "float32", "cast-shadow intensity c, a logit",
-             rerender="difareli.relight.targets:render_shadow"),
+             rerender="shadow"),
     Encoding("background", ("H", "W", 3), "uint8", "image with face, hair and neck pixels set to 0", spatial=True),
     Encoding("masks", ("H", "W"), "uint8", "part label per pixel, indices into MASK_PARTS", spatial=True,
              onehot=NUM_MASK_PARTS),
     Encoding("shadow_map", ("H", "W"), "float32", "binary cast-shadow map times normalised c", spatial=True,
-             rerender="difareli.relight.targets:render_shadow_map", needs=("depth", "normal", "cam", "shadow")),
+             rerender="shadow_map", needs=("depth", "normal", "cam", "shadow")),
     Encoding("shading", ("H", "W", 3), "float32", "shading reference R = 0.7 * SH irradiance, unclipped", spatial=True,
-             rerender="difareli.relight.targets:render_shading", needs=("normal",)),
+             rerender="shading", needs=("normal",)),
     Encoding("normal", ("H", "W", 3), "float32", "camera-space unit normal of the face mesh, 0 off-mesh", spatial=True),
     Encoding("depth", ("H", "W"), "float32", "camera-space z of the face mesh (toward the viewer), 0 off-mesh; "
              "used to ray-march target shadow maps", spatial=True),
@@ -210,14 +202,14 @@ _ENCODINGS = (
     # SynthFaces v2: the exact values of the model inputs, which hold estimated ones in v2 stores (oracle studies).
     # As model inputs (oracle studies) they re-render under a target light exactly like their estimated twins.
     Encoding("light_gt", (9, 3), "float32", "exact SH light (ambient + every sun), as `light`",
-             rerender="difareli.relight.targets:render_light", oracle=True),
+             rerender="light", oracle=True),
     Encoding("shading_gt", ("H", "W", 3), "float32", "shading reference of light_gt, as `shading`", spatial=True,
-             rerender="difareli.relight.targets:render_shading", needs=("normal",), oracle=True),
+             rerender="shading", needs=("normal",), oracle=True),
     Encoding("shadow_gt", (1,), "float32", "exact cast-shadow logit c (all suns), as `shadow`",
-             rerender="difareli.relight.targets:render_shadow", oracle=True),
+             rerender="shadow", oracle=True),
     Encoding("shadow_map_gt", ("H", "W"), "float32", "exact cast-shadow map (union over suns) times "
              "normalised shadow_gt, as `shadow_map`", spatial=True,
-             rerender="difareli.relight.targets:render_shadow_map", needs=("depth", "normal", "cam", "shadow"),
+             rerender="shadow_map", needs=("depth", "normal", "cam", "shadow"),
              oracle=True),
     # SynthFaces v3 (docs/synthfaces_v3.md): geometry is estimated too; the renderer's values for oracle studies.
     Encoding("shape_gt", ("S",), "float32", "exact BFM shape / expression / pose parameters, as `shape`", oracle=True),

@@ -23,7 +23,8 @@ import numpy as np
 from difareli.data import encodings
 from difareli.data.inputs import read_record
 from difareli.lighting.suns import Suns
-from difareli.relight.targets import Targets, target_shadow_map
+from difareli.relight.targets import Targets
+from difareli.render.retarget import target_shadow_map
 from difareli.utils import imageops
 
 MAPS = ("exact", "march_exact", "march_fitted")

@@ -1,6 +1,6 @@
 """Training shadow maps of the kind a relight is tested with, written as derived versions of ``shadow_map``.
 
-A relight's target map is made by one maker (:func:`difareli.relight.targets.shadow_maker`: the depth-map march
+A relight's target map is made by one maker (:func:`difareli.render.retarget.shadow_maker`: the depth-map march
 toward the target light's suns, an SH light's being one toward its radiance peak, times the normalised c). A
 DiFaReli++ trained on maps made another way (SynthFaces' mesh rays toward a fitted light: IoU 0.31 with the march
 for the same record and light) is tested out of its training distribution, and one trained on maps that disagree
@@ -32,7 +32,7 @@ from difareli import errors
 from difareli.data import derived, encodings
 from difareli.data.inputs import read_record
 from difareli.lighting.suns import Suns
-from difareli.relight.targets import shadow_maker, target_shadow_map
+from difareli.render.retarget import shadow_maker, target_shadow_map
 from difareli.utils.fileio import folder_lock
 
 METHODS = ("march", "visible")

@@ -200,7 +200,7 @@ class DiffusionModule(RelightingModule):
             "scheduler": factory_config(scheduler, "scheduler"), "schedule": dict(schedule or {}),
             "nonspatial_stats": {"mean": mean.tolist(), "std": std.tolist()}, "compile": bool(compile),
             "loss": loss_config(loss),
-            # What made the shadow maps it trained on (relight.targets.check_maker compares a relight's).
+            # What made the shadow maps it trained on (render.retarget.check_maker compares a relight's).
             "training_maps": dict(training_maps) if training_maps else None,
         })
         self._optimizer, self._scheduler = optimizer, scheduler

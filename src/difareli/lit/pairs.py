@@ -17,7 +17,7 @@ A teacher-pair store is an :class:`~difareli.data.store.EncodingStore` whose rec
 target ``light`` and ``shadow`` (c'), and the target's light-dependent encodings (re-rendered through the
 registry, e.g. the ray-marched shadow map); its per-record meta names the ``source`` and ``light_from`` records.
 Every item's target condition is the source's encodings with the light-dependent ones replaced: exactly what
-:func:`difareli.relight.targets.retarget` gives at inference time.
+:func:`difareli.render.retarget.retarget` gives at inference time.
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ from difareli.data import encodings as enc
 from difareli.data.inputs import image_to_tensor, prepare_nonspatial, prepare_spatial, read_record, relight_reads
 from difareli.errors import UserError, check_record
 from difareli.data.store import EncodingStore
-from difareli.relight.targets import retarget
+from difareli.render.retarget import retarget
 from difareli.data.provenance import PROVENANCE, store_identity
 
 #: Meta keys of a teacher-pair record: the input record and the record the target light was taken from.

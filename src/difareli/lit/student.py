@@ -77,7 +77,7 @@ class StudentModule(RelightingModule):
             "scheduler": factory_config(scheduler, "scheduler"),
             "nonspatial_stats": {"mean": mean.tolist(), "std": std.tolist()}, "residual": bool(residual),
             "timestep": int(timestep), "lpips_weight": float(lpips_weight), "compile": bool(compile),
-            # What made the shadow maps it trained on (relight.targets.check_maker compares a relight's).
+            # What made the shadow maps it trained on (render.retarget.check_maker compares a relight's).
             "training_maps": dict(training_maps) if training_maps else None,
         })
         self._optimizer, self._scheduler = optimizer, scheduler

@@ -44,7 +44,8 @@ from difareli.relight.relit import Relit
 from difareli.relight.request import Answer, Request, answer
 from difareli.runtime.core import Runtime
 from difareli.data.store import EncodingStore
-from difareli.relight.targets import Targets, check_maker
+from difareli.relight.targets import Targets
+from difareli.render.retarget import check_maker
 from difareli.render import sun_fit
 from difareli.lighting.plausible import implausible_lights
 

@@ -4,7 +4,7 @@ DiFaReli++'s shadow map is ``binary map * c_norm``; the authors take ``c_norm = 
 the training set. A v3 store records that range in its header (``encodings.C_RANGE_KEY``) once every record is
 written, and every map that is scaled by c in it uses the same one: the stored ``shadow_map`` (ray-traced on the
 estimated surface) and ``shadow_map_gt``, the difference maps (``jobs/shadow_maps``) and the target maps of
-relighting and videos (``targets.target_shadow_map``, given the range with the record).
+relighting and videos (``render.retarget.target_shadow_map``, given the range with the record).
 
 Until then the two maps hold their binary masks. :func:`finalise` writes the range first (``state: scaling``), then
 rewrites each record's two maps (binary = ``shadow_map > 0`` and ``shadow_visible_gt``: idempotent, so a killed
