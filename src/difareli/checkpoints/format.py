@@ -12,6 +12,7 @@ statistics in ``state_dict`` buffers) are translated by :func:`upgrade_checkpoin
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -114,26 +115,137 @@ def is_folder(path: str | Path) -> bool:
     return p.is_dir() and (p / WEIGHTS).is_file() and (p / CONFIG).is_file()
 
 
+def folder_problem(path: str | Path) -> str | None:
+    """Why ``path``, a folder holding one of a weights folder's two files, is not one (None for anything else)."""
+    p = Path(path)
+    have = [n for n in (WEIGHTS, CONFIG) if (p / n).is_file()] if p.is_dir() else []
+    if len(have) != 1:
+        return None
+    lacks = CONFIG if have == [WEIGHTS] else WEIGHTS
+    return (f"checkpoint={p} is a weights folder without {lacks} (it holds {have[0]}); copy the folder again whole, "
+            "or export it again: difareli-export <checkpoint>.ckpt <folder>")
+
+
 def read_folder(folder: str | Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:
-    """The checkpoint dict of a weights folder (``state_dict`` from safetensors, the rest from JSON); no pickle."""
+    """The checkpoint dict of a weights folder (``state_dict`` from safetensors, the rest from JSON); no pickle.
+    ``config.json`` is checked against its schema (:func:`check_config`) and the safetensors header against the
+    file (:func:`~difareli.checkpoints.safetensors_file.read_header`) before any tensor is read."""
+    from safetensors import SafetensorError
     from safetensors.torch import load_file
 
+    from difareli.checkpoints.safetensors_file import read_header
+
     folder = Path(folder)
+    fix = f"export the folder again: difareli-export <checkpoint>.ckpt {folder}"
     try:
-        config = json.loads((folder / CONFIG).read_text())
+        if (folder / CONFIG).stat().st_size > MAX_CONFIG_BYTES:
+            raise UserError(f"{folder / CONFIG}: over {MAX_CONFIG_BYTES >> 20} MiB, not a weights folder's config; "
+                            f"{fix}")
+        config = json.loads((folder / CONFIG).read_text(encoding="utf-8"))
     except (OSError, ValueError) as e:
-        raise UserError(f"{folder / CONFIG}: unreadable ({e}); export the folder again: difareli-export "
-                        f"<checkpoint> {folder}") from None
-    if not isinstance(config, dict) or config.get("format") != FOLDER_FORMAT:
-        raise UserError(f"{folder / CONFIG} is not a difareli weights folder's config (no \"format\": "
-                        f"\"{FOLDER_FORMAT}\"); make one with difareli-export <checkpoint> <folder>")
-    if int(config.get("version", 0)) > FOLDER_VERSION:
-        raise UserError(f"{folder} is a weights folder of version {config.get('version')}, newer than this "
-                        f"difareli reads ({FOLDER_VERSION}); load it with the difareli version that wrote it")
+        if isinstance(e, UserError):
+            raise
+        raise UserError(f"{folder / CONFIG}: unreadable ({str(e)[:120]}); {fix}") from None
+    check_config(config, folder / CONFIG, fix)
+    read_header(folder / WEIGHTS, fix)
     device = str(torch.device(map_location)) if not isinstance(map_location, str) else map_location
     ckpt = {k: config[k] for k in CONFIG_KEYS if k in config}
-    ckpt["state_dict"] = load_file(folder / WEIGHTS, device=device)
+    try:
+        ckpt["state_dict"] = load_file(folder / WEIGHTS, device=device)
+    except (SafetensorError, OSError, ValueError) as e:  # changed under us since the header was checked
+        raise UserError(f"{folder / WEIGHTS}: unreadable ({str(e)[:120]}); {fix}") from None
     return ckpt
+
+
+# ---------------------------------------------------------------------------------------------- config.json schema
+#: The largest training resolution a checkpoint may state (px). The paper's models are 256 px; a config.json that
+#: states more is a typo or a lie, and a photo relight would allocate gigabytes at that size before anything failed.
+MAX_RESOLUTION = 1024
+MAX_CONFIG_BYTES = 64 * 2 ** 20
+#: config.json's keys: key -> (required, JSON type). Any other key is refused.
+CONFIG_SCHEMA = {"format": (True, str), "version": (True, int), MODULE_KEY: (True, str),
+                 "hyper_parameters": (True, dict), FORMAT_KEY: (False, int), "global_step": (False, int),
+                 "epoch": (False, int), "pytorch-lightning_version": (False, str), "model_card": (False, dict),
+                 "source": (False, dict)}
+#: ``hyper_parameters.input_dims``: key -> (lowest, highest).
+INPUT_DIMS = {"resolution": (8, MAX_RESOLUTION), "spatial_channels": (0, 4096), "nonspatial_dim": (0, 1 << 20)}
+_JSON = {dict: "an object", list: "an array", str: "a string", int: "an integer", float: "a number",
+         bool: "true or false", type(None): "null"}
+
+
+def _is(value: Any, kind: type) -> bool:
+    """JSON typing: an integer is not a bool; a number may be an integer."""
+    if kind is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    if kind is float:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    return isinstance(value, kind)
+
+
+def _wrong(where: Path, key: str, value: Any, want: str, fix: str) -> UserError:
+    plain = isinstance(value, (str, int, float, bool, type(None)))
+    shown = json.dumps(value)[:40] if plain else _JSON.get(type(value), f"a {type(value).__name__}")
+    return UserError(f"{where}: {key} is {shown}, must be {want}; {fix}")
+
+
+def check_config(config: Any, where: Path, fix: str) -> None:
+    """A weights folder's ``config.json`` against its schema: the format and version, the required keys and no
+    unknown ones, each of its type, and bounds (steps >= 0, :data:`INPUT_DIMS`); one line naming the key."""
+    if not isinstance(config, dict) or config.get("format") != FOLDER_FORMAT:
+        raise UserError(f"{where} is not a difareli weights folder's config (no \"format\": \"{FOLDER_FORMAT}\"); "
+                        "make one with difareli-export <checkpoint> <folder>")
+    version = config.get("version")
+    if _is(version, int) and version > FOLDER_VERSION:
+        raise UserError(f"{where.parent} is a weights folder of version {version}, newer than this difareli reads "
+                        f"({FOLDER_VERSION}); load it with the difareli version that wrote it")
+    unknown = sorted(set(config) - set(CONFIG_SCHEMA))
+    if unknown:
+        raise UserError(f"{where}: unknown key {unknown[0]!r} (known: {', '.join(CONFIG_SCHEMA)}); {fix}")
+    for key, (required, kind) in CONFIG_SCHEMA.items():
+        if key not in config:
+            if required:
+                raise UserError(f"{where}: the required key {key!r} is missing; {fix}")
+            continue
+        if not _is(config[key], kind):
+            raise _wrong(where, key, config[key], _JSON[kind], fix)
+    for key, lo in (("version", 1), ("global_step", 0), ("epoch", 0), (FORMAT_KEY, 1)):
+        if key in config and config[key] < lo:
+            raise _wrong(where, key, config[key], f"an integer >= {lo}", fix)
+    source = config.get("source", {})
+    if set(source) - {"file", "sha256"} or not all(isinstance(v, str) for v in source.values()):
+        raise _wrong(where, "source", source, "an object {file, sha256} of strings", fix)
+    card = config.get("model_card", {})
+    if not all(isinstance(v, (str, int, float, bool)) for v in card.values()):
+        raise _wrong(where, "model_card", card, "an object of strings and numbers", fix)
+    check_hyper_parameters(config["hyper_parameters"], where, fix)
+
+
+def check_hyper_parameters(hp: Any, where: Any, fix: str) -> None:
+    """The hyperparameters every module reads at load, typed and bounded: ``input_dims`` (:data:`INPUT_DIMS`),
+    the input names and the normalisation statistics (finite, positive stds). The module checks the rest when it is
+    built (:func:`build_module`)."""
+    if not isinstance(hp, dict):
+        raise _wrong(where, "hyper_parameters", hp, "an object", fix)
+    dims = hp.get("input_dims")
+    if not isinstance(dims, dict) or set(dims) != set(INPUT_DIMS):
+        raise _wrong(where, "hyper_parameters.input_dims", dims, f"an object {{{', '.join(INPUT_DIMS)}}}", fix)
+    for key, (lo, hi) in INPUT_DIMS.items():
+        if not _is(dims[key], int) or not lo <= dims[key] <= hi:
+            raise _wrong(where, f"hyper_parameters.input_dims.{key}", dims[key], f"an integer from {lo} to {hi}"
+                         + (" (px; the paper's models are 256)" if key == "resolution" else ""), fix)
+    for key in ("spatial_inputs", "nonspatial_inputs"):
+        value = hp.get(key, [])
+        if not isinstance(value, (list, tuple)) or not all(isinstance(v, str) for v in value):  # a .ckpt's: tuples
+            raise _wrong(where, f"hyper_parameters.{key}", value, "an array of encoding names", fix)
+    stats = hp.get("nonspatial_stats")
+    if stats is None:
+        return
+    ok = isinstance(stats, dict) and set(stats) == {"mean", "std"} and all(
+        isinstance(stats[k], (list, tuple)) and len(stats[k]) == dims["nonspatial_dim"]
+        and all(_is(v, float) and math.isfinite(v) for v in stats[k]) for k in stats)
+    if not ok or not all(v > 0 for v in stats["std"]):
+        raise _wrong(where, "hyper_parameters.nonspatial_stats", stats, f"null or {{mean, std}}: "
+                     f"{dims['nonspatial_dim']} finite numbers each (input_dims.nonspatial_dim), stds > 0", fix)
 
 
 def load_torch_file(path: Any, what: str = "checkpoint", map_location: Any = "cpu") -> Any:
@@ -151,3 +263,110 @@ def load_torch_file(path: Any, what: str = "checkpoint", map_location: Any = "cp
             first = "it holds objects other than tensors and plain containers"
         raise UserError(f"{what} {p} ({size} bytes) is not a readable PyTorch file ({first[:160]}); it may be "
                         "truncated or corrupt: copy it again or use another checkpoint") from None
+
+
+# ---------------------------------------------------------------------------------------------- the weights
+def check_finite_state(state: Mapping[str, Any], where: Any, fix: str) -> None:
+    """Every floating tensor of ``state`` is finite; the first that is not is a UserError naming it (the weights
+    themselves are bad, whatever precision a run would use)."""
+    for name, t in state.items():
+        if isinstance(t, torch.Tensor) and t.is_floating_point() and t.numel():
+            bad = int((~torch.isfinite(t)).sum())
+            if bad:
+                raise UserError(f"{where}: tensor {name!r} holds {bad} NaN/Inf value(s) of {t.numel()}: the weights "
+                                f"are corrupt or the run diverged; {fix}")
+
+
+def load_weights(model: torch.nn.Module, state: Mapping[str, torch.Tensor], where: Any, fix: str) -> None:
+    """Load ``state`` into ``model`` (built from the checkpoint's hyperparameters) after checking it: the same
+    tensor names, each of the model's shape and kind (floating or not), every float finite; one line naming the
+    tensor instead of PyTorch's dump."""
+    want = model.state_dict()
+    missing, extra = sorted(set(want) - set(state)), sorted(set(state) - set(want))
+    if missing or extra:
+        what = (f"lacks {len(missing)} tensor(s) the model built from its hyperparameters has (e.g. {missing[0]!r})"
+                if missing else f"has {len(extra)} tensor(s) that model does not (e.g. {extra[0]!r})")
+        raise UserError(f"{where}: the weights {what}; {fix}")
+    for name, w in want.items():
+        t = state[name]
+        if tuple(t.shape) != tuple(w.shape):
+            raise UserError(f"{where}: tensor {name!r} has shape {tuple(t.shape)}, the model built from its "
+                            f"hyperparameters needs {tuple(w.shape)}; {fix}")
+        if t.is_floating_point() != w.is_floating_point():
+            raise UserError(f"{where}: tensor {name!r} is {str(t.dtype).removeprefix('torch.')}, the model's is "
+                            f"{str(w.dtype).removeprefix('torch.')}; {fix}")
+    check_finite_state(state, where, fix)
+    model.load_state_dict(state)
+
+
+def _fits(value: Any, hint: Any) -> bool:
+    """Whether a plain (JSON or checkpoint) value fits a parameter's type hint; hints it cannot judge pass."""
+    import collections.abc
+    import types
+    import typing
+
+    origin = typing.get_origin(hint)
+    if origin in (typing.Union, types.UnionType):
+        return any(_fits(value, a) for a in typing.get_args(hint))
+    if hint is type(None):
+        return value is None
+    if hint in (bool, int, float):
+        return _is(value, hint) and (hint is not bool or isinstance(value, bool))
+    base = origin or hint
+    if base is collections.abc.Callable or not isinstance(base, type):  # a partial's config; Any
+        return True
+    if base in (collections.abc.Sequence, list, tuple) and isinstance(value, str):
+        return False  # "shading" is not a list of names
+    return isinstance(value, base) or (base is tuple and isinstance(value, list))
+
+
+def _hint_name(hint: Any) -> str:
+    text = hint.__name__ if isinstance(hint, type) else str(hint)
+    return text.replace("typing.", "").replace("collections.abc.", "")
+
+
+def check_parameters(cls: type, config: Mapping[str, Any], where: Any, fix: str) -> None:
+    """``config`` against ``cls``'s constructor: no parameter it lacks, none it requires missing, each value of
+    its parameter's type; one line naming the hyperparameter."""
+    import inspect
+    import typing
+
+    params = {k: q for k, q in inspect.signature(cls.__init__).parameters.items() if k != "self"}
+    if not any(q.kind is q.VAR_KEYWORD for q in params.values()):
+        unknown = sorted(set(config) - set(params))
+        if unknown:
+            raise UserError(f"{where}: hyper_parameters.{unknown[0]} is not a parameter of {cls.__name__}; {fix}")
+    missing = [k for k, q in params.items() if q.default is q.empty and q.kind is q.POSITIONAL_OR_KEYWORD
+               and k not in config]
+    if missing:
+        raise UserError(f"{where}: hyper_parameters.{missing[0]} is missing ({cls.__name__} requires it); {fix}")
+    try:
+        hints = typing.get_type_hints(cls.__init__)
+    except Exception:  # noqa: BLE001 - a hint that does not resolve: the constructor judges the values
+        hints = {}
+    for key, value in config.items():
+        if key in hints and not _fits(value, hints[key]):
+            shown = json.dumps(value)[:40] if _is(value, float) or isinstance(value, str) else type(value).__name__
+            raise UserError(f"{where}: hyper_parameters.{key} is {shown}, not of {cls.__name__}'s type for it "
+                            f"({_hint_name(hints[key])}); {fix}")
+
+
+def build_module(cls: type, config: Mapping[str, Any], state: Mapping[str, torch.Tensor], path: Any):
+    """``cls(**config)`` with ``state`` loaded (:func:`load_weights`), both checked first (:func:`check_parameters`,
+    :func:`check_hyper_parameters`): one line naming the checkpoint's file and the hyperparameter or tensor."""
+    p = Path(str(path))
+    folder = is_folder(p)
+    where, weights = (p / CONFIG, p / WEIGHTS) if folder else (p, p)
+    fix = (f"export the folder again: difareli-export <checkpoint>.ckpt {p}" if folder else
+           "use the difareli version that wrote the checkpoint, or another checkpoint (an earlier step's)")
+    check_hyper_parameters(dict(config), where, fix)  # a .ckpt's too: its resolution bounds a photo's relight
+    check_parameters(cls, config, where, fix)
+    try:
+        model = cls(**config)
+    except UserError as e:
+        raise UserError(f"{where}: its hyperparameters do not build {cls.__name__} ({e}); {fix}") from None
+    except (TypeError, ValueError, KeyError) as e:  # a value the hints allow but the constructor refuses
+        raise UserError(f"{where}: its hyperparameters do not build {cls.__name__} ({type(e).__name__}: "
+                        f"{str(e)[:160]}); {fix}") from None
+    load_weights(model, state, weights, fix)
+    return model

@@ -19,8 +19,8 @@ import torch
 
 from difareli.checkpoints import zoo
 from difareli.errors import UserError
-from difareli.checkpoints.format import (MODULE_KEY, is_folder, load_torch_file, read_folder, refuse_official,
-                                         training_resolution, upgrade_checkpoint)
+from difareli.checkpoints.format import (MODULE_KEY, build_module, is_folder, load_torch_file, read_folder,
+                                         refuse_official, training_resolution, upgrade_checkpoint)
 
 #: Modules a checkpoint may name: the package's own namespace only (a checkpoint is data, not code).
 ALLOWED_PREFIX = "difareli."
@@ -94,8 +94,7 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     """
     ckpt = read_checkpoint(path, map_location)
     config = _inference_config(ckpt["hyper_parameters"])
-    model = module_class(ckpt[MODULE_KEY])(**config)
-    model.load_state_dict(ckpt["state_dict"])
+    model = build_module(module_class(ckpt[MODULE_KEY]), config, ckpt["state_dict"], path)
     model.eval().requires_grad_(False)
     return LoadedCheckpoint.of(model.to(map_location), config, ckpt.get("global_step", 0))
 

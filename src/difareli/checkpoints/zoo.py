@@ -17,7 +17,7 @@ from typing import Any
 
 import torch
 
-from difareli.checkpoints.format import SLIM_KEYS, is_folder, load_torch_file
+from difareli.checkpoints.format import SLIM_KEYS, folder_problem, is_folder, load_torch_file
 from difareli.errors import UserError, UserFileNotFoundError, check_file
 from difareli.utils.fileio import torch_save_atomic, write_text_atomic
 
@@ -41,6 +41,8 @@ def resolve(checkpoint: str | Path, key: str = "checkpoint", prefer_folder: bool
         return check_file(path, key)
     if is_folder(path):
         return path
+    if folder_problem(path):  # a weights folder missing one of its files: say which, not "is a folder"
+        raise UserFileNotFoundError(folder_problem(path))
     shipped = "/" not in str(checkpoint) and str(checkpoint) not in ("", ".", "..")
     if shipped and prefer_folder and is_folder(SHIPPED_DIR / str(checkpoint)):
         return SHIPPED_DIR / str(checkpoint)
