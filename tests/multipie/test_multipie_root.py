@@ -70,3 +70,31 @@ def test_same_image_pair_is_refused(tmp_path):
     assert str(e.value) == (f"pairs={tmp_path / 'l.json'}: pair2: src and dst are the same image 007_01_01_051_03; a "
                             "pair takes the light of another image: fix the list (dst another illumination or "
                             "subject)")
+
+
+def test_recordings_and_illuminations_that_are_no_codes_or_absent_are_one_line(copies, tmp_path):
+    """Text where a recording number goes (before: a ValueError traceback, and recordings="01" read as 00 and 01),
+    an illumination Multi-PIE does not have, and one the copy lacks (before: one "missing" line per recording and
+    exit 1) are each one line naming the option, before any store is made."""
+    from difareli.cli.multipie import run
+
+    first, _, store = copies
+    cases = {"recordings=abc": "recordings='abc': 'abc' is not a Multi-PIE recording (its recordings are 01-99); give "
+                               "numbers, e.g. recordings=[1]",
+             "recordings=[1,x]": "recordings=[1, 'x']: 'x' is not a Multi-PIE recording",
+             "illuminations=[0,25]": "illuminations=[0, 25]: 25 is not a Multi-PIE illumination (its illuminations "
+                                     "are 00-19); give numbers, e.g. illuminations=[1,2,3]",
+             "illuminations=[]": "illuminations=[] names none; give at least one, e.g. illuminations=[1,2,3]",
+             "illuminations=[0,7]": "illuminations=[0, 7]: illumination(s) 07 are in none of the copy's recording "
+                                    "folders (its recording folders hold illumination(s) 00, 01); give illuminations "
+                                    "the copy has, or illuminations=null for all of them"}
+    for override, want in cases.items():
+        opts = [o for o in OPTS if not o.startswith(override.split("=")[0])]
+        with pytest.raises(UserError) as e:
+            run(_cfg(tmp_path, f"root={first}", *opts, override), StorePipeline(store))
+        assert str(e.value).startswith(want) and "\n" not in str(e.value), (override, str(e.value))
+        assert not (tmp_path / "store").exists(), override
+    from difareli.multipie import layout
+
+    assert layout.codes("01", "recordings", layout.RECORDINGS) == ["01"]  # one code, not the digits 0 and 1
+    assert layout.codes([1, "02", 1], "recordings", layout.RECORDINGS) == ["01", "02"]

@@ -33,15 +33,16 @@ def run(cfg: DictConfig, pipeline=None) -> BuildReport:
     for key in ("same_subject", "different_subject"):
         check_int(cfg[key], key, 0)
     check_root(cfg.out_dir, layout.data_dir(cfg.root))  # a wrong root, store or pair list fails before the
-    # estimators load
+    # estimators load, and so do recordings / illuminations that are no Multi-PIE codes
+    recordings = layout.codes(cfg.recordings, "recordings", layout.RECORDINGS)
+    ill = None if cfg.illuminations is None else layout.codes(cfg.illuminations, "illuminations", layout.ILLUMINATIONS)
     if pair_files(cfg.pairs):
         protocols.read_lists(pair_files(cfg.pairs))
     if pipeline is None:
         pipeline = build_pipeline(cfg)
-    ill = layout.ILLUMINATIONS if cfg.illuminations is None else list(cfg.illuminations)
     report = build(cfg.root, cfg.out_dir, pipeline, pair_files(cfg.pairs), seed=int(cfg.seed),
                    same_subject=int(cfg.same_subject), different_subject=int(cfg.different_subject),
-                   recordings=list(cfg.recordings), illuminations=ill, images=str(cfg.images),
+                   recordings=recordings, illuminations=ill, images=str(cfg.images),
                    progress=bool(cfg.progress), log=lambda line: print(line, file=sys.stderr))
     print(report.summary())
     print(f"next: difareli-benchmark store={cfg.out_dir} method=identity|lambertian|diffusion ...")

@@ -99,19 +99,41 @@ def check_root(out_dir: str | Path, data: Path) -> None:
                         f"out_dir, or delete {out_dir} to rebuild it from {now}")
 
 
+def _check_found(root, data: Path, found: list, recordings: list[str], asked: list[str] | None) -> None:
+    """Something to build: an image of the recordings, and (``asked``) of every illumination asked for; else one
+    line saying what the copy holds instead."""
+    have = sorted({i.illumination for i, _ in found})
+    absent = [i for i in asked or () if i not in have]
+    if found and not absent:
+        return
+    held = layout.illuminations_in(data, recordings)
+    holds = f"its recording folders hold illumination(s) {', '.join(held)}" if held else "no image in them"
+    if not found and not held:
+        raise UserError(f"root={root}: no frontal image of recording(s) {', '.join(recordings)} found under {data}; "
+                        f"expected {layout.EXPECTED}")
+    raise UserError(f"illuminations={[int(i) for i in asked or ()]}: illumination(s) {', '.join(absent)} are in "
+                    f"none of the copy's recording folders ({holds}); give illuminations the copy has, or "
+                    "illuminations=null for all of them")
+
+
 def build(root: str | Path, out_dir: str | Path, pipeline, pairs: Sequence[str | Path] | None = None, *,
           seed: int = 0, same_subject: int = 862, different_subject: int = 200,
-          recordings: Iterable[str] = (layout.NEUTRAL_RECORDING,), illuminations: Iterable[str] = layout.ILLUMINATIONS,
+          recordings: Iterable[str] = (layout.NEUTRAL_RECORDING,), illuminations: Iterable[str] | None = None,
           images: str = "used", progress: bool = True, log: Callable[[str], None] | None = None) -> BuildReport:
     """Build the store at ``out_dir`` (see the module docstring); ``pipeline`` is a
-    :class:`difareli.estimators.pipeline.Pipeline` (or anything with its ``process``/``dims``/``encodings``)."""
+    :class:`difareli.estimators.pipeline.Pipeline` (or anything with its ``process``/``dims``/``encodings``).
+    ``illuminations``: None, every one (those the copy lacks are named as missing images); given, each must be in
+    the copy's recording folders."""
     from tqdm.auto import tqdm
 
     if images not in ("used", "all"):
         raise UserError(f"images={images!r} is not 'used' (the images the pairs use) or 'all' (every image found)")
     data = layout.data_dir(root)
     check_root(out_dir, data)
-    recordings, illuminations = [f"{int(r):02d}" for r in recordings], [f"{int(i):02d}" for i in illuminations]
+    asked = illuminations is not None
+    recordings = layout.codes(recordings, "recordings", layout.RECORDINGS)
+    illuminations = layout.codes(layout.ILLUMINATIONS if illuminations is None else illuminations, "illuminations",
+                                 layout.ILLUMINATIONS)
     report = BuildReport(Path(out_dir))
     if pairs:
         triples = protocols.read_lists(pairs)
@@ -124,9 +146,7 @@ def build(root: str | Path, out_dir: str | Path, pipeline, pairs: Sequence[str |
     else:
         found, missing = layout.scan(data, recordings, illuminations)
         report.skipped += [("missing", line.split(": ", 1)[1], "") for line in missing]
-        if not found:
-            raise UserError(f"root={root}: no frontal image of recording(s) {list(recordings)} found under {data}; "
-                            f"expected {layout.EXPECTED}")
+        _check_found(root, data, found, recordings, illuminations if asked else None)
         triples = protocols.draw([i for i, _ in found], seed, same_subject, different_subject)
         report.how = f"pairs drawn from seed {seed} (difareli.multipie.protocols.draw)"
         if images == "used":

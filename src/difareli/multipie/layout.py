@@ -14,13 +14,15 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable
+from typing import Any, Iterable, Sequence
 
 from difareli.errors import UserError
 
 FRONTAL_CAMERA = "05_1"
 NEUTRAL_RECORDING = "01"
 ILLUMINATIONS = tuple(f"{i:02d}" for i in range(20))
+#: Recording numbers a session may hold (Multi-PIE has up to three per session; two digits in the file names).
+RECORDINGS = tuple(f"{i:02d}" for i in range(1, 100))
 _NAME = re.compile(r"^(?P<subject>\d{3})_(?P<session>\d{2})_(?P<recording>\d{2})_(?P<camera>\d{3})_(?P<illum>\d{2})"
                    r"(?:\.png)?$")
 _SUBJECT = re.compile(r"^\d{3}$")
@@ -68,6 +70,29 @@ class Image:
                 / f"{self.stem}.png")
 
 
+def codes(value: Any, key: str, valid: Sequence[str]) -> list[str]:
+    """A list of 2-digit codes from ``value``: one number or digit string (``7``, ``"07"``) or a list of them, each one
+    of ``valid``; anything else (text, a code out of range, an empty list) is a UserError naming ``key``."""
+    items = [value] if value is None or isinstance(value, (str, int, float)) else list(value)  # a ListConfig too
+    example = f"{key}=[1]" if key == "recordings" else f"{key}=[1,2,3]"
+    if not items:
+        raise UserError(f"{key}=[] names none; give at least one, e.g. {example}")
+    out = []
+    for v in items:
+        text = str(v).strip()
+        if isinstance(v, bool) or not text.isdigit() or f"{int(text):02d}" not in valid:
+            raise UserError(f"{key}={_show(value)}: {v!r} is not a Multi-PIE {key[:-1]} (its {key} are "
+                            f"{valid[0]}-{valid[-1]}); give numbers, e.g. {example}")
+        out.append(f"{int(text):02d}")
+    return list(dict.fromkeys(out))
+
+
+def _show(value: Any) -> str:
+    if isinstance(value, (str, int)):
+        return repr(value) if isinstance(value, str) else str(value)
+    return str(list(value))
+
+
 def _sessions(folder: Path) -> list[Path]:
     return sorted(p for p in folder.glob("session[0-9][0-9]") if (p / "multiview").is_dir())
 
@@ -89,7 +114,8 @@ def scan(data: Path, recordings: Iterable[str] = (NEUTRAL_RECORDING,),
          illuminations: Iterable[str] = ILLUMINATIONS) -> tuple[list[tuple[Image, Path]], list[str]]:
     """Every frontal image of the given recordings and illuminations under ``data``, and one line per expected
     image that is missing from a recording folder that exists."""
-    recordings, illuminations = [f"{int(r):02d}" for r in recordings], [f"{int(i):02d}" for i in illuminations]
+    recordings = codes(recordings, "recordings", RECORDINGS)
+    illuminations = codes(illuminations, "illuminations", ILLUMINATIONS)
     found, missing = [], []
     for session in _sessions(data):
         for subject in sorted(p for p in (session / "multiview").iterdir() if p.is_dir() and _SUBJECT.match(p.name)):
@@ -105,3 +131,15 @@ def scan(data: Path, recordings: Iterable[str] = (NEUTRAL_RECORDING,),
                     else:
                         missing.append(f"missing: {path}")
     return found, missing
+
+
+def illuminations_in(data: Path, recordings: Iterable[str]) -> list[str]:
+    """The illuminations the frontal images of ``recordings`` under ``data`` have (what a copy holds)."""
+    out = set()
+    for session in _sessions(data):
+        for rec in recordings:
+            for path in (session / "multiview").glob(f"*/{rec}/{FRONTAL_CAMERA}/*.png"):
+                m = _NAME.match(path.name)
+                if m is not None:
+                    out.add(m["illum"])
+    return sorted(out)
