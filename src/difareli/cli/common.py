@@ -4,9 +4,13 @@ from __future__ import annotations
 
 from omegaconf import DictConfig, OmegaConf
 
+from difareli.cli import help as command_help
 from difareli.configs import CONFIG_PATH, instantiate_group
 from difareli.diffusion.spec import check_sampler
 from difareli.runtime.core import Runtime
+
+# Every Hydra command imports this module: the resolvers its --help template calls are registered here.
+command_help.register()
 
 __all__ = ["CONFIG_PATH", "check_relighting", "instantiate_group", "log_hyperparameters", "metric_value"]
 
