@@ -96,6 +96,10 @@ def body_length(headers: Mapping[str, str]) -> int:
     ctype = (headers.get("Content-Type") or "").split(";", 1)[0].strip().lower()
     if ctype != "application/json":
         raise RequestError(f"Content-Type {ctype or 'none'!r} is refused; send application/json", 415)
+    lengths = headers.get_all("Content-Length") if hasattr(headers, "get_all") else None
+    if lengths and len({v.strip() for v in lengths}) > 1:  # which one a proxy reads is anyone's guess: smuggling
+        raise RequestError(f"the request has {len(lengths)} Content-Length headers with different values "
+                           f"({', '.join(repr(v[:20]) for v in lengths[:3])}); send one", 400)
     raw = headers.get("Content-Length")
     if raw is None:
         raise RequestError("Content-Length is missing; send the JSON body with its length", 411)
@@ -129,6 +133,26 @@ def parse_body(data: bytes) -> dict:
     if not isinstance(obj, dict):
         raise RequestError(f"the request body is a JSON {type(obj).__name__}, not an object")
     return obj
+
+
+def upload_name(value: Any) -> None:
+    """An upload's ``name`` the app can write as a file's name: not ``.`` or ``..``, no NUL or control character,
+    valid UTF-8 (no lone surrogate), at most 255 bytes; a string of another kind is the service's to refuse."""
+    if not isinstance(value, str):
+        return
+    base = value.rsplit("/", 1)[-1]
+    try:
+        size = len(base.encode("utf-8"))
+        problem = None
+    except UnicodeEncodeError:
+        size, problem = 0, "holds a lone surrogate (not UTF-8 text)"
+    if problem is None:
+        problem = ("names a folder" if base in (".", "..") else
+                   "holds a NUL or control character" if any(ord(c) < 32 or ord(c) == 127 for c in value) else
+                   f"is {size} bytes long, over a file name's 255" if size > 255 else None)
+    if problem:
+        raise RequestError(f"name={_show(value)} {problem}, not a photo's file name; give the photo's own name, e.g. "
+                           "face.jpg")
 
 
 # ---------------------------------------------------------------------------------------------- fields
