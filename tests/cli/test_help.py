@@ -18,6 +18,7 @@ COMMANDS = [("difareli-relight", "relight"), ("difareli-train", "train"), ("difa
 def _help(monkeypatch, capsys, script: str, module: str) -> str:
     main = importlib.import_module(f"difareli.cli.{module}").main
     monkeypatch.setattr(sys, "argv", [script, "--help"])
+    monkeypatch.setenv("COLUMNS", "120")  # the listing wraps to the terminal: the same lines under any test runner
     with pytest.raises(SystemExit) as done:
         main()
     assert done.value.code == 0
@@ -35,8 +36,8 @@ def test_help_opens_with_the_description_and_three_examples(script, module, monk
     # Three runnable lines of this command (the multipie one ends by scoring the store it made).
     assert sum(line.startswith(script + " ") for line in shown) >= 2 and len(shown) == 3
     assert "is powered by Hydra" not in out
-    # The listing stays short: the groups or the command's own keys, not the ~200-line composed config.
-    assert len(lines) < 80
+    # The command's own keys and its groups, not the ~200-line composed config.
+    assert len(lines) < 100
     assert "--cfg job" in out
 
 
