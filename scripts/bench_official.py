@@ -15,7 +15,7 @@ and loads the result with ``load_checkpoint`` (the normal way). Then:
 - one whole relight per mode (condition, DDIM inversion with the official per-channel means, mean-matching
   self-decode, decode under one target: 60 network passes at 20 steps) on the official respaced timesteps, so
   both compute the same thing: the official with its own ``ddim_reverse_sample_loop`` / ``ddim_sample_loop`` and
-  model-kwargs dict (deep-copied every step, as its loops do), ours with ``difareli.relight.relighter.relight`` under a
+  model-kwargs dict (deep-copied every step, as its loops do), ours with ``difareli.relight.core.relight`` under a
   :class:`~difareli.runtime.core.Runtime` per mode. Modes run interleaved in every round; the ratio ours / official is
   taken within each round and its median reported, with the relit image's difference from the official one.
 

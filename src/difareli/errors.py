@@ -208,6 +208,14 @@ def check_int(value: Any, key: str, minimum: int = 1, *, allow_none: bool = Fals
     return int(value)
 
 
+def check_bool(value: Any, key: str) -> bool:
+    """A true/false setting as YAML gives it (``true`` / ``false``), else a UserError naming the key: ``strict=no``
+    or ``strict=1`` is no boolean, not a truthy string."""
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    raise UserError(f"{key}={value!r} is invalid: give {key}=true or {key}=false")
+
+
 def check_choice(value: Any, key: str, choices: Sequence[Any]) -> Any:
     """``value`` if it is one of ``choices``, else a one-line UserError naming the ``key`` and them."""
     if value not in choices:

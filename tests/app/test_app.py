@@ -17,7 +17,7 @@ import pytest
 
 from difareli.lighting import sh
 from difareli.checkpoints import zoo
-from difareli.app.envmaps import ENVMAPS, envmap_light
+from difareli.lighting.presets import ENVMAPS, envmap_light
 from difareli.app.server import serve_in_thread
 from difareli.app.service import Service
 

@@ -5,6 +5,7 @@ notice) and the endpoints behind them, over loopback: /api/examples, /api/preset
 from __future__ import annotations
 
 import base64
+from types import SimpleNamespace
 import re
 from importlib import resources
 
@@ -12,9 +13,10 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
-from difareli.app.envmaps import ENVMAPS
+from difareli.lighting.presets import ENVMAPS
 from difareli.app.examples import EXAMPLES, THUMB
-from difareli.app.presets import DIRECTIONS, presets
+from difareli.app.presets import presets
+from difareli.lighting.presets import DIRECTIONS
 from difareli.app.server import serve_in_thread
 from difareli.app.service import Service
 from difareli.checkpoints import zoo
@@ -75,7 +77,9 @@ def test_presets_endpoint_serves_each_light_once(app):
     own[0] += 1.0
     arrays = {"light": own}
     svc = Service(checkpoint=STUDENT)
-    got = {p["name"]: sh.dominant_direction(svc.target_light(arrays, p["light"])) for p in out["presets"]}
+    source = SimpleNamespace(arrays=arrays, what="a face")
+    got = {p["name"]: sh.dominant_direction(svc.target(p["light"]).for_source(None, source)[0].lights[0])
+           for p in out["presets"]}
     assert got["left"][0] < -0.8 and got["right"][0] > 0.8  # x: the image's right
     assert got["top"][1] > 0.9 and got["rim"][2] < -0.9 and got["front"][2] > 0.99
     for name, (direction, _) in DIRECTIONS.items():

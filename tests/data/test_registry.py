@@ -13,8 +13,9 @@ from difareli.data.encodings import ENCODINGS, NUM_MASK_PARTS
 from difareli.errors import NonFiniteError
 from difareli.lit import LoadedCheckpoint
 from difareli.relight.relightable import DiffusionRelightable, OnePassRelightable, Relightable
-from difareli.relight.relighter import (Relighter, needed_encodings,
-                                 relight)
+from difareli.relight.core import relight
+from difareli.relight.relighter import Relighter
+from difareli.relight.sources import needed_encodings
 from difareli.data.store import EncodingStore
 from difareli.render.retarget import RENDERERS, retarget
 from difareli.relight.targets import Targets

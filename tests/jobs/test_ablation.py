@@ -20,7 +20,7 @@ from difareli.nn.controlnet import ControlNet
 from difareli.nn.nonspatial import ContextTokens, CrossAttentionBlock
 from difareli.data.inputs import condition_tensors
 from difareli.relight.relightable import model_inputs
-from difareli.relight.relighter import relight
+from difareli.relight.core import relight
 from difareli.data.store import EncodingStore
 from difareli.evaluation.tables import Record, write_records
 from difareli.render.retarget import retarget

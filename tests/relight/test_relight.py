@@ -15,7 +15,7 @@ from torch import nn
 from difareli.data import encodings
 from difareli.lighting import sh
 from difareli.diffusion.relight import SamplerSpec, decode, invert
-from difareli.relight.relighter import relight
+from difareli.relight.core import relight
 from difareli.diffusion.schedule import DiffusionSchedule
 from difareli.data.encodings import normalise_c
 from difareli.lit import LoadedCheckpoint, load_checkpoint

@@ -1,6 +1,8 @@
 """What the app's page asks for, without HTTP: sources (an uploaded photo, preprocessed once; a store record),
 target lights (a direction on the sphere, an HDR map and a rotation), relights with their seconds and the model's
-reconstruction error.
+reconstruction error. It parses requests and formats answers; the relighting is the relight spine's: its sources,
+its relighter, and its targets (:class:`~difareli.relight.request.Target`: a direction, a named map turned by a yaw,
+the source's own light).
 
 Everything expensive is cached in bounded LRU caches (sizes on :class:`Service`, ``cache`` in ``conf/app.yaml``):
 relighters per (checkpoint, sampler, steps), sources (an upload keeps its full-size photo) and the inversions
@@ -13,6 +15,7 @@ limit, and the estimators are not thread-safe); a client that leaves gives it ba
 from __future__ import annotations
 
 import base64
+import dataclasses
 import hashlib
 import os
 import tempfile
@@ -27,24 +30,25 @@ from typing import Any
 
 import numpy as np
 
-from difareli.data import encodings
-from difareli.utils.viz import png_data_url
-from difareli.lighting import sh
-from difareli.diffusion.spec import DEFAULT_SAMPLER, PRESETS
-from difareli.utils.lru import LRU
 from difareli.checkpoints import zoo
+from difareli.data import encodings
 from difareli.data.store import EncodingStore
+from difareli.diffusion.samplers import SAMPLERS
+from difareli.diffusion.spec import DEFAULT_SAMPLER, PRESETS
+from difareli.lighting import sh
+from difareli.lighting.presets import ENVMAPS
 from difareli.relight import photo_check
 from difareli.relight.photo import read_photo
-from difareli.relight.targets import Targets
+from difareli.relight.relighter import Relighter
+from difareli.relight.request import Target, relight_targets
+from difareli.utils.lru import LRU
+from difareli.utils.viz import png_data_url
 
 from . import checks
 from .cache import CancelScope, attach
 from .checks import RequestError
-from .envmaps import ENVMAPS, envmap_light
 from .examples import EXAMPLES, example_png
 
-SAMPLERS = ("unipc", "ddim", "dpm_solver", "dpm_solver_pp")
 #: What the page starts with and a request without sampler / steps gets: the default preset, the cards' sampler.
 DEFAULT = PRESETS[DEFAULT_SAMPLER]
 MAX_UPLOAD_BYTES = 32 * 2 ** 20
@@ -61,7 +65,6 @@ class AppSource:
     prepared: Any | None
     preprocess_s: float
     checkpoint: str
-    reads: tuple[str, ...] = ()
     notes: tuple[str, ...] = ()  # what reading the photo changed (an alpha channel composited, ...)
 
 
@@ -117,8 +120,6 @@ class Service:
     def relighter(self, checkpoint: str | None = None, sampler: str = DEFAULT.name, steps: int = DEFAULT.steps):
         """A cached :class:`~difareli.relight.relighter.Relighter` of an allowed checkpoint; a one-pass student
         ignores the sampler."""
-        from difareli.relight.relighter import Relighter
-
         ckpt = self.allowed_checkpoint(checkpoint)
         checks.choice({"sampler": sampler}, "sampler", SAMPLERS)
         steps = checks.number({"steps": steps}, "steps", 1, checks.MAX_STEPS, integer=True)
@@ -165,9 +166,6 @@ class Service:
             self.lock.release()
 
     # ------------------------------------------------------------------ sources
-    def _face_mask_reads(self, relighter) -> tuple[str, ...]:
-        return tuple(dict.fromkeys([*relighter.needed_encodings(), "face_mask"]))
-
     def source_request(self, body: Mapping[str, Any]) -> dict:
         """``POST /api/source``: every field checked, then :meth:`upload` or :meth:`record`, described."""
         kind = checks.choice(body, "kind", ("upload", "record"))
@@ -187,21 +185,25 @@ class Service:
             raise RequestError(f"image={name}: {len(data) / 2 ** 20:.0f} MiB is over the {MAX_UPLOAD_BYTES >> 20} MiB "
                                "upload limit; give a smaller photo")
         ckpt = self.allowed_checkpoint(checkpoint)
-        relighter = self.relighter(ckpt)
-        size = relighter.photo_size()
-        names = self._face_mask_reads(relighter)
-        sid = f"photo-{hashlib.sha1(data).hexdigest()[:16]}-{size}"
-        cached = self._sources.get(sid)
-        if cached is not None and (cached.reads, cached.checkpoint) == (names, ckpt):
-            return AppSource(**{**cached.__dict__, "preprocess_s": 0.0})
         with tempfile.TemporaryDirectory() as tmp, warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            path = Path(tmp) / name
+            path = Path(tmp) / name  # the CLI's reader checks a file: its suffix, its size, its frames
             path.write_bytes(data)
             rgb = read_photo(path, "image", name=name)
-        source = relighter.photo_source(rgb, size=size, what=f"image={name}", key=("app", sid), also=names)
         notes = tuple(str(w.message) for w in caught if issubclass(w.category, UserWarning))
-        self._sources[sid] = AppSource(sid, source, source.photo, source.photo.seconds, ckpt, names, notes)
+        return self.photo(name, rgb, ckpt, notes)
+
+    def photo(self, name: str, rgb: np.ndarray, checkpoint: str, notes: tuple[str, ...] = ()) -> AppSource:
+        """A decoded photo prepared once for ``checkpoint``'s model (cached by its pixels and crop size)."""
+        relighter = self.relighter(checkpoint)
+        size = relighter.photo_size()
+        sid = f"photo-{hashlib.sha1(np.ascontiguousarray(rgb).tobytes() + str(rgb.shape).encode()).hexdigest()[:16]}"
+        sid = f"{sid}-{size}"
+        cached = self._sources.get(sid)
+        if cached is not None and cached.checkpoint == checkpoint:
+            return AppSource(**{**cached.__dict__, "preprocess_s": 0.0})
+        source = relighter.photo_source(rgb, size=size, what=f"image={name}", key=("app", sid), also=["face_mask"])
+        self._sources[sid] = AppSource(sid, source, source.photo, source.photo.seconds, checkpoint, notes)
         return self._sources[sid]
 
     def record(self, rid: str, checkpoint: str | None = None) -> AppSource:
@@ -210,15 +212,11 @@ class Service:
         if not st.has(rid):
             raise RequestError(f"record={rid}: not in the store {st.root}; pick one of the listed records")
         ckpt = self.allowed_checkpoint(checkpoint)
-        relighter = self.relighter(ckpt)
         try:
-            src = relighter.source(st, rid)
+            src = self.relighter(ckpt).source(st, rid, also=["face_mask"])
         except KeyError as e:  # the store lacks an encoding this model reads
             raise RequestError(f"checkpoint={ckpt}: {e}") from None
-        arrays = dict(src.arrays)
-        if "face_mask" not in arrays and st.available("face_mask"):
-            arrays["face_mask"] = np.asarray(st.read(rid, ["face_mask"])["face_mask"])
-        out = AppSource(f"record-{rid}", relighter.source_from_arrays(arrays, src.what, key=src.key), None, 0.0, ckpt)
+        out = AppSource(f"record-{rid}", src, None, 0.0, ckpt)
         self._sources[out.id] = out
         return out
 
@@ -235,21 +233,20 @@ class Service:
         return out
 
     # ------------------------------------------------------------------ relighting
-    def target_light(self, arrays: Mapping[str, np.ndarray], light: Any) -> np.ndarray:
-        """The target light a request describes: ``{"kind": "direction", "direction": [x, y, z]}`` or
-        ``{"kind": "envmap", "name": ..., "rotation": degrees}``, every field checked (400 naming it)."""
+    def target(self, light: Any) -> Target:
+        """The target light a request describes: ``{"kind": "direction", "direction": [x, y, z]}`` or ``{"kind":
+        "envmap", "name": ..., "rotation": degrees}``, every field checked (400 naming it)."""
         if not isinstance(light, Mapping):
             raise RequestError(f"light={type(light).__name__} is invalid: must be an object {{\"kind\": \"direction\", "
                                "\"direction\": [x, y, z]} or {\"kind\": \"envmap\", \"name\": ..., \"rotation\": deg}")
         kind = checks.choice(light, "kind", ("direction", "envmap"), default="direction", where="light.")
-        own = np.asarray(arrays["light"], np.float64)
         if kind == "direction":
             checks.only(light, ("kind", "direction"), "light.")
-            return sh.light_toward(own, checks.direction(light.get("direction", [0.0, 0.0, 1.0])))
+            return Target(direction=checks.direction(light.get("direction", [0.0, 0.0, 1.0])))
         checks.only(light, ("kind", "name", "rotation"), "light.")
         name = checks.choice(light, "name", ENVMAPS, where="light.")
         rotation = checks.number(light, "rotation", -MAX_ROTATION, MAX_ROTATION, default=0.0, where="light.")
-        return sh.yaw(envmap_light(name, own), float(rotation))
+        return Target(envmap=name, yaw=float(rotation))
 
     def relight(self, request: Mapping[str, Any]) -> dict:
         """Relight a source (``request["id"]`` from :meth:`upload` / :meth:`record`) under the request's light and
@@ -267,25 +264,21 @@ class Service:
         if s is None:
             raise RequestError(f"source {sid[:80]!r} is unknown (the app restarted or forgot it: it keeps the last "
                                f"{self.max_sources}); upload the photo again")
-        light = self.target_light(s.source.arrays, request.get("light") or {})
+        light = self.target(request.get("light") or {})
         relighter = self.relighter(ckpt, sampler, steps)
         if ckpt != s.checkpoint:  # another model may read more
-            s = (self.upload_again(s, ckpt) if s.prepared is not None else self.record(s.id.removeprefix("record-"),
-                                                                                         ckpt))
-            light = self.target_light(s.source.arrays, request.get("light") or {})
-        arrays = s.source.arrays
-        c = encodings.denormalise_c(float(strength)) if strength is not None else encodings.shadow_logit(arrays)
-        own_c = encodings.shadow_logit(arrays)
+            s = (self.photo(s.source.what.removeprefix("image="), s.prepared.rgb, ckpt, s.notes)
+                 if s.prepared is not None else self.record(s.id.removeprefix("record-"), ckpt))
+        own_c = encodings.shadow_logit(s.source.arrays)
+        target = dataclasses.replace(light, shadow=own_c if strength is None else encodings.denormalise_c(strength))
+        own = Target(shadow=own_c)
         # The reconstruction (the source relit under its own light) joins the first decode's batch, then is cached.
         key = (id(relighter), s.id)
-        lights, cs = [light], [c]
-        if key not in self._errors:
-            lights, cs = [light, arrays["light"]], [c, own_c]
         with warnings.catch_warnings(record=True) as caught:  # e.g. "unstable at this step count": show it
             warnings.simplefilter("always")
-            relit = relighter.relight(s.source, Targets.of(lights, cs, s.source.what))  # inversion cached per source
+            relit = relight_targets(relighter, s.source, [target] if key in self._errors else [target, own])
         if key not in self._errors:
-            self._errors[key] = reconstruction_error(relit[1], arrays)
+            self._errors[key] = reconstruction_error(relit[1], s.source.arrays)
         out = {"crop": png_data_url(relit[0]), "what": s.source.what, "how": relighter.describe(),
                "error": self._errors[key],
                "warnings": list(dict.fromkeys(str(w.message) for w in caught
@@ -299,14 +292,6 @@ class Service:
         seconds["total"] = time.perf_counter() - t_all
         out["seconds"] = {k: round(v, 3) for k, v in seconds.items()}
         return out
-
-    def upload_again(self, s: AppSource, checkpoint: str | None) -> AppSource:
-        """The same photo prepared for another checkpoint (its encodings may differ)."""
-        import imageio.v3 as iio
-
-        data = iio.imwrite("<bytes>", s.prepared.rgb, extension=".png")
-        name = s.source.what.removeprefix("image=")
-        return self.upload(Path(name).with_suffix(".png").name, data, checkpoint)
 
     # ------------------------------------------------------------------ the page's examples and photo check
     def example(self, name: str, checkpoint: str | None = None) -> AppSource:

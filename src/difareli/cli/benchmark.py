@@ -12,13 +12,11 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from difareli import errors
-from difareli.evaluation import metrics
 from difareli.checkpoints import zoo
 from difareli.data import shard as sharding
 from difareli.evaluation.baselines import build_method
 from difareli.lighting.light_fit import light_fit_from_config
-from difareli.evaluation.benchmark import DEFAULT_MASK, BenchmarkResult, check_score_mask, run_benchmark
-from difareli.render.sun_fit import TARGET_SUNS
+from difareli.evaluation.benchmark import DEFAULT_MASK, BenchmarkResult, Scoring, run_benchmark
 from difareli.evaluation.rescore import rescore
 from difareli.cli import common
 from difareli.lit import logging as lit_logging
@@ -32,10 +30,12 @@ SHARD_JOB_KEYS = ("store", "method", "sampler", "protocols", "limit", "oracle_li
 def run(cfg: DictConfig) -> BenchmarkResult:
     """Benchmark the configured method; prints and returns the summary."""
     validate(cfg)
-    rule = metric_rule(cfg)
+    store = EncodingStore.open(cfg.store).use_versions(cfg.get("versions"))
+    # The rule, the score mask and the target sun, checked once, before the method (and its checkpoint) is built.
+    scoring = Scoring.of(store, OmegaConf.select(cfg, "metrics.rule", default=None), cfg.get("score_mask"),
+                         cfg.get("target_sun", "shadows"))
     if cfg.get("rescore"):  # the saved relit images of a finished run, scored again under `rule`
-        store = EncodingStore.open(cfg.store).use_versions(cfg.get("versions"))
-        result = rescore(store, cfg.rescore, cfg.out_dir, rule, score_mask=cfg.get("score_mask"),
+        result = rescore(store, cfg.rescore, cfg.out_dir, scoring.rule, score_mask=scoring.score_mask,
                          estimator=light_fit_from_config(OmegaConf.to_container(cfg.light_fit, resolve=True)))
         print(result.paths["summary_md"].read_text())
         return result
@@ -45,8 +45,6 @@ def run(cfg: DictConfig) -> BenchmarkResult:
         raise errors.UserError(f"shard={cfg.get('shard')!r}: {e}") from None
     if cfg.num_threads:
         torch.set_num_threads(int(cfg.num_threads))
-    store = EncodingStore.open(cfg.store).use_versions(cfg.get("versions"))
-    check_score_mask(store, cfg.get("score_mask"))  # before the method (and its checkpoint) is built
     estimator = light_fit_from_config(OmegaConf.to_container(cfg.light_fit, resolve=True))
     method = build_method(OmegaConf.to_container(cfg.method, resolve=True),
                           sampler=OmegaConf.to_container(cfg.sampler, resolve=True),
@@ -62,7 +60,7 @@ def run(cfg: DictConfig) -> BenchmarkResult:
                            oracle_light=bool(cfg.oracle_light), oracle_shadow=bool(cfg.get("oracle_shadow", False)),
                            estimator=estimator, grid_pairs=int(cfg.grid_pairs),
                            save_images=bool(cfg.save_images), progress=bool(cfg.progress), shard=spec,
-                           rule=rule, score_mask=cfg.get("score_mask"), target_sun=cfg.get("target_sun", "shadows"))
+                           scoring=scoring)
     if spec is not None:  # what difareli-table checks before merging shards: same job, every shard once
         job = {k: OmegaConf.to_container(cfg[k], resolve=True) if OmegaConf.is_config(cfg[k]) else cfg[k]
                for k in SHARD_JOB_KEYS if k in cfg}
@@ -76,22 +74,12 @@ def run(cfg: DictConfig) -> BenchmarkResult:
     return result
 
 
-def metric_rule(cfg: DictConfig) -> str:
-    """``cfg.metrics.rule`` (absent: the default, ``paper``), checked."""
-    rule = OmegaConf.select(cfg, "metrics.rule", default=None)
-    try:
-        return metrics.check_rule(rule)
-    except ValueError as e:
-        raise errors.UserError(f"metrics.rule={rule!r}: {e}") from None
-
-
 def validate(cfg: DictConfig) -> None:
     """Config values, checked before any work: a bad value is a UserError naming the key."""
     errors.check_int(cfg.limit, "limit", 1, allow_none=True)
     errors.check_int(cfg.grid_pairs, "grid_pairs", 0)
     errors.check_int(cfg.num_threads, "num_threads", 1, allow_none=True)
     errors.check_out_dir(cfg.out_dir)
-    errors.check_choice(cfg.get("target_sun", "shadows"), "target_sun", TARGET_SUNS)
     if "checkpoint" in cfg.method:  # a trained model (the diffusion method): its sampler, runtime and file
         common.check_relighting(cfg)
         zoo.resolve(cfg.method.get("checkpoint") or "", "method.checkpoint")

@@ -17,7 +17,7 @@ from difareli import errors
 from difareli.cli import common
 from difareli.relight import batch
 from difareli.relight.relighter import Relighter
-from difareli.relight.request import Answer, Request
+from difareli.relight.request import Answer, Request, answer
 from difareli.utils import viz
 
 
@@ -26,8 +26,7 @@ def run(cfg: DictConfig) -> dict[str, Path]:
     request = Request.from_config(cfg)  # every value of the request checked, before any work
     relighter = Relighter(request.checkpoint, request.sampler, runtime=request.runtime,
                           mean_matching=request.mean_matching, batch_size=request.batch_size, progress=request.progress)
-    answer = relighter.answer(request, say=say)
-    return write(answer, request)
+    return write(answer(relighter, request, say), request)
 
 
 def say(line: str) -> None:

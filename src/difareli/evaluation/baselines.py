@@ -162,7 +162,8 @@ class DiffusionMethod:
         check_store_fits(self.relighter.config, store, self.relighter.checkpoint)
 
     def relight(self, source, target_light, target_shadow=None, target=None, target_sun=None) -> np.ndarray:
-        record = self.relighter.source(source.store, source.id)  # what this model reads of it, checked
+        # What this model reads of it, from the face as the benchmark read and checked it (no second read).
+        record = self.relighter.source(source.store, source.id, read=source.read)
         return self.relighter.relight(record, Targets.of([target_light], [target_shadow], record.what,
                                                          suns=[target_sun]))[0]
 

@@ -82,6 +82,23 @@ def check_score_mask(store: EncodingStore, key: str | None) -> str:
     return key
 
 
+@dataclass(frozen=True)
+class Scoring:
+    """How a run scores its pairs, checked once at the door (:meth:`of`): the metric ``rule``, the ``score_mask``,
+    and ``target_sun``, where a fitted target light's cast-shadow maps are marched."""
+
+    rule: str
+    score_mask: str
+    target_sun: str = "shadows"
+
+    @classmethod
+    def of(cls, store: EncodingStore, rule: str | None = None, score_mask: str | None = None,
+           target_sun: str = "shadows") -> "Scoring":
+        """Each value checked, named as the benchmark's config spells it (None: the defaults)."""
+        return cls(errors.check_choice(metrics.DEFAULT_RULE if rule is None else rule, "metrics.rule", metrics.RULES),
+                   check_score_mask(store, score_mask), errors.check_choice(target_sun, "target_sun", TARGET_SUNS))
+
+
 def _scored_so_far(out_dir: Path, method: str, rule: str) -> dict[tuple[str, str], tables.Record]:
     """Rows of an interrupted run of ``method`` under ``rule`` in ``out_dir`` by (protocol, pair id); a cut last
     row is dropped."""
@@ -159,11 +176,12 @@ def run_benchmark(store: EncodingStore, method: Method, protocols: Sequence[str]
                   estimator: LightFit | None = None,
                   grid_pairs: int = 4, save_images: bool = True, progress: bool = True,
                   shard: str | None = None, rule: str | None = None, score_mask: str | None = None,
-                  target_sun: str = "shadows") -> BenchmarkResult:
+                  target_sun: str = "shadows", scoring: Scoring | None = None) -> BenchmarkResult:
     """Relight and score every pair of ``protocols`` under the metric ``rule`` (None: ``paper``) on the target's
     ``score_mask`` (None: ``face_mask``); write the run's outputs into ``out_dir``. ``target_sun``: where a
     fitted target light's cast-shadow maps are marched, ``shadows`` (its key sun found from the light-source
-    image's cast shadows: ``render.sun_fit``) or ``peak`` (the fitted SH's radiance peak).
+    image's cast shadows: ``render.sun_fit``) or ``peak`` (the fitted SH's radiance peak). ``scoring``: the three
+    checked by the caller's door (:meth:`Scoring.of`), in place of them.
 
     ``shard="i/n"`` scores only that shard's pairs (by pair id, after ``limit``): the n shards' per-image
     CSVs together hold exactly the unsharded run's rows (``difareli-table`` merges them).
@@ -172,12 +190,11 @@ def run_benchmark(store: EncodingStore, method: Method, protocols: Sequence[str]
     model's weights, sampler and precision, the store, protocols, limit, oracles, rule, score mask, shard): a
     resumed run with other settings is refused, naming what differs, instead of keeping another checkpoint's rows."""
     out_dir = Path(out_dir)
-    rule = metrics.check_rule(rule)
-    score_mask = check_score_mask(store, score_mask)
+    scoring = scoring or Scoring.of(store, rule, score_mask, target_sun)
+    rule, score_mask, target_sun = scoring.rule, scoring.score_mask, scoring.target_sun
     if hasattr(method, "check_store"):  # a model that cannot read the store: one line, not a failed row per pair
         method.check_store(store)
     with folder_lock(out_dir, "benchmark"), on_full_disk(out_dir, scratch=[out_dir], fix=RESUME):
-        target_sun = errors.check_choice(target_sun, "target_sun", TARGET_SUNS)
         settings = run_settings(store, method, protocols, limit=limit, oracle_light=oracle_light,
                                 oracle_shadow=oracle_shadow, rule=rule, shard=shard, score_mask=score_mask,
                                 target_sun=target_sun)
@@ -202,10 +219,9 @@ def finished_run(store: EncodingStore, method: Method, protocols: Sequence[str],
     out_dir = Path(out_dir)
     if not (out_dir / tables.PER_IMAGE_CSV).is_file() or (out_dir / PARTIAL_CSV).is_file():
         return None
-    want = run_settings(store, method, protocols, limit=limit, oracle_light=oracle_light,
-                        oracle_shadow=oracle_shadow, rule=metrics.check_rule(rule), shard=None,
-                        score_mask=check_score_mask(store, score_mask),
-                        target_sun=errors.check_choice(target_sun, "target_sun", TARGET_SUNS))
+    scoring = Scoring.of(store, rule, score_mask, target_sun)
+    want = run_settings(store, method, protocols, limit=limit, oracle_light=oracle_light, oracle_shadow=oracle_shadow,
+                        rule=scoring.rule, shard=None, score_mask=scoring.score_mask, target_sun=scoring.target_sun)
     if provenance.differences(_recorded(out_dir), provenance.plain(want)):
         return None
     try:
@@ -284,15 +300,16 @@ def _run(run: _Run, result: BenchmarkResult, protocols: Sequence[str], *, limit:
             png = out_dir / "relit" / proto / f"{pair.id}.png"
             want_grid = len(grid_rows) < grid_pairs
             prev = done.get((short, pair.id))
+            source, target = StoredFace(store, pair.source), StoredFace(store, pair.target)  # each read once
             if prev is not None and (not want_grid or prev.status != "ok" or png.is_file()):
                 # scored before the run was killed: not redone
                 rec, relit = prev, _read_png(png) if want_grid and prev.status == "ok" else None
             else:
-                rec, relit = _relight_and_score(run, pair, light, shadow, scorer)
+                rec, relit = _relight_and_score(run, pair, source, target, light, shadow, scorer)
                 _keep(run, rec, relit, png)
             result.records.append(rec)
-            if want_grid and relit is not None:
-                grid_rows.append(_grid_row(store, pair, relit))
+            if want_grid and relit is not None:  # input | light source | relit | ground truth
+                grid_rows.append([source.image, StoredFace(store, pair.light_source).image, relit, target.image])
         result.metric_stats[short] = {k: m.stat() for k, m in scorer.items()}
         if grid_rows:
             result.paths[f"comparison_{proto}"] = viz.save_png(viz.grid(grid_rows), out_dir / f"comparison_{proto}.png")
@@ -332,10 +349,11 @@ def _start(store: EncodingStore, method: Method, out_dir: Path, *, oracle_light:
     return run, result
 
 
-def _relight_and_score(run: _Run, pair: Pair, light: np.ndarray, shadow: float | None,
-                       scorer) -> tuple[tables.Record, np.ndarray | None]:
-    """One pair relit by the method and scored: its row and relit image, or (a bad pair) its failed row and None."""
-    source, target = StoredFace(run.store, pair.source), StoredFace(run.store, pair.target)
+def _relight_and_score(run: _Run, pair: Pair, source: StoredFace, target: StoredFace, light: np.ndarray,
+                       shadow: float | None, scorer) -> tuple[tables.Record, np.ndarray | None]:
+    """One pair relit by the method and scored: its row and relit image, or (a bad pair) its failed row and None.
+    The source is read whole and checked here, once: the method takes its encodings from it; the target light and
+    shadow are checked by the method's relight (a model's ``Targets``)."""
     name, short = run.method.name, PROTOCOLS[pair.protocol]
     gt = target.read(["image", run.score_mask])
     start = time.perf_counter()
@@ -344,8 +362,6 @@ def _relight_and_score(run: _Run, pair: Pair, light: np.ndarray, shadow: float |
     # to score, a method's wrong output) hold for every pair: they stop the run with their message.
     try:
         errors.check_record(source.read(), pair.source, run.store.root)
-        errors.check_light(light, f"target light of pair {pair.id}")
-        errors.check_number(shadow, f"target shadow of pair {pair.id}")
         relit = errors.check_output(run.method.relight(source, light, shadow, target=target,
                                                        target_sun=run.lights.sun(pair)),
                                     f"{name} relight of pair {pair.id}")
@@ -369,12 +385,6 @@ def _keep(run: _Run, rec: tables.Record, relit: np.ndarray | None, png: Path) ->
     if relit is not None and run.save_images:
         viz.save_png(relit, png)
     _append_row(run.out_dir, rec, run.columns)  # after the image: a resumed run finds both
-
-
-def _grid_row(store: EncodingStore, pair: Pair, relit: np.ndarray) -> list[np.ndarray]:
-    """One line of ``comparison_<protocol>.png``: input | light source | relit | ground truth."""
-    return ([np.asarray(store.read(r, ["image"])["image"]) for r in (pair.source, pair.light_source)]
-            + [relit, np.asarray(store.read(pair.target, ["image"])["image"])])
 
 
 def write_outputs(result: BenchmarkResult, out_dir: Path, caption: str | None = None) -> dict[str, Path]:

@@ -32,7 +32,6 @@ is a measurement, not a model input.
 from __future__ import annotations
 
 import csv
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Mapping, Sequence
@@ -45,7 +44,6 @@ from difareli.lighting import sh
 from difareli.lighting.suns import Suns
 from difareli.data.encodings import known_normals
 from difareli.utils.fileio import atomic_path
-from difareli.utils.viz import write_rotation
 from difareli.utils.imageops import LUMA
 from difareli.evaluation.adherence import shadow_scores
 
@@ -183,28 +181,6 @@ def write_csv(report: VideoReport, path: str | Path, angles: np.ndarray | None =
             w.writerow([i, "" if angles is None else f"{angles[i]:.3f}",
                         *(f"{report.per_frame[c][i]:.6g}" for c in cols), *ch])
     return path
-
-
-@dataclass
-class RotationVideo:
-    """A relit light rotation: its frames, the files written and the seconds the relight took."""
-
-    frames: np.ndarray
-    paths: dict[str, Path]
-    seconds: float
-    relit: object = None  # the relighter's answer (a Relit: its ``composite()`` puts the frames into a photo)
-
-
-def rotation_video(relighter, source, targets, out_dir: str | Path, name: str, *, axis: str | None = None,
-                   fps: int = 20, fmt: str = "auto", zoom: int = 1, columns: int = 10) -> RotationVideo:
-    """Relight ``source`` under every frame's target (``relighter.relight``) and write the frames
-    (:func:`write_rotation`)."""
-    start = time.perf_counter()
-    relit = relighter.relight(source, targets)
-    frames = np.asarray(relit)
-    seconds = time.perf_counter() - start
-    paths = write_rotation(frames, out_dir, name, axis=axis, fps=fps, fmt=fmt, zoom=zoom, columns=columns)
-    return RotationVideo(frames, paths, seconds, relit)
 
 
 def plot_temporal(report: VideoReport, path: str | Path, title: str = "") -> Path:

@@ -22,15 +22,12 @@ from typing import Any
 
 import numpy as np
 
-from difareli.evaluation import tables
-from difareli.utils import viz
-from difareli.relight.relighter import Relighter
 from difareli.data.store import EncodingStore
-from difareli.data.encodings import shadow_logit
-from difareli.relight.targets import Targets, rotation_targets, target_lights
-from difareli.evaluation.video import rotation_video
-from difareli.relight.photo import preprocess_photo
+from difareli.evaluation import tables
 from difareli.jobs.compare import compare_to_baselines
+from difareli.relight.relighter import Relighter
+from difareli.relight.request import Rotation, Target, relight_targets, rotation_video
+from difareli.utils import viz
 from difareli.utils.fileio import write_text_atomic
 
 
@@ -97,12 +94,10 @@ def run_demo(checkpoint: Any, out_dir: str | Path, *, sampler: Mapping[str, Any]
         recs = by_subject[subject]
         src = max(recs, key=lambda r: directionality(lights[r]))
         tgt = max((r for r in recs if r != src), key=lambda r: np.abs(lights[r] - lights[src]).sum())
-        target = store.read(tgt, ["image", "light", "shadow"])
-        source = relighter.source(store, src)
-        found = relighter.key_sun(relighter.source(store, tgt))
-        relit = relighter.relight(source, Targets.of([target["light"]], [shadow_logit(target)], source.what,
-                                                     suns=[None if found is None else found.direction]))[0]
-        grid.append([source.arrays["image"], relit, np.asarray(target["image"])])
+        source, target = relighter.source(store, src), Target(record=tgt)
+        other = target.record_source(relighter, store)  # its light, c' and key sun: the light of its image
+        relit = relighter.relight(source, target.for_source(relighter, source, other)[0])[0]
+        grid.append([source.arrays["image"], relit, np.asarray(other.arrays["image"])])
         names.append(f"{src} -> {tgt}")  # the source record, the record whose light it takes
     res.paths["comparison"] = viz.save_png(
         viz.grid(_zoom(grid, 3), col_labels=["input", "relit", "ground truth"],
@@ -113,13 +108,10 @@ def run_demo(checkpoint: Any, out_dir: str | Path, *, sampler: Mapping[str, Any]
     #    re-rendered toward every frame's light (its key sun found from the input's cast shadows, turned with it).
     t0 = time.perf_counter()
     first = max(test, key=lambda r: directionality(lights[r]))
-    source = relighter.source(store, first)
-    found = relighter.key_sun(source)
-    targets, why = rotation_targets(source.arrays, "yaw", frames, store=store,
-                                    sun=None if found is None else found.direction)
-    res.notes.append(f"rotation video of {first}, shadow strength: {why}")
-    video = rotation_video(relighter, source, targets, out, "rotation_yaw", axis="yaw", fps=20, zoom=2, fmt="auto")
-    res.paths.update(video.paths)
+    video, notes = rotation_video(relighter, relighter.source(store, first), Rotation("yaw", frames), store)
+    res.notes.append(f"rotation video of {first}, shadow strength: {notes['shadow']}")
+    res.paths.update(viz.write_rotation(np.asarray(video), out, "rotation_yaw", axis="yaw", fps=20, zoom=2,
+                                        fmt="auto"))
     res.seconds["video"] = time.perf_counter() - t0
 
     # 3. A small benchmark: the checkpoint against identity and the Lambertian ratio image, fitted target lights.
@@ -146,11 +138,10 @@ def relight_photo(relighter: Relighter, path: Path, resolution: int) -> Path:
     """scikit-image's astronaut, preprocessed in memory and relit under yaw -60, -30, +30, +60 degrees."""
     from skimage import data
 
-    arrays = preprocess_photo(data.astronaut(), relighter.needed_encodings(), size=resolution)
-    source = relighter.source_from_arrays(arrays, "the astronaut photo", key=("photo", "astronaut"))
-    lights = [target_lights(arrays["light"], yaw=a) for a in (-60, -30, 30, 60)]
-    relit = relighter.relight(source, Targets.of(lights, what=source.what))
-    strip = viz.grid(_zoom([[arrays["image"], *relit]], 2),
+    source = relighter.photo_source(data.astronaut(), size=resolution, what="the astronaut photo",
+                                    key=("photo", "astronaut"))
+    relit = relight_targets(relighter, source, [Target(yaw=a) for a in (-60, -30, 30, 60)])
+    strip = viz.grid(_zoom([[source.arrays["image"], *relit]], 2),
                      col_labels=["input", "yaw -60°", "yaw -30°", "yaw +30°", "yaw +60°"])
     return viz.save_png(strip, path)
 

@@ -1,9 +1,12 @@
-"""Small procedural HDR environment maps for the app (equirectangular, ``docs/architecture.md``'s convention), so
-that "pick an HDR map and a rotation" works offline without shipping image files.
+"""Named target lights, defined once: the app's preset buttons and ``difareli-relight target.light=<name>`` /
+``target.envmap=<name>`` both light a face with them.
 
-Each map is projected to SH (``sh.project_envmap``) and scaled so that its ambient (band 0, mean over RGB) equals
-the source light's: the model sees light of the strength it was trained on, from the map's directions and
-colours. A rotation is a yaw of the projected light.
+:data:`DIRECTIONS`: five key-light directions (camera space, ``docs/architecture.md``: x to the image's right, y up,
+z toward the viewer); the source's own light is turned toward one (``sh.light_toward``: its ambient, colour and
+strength kept). :data:`ENVMAPS`: small procedural HDR environment maps (equirectangular, the same doc's
+convention), so that "pick an HDR map" works offline without shipping image files; each is projected to SH
+(``sh.project_envmap``) and scaled so that its ambient (band 0, mean over RGB) equals the source light's: the model
+sees light of the strength it was trained on, from the map's directions and colours.
 """
 
 from __future__ import annotations
@@ -15,6 +18,15 @@ import numpy as np
 from difareli.lighting import sh
 
 H, W = 32, 64
+
+#: name -> (direction [x, y, z], what it is). "left" is the image's left (the viewer's).
+DIRECTIONS: dict[str, tuple[tuple[float, float, float], str]] = {
+    "left": ((-1.0, 0.15, 0.45), "a key light from the image's left"),
+    "right": ((1.0, 0.15, 0.45), "a key light from the image's right"),
+    "top": ((0.0, 1.0, 0.35), "a light from above"),
+    "rim": ((0.0, 0.35, -1.0), "a back light behind the head (rim light): the face darkens"),
+    "front": ((0.0, 0.0, 1.0), "a light from the camera: flat"),
+}
 
 
 def _lobe(dirs: np.ndarray, towards, sharpness: float) -> np.ndarray:
@@ -58,3 +70,15 @@ def envmap_light(name: str, like: np.ndarray) -> np.ndarray:
     light = sh.project_envmap(envmap(name))
     scale = float(np.mean(np.asarray(like, np.float64)[0])) / float(np.mean(light[0]))
     return light * max(scale, 1e-3)
+
+
+#: Every named light: the directions, then the HDR maps.
+NAMES = (*DIRECTIONS, *ENVMAPS)
+
+
+def preset_light(name: str, like: np.ndarray) -> np.ndarray:
+    """The named light (:data:`NAMES`) for a face whose own light is ``like`` (9, 3): ``like`` turned toward a
+    direction, or an HDR map's light at its ambient."""
+    if name in DIRECTIONS:
+        return sh.light_toward(np.asarray(like, np.float64), DIRECTIONS[name][0])
+    return envmap_light(name, like)

@@ -191,6 +191,11 @@ def rotation_roll(deg) -> np.ndarray:
     return _axis_rotation(deg, 2)
 
 
+def rotation_pitch(deg) -> np.ndarray:
+    """Rotation about the x axis that takes +z toward +y: a positive pitch raises a frontal light."""
+    return _axis_rotation(-_f64(deg), 0)
+
+
 #: The axes a light rotation video turns about (``rotation_yaw``, ``rotation_roll``).
 AXES = ("yaw", "roll")
 
@@ -214,6 +219,11 @@ def yaw(light, deg):
 def roll(light, deg):
     """``light`` rotated by ``rotation_roll(deg)``; a sequence of angles gives ``(N, 9, 3)``."""
     return rotate(light, rotation_roll(deg))
+
+
+def pitch(light, deg):
+    """``light`` rotated by ``rotation_pitch(deg)``."""
+    return rotate(light, rotation_pitch(deg))
 
 
 # Rec. 709 luminance would tilt the direction toward green light; the plain RGB mean treats channels alike.

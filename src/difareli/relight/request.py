@@ -1,52 +1,59 @@
-"""A relight request as a user states it, and the relighter's answer to it.
+"""A relight request as a user states it, and its answer: the third layer of the relight spine, above the relighter.
 
-:class:`Request` says where the source is (a store record, or a photo preprocessed in memory), the target (one of a
-light file, another record's light, the source's own light turned by a yaw or a roll, an environment map; its
-shadow strength and where its shadow map is marched), a rotation video of the source's light, how a photo's
-relights go back into it, and where and how the answer is written (the output folder, the video's frame rate and
-format), and how it is relit (the checkpoint, the sampler by its spec, the runtime: what
-a :class:`~difareli.relight.relighter.Relighter` is built with). :meth:`Request.from_config` takes it from a
-command's config (``conf/relight.yaml``) and checks it, each value once, before any work. :func:`answer` (the
-relighter's door :meth:`~difareli.relight.relighter.Relighter.answer`) reads the source once, builds the targets,
-relights, composites, and returns an :class:`Answer` that a command only writes out; a batch of photos is answered
-photo by photo into the request's ``out_dir`` (:mod:`difareli.relight.batch`), its answer the counts.
+:class:`Request` says where the source is (a store record, or a photo preprocessed in memory), the target
+(:class:`Target`: a light file or a named light, another record's light, the source's own light turned by a yaw,
+roll or pitch or toward a direction, an environment map by file or by name; its shadow strength and where its
+shadow map is marched), a rotation video of the source's light (:class:`Rotation`, whose frames may carry an
+oracle's shadow strengths and maps), how a photo's relights go back into it, where and how the answer is written,
+and how it is relit (the checkpoint, the sampler by its spec, the runtime: what a
+:class:`~difareli.relight.relighter.Relighter` is built with). :meth:`Request.from_config` takes it from a
+command's config (``conf/relight.yaml``) and checks it, each value once, before any work. :func:`answer` reads the
+source once through the relighter, builds the targets, relights, composites, and returns an :class:`Answer` that a
+command only writes out; a batch of photos is answered photo by photo into the request's ``out_dir``
+(:mod:`difareli.relight.batch`), its answer the counts. The app, ``difareli-video`` and the demo relight through
+:class:`Target`, :class:`Rotation` and :func:`rotation_video` too.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import Any
 
 import numpy as np
 
 from difareli import errors
+from difareli.data.store import EncodingStore
 from difareli.diffusion.spec import SamplerSpec
 from difareli.lighting import sh
 from difareli.relight import photo
 from difareli.relight.batch import photo_paths, relight_photos
 from difareli.relight.composite import MODES, part_mask
-from difareli.relight.targets import Targets, rotation_targets, target_lights
+from difareli.relight.relighter import Relighter
+from difareli.relight.relit import Relit
+from difareli.relight.sources import Source
+from difareli.relight.targets import TARGET_KEYS, TURNS, Targets, is_named, load_envmap, rotation_targets, \
+    target_lights
 from difareli.render import sun_fit
 from difareli.render.sun_fit import TARGET_SUNS
 from difareli.runtime.core import Runtime
 from difareli.utils import viz
-from difareli.data.store import EncodingStore
-
-#: The keys that give a target; exactly one of them (or a video alone).
-TARGET_KEYS = ("light", "record", "yaw", "roll", "envmap")
 
 
 @dataclass(frozen=True)
 class Target:
-    """The target of a request: exactly one of ``TARGET_KEYS`` (none: only a video), its shadow strength c'
-    (None: the other record's, else the source's own) and where its map is marched (``sun_fit.TARGET_SUNS``)."""
+    """The target of a request: at most one of ``TARGET_KEYS`` (an environment map may take a ``yaw`` too; none:
+    the source's own light), its shadow strength c' (None: the other record's, else the source's own) and where its
+    map is marched (``sun_fit.TARGET_SUNS``)."""
 
     light: str | None = None
     record: str | None = None
     yaw: float | None = None
     roll: float | None = None
+    pitch: float | None = None
     envmap: str | None = None
+    direction: tuple[float, float, float] | None = None
     shadow: float | None = None
     sun: str = "shadows"
 
@@ -54,33 +61,105 @@ class Target:
     def given(self) -> bool:
         return any(getattr(self, k) is not None for k in TARGET_KEYS)
 
-    def record_source(self, relighter, store):
+    def record_source(self, relighter: Relighter, store: EncodingStore | None) -> Source | None:
         """The target record read once, as the relighter reads a source (its light, shadow strength, image and
         what its key sun's fit reads); None for a target without a record."""
         return None if self.record is None else relighter.source(store, self.record)
 
-    def for_source(self, relighter, source, other=None) -> tuple[Targets, Any]:
-        """This target for ``source`` (a :class:`~difareli.relight.relighter.Source`; ``other``: the target
-        record's, :meth:`record_source`) and the key sun its map is marched toward: found by
-        ``relighter.key_sun`` from the cast shadows of the image whose light it is (the other record's; the
-        source's own, turned with a yaw or a roll), None for ``sun=peak``, a light file or an environment map
-        (the light's radiance peak)."""
+    def turns_own(self) -> bool:
+        """Whether this target is the source's own light turned (a yaw, roll or pitch of it)."""
+        return self.envmap is None and any(getattr(self, k) is not None for k in TURNS)
+
+    def for_source(self, relighter: Relighter, source: Source, other: Source | None = None
+                   ) -> tuple[Targets, Any]:
+        """This target for ``source`` (``other``: the target record's, :meth:`record_source`) and the key sun its
+        map is marched toward: found by ``relighter.key_sun`` from the cast shadows of the image whose light it is
+        (the other record's; the source's own, turned with a yaw, roll or pitch), None for ``sun=peak``, a light
+        file, a named light, a direction or an environment map (the light's radiance peak)."""
         if (self.record is None) != (other is None):
             raise ValueError(f"target.record={self.record}: pass its source (Target.record_source), and only then")
         o = {} if other is None else other.arrays
-        finds = self.sun == "shadows" and (other is not None or self.yaw is not None or self.roll is not None)
+        finds = self.sun == "shadows" and (other is not None or self.turns_own())
         found = relighter.key_sun(source if other is None else other) if finds else None
-        light = target_lights(source.arrays["light"], light=self.light, other_light=o.get("light"),
-                              yaw=self.yaw, roll=self.roll, envmap=self.envmap)
+        light = target_lights(source.arrays["light"], light=self.light, other_light=o.get("light"), yaw=self.yaw,
+                              roll=self.roll, pitch=self.pitch, envmap=self.envmap, direction=self.direction)
         shadow = self.shadow if self.shadow is not None else (float(o["shadow"][0]) if "shadow" in o else None)
         sun = None if found is None else self.turn() @ found.direction
         return Targets.of([light], [shadow], "the target", suns=[sun]), found
 
     def turn(self) -> np.ndarray:
         """The rotation this target applies to the source's light (and so to its key sun); identity otherwise."""
-        if self.yaw is not None:
-            return sh.rotation_yaw(self.yaw)
-        return sh.rotation_roll(self.roll) if self.roll is not None else np.eye(3)
+        k = next((k for k in TURNS if getattr(self, k) is not None), None)
+        return np.eye(3) if k is None or not self.turns_own() else TURNS[k](getattr(self, k))
+
+
+def relight_targets(relighter: Relighter, source: Source, targets: Sequence[Target]) -> Relit:
+    """``source`` relit under several targets of its own (e.g. the app's target and its reconstruction, the source's
+    own light), in one decode batch: each :meth:`Target.for_source` (none takes another record)."""
+    made = [t.for_source(relighter, source)[0] for t in targets]
+    suns = [s for m in made for s in (m.suns or (None,) * len(m))]
+    return relighter.relight(source, Targets.of([m.lights[0] for m in made], [m.shadows[0] for m in made],
+                                                source.what, suns=suns))
+
+
+@dataclass(frozen=True)
+class Rotation:
+    """A 360-degree rotation video's target: the source's own light (or the environment map ``envmap``'s light,
+    a file) turned about ``axis`` in ``frames`` frames, with a given shadow strength ``shadow`` (None: the policy of
+    :func:`~difareli.relight.targets.rotation_targets`, from ``split``), the key sun found from the source's
+    cast shadows turned with it (``sun=shadows``) or each frame's radiance peak (``peak``); ``shadows`` and
+    ``maps``: each frame's c' and target map given (an oracle's: the ground truth's) instead."""
+
+    axis: str = "yaw"
+    frames: int = 60
+    envmap: str | None = None
+    shadow: float | None = None
+    sun: str = "shadows"
+    split: str = "train"
+    shadows: tuple[float, ...] | None = None
+    maps: np.ndarray | None = None
+
+    def light(self) -> np.ndarray | None:
+        """The environment map's SH light (checked), or None: the source's own light turns."""
+        if self.envmap is None:
+            return None
+        return errors.check_light(sh.project_envmap(load_envmap(self.envmap)), f"the SH projection of {self.envmap}")
+
+    def lights(self, source: Source) -> np.ndarray:
+        """Each frame's light (N, 9, 3)."""
+        light = self.light()
+        return sh.rotate(source.arrays["light"] if light is None else light, sh.rotation_frames(self.axis,
+                                                                                                  self.frames)[1])
+
+    def for_source(self, relighter: Relighter, source: Source, store: EncodingStore | None = None
+                   ) -> tuple[Targets, dict[str, str | None]]:
+        """The frames' targets for ``source``, and notes saying where their shadow strength came from
+        (``shadow``) and where their maps are marched (``maps``: None where none is marched)."""
+        light = self.light()
+        marched = self.maps is None and "shadow_map" in relighter.model_inputs
+        found = relighter.key_sun(source) if self.sun == "shadows" and light is None and marched else None
+        targets, why = rotation_targets(source.arrays, self.axis, self.frames, store=store, given=self.shadow,
+                                        sun=None if found is None else found.direction, light=light,
+                                        shadows=self.shadows, maps=self.maps, split=self.split)
+        return targets, {"shadow": why, "maps": sun_fit.describe(found) if marched else None}
+
+
+def rotation_video(relighter: Relighter, source: Source, rotation: Rotation, store: EncodingStore | None = None,
+                   tell: Callable[[str], None] = lambda line: None) -> tuple[Relit, dict[str, str | None]]:
+    """The one rotation-video path: ``source`` relit under every frame of ``rotation`` (each line told as it
+    arises), with :meth:`Rotation.for_source`'s notes; the frames are written by
+    :func:`difareli.utils.viz.write_rotation`."""
+    targets, notes = rotation.for_source(relighter, source, store)
+    tell(f"video shadow strength: {notes['shadow']}")
+    if notes["maps"] is not None:
+        tell(f"video shadow maps: {notes['maps']}, turned with the light")
+    quarter = len(targets) // 4
+    tell(f"video: frame 0 light {photo.describe_light(targets.lights[0])}"
+         + (f"; frame {quarter}: {photo.describe_light(targets.lights[quarter])}" if quarter else ""))
+    video = relighter.relight(source, targets)
+    n, seconds = len(video), sum(video.seconds.values())
+    tell(f"{n} frames in {seconds:.1f} s ({seconds / n:.2f} s/frame, {relighter.describe()})")
+    return video, notes
 
 
 @dataclass(frozen=True)
@@ -118,7 +197,7 @@ class Request:
         """The request of a relight command's config, checked before any work, each value once: one source (a
         folder or glob of photos, or ``face=all|<index>``: a batch under one target light), a store that opens and
         holds the records named, a target or a video, a target record only with a store, the photos' compositing,
-        the target's sun, numbers and files, the video's frame count; how it is relit (the sampler whole by its
+        the target (:func:`check_target`), the video's frame count; how it is relit (the sampler whole by its
         spec, the runtime, the batch size); where the answer goes (the output folder, the video's frame rate and
         format). The checkpoint is read by the relighter, the first work."""
         t, c, v, image = cfg["target"], cfg["composite"], cfg["video"], cfg["image"]
@@ -127,49 +206,64 @@ class Request:
                                    f"image=<photo>; got store={cfg['store']} image={image}")
         if t["record"] is not None and cfg["store"] is None:
             raise errors.UserError(f"target.record={t['record']} names a store record: give store= too")
-        if all(t[k] is None for k in TARGET_KEYS) and v["axis"] is None:
-            raise errors.UserError("nothing to do: give a target (target.light|record|yaw|roll|envmap) or "
-                                   "video.axis=yaw|roll")
-        versions = cfg.get("versions")
-        versions = None if versions is None else dict(versions)
+        versions = None if cfg.get("versions") is None else dict(cfg["versions"])
         if cfg["store"] is not None:
             check_store(cfg["store"], versions, record=cfg["record"], target_record=t["record"])
-        photos = None
-        if image is not None:
-            photos = photo_paths(image)  # a folder or a glob; None for one photo
-            if photos is None and str(cfg["face"]).lower() != "largest":
-                photos = [Path(str(image))]  # several faces of one photo
-            if photos is not None and (v["axis"] is not None or t["record"] is not None):
-                raise errors.UserError(f"image={image} face={cfg['face']}: a folder or several faces take a target "
-                                       "light (target.light|yaw|roll|envmap), not video.axis or target.record")
-            check_composite(c)
-        sampler = None if cfg["sampler"] is None else SamplerSpec.from_config(cfg["sampler"])
-        runtime = Runtime.from_config(cfg["runtime"])
+        target = check_target(t)
+        if not target.given and v["axis"] is None:
+            raise errors.UserError("nothing to do: give a target (target.light|record|yaw|roll|pitch|envmap) or "
+                                   "video.axis=yaw|roll")
+        photos = None if image is None else check_photos(image, cfg["face"], v["axis"], t["record"], c)
         fmt = viz.video_format(v["format"], "video.format")
         errors.check_int(cfg["batch_size"], "batch_size", 1)
         errors.check_out_dir(cfg["out_dir"])
-        errors.check_choice(t["sun"], "target.sun", TARGET_SUNS)
         errors.check_int(v["frames"], "video.frames", 1, maximum=MAX_FRAMES)
         errors.check_int(v["fps"], "video.fps", 1)
-        for key in ("yaw", "roll", "shadow"):
-            errors.check_number(t[key], f"target.{key}")
-        for key in ("light", "envmap"):
-            if t[key] is not None:
-                errors.check_file(t[key], f"target.{key}")
-        return cls(store=cfg["store"], record=cfg["record"], versions=versions,
-                   image=image, photos=None if photos is None else tuple(photos), out_dir=str(cfg["out_dir"]),
-                   face=cfg["face"], photo_size=cfg["photo_size"], strict=bool(cfg["strict"]),
-                   target=Target(**{k: t[k] for k in (*TARGET_KEYS, "shadow", "sun")}),
-                   video_axis=v["axis"], video_frames=int(v["frames"]), video_fps=int(v["fps"]), video_format=fmt,
+        return cls(store=cfg["store"], record=cfg["record"], versions=versions, image=image, photos=photos,
+                   out_dir=str(cfg["out_dir"]), face=cfg["face"], photo_size=cfg["photo_size"],
+                   strict=errors.check_bool(cfg["strict"], "strict"), target=target, video_axis=v["axis"],
+                   video_frames=int(v["frames"]), video_fps=int(v["fps"]), video_format=fmt,
                    composite={"mode": c["mode"], "feather": float(c["feather"]),
                               "parts": list(c["parts"]) if c["parts"] else None},
-                   checkpoint=cfg["checkpoint"], sampler=sampler, runtime=runtime,
-                   mean_matching=bool(cfg["mean_matching"]), batch_size=int(cfg["batch_size"]),
-                   progress=bool(cfg["progress"]))
+                   checkpoint=cfg["checkpoint"],
+                   sampler=None if cfg["sampler"] is None else SamplerSpec.from_config(cfg["sampler"]),
+                   runtime=Runtime.from_config(cfg["runtime"]), mean_matching=bool(cfg["mean_matching"]),
+                   batch_size=int(cfg["batch_size"]), progress=bool(cfg["progress"]))
 
 
 #: The longest rotation video a command makes (60 s at 60 fps): anything longer is a typo, and would fill the disk.
 MAX_FRAMES = 3600
+
+
+def check_target(t: Mapping[str, Any]) -> Target:
+    """A config's ``target`` block as a :class:`Target`, each value checked: its sun, its numbers, a named light
+    or an existing file for ``light`` and ``envmap``, and one way to give the light."""
+    errors.check_choice(t["sun"], "target.sun", TARGET_SUNS)
+    for key in (*TURNS, "shadow"):
+        errors.check_number(t.get(key), f"target.{key}")
+    for key in ("light", "envmap"):
+        if t.get(key) is not None and not is_named(t[key]):
+            errors.check_file(t[key], f"target.{key}")
+    target = Target(**{k: t.get(k) for k in (*TARGET_KEYS[:-1], "shadow", "sun")})
+    given = [k for k in TARGET_KEYS if getattr(target, k) is not None]
+    if len(given) > 1 and set(given) != {"envmap", "yaw"}:
+        raise errors.UserError(f"{' and '.join(f'target.{k}' for k in given)}: give exactly one target (an envmap "
+                               "may take target.yaw, its rotation)")
+    return target
+
+
+def check_photos(image: str, face: Any, axis: str | None, record: str | None, composite: Mapping[str, Any]
+                 ) -> tuple[Path, ...] | None:
+    """The photos of ``image=`` (a folder or a glob; ``face=all|<index>``: several faces of one photo) as a batch,
+    None for one photo; a batch takes a target light, not a video or a target record; the compositing checked."""
+    photos = photo_paths(image)
+    if photos is None and str(face).lower() != "largest":
+        photos = [Path(str(image))]  # several faces of one photo
+    if photos is not None and (axis is not None or record is not None):
+        raise errors.UserError(f"image={image} face={face}: a folder or several faces take a target light "
+                               "(target.light|yaw|roll|pitch|envmap), not video.axis or target.record")
+    check_composite(composite)
+    return None if photos is None else tuple(photos)
 
 
 def check_store(root: str, versions: Mapping[str, Any] | None, **records: str | None):
@@ -203,11 +297,11 @@ class Answer:
     files are already written) and lines worth telling the user (``lines``; a source's warnings start with
     ``warning:``)."""
 
-    source: Any = None
-    relit: Any = None
+    source: Source | None = None
+    relit: Relit | None = None
     truth: np.ndarray | None = None
     whole: np.ndarray | None = None
-    video: Any = None
+    video: Relit | None = None
     whole_video: np.ndarray | None = None
     counts: dict[str, int] | None = None
     lines: list[str] = field(default_factory=list)
@@ -219,10 +313,11 @@ class Answer:
             self.say(line)
 
 
-def answer(relighter, request: Request, say: Callable[[str], None] | None = None) -> Answer:
+def answer(relighter: Relighter, request: Request, say: Callable[[str], None] | None = None) -> Answer:
     """``request`` answered by ``relighter`` (module doc): the source read and checked once, its target relit
-    (its map toward the key sun found from the cast shadows of the image whose light it is, turned with a yaw or
-    a roll), the video's frames relit, a photo's relights composited back; a batch of photos: :func:`answer_photos`."""
+    (its map toward the key sun found from the cast shadows of the image whose light it is, turned with a yaw,
+    roll or pitch), the video's frames relit, a photo's relights composited back; a batch of photos:
+    :func:`answer_photos`."""
     if request.photos is not None:
         return Answer(counts=answer_photos(relighter, request), say=say)
     store = None if request.store is None else EncodingStore.open(request.store).use_versions(request.versions)
@@ -231,13 +326,13 @@ def answer(relighter, request: Request, say: Callable[[str], None] | None = None
     out = Answer(source, say=say)
     for line in source.notes:
         out.tell(line)
-    t, maps, c = request.target, "shadow_map" in relighter.model_inputs, request.composite
+    t, c = request.target, request.composite
     if t.given:
         other = t.record_source(relighter, store)
         targets, found = t.for_source(relighter, source, other)
         out.relit = relighter.relight(source, targets)
         out.tell(f"target light 0: {photo.describe_light(targets.lights[0])}")
-        if maps:
+        if "shadow_map" in relighter.model_inputs:
             out.tell(f"target 0 shadow map: {sun_fit.describe(found)}")
         out.tell(f"relit {source.what} ({out.relit.describe_seconds()}; {relighter.describe()})")
         if other is not None and store.meta(t.record).get("subject") == store.meta(source.key[1]).get("subject"):
@@ -245,26 +340,16 @@ def answer(relighter, request: Request, say: Callable[[str], None] | None = None
         if source.photo is not None:  # the whole photo back
             out.whole = out.relit.composite(c["mode"], c["feather"], c["parts"])[0]
             out.tell(f"composited into the {out.whole.shape[1]}x{out.whole.shape[0]} photo in "
-                 f"{out.relit.seconds['composite']:.2f} s ({c['mode']})")
+                     f"{out.relit.seconds['composite']:.2f} s ({c['mode']})")
     if request.video_axis is not None:
-        found = relighter.key_sun(source) if t.sun == "shadows" else None
-        targets, why = rotation_targets(source.arrays, request.video_axis, request.video_frames, store=store,
-                                        given=t.shadow, sun=None if found is None else found.direction)
-        out.tell(f"video shadow strength: {why}")
-        if maps:
-            out.tell(f"video shadow maps: {sun_fit.describe(found)}, turned with the light")
-        quarter = len(targets) // 4
-        out.tell(f"video: frame 0 light {photo.describe_light(targets.lights[0])}"
-                 + (f"; frame {quarter}: {photo.describe_light(targets.lights[quarter])}" if quarter else ""))
-        out.video = relighter.relight(source, targets)
-        n, seconds = len(out.video), sum(out.video.seconds.values())
-        out.tell(f"{n} frames in {seconds:.1f} s ({seconds / n:.2f} s/frame, {relighter.describe()})")
+        rotation = Rotation(request.video_axis, request.video_frames, shadow=t.shadow, sun=t.sun)
+        out.video = rotation_video(relighter, source, rotation, store, out.tell)[0]
         if source.photo is not None:  # every frame back into the whole photo
             out.whole_video = out.video.composite(c["mode"], c["feather"], c["parts"])
     return out
 
 
-def answer_photos(relighter, request: Request) -> dict[str, int]:
+def answer_photos(relighter: Relighter, request: Request) -> dict[str, int]:
     """A batch request (``request.photos``: a folder, a glob, or several faces of one photo) answered by
     ``relighter`` under the request's one target: :func:`difareli.relight.batch.relight_photos` writes each photo's
     composite, relit crops and CSV row into ``request.out_dir`` as it goes (a rerun resumes; a progress bar where

@@ -15,7 +15,7 @@ from typing import Mapping
 import numpy as np
 
 from difareli.data import encodings
-from difareli.lighting import sh
+from difareli.lighting import presets, sh
 from difareli.render.retarget import retarget_many
 from difareli.errors import (TARGET_LIGHT_MAX_ABS, UserError, UserFileNotFoundError, check_finite, check_light,
                              check_number)
@@ -140,26 +140,48 @@ def load_envmap(path: str | Path) -> np.ndarray:
     return env[..., :3]
 
 
+#: The ways to give a target light: exactly one, or none (the source's own light); an environment map may take a
+#: yaw besides (its rotation).
+TARGET_KEYS = ("light", "record", "yaw", "roll", "pitch", "envmap", "direction")
+#: The keys that turn a light (the source's own, or an environment map's by a yaw).
+TURNS = {"yaw": sh.rotation_yaw, "roll": sh.rotation_roll, "pitch": sh.rotation_pitch}
+
+
+def is_named(value) -> bool:
+    """Whether a ``target.light`` / ``target.envmap`` value is a named light (:data:`lighting.presets.NAMES`), not
+    a file."""
+    return isinstance(value, str) and value in presets.NAMES
+
+
 def target_lights(source_light: np.ndarray, *, light: str | None = None, other_light: np.ndarray | None = None,
-                  yaw: float | None = None, roll: float | None = None, envmap: str | None = None) -> np.ndarray:
-    """Resolve exactly one target specification into a (9, 3) light. Its numbers are checked once, where they are
-    given (:meth:`~difareli.relight.request.Request.from_config`; a caller that checked nothing hears of a
+                  yaw: float | None = None, roll: float | None = None, pitch: float | None = None,
+                  envmap: str | None = None, direction=None) -> np.ndarray:
+    """One target as a (9, 3) light: a 9x3 SH file or a named light (``light``: :mod:`difareli.lighting.presets`),
+    another record's light, the source's own light turned by a yaw, roll or pitch (degrees) or toward a
+    ``direction``, or an environment map (an HDR file, SH-projected, or a named map at the source light's ambient;
+    turned by ``yaw`` when given); nothing given: the source's own light. Its numbers are checked once, where they
+    are given (:meth:`~difareli.relight.request.Request.from_config`; a caller that checked nothing hears of a
     non-finite angle from :mod:`difareli.lighting.sh`), and the light's bound once, by :meth:`Targets.of`."""
-    given = {k: v for k, v in dict(light=light, record=other_light, yaw=yaw, roll=roll, envmap=envmap).items()
-             if v is not None}
-    if len(given) != 1:
-        raise UserError(f"give exactly one target (target.light, target.record, target.yaw, target.roll, "
-                         f"target.envmap); got {sorted(given) or 'none'}")
-    if light is not None:
-        return load_sh_file(light)
+    given = {k for k, v in dict(light=light, record=other_light, yaw=yaw, roll=roll, pitch=pitch, envmap=envmap,
+                                direction=direction).items() if v is not None}
+    if len(given) > 1 and given != {"envmap", "yaw"}:
+        raise UserError(f"give exactly one target ({', '.join(f'target.{k}' for k in TARGET_KEYS[:-1])}; an "
+                        f"envmap may take target.yaw, its rotation); got {sorted(given)}")
     if other_light is not None:
         return np.asarray(other_light, np.float64)
+    if light is not None and not is_named(light):
+        return load_sh_file(light)
+    if envmap is not None and not is_named(envmap):
+        out = sh.project_envmap(load_envmap(envmap))
+        return out if yaw is None else sh.yaw(out, yaw)
     src = check_finite(np.asarray(source_light, np.float64), "the source record's light")
-    if yaw is not None:
-        return sh.yaw(src, yaw)
-    if roll is not None:
-        return sh.roll(src, roll)
-    return sh.project_envmap(load_envmap(envmap))
+    if light is not None or envmap is not None:
+        out = presets.preset_light(light or envmap, src)
+        return out if yaw is None else sh.yaw(out, yaw)
+    if direction is not None:
+        return sh.light_toward(src, direction)
+    turn = next(((TURNS[k], v) for k, v in dict(yaw=yaw, roll=roll, pitch=pitch).items() if v is not None), None)
+    return src if turn is None else sh.rotate(src, turn[0](turn[1]))
 
 
 def rotation_lights(source_light: np.ndarray, axis: str, frames: int = 60) -> np.ndarray:
@@ -168,22 +190,28 @@ def rotation_lights(source_light: np.ndarray, axis: str, frames: int = 60) -> np
 
 
 def rotation_targets(source: Mapping[str, np.ndarray], axis: str, frames: int, *, store=None,
-                     given: float | None = None, sun: np.ndarray | None = None) -> tuple[Targets, str]:
-    """The targets of a 360-degree rotation video of a source's own light, and a sentence saying where their
-    shadow strength c' came from: ``given``; else, for a store record, :func:`video_shadow` (the input's own c
-    when shadowed, else the training split's typical shadowed c); else the input's own c (a photo). ``sun``: the
-    source light's key sun (``render.sun_fit.key_sun``), turned with the light, toward which each frame's map is
-    marched (None: each frame's radiance peak)."""
-    own = encodings.shadow_logit(source)
-    if store is not None and own is not None:
-        c, why = video_shadow(store, own, given)
-    else:
-        c = given if given is not None else own
-        why = f"target c' = {c} ({'given' if given is not None else 'the input own c'})"
+                     given: float | None = None, sun: np.ndarray | None = None, light: np.ndarray | None = None,
+                     shadows=None, maps=None, split: str = "train") -> tuple[Targets, str]:
+    """The targets of a 360-degree rotation video about ``axis`` of a source's own light (or of ``light``, e.g. an
+    environment map's), and a sentence saying where their shadow strength c' came from: ``shadows``, one per frame
+    (an oracle's); ``given``; else, for a store record, :func:`video_shadow` (the input's own c when shadowed, else
+    ``split``'s typical shadowed c); else the input's own c (a photo). ``sun``: the source light's key sun
+    (``render.sun_fit.key_sun``), turned with the light, toward which each frame's map is marched (None: each
+    frame's radiance peak); ``maps``: each frame's target map given (an oracle's) instead of marched."""
     _, rots = sh.rotation_frames(axis, frames)
-    lights = sh.rotate(source["light"], rots)
+    if shadows is not None:
+        cs, why = list(shadows), "target c' per frame = the ground truth's exact c (oracle_shadow=true)"
+    else:
+        own = encodings.shadow_logit(source)
+        if store is not None and own is not None:
+            c, why = video_shadow(store, own, given, split)
+        else:
+            c = given if given is not None else own
+            why = f"target c' = {c} ({'given' if given is not None else 'the input own c'})"
+        cs = [c] * len(rots)
+    lights = sh.rotate(source["light"] if light is None else light, rots)
     suns = None if sun is None else list(rots @ np.asarray(sun, np.float64))
-    return Targets.of(lights, [c] * len(lights), f"rotation about {axis}", suns=suns), why
+    return Targets.of(lights, cs, f"rotation about {axis}", maps=maps, suns=suns), why
 
 
 # ------------------------------------------------------------------------------------------ target c policy
