@@ -1,0 +1,79 @@
+"""Real photos relit under their own light and every named light, without ground truth
+(difareli.evaluation.photo_presets): light error, identity, seam, blotch, face luminance against the Lambertian
+prediction, cast-shadow response and reconstruction error, per photo and target.
+
+    python scripts/photo_presets_bench.py --out logs/photo_presets --sheet docs/images/photo_presets_sheet.png
+    python scripts/photo_presets_bench.py --checkpoint difareli_pp_ss-synth64 --photos astronaut camera
+
+Writes under --out: photo_presets.md (the summary per target, the face luminance change and the cast-shadow
+response per photo, how it ran), photo_presets.csv (every photo and target) and photo_presets_sheet.png (each
+photo's face window, then its composite under each target); --sheet: a copy of the sheet there.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+from difareli import errors
+from difareli.evaluation import photo_path as pp
+from difareli.evaluation import photo_presets as pr
+from difareli.utils.fileio import write_text_atomic
+from difareli.utils.viz import grid, save_png
+
+
+def parse() -> argparse.Namespace:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--checkpoint", default=pp.DEFAULT_CHECKPOINT, help="a shipped name or a checkpoint path")
+    ap.add_argument("--photos", nargs="*", default=None, help="names from the fixed list (default: every one)")
+    ap.add_argument("--out", default="logs/photo_presets")
+    ap.add_argument("--sheet", default=None, help="also copy the contact sheet to this path")
+    ap.add_argument("--bounds", default=None, help="photo_path_pairs.csv of scripts/photo_path_bench.py: count the "
+                    "photos beyond the ground truth's own seam, blotch and luminance deviation (90th percentiles)")
+    return ap.parse_args()
+
+
+@errors.cli_entry("photo-presets-bench")
+def main() -> None:
+    args = parse()
+    names = [p.name for p in pr.PHOTOS]
+    unknown = [n for n in args.photos or [] if n not in names]
+    if unknown:
+        raise errors.UserError(f"--photos {' '.join(unknown)}: not in the fixed list; give some of {', '.join(names)}")
+    photos = [p for p in pr.PHOTOS if args.photos is None or p.name in args.photos]
+    out = errors.check_out_dir(args.out, "--out")
+    limits = None if args.bounds is None else pr.bounds(errors.check_file(args.bounds, "--bounds").read_text())
+    if args.sheet:
+        errors.check_out_dir(Path(args.sheet).parent, "--sheet's folder")
+    from difareli.relight.relighter import Relighter
+
+    start = time.perf_counter()
+    relighter = Relighter(args.checkpoint)
+    rows, cells = [], []
+    for n, photo in enumerate(photos, 1):
+        source, relit = pr.relight_photo(relighter, photo)
+        rows += pr.score_photo(source, relit)
+        comps = relit.composite(**pp.composite_settings())
+        cells.append([pr.face_window(source, source.photo.rgb), *(pr.face_window(source, c) for c in comps)])
+        print(f"[{n}/{len(photos)}] {photo.name}: relit under {len(comps)} targets ({relit.describe_seconds()})")
+    image = grid(cells, col_labels=["photo", *pr.TARGETS], row_labels=[p.name for p in photos])
+    out.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(out / "photo_presets.csv", pr.to_csv(rows))
+    save_png(image, out / "photo_presets_sheet.png")
+    listing = "\n".join(f"- {p.name}: {p.about}" for p in photos)
+    text = "\n".join([f"Named lights on {len(photos)} photos:", "", listing, "",
+                      pp.provenance(relighter, time.perf_counter() - start), "", pr.summary(rows),
+                      *([] if limits is None else [f"Beyond the ground truth's own (90th percentiles over the pairs "
+                                                   f"of {args.bounds}, protocol (i)):", "", pr.beyond(rows, limits)]),
+                      pr.matrix(rows, "lum_change"), pr.matrix(rows, "lum_dev"), pr.matrix(rows, "shadow_response")])
+    write_text_atomic(out / "photo_presets.md", text)
+    if args.sheet:
+        save_png(image, args.sheet)
+    print(text)
+    print(f"written: {out}/photo_presets.md, photo_presets.csv, photo_presets_sheet.png"
+          + (f"; {args.sheet}" if args.sheet else ""))
+
+
+if __name__ == "__main__":
+    main()
