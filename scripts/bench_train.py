@@ -15,6 +15,12 @@ configuration runs in a fresh subprocess so the peak memory (CPU resident set, o
     python scripts/bench_train.py --configs tiny:64:16:32-true tiny:64:16:bf16-mixed --steps 10
     python scripts/bench_train.py --variant mechanism/cn_ca         # any conf/model variant
     python scripts/bench_train.py --profile --configs tiny:64:16:bf16-mixed tiny:64:16:bf16-mixed:cl   # where time goes
+    python scripts/bench_train.py --configs tiny:64:16:bf16-mixed tiny:64:16:bf16-mixed:compile --rounds 3 \
+        --steps 20 --warmup 5      # the eager step and the compiled one side by side, interleaved, medians
+
+``--rounds R`` runs the configs in turn R times (a, b, a, b, ...), each in a fresh process, and ends with each
+config's median images/s and share of the matmul ceiling, and each config's speed-up over the first one: on a
+shared machine only such interleaved medians compare.
 """
 
 from __future__ import annotations
@@ -38,6 +44,7 @@ def main() -> None:
     p.add_argument("--steps", type=int, default=5)
     p.add_argument("--warmup", type=int, default=2)
     p.add_argument("--variant", default=DEFAULT_VARIANT, help="conf/model variant (e.g. difareli, mechanism/cn_ca)")
+    p.add_argument("--rounds", type=int, default=1, help="run the configs in turn this many times (interleaved)")
     p.add_argument("--json", help="also write the rows to this JSON file")
     p.add_argument("--profile", action="store_true", help="CPU: where each config's step time goes (torch.profiler "
                    "self time by category: convolution, GroupNorm/AdaGN, attention, MLPs, casts, optimizer, ...)")
@@ -58,7 +65,7 @@ def main() -> None:
             "achieved_GFLOPs", "peak_GFLOPs", "utilisation", "gemm_GFLOPs", "of_gemm", "gemm_of_peak", "peak_MiB"]
     print("| " + " | ".join(cols) + " |\n|" + "---|" * len(cols))
     rows = []
-    for c in configs:
+    for c in [c for _ in range(max(1, a.rounds)) for c in configs]:
         proc = subprocess.run([sys.executable, __file__, "--one", c, "--device", a.device, "--steps", str(a.steps),
                                "--warmup", str(a.warmup), "--variant", a.variant], capture_output=True, text=True)
         if proc.returncode != 0:
@@ -70,9 +77,26 @@ def main() -> None:
         print("| " + " | ".join(str(r[k]) for k in cols) + " |", flush=True)
     if rows:
         print(f"peak: {rows[0]['peak_source']}; threads: {rows[0]['threads']}")
+    if a.rounds > 1 and rows:
+        summary(rows)
     if a.json:
         with open(a.json, "w") as f:
             json.dump(rows, f, indent=1)
+
+
+def summary(rows: list[dict]) -> None:
+    """Each config's median images/s and share of the matmul ceiling over the rounds, and its speed-up over the
+    first config's median."""
+    import statistics
+
+    keys = list(dict.fromkeys((r["preset"], r["res"], r["batch"], r["precision"], r["opts"]) for r in rows))
+    med = {k: statistics.median(r["images_per_s"] for r in rows if (r["preset"], r["res"], r["batch"],
+                                                                     r["precision"], r["opts"]) == k) for k in keys}
+    print("\n| config | rounds | median images/s | median of_gemm | speed-up over the first |\n|---|---|---|---|---|")
+    for k in keys:
+        mine = [r for r in rows if (r["preset"], r["res"], r["batch"], r["precision"], r["opts"]) == k]
+        print(f"| {':'.join(map(str, k))} | {len(mine)} | {med[k]:.2f} | "
+              f"{statistics.median(r['of_gemm'] for r in mine):.3f} | {med[k] / med[keys[0]]:.2f}x |")
 
 
 def profile(configs: list[str], variant: str, steps: int, warmup: int) -> None:

@@ -22,6 +22,7 @@ same run folders).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 from collections import Counter
 from pathlib import Path
@@ -42,7 +43,11 @@ def main() -> None:
                     help="the command that made each store (default: read back from each store's header)")
     ap.add_argument("--pairs", type=int, default=100, help="pairs per protocol")
     ap.add_argument("--out", required=True, help="folder of the benchmark runs (resumed), one sub-folder per store")
-    ap.add_argument("--models", nargs="*", default=None, help="shipped names (default: all of them)")
+    ap.add_argument("--models", nargs="*", default=None,
+                    help="shipped names or label=<checkpoint path> (default: every shipped name)")
+    ap.add_argument("--pool", action="store_true",
+                    help="first a table of every store's pairs pooled (record ids prefixed with the store's name), "
+                         "then each store's own table: several fresh seeds judged together and one by one")
     ap.add_argument("--ship", action="store_true", help="also write src/difareli/checkpoints/suite.md")
     ap.add_argument("--note", default="", help="a paragraph after the tables (where and how it was measured)")
     ap.add_argument("--cards", action="store_true",
@@ -54,8 +59,12 @@ def main() -> None:
     # Read before the long work, so a store no header describes stops the run at once.
     store_cmd = a.store_cmd if a.store_cmd is not None else [synth_command(store) for store in a.store]
     claims: dict[str, list[str]] = {}
-    sections = [section(store, a.models or zoo.available(), a.pairs, out / Path(store).name, claims)
+    pooled: list[tables.Record] = []
+    sections = [section(store, a.models or zoo.available(), a.pairs, out / Path(store).name, claims,
+                        pooled if a.pool else None)
                 for store in a.store]
+    if a.pool:
+        sections.insert(0, pooled_section(a.store, pooled, out))
     command = f"python scripts/reference_suite.py --store {' '.join(a.store)} --pairs {a.pairs} --out <folder>"
     text = "\n".join([*sections, *([a.note, ""] if a.note else []), "Reproduce:", "", "```bash", *store_cmd, command,
                       "```", ""])
@@ -69,19 +78,26 @@ def main() -> None:
     print(f"{time.perf_counter() - start:.0f} s; {out / 'suite.md'}")
 
 
-def section(store: str, models: list[str], pairs: int, out: Path, claims: dict[str, list[str]] | None = None) -> str:
+def section(store: str, models: list[str], pairs: int, out: Path, claims: dict[str, list[str]] | None = None,
+            pooled: list[tables.Record] | None = None) -> str:
     """Every model (and identity, Lambertian, run once) on ``store``; the table and what it measured. ``claims``
-    gets, per shipped name, the sentence of its paired comparisons on this store (:func:`model_claims`)."""
+    gets, per shipped name, the sentence of its paired comparisons on this store (:func:`model_claims`);
+    ``pooled`` gets the store's rows with their record ids prefixed by the store's name."""
     sampler = PRESETS[DEFAULT_SAMPLER].to_config()
     runs, names, rows = {}, {}, {}
     for name in models:
-        # Rows named after the shipped name (less its resolution): two shipped checkpoints of one variant differ.
-        comparison = compare_to_baselines(store, name, sampler, out, pairs=pairs, progress=True, reuse=True,
-                                          model_name=name.rsplit("-", 1)[0] if name in zoo.available() else None)
+        # Rows named after the shipped name (less its resolution): two shipped checkpoints of one variant differ;
+        # a checkpoint path is named by the label before its "=" (label=path), else by its variant.
+        label, _, path = name.rpartition("=") if "=" in name else ("", "", name)
+        row = label or (name.rsplit("-", 1)[0] if name in zoo.available() else None)
+        comparison = compare_to_baselines(store, path, sampler, out, pairs=pairs, progress=True, reuse=True,
+                                          model_name=row)
         runs.update(comparison.runs)  # identity and Lambertian are the same runs for every model (resumed)
         names[comparison.facts["model"]] = f"`{name}` ({comparison.facts['sampler']})"
         rows[name] = comparison.facts["model"]
     records = [r for run in runs.values() for r in run.records]
+    if pooled is not None:
+        pooled += [dataclasses.replace(r, record_id=f"{Path(store).name}/{r.record_id}") for r in records]
     if claims is not None:
         for name, row in rows.items():
             claims.setdefault(name, []).append(model_claims(records, row, store))
@@ -94,6 +110,19 @@ def section(store: str, models: list[str], pairs: int, out: Path, claims: dict[s
         "Rows: "
         + "; ".join(f"`{row}` = {shipped}" for row, shipped in names.items()) + ".", "", table.to_markdown(), "",
         comparisons(records, table.methods, out / "paired.csv")])
+
+
+def pooled_section(stores: list[str], records: list[tables.Record], out: Path) -> str:
+    """The pairs of every store in one table and one set of paired comparisons (a pair is its store and record)."""
+    table = tables.summarize(records)
+    out.mkdir(parents=True, exist_ok=True)
+    table.to_csv(out / "pooled.csv")
+    counts = Counter(r.protocol for r in records if r.method == records[0].method) if records else Counter()
+    per = ", ".join(f"{n} {p}" for p, n in sorted(counts.items()))
+    return "\n".join([
+        f"**Pooled: {', '.join(stores)}** ({per} pairs in all; each store a seed no shipped model trained on), "
+        "target lights fitted to the target images and c estimated, every model at its defaults.", "",
+        table.to_markdown(), "", comparisons(records, table.methods, out / "pooled_paired.csv")])
 
 
 #: The strata the suite breaks its table down by, with their headings.

@@ -22,6 +22,7 @@ from difareli.checkpoints.format import stamp, upgrade_checkpoint
 from difareli.diffusion.schedule import DiffusionSchedule
 from difareli.errors import UserError
 from difareli.nn import build_network
+from difareli.runtime.core import compile_for_training
 from difareli.data import encodings
 
 #: The public code's optimizer (guided-diffusion TrainLoop: AdamW, constant LR, no weight decay).
@@ -146,7 +147,7 @@ class RelightingModule(L.LightningModule):
         if stage == "fit" and self._trainer is not None and self.trainer.world_size > 1:  # decorrelate ranks
             torch.manual_seed(torch.initial_seed() + self.trainer.global_rank)
         if self.hparams.compile:
-            self.net.compile()
+            compile_for_training(self.net)
 
     def configure_optimizers(self):
         """The configured optimizer over the network; with a scheduler, stepped every training step."""

@@ -239,6 +239,33 @@ class _CompiledOrEager:
         return self.forward(*args, **kwargs)
 
 
+def compile_for_training(module: torch.nn.Module) -> bool:
+    """``torch.compile`` a network in place for training (forward and backward through AOTAutograd, inductor's
+    kernels), the one training door to compile. Where inductor cannot build kernels (no working C++ compiler) the
+    network stays eager with one warning, as the inference runtime does; returns whether it was compiled.
+    Parameters and ``state_dict`` keys are unchanged (``nn.Module.compile`` wraps the call, not the module)."""
+    why = _compiler_missing()
+    if why is not None:
+        warnings.warn(f"model.compile=true but torch.compile cannot build kernels here ({why}); training eagerly "
+                      "(same results, slower): install a C++ compiler (e.g. apt-get install g++, or set CXX), or "
+                      "set model.compile=false", stacklevel=2)
+        return False
+    module.compile()
+    return True
+
+
+def _compiler_missing() -> str | None:
+    """Why inductor has no C++ compiler here (None: it has one). Asked before compiling, because a compiled
+    training step fails at its first call, inside Lightning's loop, where no eager fallback is possible."""
+    try:
+        from torch._inductor import cpp_builder
+
+        cpp_builder.get_cpp_compiler()
+    except Exception as e:  # InvalidCxxCompiler, or a torch whose builder moved: judged as the runtime does
+        return _missing_compiler(e) or f"{type(e).__name__}: {e}"
+    return None
+
+
 def _missing_compiler(exc: BaseException) -> str | None:
     """The message of an ``InvalidCxxCompiler`` anywhere in ``exc``'s chain (dynamo wraps backend errors in
     ``BackendCompilerFailed``), else None."""
