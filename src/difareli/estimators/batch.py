@@ -6,8 +6,10 @@ once (``Pipeline.config``) and processes whole images, one at a time, with one B
 input order and the parent writes the store. Workers die with their parent
 (:func:`difareli.utils.processes.die_with_parent`).
 
-Processes, not threads: mediapipe's graphs and dlib are not thread-safe, and numpy releases the GIL only in
-parts of the work. ``spawn``: a fork would copy a parent's loaded mediapipe/torch thread pools.
+Processes, not threads, for whole images: mediapipe's graphs and dlib are not thread-safe, and numpy releases the
+GIL only in parts of the work. ``spawn``: a fork would copy a parent's loaded mediapipe/torch thread pools. In one
+process (the default) two threads still overlap: a reader decodes and aligns the next photos (the aligner's graphs
+are its own) while the estimators run (:mod:`.stream`).
 """
 
 from __future__ import annotations
@@ -92,12 +94,24 @@ def compute_one(pipeline: Pipeline, f: Path, preview: Path | None) -> dict:
     """Decode and process one file (and write its preview): ``{"entry", "arrays", "meta", "seconds"}``; a bad
     image or an estimator bug is a failed entry, never an exception."""
     t0 = time.perf_counter()
-    out: dict[str, Any] = {}
     try:
         rgb, notes = load_image(f, pipeline.min_side, pipeline.max_side)
-        arrays, meta, ctx = pipeline.process(rgb)
-        notes += ctx["notes"]
-        meta.update(source_file=f.name, input_size=list(rgb.shape[:2]), notes=notes, split="predict")
+        res: tuple | Exception = pipeline.process(rgb)
+        extra = {"load_notes": notes, "input_size": list(rgb.shape[:2])}
+    except Exception as e:  # noqa: BLE001 - a bad image or an estimator bug must not stop the other images
+        res, extra = e, {}
+    return finish_one(f, res, extra, preview, time.perf_counter() - t0)
+
+
+def finish_one(f: Path, res: tuple | Exception, extra: dict, preview: Path | None, seconds: float) -> dict:
+    """The report entry (and the preview) of one file from the pipeline's result or exception."""
+    out: dict[str, Any] = {}
+    try:
+        if isinstance(res, Exception):
+            raise res
+        arrays, meta, ctx = res
+        notes = extra["load_notes"] + ctx["notes"]
+        meta.update(source_file=f.name, input_size=extra["input_size"], notes=notes, split="predict")
         if preview is not None:
             from .preview import save_preview
 
@@ -109,16 +123,34 @@ def compute_one(pipeline: Pipeline, f: Path, preview: Path | None) -> dict:
         entry = {"status": "failed", "reason": str(e)}
     except Exception as e:  # noqa: BLE001 - an estimator bug must not stop the other images
         entry = {"status": "failed", "reason": f"internal error: {type(e).__name__}: {e}"}
-    return {**out, "entry": entry, "seconds": time.perf_counter() - t0}
+    return {**out, "entry": entry, "seconds": seconds}
+
+
+def compute_streamed(pipeline: Pipeline, files: list[Path], preview_dir: Path | None, ids: Mapping[Path, str]
+                     ) -> Iterator[dict]:
+    """:func:`compute_one` of every file, decoding and alignment overlapped with the estimators (:mod:`.stream`),
+    yielded in ``files`` order."""
+    from .stream import stream
+
+    def load(f: Path):
+        return load_image(f, pipeline.min_side, pipeline.max_side)
+
+    for f, res, extra, seconds in stream(pipeline, files, load):
+        t0 = time.perf_counter()
+        done = finish_one(f, res, extra, None if preview_dir is None else preview_dir / f"{ids[f]}.png", 0.0)
+        done["seconds"] = seconds + time.perf_counter() - t0
+        yield done
 
 
 def run(pipeline: Pipeline, in_dir: str, out_dir: str, *, overwrite: bool = False, previews: bool = True,
-        durable: bool = False, progress: bool = True, shard: str | None = None, workers: int = 1) -> RunSummary:
+        durable: bool = False, progress: bool = True, shard: str | None = None, workers: int = 1,
+        overlap: bool = True) -> RunSummary:
     """Process every file of ``in_dir`` (or the single file) into the store at ``out_dir``; never raises
     for a bad image: each gets a report entry and nothing is written for it. ``shard="i/n"`` processes only
     the records of that shard (``difareli.data.shard``; shards may run concurrently into one store) and writes
     its report as ``preprocess_report.shard-i-of-n.json``. ``workers > 1`` runs the estimators in that many
-    processes (:mod:`.workers`, images in order); this process writes the store."""
+    processes (images in order); this process writes the store. Otherwise, with ``overlap``, a reader thread
+    decodes and aligns the next photos while this one runs the estimators (:mod:`.stream`)."""
     from tqdm import tqdm
 
     out = Path(out_dir)
@@ -144,6 +176,8 @@ def run(pipeline: Pipeline, in_dir: str, out_dir: str, *, overwrite: bool = Fals
     preview_dir = out / PREVIEWS if previews else None
     if workers > 1 and len(todo) > 1:
         results = compute_in_workers(pipeline, todo, preview_dir, ids, workers)
+    elif overlap and len(todo) > 1:
+        results = compute_streamed(pipeline, todo, preview_dir, ids)
     else:
         results = (compute_one(pipeline, f, preview_dir and preview_dir / f"{ids[f]}.png") for f in todo)
     t_work = time.perf_counter()

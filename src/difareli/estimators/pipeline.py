@@ -154,8 +154,15 @@ class Pipeline:
 
     def process(self, rgb: np.ndarray) -> tuple[dict[str, np.ndarray], dict, dict]:
         """Encodings of one decoded photo, its meta, and the full context (for previews)."""
-        with self._one_blas_thread(), _one_torch_thread(), native_logs():  # native INFO lines dropped (.quiet)
-            return self._process(rgb)
+        with self.limits():
+            return self.finish(self.prepare(rgb))
+
+    @contextlib.contextmanager
+    def limits(self, logs: bool = True):
+        """One BLAS and one torch thread while the estimators run (see the helpers), and with ``logs`` the native
+        INFO lines dropped (:mod:`.quiet`)."""
+        with self._one_blas_thread(), _one_torch_thread(), native_logs() if logs else contextlib.nullcontext():
+            yield
 
     def _one_blas_thread(self):
         """BLAS limited to one thread while the estimators run: their solves are 50x50, where OpenBLAS's second
@@ -176,7 +183,10 @@ class Pipeline:
             ctl = self._blas = ThreadpoolController()
         return ctl.limit(limits=1, user_api="blas")
 
-    def _process(self, rgb: np.ndarray) -> tuple[dict[str, np.ndarray], dict, dict]:
+    def prepare(self, rgb: np.ndarray) -> dict:
+        """The aligned crop of a photo and what the estimators start from: ``{"ctx", "meta", "seconds"}``
+        (raises :class:`~.loading.BadInput` when no face is found). Touches only the aligner, so a reader thread
+        can prepare the next photos while :meth:`finish_many` runs the estimators on those before."""
         t0 = time.perf_counter()
         aligned = self.aligner(rgb)
         # The quad unrounded: compositing warps the relit crop back through it (difareli.relight.composite).
@@ -191,14 +201,70 @@ class Pipeline:
             ctx["notes"].append(f"small face: the crop's square is {side:.0f} px in the photo, enlarged "
                                 f"{self.size / max(side, 1e-6):.1f}x to {self.size} px (soft detail; a larger face "
                                 "or a smaller size= is sharper)")
-        timings = {"align": time.perf_counter() - t0}
-        for est in self.steps:
+        return {"ctx": ctx, "meta": meta, "seconds": {"align": time.perf_counter() - t0}}
+
+    def finish(self, prepared: dict) -> tuple[dict[str, np.ndarray], dict, dict]:
+        """The estimators, one after the other, on what :meth:`prepare` gave for one photo: (arrays, meta, ctx)."""
+        return self._result(self.run_steps(prepared, self.steps))
+
+    def run_steps(self, prepared: dict, steps: Sequence[Any]) -> dict:
+        """``steps`` (a part of :attr:`steps`, in order) on one prepared photo, in place; their exceptions propagate."""
+        ctx, timings = prepared["ctx"], prepared["seconds"]
+        for est in steps:
             t0 = time.perf_counter()
             out = est(ctx, self.needed)
             timings[type(est).__name__] = time.perf_counter() - t0
             ctx["notes"] += out.pop("notes", [])
             ctx.update(out)
-        meta["seconds"] = {k: round(v, 4) for k, v in timings.items()}
+        return prepared
+
+    @property
+    def image_steps(self) -> list[Any]:
+        """The leading :attr:`steps` that read only the crop (the geometry: FaceMesh on the crop, the BFM fit, the
+        G-buffer): :mod:`.stream`'s reader thread runs them with the alignment."""
+        for i, est in enumerate(self.steps):
+            if not set(est.requires) <= {"image"}:
+                return self.steps[:i]
+        return list(self.steps)
+
+    def finish_many(self, prepared: Sequence[dict | Exception], start: int = 0
+                    ) -> list[tuple[dict, dict, dict] | Exception]:
+        """:meth:`finish` of several prepared photos (an exception in the list stays in its place) from step
+        ``start`` on: estimator by estimator, one ``batch`` call for those that have one, its time shared equally by
+        the photos."""
+        out: list = list(prepared)
+        for est in self.steps[start:]:
+            live = [i for i, p in enumerate(out) if not isinstance(p, Exception)]
+            if not live:
+                break
+            name, t0 = type(est).__name__, time.perf_counter()
+            if hasattr(est, "batch"):
+                results = est.batch([out[i]["ctx"] for i in live], self.needed)
+                share = (time.perf_counter() - t0) / len(live)
+                for i, res in zip(live, results, strict=True):
+                    out[i] = self._merge(out[i], name, res, share)
+                continue
+            for i in live:
+                t0 = time.perf_counter()
+                try:
+                    res = est(out[i]["ctx"], self.needed)
+                except Exception as e:  # noqa: BLE001 - one photo's failure is its own entry
+                    res = e
+                out[i] = self._merge(out[i], name, res, time.perf_counter() - t0)
+        return [p if isinstance(p, Exception) else self._result(p) for p in out]
+
+    @staticmethod
+    def _merge(prepared: dict, name: str, res: dict | Exception, seconds: float) -> dict | Exception:
+        if isinstance(res, Exception):
+            return res
+        prepared["seconds"][name] = seconds
+        prepared["ctx"]["notes"] += res.pop("notes", [])
+        prepared["ctx"].update(res)
+        return prepared
+
+    def _result(self, prepared: dict) -> tuple[dict[str, np.ndarray], dict, dict]:
+        ctx, meta = prepared["ctx"], prepared["meta"]
+        meta["seconds"] = {k: round(v, 4) for k, v in prepared["seconds"].items()}
         for key in ("reprojection_px", "bfm_fit", "light_fit", "shadow_info"):
             if key in ctx:
                 meta[key] = ctx[key]

@@ -19,6 +19,7 @@ import os
 import re
 import sys
 import tempfile
+import threading
 import warnings
 
 warnings.filterwarnings("ignore", message=r"pkg_resources is deprecated as an API", category=Warning)
@@ -35,9 +36,49 @@ def is_noise(line: str) -> bool:
     return bool(NOISE.match(line))
 
 
+class _Capture:
+    """fd 2 redirected to one temporary file while any thread is inside :func:`native_logs` (fd 2 is the
+    process's: two threads capturing each on its own would restore each other's descriptors)."""
+
+    def __init__(self):
+        self.lock = threading.Lock()
+        self.depth, self.fd, self.saved, self.tmp = 0, None, None, None
+
+    def enter(self, fd: int) -> None:
+        with self.lock:
+            self.depth += 1
+            if self.depth > 1:
+                return
+            sys.stderr.flush()
+            self.fd, self.saved, self.tmp = fd, os.dup(fd), tempfile.TemporaryFile(mode="w+b")
+            os.dup2(self.tmp.fileno(), fd)
+
+    def exit(self) -> None:
+        with self.lock:
+            self.depth -= 1
+            if self.depth > 0:
+                return
+            with contextlib.suppress(Exception):
+                sys.stderr.flush()
+            os.dup2(self.saved, self.fd)
+            os.close(self.saved)
+            tmp, self.tmp = self.tmp, None
+        with tmp:
+            tmp.seek(0)
+            kept = [ln for ln in tmp.read().decode("utf-8", "replace").splitlines(keepends=True) if not is_noise(ln)]
+        if kept:
+            sys.stderr.write("".join(kept))
+            sys.stderr.flush()
+
+
+_CAPTURE = _Capture()
+
+
 @contextlib.contextmanager
 def native_logs():
-    """Run the body with fd 2 captured; afterwards write back its lines that are not :data:`NOISE`."""
+    """Run the body with fd 2 captured; afterwards write back its lines that are not :data:`NOISE`. Nested and
+    concurrent uses (the reader thread of :mod:`.stream` and the estimators) share one capture, written back
+    when the last of them ends."""
     if os.environ.get("DIFARELI_NATIVE_LOGS") == "1":
         yield
         return
@@ -48,19 +89,8 @@ def native_logs():
     if fd is None:
         yield
         return
-    sys.stderr.flush()
-    saved = os.dup(fd)
-    with tempfile.TemporaryFile(mode="w+b") as tmp:
-        os.dup2(tmp.fileno(), fd)
-        try:
-            yield
-        finally:
-            with contextlib.suppress(Exception):
-                sys.stderr.flush()
-            os.dup2(saved, fd)
-            os.close(saved)
-            tmp.seek(0)
-            kept = [ln for ln in tmp.read().decode("utf-8", "replace").splitlines(keepends=True) if not is_noise(ln)]
-            if kept:
-                sys.stderr.write("".join(kept))
-                sys.stderr.flush()
+    _CAPTURE.enter(fd)
+    try:
+        yield
+    finally:
+        _CAPTURE.exit()
