@@ -111,3 +111,5 @@ def test_cast_shadow_response_is_one_for_the_predicted_shadow_and_zero_for_none(
     tiny = np.zeros((20, 20), bool)
     tiny[0, 0] = True  # 1 of 400 face pixels: below the 3% a map must cover
     assert math.isnan(art.cast_shadow_response(shadowed, lit, face, tiny, share))
+    # A light whose key sun gives 1% of the light predicts a darkening of 0.006: too little to take a ratio over.
+    assert math.isnan(art.cast_shadow_response(shadowed, lit, face, m, np.full((20, 20), 0.01)))

@@ -133,3 +133,17 @@ def test_bounds_are_the_ground_truths_own_percentiles_and_rows_beyond_them_are_c
     assert line == "| own | 1 | 0 | 1 | 2 |"
     with pytest.raises(UserError, match="no ground-truth rows"):
         pr.bounds(pp.pairs_csv(records[-1:]))
+
+
+def test_light_turn_takes_the_fits_own_bias_out():
+    from difareli.lighting import sh
+
+    ambient = np.zeros((9, 3))
+    ambient[0] = 0.5
+    toward = lambda d: ambient + sh.directional_light(np.asarray(d, float), 1.0)  # noqa: E731
+    source, target = toward([0, 0, 1]), toward([1, 0, 0])  # a 90-degree turn about y
+    biased = np.array([0.3, 0.2, 0.93]) / np.linalg.norm([0.3, 0.2, 0.93])  # the fit on the reconstruction
+    turned = sh.rotation_between([0, 0, 1], [1, 0, 0]) @ biased
+    assert pr.light_turn(toward(turned), toward(biased), source, target) == pytest.approx(0.0, abs=1e-6)
+    stayed = math.degrees(math.acos(float(turned @ biased)))  # a relight that did not move the light
+    assert pr.light_turn(toward(biased), toward(biased), source, target) == pytest.approx(stayed, abs=1e-6)

@@ -29,6 +29,8 @@ from difareli.utils.imageops import luminance
 EPS = 4.0 / 255.0
 #: A target shadow must cover at least this share of the face (and leave as much lit) to be scored.
 MIN_SHADOW_SHARE = 0.03
+#: ... and predict at least this darkening (luminance, 2.5 of 255 levels): a ratio over less is noise.
+MIN_PREDICTED = 0.01
 
 
 def _y(image: np.ndarray) -> np.ndarray:
@@ -147,13 +149,15 @@ def _darkening(y: np.ndarray, face: np.ndarray, m: np.ndarray) -> float:
 
 
 def cast_shadow_response(relit: np.ndarray, unshadowed: np.ndarray, face: np.ndarray, m: np.ndarray,
-                         share: np.ndarray, min_share: float = MIN_SHADOW_SHARE) -> float:
+                         share: np.ndarray, min_share: float = MIN_SHADOW_SHARE,
+                         min_predicted: float = MIN_PREDICTED) -> float:
     """How much of a target cast shadow a relight shows: the darkening of the target map ``m`` in ``relit``
     (the face's mean luminance outside ``m`` minus inside) beyond its darkening in ``unshadowed`` (the same face
     under the target light without cast shadows, e.g. the Lambertian ratio relight: its own shading differs
     inside and outside ``m``), over the darkening the cast shadow predicts: the mean over ``m`` of
     ``Y(unshadowed) * share`` (``share``: :func:`key_sun_share`). 1: the shadow the light casts; 0: none. NaN
-    unless ``m`` covers between ``min_share`` and ``1 - min_share`` of the face and predicts some darkening."""
+    unless ``m`` covers between ``min_share`` and ``1 - min_share`` of the face and predicts a darkening of at
+    least ``min_predicted``."""
     face, m = np.asarray(face, bool), np.asarray(m, bool) & np.asarray(face, bool)
     if not face.any():
         return math.nan
@@ -162,6 +166,6 @@ def cast_shadow_response(relit: np.ndarray, unshadowed: np.ndarray, face: np.nda
         return math.nan
     y, y0 = _y(relit), _y(unshadowed)
     predicted = float((y0 * np.asarray(share, np.float64))[m].mean())
-    if predicted <= 1e-6:
+    if predicted < min_predicted:
         return math.nan
     return (_darkening(y, face, m) - _darkening(y0, face, m)) / predicted

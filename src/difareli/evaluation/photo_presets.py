@@ -8,8 +8,12 @@ default compositing) under its own light (``own``: the reconstruction) and every
 (:data:`difareli.lighting.presets.NAMES`: the app's presets, ``target.light=<name>``), in one decode batch per photo.
 Per photo and target:
 
-- ``light_angle`` / ``light_rel``: the SH light fitted to the relit crop on the photo's estimated geometry against
-  the target (:func:`~difareli.evaluation.adherence.relit_light_error`);
+- ``light_angle`` / ``light_rel``: the SH light fitted to the relit crop on the photo's estimated geometry
+  (:class:`~difareli.lighting.light_fit.LightFit`, the benchmark's fit) against the target
+  (:func:`~difareli.evaluation.adherence.light_error`); the ``own`` row is the fit's own floor (it is not the
+  photo estimator's fit the source light came from). ``light_turn``: that floor taken out, the angle between the
+  fit on the relit crop and the fit on the reconstruction turned as the target turns the source light
+  (:func:`light_turn`; 0 for ``own``);
 - ``identity``: the cosine of dlib's descriptors of the composite and of the photo
   (:mod:`~difareli.evaluation.identity`);
 - ``seam`` and ``blotch`` (:mod:`~difareli.evaluation.artefacts`) of the composite against the photo, the blotch
@@ -36,9 +40,11 @@ from difareli.data.encodings import FACE_PARTS, known_normals
 from difareli.errors import UserError
 from difareli.evaluation import artefacts as art
 from difareli.evaluation import identity, metrics
-from difareli.evaluation.adherence import relit_light_error
+from difareli.evaluation.adherence import light_error
 from difareli.evaluation.photo_path import composite_settings, lambertian_crops, regions, to_photo
 from difareli.evaluation.records import mean_se
+from difareli.lighting import sh
+from difareli.lighting.light_fit import LightFit
 from difareli.lighting.presets import NAMES
 from difareli.relight.composite import part_mask, photo_window
 from difareli.relight.photo import detect_faces
@@ -52,7 +58,7 @@ from difareli.render.retarget import cast_shadows
 #: prediction and the target's cast-shadow map.
 READS = ("normal", "face_mask", "depth", "cam", "shadow")
 TARGETS = ("own", *NAMES)
-COLUMNS = ("light_angle", "light_rel", "identity", "seam", "blotch", "lum_change", "lum_pred", "lum_dev",
+COLUMNS = ("light_angle", "light_rel", "light_turn", "identity", "seam", "blotch", "lum_change", "lum_pred", "lum_dev",
            "shadow_cover", "shadow_response", "recon_dssim", "recon_mse")
 
 
@@ -82,6 +88,10 @@ PHOTOS = (
     Photo("pair_left", "pair", face=0, about="two faces side by side (astronaut | Grace Hopper): face 0"),
     Photo("pair_right", "pair", face=1, about="the same photo: face 1"),
 )
+
+
+#: The cases the contact sheet shows (one of each kind; every case is in the tables).
+SHEET = ("astronaut", "astronaut_112", "camera", "grace_hopper", "grace_small")
 
 
 def _shipped(source: str) -> np.ndarray:
@@ -132,6 +142,15 @@ def relight_photo(relighter: Relighter, photo: Photo) -> tuple[Source, Relit]:
     return source, relight_targets(relighter, source, [Target(), *(Target(light=n) for n in NAMES)])
 
 
+def light_turn(fitted: np.ndarray, fitted_own: np.ndarray, source: np.ndarray, target: np.ndarray) -> float:
+    """Degrees between the dominant direction of ``fitted`` (the fit on a relight) and that of ``fitted_own`` (the
+    same fit on the reconstruction) turned by the rotation taking the ``source`` light's dominant direction to the
+    ``target``'s: whether the relight moved the light where the target moved it, whatever the fit's own bias."""
+    turn = sh.rotation_between(sh.dominant_direction(source), sh.dominant_direction(target))
+    want, got = turn @ sh.dominant_direction(fitted_own), sh.dominant_direction(fitted)
+    return math.degrees(math.acos(float(np.clip(want @ got, -1.0, 1.0))))
+
+
 def _identities(photo: np.ndarray, comps: np.ndarray, face: np.ndarray) -> list[float]:
     if identity.unavailable() is not None:
         return [math.nan] * len(comps)
@@ -156,14 +175,17 @@ def score_photo(source: Source, relit: Relit) -> list[dict]:
     face_crop = part_mask(a["masks"], FACE_PARTS) & known_normals(a["normal"])
     maps = np.asarray(cast_shadows(a, list(lights)), bool)
     ids = _identities(photo, comps, reg.face)
+    geometry = {n: a[n] for n in LightFit.ENCODINGS if n in a and n != "image"}
+    fits = [LightFit()({**geometry, "image": np.asarray(x)}) for x in relit]
     rows = []
     for k, name in enumerate(TARGETS):
-        angle, rel = relit_light_error(np.asarray(relit[k]), a, lights[k])
+        angle, rel = light_error(fits[k], lights[k])
         m_photo = to_photo(maps[k], source.photo.quad, photo.shape[:2]) > 0.5
         exclude = art.shadow_edges([m_photo], int(math.ceil(reg.sigma)))
         change, pred = (art.luminance_change(x, photo, reg.face) for x in (comps[k], lams[k]))
         share = art.key_sun_share(lights[k], a["normal"])
         row = {"photo": source.what, "target": name, "light_angle": angle, "light_rel": rel, "identity": ids[k],
+               "light_turn": light_turn(fits[k], fits[0], lights[0], lights[k]),
                "seam": art.seam_score(comps[k], photo, reg.paste, reg.width),
                "blotch": art.blotch_score(comps[k], photo, reg.face, reg.sigma, exclude),
                "lum_change": change, "lum_pred": pred, "lum_dev": change - pred,
