@@ -48,6 +48,8 @@ def main() -> None:
     ap.add_argument("--pool", action="store_true",
                     help="first a table of every store's pairs pooled (record ids prefixed with the store's name), "
                          "then each store's own table: several fresh seeds judged together and one by one")
+    ap.add_argument("--guidance", type=float, default=None,
+                    help="the models' light guidance (sampler.guidance; default: the default sampler's)")
     ap.add_argument("--ship", action="store_true", help="also write src/difareli/checkpoints/suite.md")
     ap.add_argument("--note", default="", help="a paragraph after the tables (where and how it was measured)")
     ap.add_argument("--cards", action="store_true",
@@ -61,7 +63,7 @@ def main() -> None:
     claims: dict[str, list[str]] = {}
     pooled: list[tables.Record] = []
     sections = [section(store, a.models or zoo.available(), a.pairs, out / Path(store).name, claims,
-                        pooled if a.pool else None)
+                        pooled if a.pool else None, a.guidance)
                 for store in a.store]
     if a.pool:
         sections.insert(0, pooled_section(a.store, pooled, out))
@@ -79,11 +81,13 @@ def main() -> None:
 
 
 def section(store: str, models: list[str], pairs: int, out: Path, claims: dict[str, list[str]] | None = None,
-            pooled: list[tables.Record] | None = None) -> str:
+            pooled: list[tables.Record] | None = None, guidance: float | None = None) -> str:
     """Every model (and identity, Lambertian, run once) on ``store``; the table and what it measured. ``claims``
     gets, per shipped name, the sentence of its paired comparisons on this store (:func:`model_claims`);
     ``pooled`` gets the store's rows with their record ids prefixed by the store's name."""
     sampler = PRESETS[DEFAULT_SAMPLER].to_config()
+    if guidance is not None:
+        sampler["guidance"] = guidance
     runs, names, rows = {}, {}, {}
     for name in models:
         # Rows named after the shipped name (less its resolution): two shipped checkpoints of one variant differ;

@@ -22,7 +22,7 @@ from tests.helpers import CONF, compose_train
 
 SCHED = DiffusionSchedule()
 T = SCHED.T
-FIELDS = {"name", "steps", "grid", "clip_x0_invert", "clip_x0_generate", "alpha_zero_end"}
+FIELDS = {"name", "steps", "grid", "clip_x0_invert", "clip_x0_generate", "alpha_zero_end", "guidance"}
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

@@ -85,13 +85,33 @@ def invert(denoiser: Denoiser, x0: torch.Tensor, schedule: DiffusionSchedule, sp
     return Inversion(x_T, spec, offsets)
 
 
+def guided(target: Denoiser, source: Denoiser, scale: float) -> Denoiser:
+    """Light guidance: ``eps_s + scale * (eps_t - eps_s)`` of a target and a source denoiser on the same batch
+    (``scale`` 1: the target's eps itself, not recomputed)."""
+    if scale == 1.0:
+        return target
+
+    def denoiser(x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        eps_s = source(x, t)
+        return eps_s + scale * (target(x, t) - eps_s)
+
+    return denoiser
+
+
 @torch.no_grad()
 def decode(denoiser: Denoiser, inversion: Inversion, schedule: DiffusionSchedule, *, progress: bool = False,
-           callback=None) -> torch.Tensor:
+           callback=None, source: Denoiser | None = None) -> torch.Tensor:
     """Pass 3: decode ``inversion.x_T`` with the (target) condition bound in ``denoiser``, adding the
-    mean-matching offsets after each step. ``callback(step, t, t_next, x)`` sees the matched ``x``."""
+    mean-matching offsets after each step. ``callback(step, t, t_next, x)`` sees the matched ``x``. With the
+    spec's ``guidance`` w != 1, ``source`` (the input's own condition, batched as the targets) guides each step
+    (:func:`guided`)."""
     _, gen_grid = inversion.spec.grids(schedule)
     offsets = inversion.offsets
+    if inversion.spec.guidance != 1.0:
+        if source is None:
+            raise UserError(f"sampler guidance={inversion.spec.guidance} needs the source's denoiser beside the "
+                            "target's (difareli.relight.core.relight passes it)")
+        denoiser = guided(denoiser, source, inversion.spec.guidance)
 
     def step_hook(step, t, t_next, x):
         if offsets is not None:

@@ -113,6 +113,10 @@ class SamplerSpec:
     clip_x0_invert: bool = False
     clip_x0_generate: bool = False
     alpha_zero_end: bool = False
+    #: Light guidance of a relight's decode: eps = eps_source + w (eps_target - eps_source), the target
+    #: condition's pull past the source's (w = 1: the plain target decode; w > 1 relights further at twice the
+    #: decode's network passes). Not a sampler option: it reads the source condition beside the target's.
+    guidance: float = 1.0
     options: tuple[tuple[str, Any], ...] = ()
 
     def __post_init__(self):
@@ -122,6 +126,11 @@ class SamplerSpec:
                                      "(e.g. sampler.steps=50)")
         if self.grid not in GRID_KINDS:
             raise SamplerConfigError(f"unknown sampler grid {self.grid!r}; choose from {', '.join(GRID_KINDS)}")
+        ok, guidance = _coerce(self.guidance, float)
+        if not ok or not 0.0 < guidance <= 10.0:
+            raise SamplerConfigError(f"sampler guidance must be a number in (0, 10], got {self.guidance!r} "
+                                     "(1: the plain target decode; e.g. sampler.guidance=2)")
+        object.__setattr__(self, "guidance", guidance)
         for f in ("clip_x0_invert", "clip_x0_generate", "alpha_zero_end"):
             if not isinstance(getattr(self, f), bool):
                 raise SamplerConfigError(f"sampler {f} must be true or false, got {getattr(self, f)!r}")

@@ -74,5 +74,10 @@ def relight(model: Relightable, x0: Tensor, source: Condition, targets: Conditio
         inversion = invert_image(model, x0, source, spec, runtime=runtime, mean_matching=mean_matching,
                                  progress=progress)
     den = _denoiser(model, _condition(model, targets, runtime), runtime)
+    src = None
+    if inversion.spec.guidance != 1.0:  # the source condition beside each target (targets are source-major)
+        rep = n // next(v.shape[0] for v in source if v is not None)
+        batched = tuple(None if v is None else v.repeat_interleave(rep, 0) for v in source)
+        src = _denoiser(model, _condition(model, batched, runtime), runtime)
     return decode(den, inversion.expand(n) if inversion.x_T.shape[0] != n else inversion, model.schedule,
-                  progress=progress)
+                  progress=progress, source=src)
