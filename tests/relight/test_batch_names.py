@@ -21,9 +21,9 @@ def test_photo_paths_folder_glob_and_one_file(tmp_path):
         batch.photo_paths(f"{tmp_path}/*.gif")
 
 
-def test_output_stems_keep_two_photos_of_one_name_apart(tmp_path):
+def test_output_names_keep_two_photos_of_one_name_apart(tmp_path):
     paths = [tmp_path / n for n in ("a.jpg", "a.png", "b.png", "sub.a.png")]
-    assert batch.output_stems(paths) == ["a", "a_png", "b", "sub.a"]
+    assert batch.output_names(paths) == ["a", "a_png", "b", "sub.a"]
 
 
 def test_a_rerun_over_photos_all_relit_relights_none(tmp_path):
@@ -33,8 +33,8 @@ def test_a_rerun_over_photos_all_relit_relights_none(tmp_path):
     with (out / batch.CSV_NAME).open("w", newline="") as f:
         w = csv.DictWriter(f, batch.FIELDS)
         w.writeheader()
-        for p in paths:
-            w.writerow({"photo": str(p), "status": "relit"})
+        for p, name in zip(paths, ("a", "a_png")):
+            w.writerow({"name": name, "photo": str(p), "status": "relit"})
     for stem in ("a", "a_png"):
         iio.imwrite(out / f"{stem}_composite.png", np.zeros((4, 4, 3), np.uint8))
     # No relighter is needed: nothing is left to relight.

@@ -8,11 +8,13 @@ from __future__ import annotations
 from pathlib import Path
 
 import hydra
+from hydra.core.hydra_config import HydraConfig
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, open_dict
 
 from difareli import errors
 from difareli.checkpoints import zoo
+from difareli.configs import CONFIG_DIR
 from difareli.data import shard as sharding
 from difareli.evaluation.baselines import build_method
 from difareli.lighting.light_fit import light_fit_from_config
@@ -29,6 +31,7 @@ SHARD_JOB_KEYS = ("store", "method", "sampler", "protocols", "limit", "oracle_li
 
 def run(cfg: DictConfig) -> BenchmarkResult:
     """Benchmark the configured method; prints and returns the summary."""
+    with_checkpoint(cfg)
     validate(cfg)
     store = EncodingStore.open(cfg.store).use_versions(cfg.get("versions"))
     # The rule, the score mask and the target sun, checked once, before the method (and its checkpoint) is built.
@@ -72,6 +75,34 @@ def run(cfg: DictConfig) -> BenchmarkResult:
     print(result.paths["summary_md"].read_text())
     print(f"per-image scores: {result.paths['per_image']}")
     return result
+
+
+def with_checkpoint(cfg: DictConfig) -> None:
+    """``checkpoint=<name or file>``: the diffusion method's ``method.checkpoint``, with ``method=diffusion`` implied
+    (in place of the default method) or said; another method said beside it, or two checkpoints, is one line."""
+    ckpt = cfg.get("checkpoint")
+    if ckpt is None:
+        return
+    said = [o for o in _overrides() if o.split("=", 1)[0].lstrip("+~") == "method"]
+    if not str(cfg.method.get("_target_", "")).endswith(".DiffusionMethod"):
+        if said:
+            raise errors.UserError(f"checkpoint={ckpt} relights with method=diffusion, and {said[0]} was given too; "
+                                   "drop one of them")
+        with open_dict(cfg):
+            cfg.method = OmegaConf.load(Path(CONFIG_DIR) / "method" / "diffusion.yaml")
+    if cfg.method.get("checkpoint") not in (None, "???", ckpt):
+        raise errors.UserError(f"checkpoint={ckpt} and method.checkpoint={cfg.method.checkpoint} name two "
+                               "checkpoints; give one of them")
+    with open_dict(cfg):
+        cfg.method.checkpoint = ckpt
+
+
+def _overrides() -> list[str]:
+    """The command line's overrides (none outside a Hydra run)."""
+    try:
+        return list(HydraConfig.get().overrides.task)
+    except ValueError:
+        return []
 
 
 def validate(cfg: DictConfig) -> None:

@@ -21,6 +21,10 @@ from difareli.relight.request import Answer, Request, answer
 from difareli.utils import viz
 
 
+#: The least height of a face in comparison.png (a 64 px crop shown 4x): its shading and shadows readable.
+COMPARISON_PX = 256
+
+
 def run(cfg: DictConfig) -> dict[str, Path]:
     """Relight as configured; returns the paths written."""
     request = Request.from_config(cfg)  # every value of the request checked, before any work
@@ -50,7 +54,8 @@ def write(answer: Answer, request: Request) -> dict[str, Path]:
         if answer.truth is not None:
             row, names = [*row, answer.truth], [*names, "ground truth"]
         written["image"] = viz.save_png(answer.relit[0], out_dir / "relit.png")
-        written["comparison"] = viz.save_png(viz.grid([row], col_labels=names), out_dir / "comparison.png")
+        written["comparison"] = viz.save_png(viz.grid([[viz.enlarge(im, COMPARISON_PX) for im in row]],
+                                                      col_labels=names), out_dir / "comparison.png")
         if answer.whole is not None:
             written["aligned"] = viz.save_png(source.arrays["image"], out_dir / "aligned.png")
             written["composite"] = viz.save_png(answer.whole, out_dir / "composite.png")

@@ -1,16 +1,25 @@
 """Photos in one command: ``difareli-relight image=<folder or glob>`` and ``face=all|<index>``.
 
-:func:`photo_paths` expands the ``image=`` value; :func:`relight_photos` relights every photo under one target
-(a progress bar), composites every chosen face into the one photo, and writes per input ``<stem>_composite.png``
-and ``<stem>_relit.png`` (the relit crops side by side) into ``out_dir``, and a row per photo to ``relight.csv``
-(seconds, faces, the check's measures, the outcome). A photo that cannot be relit (unreadable or truncated
-file, no face, too small, ``strict`` and a poor check) is one line on stderr and a ``skipped`` row. A rerun skips
-the photos relit before (a killed run resumes: files are written atomically, the CSV row last) and tries the
-skipped ones again (the error said to fix them; the last row of a photo is its outcome)."""
+:func:`photo_paths` expands the ``image=`` value (a dangling or looping symbolic link is kept, and named when its
+photo is read); :func:`relight_photos` relights every photo under one target (a progress bar), composites every
+chosen face into the one photo, and writes per input ``<name>_composite.png`` and ``<name>_relit.png`` (the relit
+crops side by side) into ``out_dir`` and its row to ``relight.csv`` (seconds, faces, the check's measures, the
+outcome). Each input's ``<name>`` is its path below the inputs' common folder (:func:`output_names`), so no two
+inputs share one, and the CSV holds one row per name, its latest outcome. A photo that cannot be relit
+(unreadable or truncated file, no face, too small, ``strict`` and a poor check) is one line on stderr and a
+``skipped`` row. The folder is locked while a run writes it, and its settings (checkpoint, target, sampler, ...)
+are recorded beside the CSV (:data:`SETTINGS`): a rerun with other settings is refused, one with the same skips
+the photos relit before (a killed run resumes: files are written atomically, the row last) and tries the skipped
+ones again (the error said to fix them)."""
 
 from __future__ import annotations
 
+import csv
 import glob
+import hashlib
+import io
+import os
+import re
 import sys
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -19,22 +28,25 @@ from typing import Any
 
 import numpy as np
 
+from difareli.data import provenance
 from difareli.errors import UserError
+from difareli.estimators.loading import IMAGE_SUFFIXES
 from difareli.relight import photo, photo_check
 from difareli.utils import fileio, viz
-from difareli.estimators.loading import IMAGE_SUFFIXES
 
 CSV_NAME = "relight.csv"
-FIELDS = ("photo", "status", "seconds", "faces", "relit_faces", "verdict", *photo_check.LIMITS, "reason")
+#: What relit a folder's photos (provenance.ensure): a rerun into it must match.
+SETTINGS = "relight_settings.json"
+FIELDS = ("name", "photo", "status", "seconds", "faces", "relit_faces", "verdict", *photo_check.LIMITS, "reason")
 
 
 def photo_paths(value: str) -> list[Path] | None:
     """The photos of a folder (its image files, sorted) or of a glob pattern; None for one file."""
     p = Path(str(value))
     if p.is_dir():
-        found = sorted(q for q in p.iterdir() if q.is_file() and q.suffix.lower() in IMAGE_SUFFIXES)
+        found = sorted(q for q in p.iterdir() if q.suffix.lower() in IMAGE_SUFFIXES and _entry(q))
     elif any(c in str(value) for c in "*?["):
-        found = sorted(Path(q) for q in glob.glob(str(value)) if Path(q).is_file())
+        found = sorted(Path(q) for q in glob.glob(str(value)) if _entry(Path(q)))
     else:
         return None
     if not found:
@@ -43,12 +55,48 @@ def photo_paths(value: str) -> list[Path] | None:
     return found
 
 
+def _entry(path: Path) -> bool:
+    # A link that leads nowhere is a photo the user meant: kept, so that reading it names what is wrong.
+    return path.is_file() or (path.is_symlink() and not path.is_dir())
+
+
+def check_out_dir(image: str, out_dir: str | Path) -> None:
+    """An ``out_dir`` where the photos ``image=`` names are listed (the folder itself, or a folder a glob's
+    wildcards reach) is refused: the next run would read its outputs as photos."""
+    text = str(image)
+    wild = re.search(r"[*?[]", text)
+    if Path(text).is_dir():
+        root, depth = Path(text), 1
+    elif wild:
+        root = Path(os.path.dirname(text[:wild.start()]) or ".")
+        depth = len(Path(os.path.relpath(text, root)).parts)
+    else:
+        return
+    rel = os.path.relpath(Path(out_dir).resolve(), root.resolve())
+    if not rel.startswith("..") and depth == len(Path(rel).parts) + 1:
+        raise UserError(f"out_dir={out_dir} is where image={image} lists its photos: a rerun would read this run's "
+                        "outputs as photos; give an out_dir outside them")
+
+
+def output_names(paths: Sequence[Path]) -> list[str]:
+    """Each photo's name in ``out_dir``: its path below the photos' common folder without its suffix (folders
+    joined by ``__``); a later photo that would share an earlier one's name gets its suffix (``a.jpg``, ``a.png``
+    -> ``a``, ``a_png``), and where that is shared too, a short hash of its path."""
+    real = [Path(p).parent.resolve() / Path(p).name for p in paths]
+    common = Path(os.path.commonpath([p.parent for p in real])) if real else Path(".")
+    rel = [p.relative_to(common) for p in real]
+    names = ["__".join(r.with_suffix("").parts) for r in rel]
+    for tag in (lambda i: rel[i].suffix.lstrip("."), lambda i: hashlib.sha1(str(real[i]).encode()).hexdigest()[:8]):
+        names = [f"{n}_{tag(i)}" if n in names[:i] else n for i, n in enumerate(names)]
+    return names
+
+
 def relight_one(path: Path, *, relighter, target: Callable[[Any], Any], size: int | None, face: Any,
                 composite: Mapping[str, Any], strict: bool = False, say=print
                 ) -> tuple[np.ndarray, list[np.ndarray], dict[str, Any]]:
-    """One photo: every chosen face relit under ``target(source)`` (its Targets) by the relighter's one door
-    (:meth:`~difareli.relight.relighter.Relighter.photo_source`, ``relight``) and composited in turn into the
-    photo. Returns (composite, relit crops, CSV row fields); a UserError for a photo that cannot be relit."""
+    """One photo: every chosen face relit under ``target(source)`` (its Targets) by the relighter
+    (:meth:`~difareli.relight.sources.Sources.photo_source`, ``relight``) and composited in turn into the photo.
+    Returns (composite, relit crops, CSV row fields); a UserError for a photo that cannot be relit."""
     what = f"image={path}"
     rgb = photo.read_photo(path)
     boxes = photo.detect_faces(rgb, relighter.photo_size(size))
@@ -71,52 +119,67 @@ def relight_one(path: Path, *, relighter, target: Callable[[Any], Any], size: in
     return out, crops, row
 
 
-def relight_photos(paths: Sequence[Path], out_dir: str | Path, *, progress: bool = True, **kwargs) -> dict:
-    """Relight every photo of ``paths`` (module doc); returns counts {"done", "skipped", "resumed"}."""
+def relight_photos(paths: Sequence[Path], out_dir: str | Path, *, progress: bool = True,
+                   settings: Mapping[str, Any] | None = None, **kwargs) -> dict:
+    """Relight every photo of ``paths`` (module doc; ``settings``: what relights them, recorded and checked);
+    returns counts {"done", "skipped", "resumed"}."""
     from tqdm.auto import tqdm
 
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
     csv_path = out_dir / CSV_NAME
-    before = fileio.read_csv_rows(csv_path, "photo")
-    counts = {"done": 0, "skipped": 0, "resumed": 0}
-    todo = []  # the bar counts only these: photos relit before would make its rate and time left untrue
-    for path, stem in zip(paths, output_stems(paths)):
-        prior = before.get(str(path))
-        if prior is not None and prior["status"] == "relit" and (out_dir / f"{stem}_composite.png").is_file():
-            counts["resumed"] += 1  # a photo skipped before is tried again: the user may have fixed it
-        else:
-            todo.append((path, stem))
-    bar = tqdm(todo, desc="photos", unit="photo", disable=not progress, file=sys.stderr)
-    for path, stem in bar:
-        target = out_dir / f"{stem}_composite.png"
-        start = time.perf_counter()
-        try:
-            full, crops, row = relight_one(path, say=lambda s: bar.write(s), **kwargs)
-        except UserError as e:
-            counts["skipped"] += 1
-            reason = str(e).removeprefix(f"image={path}: ").splitlines()[0]
-            print(f"skipped image={path}: {reason}", file=sys.stderr)
-            fileio.append_csv_row(csv_path, FIELDS, _formatted({"photo": str(path), "status": "skipped",
-                                                                "reason": reason,
-                                                                "seconds": time.perf_counter() - start}))
-            continue
-        viz.save_png(np.concatenate(crops, axis=1), out_dir / f"{stem}_relit.png")
-        viz.save_png(full, target)
-        fileio.append_csv_row(csv_path, FIELDS, _formatted({"photo": str(path), "status": "relit",
-                                                            "seconds": time.perf_counter() - start, **row}))
-        counts["done"] += 1
-    bar.close()
+    with fileio.folder_lock(out_dir, "relight"):
+        before = read_rows(csv_path)
+        if settings is not None:
+            provenance.ensure(out_dir, settings, "relit photos", name=SETTINGS, has_results=csv_path.is_file())
+        counts = {"done": 0, "skipped": 0, "resumed": 0}
+        todo = []  # the bar counts only these: photos relit before would make its rate and time left untrue
+        for path, name in zip(paths, output_names(paths)):
+            prior = before.get(name)
+            if prior is not None and prior["status"] == "relit" and (out_dir / f"{name}_composite.png").is_file():
+                counts["resumed"] += 1  # a photo skipped before is tried again: the user may have fixed it
+            else:
+                todo.append((path, name))
+        bar = tqdm(todo, desc="photos", unit="photo", disable=not progress, file=sys.stderr)
+        for path, name in bar:
+            start = time.perf_counter()
+            try:
+                full, crops, row = relight_one(path, say=lambda s: bar.write(s), **kwargs)
+            except UserError as e:
+                counts["skipped"] += 1
+                reason = str(e).removeprefix(f"image={path}: ").splitlines()[0]
+                print(f"skipped image={path}: {reason}", file=sys.stderr)
+                row = {"status": "skipped", "reason": reason}
+            else:
+                viz.save_png(np.concatenate(crops, axis=1), out_dir / f"{name}_relit.png")
+                viz.save_png(full, out_dir / f"{name}_composite.png")
+                row = {"status": "relit", **row}
+                counts["done"] += 1
+            before[name] = _formatted({"name": name, "photo": str(path), "seconds": time.perf_counter() - start,
+                                       **row})
+            write_rows(csv_path, before)
+        bar.close()
     return counts
 
 
-def output_stems(paths: Sequence[Path]) -> list[str]:
-    """Each photo's name in ``out_dir``: its stem, or ``<stem>_<suffix>`` where an earlier photo has that stem
-    (``a.jpg`` and ``a.png``)."""
-    stems: list[str] = []
-    for path in paths:
-        stems.append(path.stem if path.stem not in stems else f"{path.stem}_{path.suffix.lstrip('.')}")
-    return stems
+def read_rows(path: Path) -> dict[str, dict[str, str]]:
+    """The rows of a folder's ``relight.csv`` by output name ({} for none); another table there is refused."""
+    if not path.is_file():
+        return {}
+    with path.open(newline="") as f:
+        reader = csv.DictReader(f)
+        if not {"name", "photo", "status"} <= set(reader.fieldnames or ()):
+            raise UserError(f"{path} is not a difareli-relight photo table (its columns: "
+                            f"{', '.join(reader.fieldnames or ['none'])[:160]}); give another out_dir")
+        return {row["name"]: row for row in reader}
+
+
+def write_rows(path: Path, rows: Mapping[str, Mapping[str, Any]]) -> None:
+    """The table written whole (atomically): one row per output name, its latest outcome."""
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, FIELDS, extrasaction="ignore")
+    w.writeheader()
+    w.writerows(rows.values())
+    fileio.write_text_atomic(path, buf.getvalue())
 
 
 def _formatted(row: Mapping[str, Any]) -> dict[str, Any]:

@@ -19,6 +19,7 @@ the composite never takes the padding back.
 
 from __future__ import annotations
 
+import errno
 import os
 import stat
 import time
@@ -182,7 +183,11 @@ def read_photo(path: str | Path, key: str = "image", name: str | None = None) ->
     shown = name or str(path)
     try:
         mode = os.stat(str(path)).st_mode
-    except OSError:
+    except OSError as e:
+        if os.path.islink(str(path)):  # a link that leads nowhere: said as such, not as a missing file
+            why = ("a symbolic link loop" if e.errno == errno.ELOOP else
+                   f"a symbolic link to {os.readlink(str(path))}, which does not exist")
+            raise UserError(f"{key}={shown} is {why}; point it at a photo or remove it") from None
         mode = None  # missing or unreachable: check_file says which
     if mode is not None and not stat.S_ISREG(mode):
         kind = ("a folder" if stat.S_ISDIR(mode) else "a character device" if stat.S_ISCHR(mode) else

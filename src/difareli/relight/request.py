@@ -16,6 +16,7 @@ command only writes out; a batch of photos is answered photo by photo into the r
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -24,11 +25,12 @@ from typing import Any
 import numpy as np
 
 from difareli import errors
+from difareli.data import provenance
 from difareli.data.store import EncodingStore
 from difareli.diffusion.spec import SamplerSpec
-from difareli.lighting import sh
+from difareli.lighting import presets, sh
 from difareli.relight import photo
-from difareli.relight.batch import photo_paths, relight_photos
+from difareli.relight.batch import check_out_dir, photo_paths, relight_photos
 from difareli.relight.composite import MODES, part_mask
 from difareli.relight.relighter import Relighter
 from difareli.relight.relit import Relit
@@ -213,7 +215,8 @@ class Request:
         if not target.given and v["axis"] is None:
             raise errors.UserError("nothing to do: give a target (target.light|record|yaw|roll|pitch|envmap) or "
                                    "video.axis=yaw|roll")
-        photos = None if image is None else check_photos(image, cfg["face"], v["axis"], t["record"], c)
+        photos = None if image is None else check_photos(image, cfg["face"], v["axis"], t["record"], c,
+                                                         cfg["out_dir"])
         fmt = viz.video_format(v["format"], "video.format")
         errors.check_int(cfg["batch_size"], "batch_size", 1)
         errors.check_out_dir(cfg["out_dir"])
@@ -241,9 +244,10 @@ def check_target(t: Mapping[str, Any]) -> Target:
     errors.check_choice(t["sun"], "target.sun", TARGET_SUNS)
     for key in (*TURNS, "shadow"):
         errors.check_number(t.get(key), f"target.{key}")
-    for key in ("light", "envmap"):
-        if t.get(key) is not None and not is_named(t[key]):
-            errors.check_file(t[key], f"target.{key}")
+    for key, names, kind in (("light", presets.NAMES, "9x3 SH light"), ("envmap", presets.ENVMAPS, "HDR map")):
+        if t.get(key) is not None and not is_named(t[key], key) and not Path(str(t[key])).is_file():
+            raise errors.UserFileNotFoundError(f"target.{key}={t[key]}: no such named light or file; give one of "
+                                               f"{', '.join(names)}, or a {kind} file")
     target = Target(**{k: t.get(k) for k in (*TARGET_KEYS[:-1], "shadow", "sun")})
     given = [k for k in TARGET_KEYS if getattr(target, k) is not None]
     if len(given) > 1 and set(given) != {"envmap", "yaw"}:
@@ -252,11 +256,14 @@ def check_target(t: Mapping[str, Any]) -> Target:
     return target
 
 
-def check_photos(image: str, face: Any, axis: str | None, record: str | None, composite: Mapping[str, Any]
-                 ) -> tuple[Path, ...] | None:
+def check_photos(image: str, face: Any, axis: str | None, record: str | None, composite: Mapping[str, Any],
+                 out_dir: str) -> tuple[Path, ...] | None:
     """The photos of ``image=`` (a folder or a glob; ``face=all|<index>``: several faces of one photo) as a batch,
-    None for one photo; a batch takes a target light, not a video or a target record; the compositing checked."""
+    None for one photo; a batch takes a target light, not a video or a target record, and an ``out_dir`` its
+    listing does not read; the compositing checked."""
     photos = photo_paths(image)
+    if photos is not None:
+        check_out_dir(image, out_dir)
     if photos is None and str(face).lower() != "largest":
         photos = [Path(str(image))]  # several faces of one photo
     if photos is not None and (axis is not None or record is not None):
@@ -357,6 +364,12 @@ def answer_photos(relighter: Relighter, request: Request) -> dict[str, int]:
     if request.photos is None or request.out_dir is None:
         raise ValueError("answer_photos takes a request with photos (image=<folder or glob>, or face=all|<index>) "
                          "and an out_dir")
-    return relight_photos(list(request.photos), request.out_dir, progress=relighter.progress, relighter=relighter,
-                          target=lambda s: request.target.for_source(relighter, s)[0], size=request.photo_size,
-                          face=request.face, composite=request.composite, strict=request.strict)
+    settings = {"checkpoint": provenance.model_identity(relighter.model), "precision": relighter.runtime.precision,
+                "sampler": None if relighter.spec is None else relighter.spec.to_config(),
+                "mean_matching": relighter.mean_matching, "photo_size": request.photo_size, "face": str(request.face),
+                "strict": request.strict, "composite": dict(request.composite),
+                **{f"target.{k}": v for k, v in dataclasses.asdict(request.target).items()}}
+    return relight_photos(list(request.photos), request.out_dir, progress=relighter.progress, settings=settings,
+                          relighter=relighter, target=lambda s: request.target.for_source(relighter, s)[0],
+                          size=request.photo_size, face=request.face, composite=request.composite,
+                          strict=request.strict)

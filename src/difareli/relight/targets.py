@@ -147,10 +147,10 @@ TARGET_KEYS = ("light", "record", "yaw", "roll", "pitch", "envmap", "direction")
 TURNS = {"yaw": sh.rotation_yaw, "roll": sh.rotation_roll, "pitch": sh.rotation_pitch}
 
 
-def is_named(value) -> bool:
-    """Whether a ``target.light`` / ``target.envmap`` value is a named light (:data:`lighting.presets.NAMES`), not
-    a file."""
-    return isinstance(value, str) and value in presets.NAMES
+def is_named(value, key: str = "light") -> bool:
+    """Whether a ``target.light`` (``key="light"``) or ``target.envmap`` value is a named light, not a file: one of
+    :data:`lighting.presets.NAMES`, or for an envmap one of its HDR maps."""
+    return isinstance(value, str) and value in (presets.NAMES if key == "light" else presets.ENVMAPS)
 
 
 def target_lights(source_light: np.ndarray, *, light: str | None = None, other_light: np.ndarray | None = None,
@@ -171,7 +171,7 @@ def target_lights(source_light: np.ndarray, *, light: str | None = None, other_l
         return np.asarray(other_light, np.float64)
     if light is not None and not is_named(light):
         return load_sh_file(light)
-    if envmap is not None and not is_named(envmap):
+    if envmap is not None and not is_named(envmap, "envmap"):
         out = sh.project_envmap(load_envmap(envmap))
         return out if yaw is None else sh.yaw(out, yaw)
     src = check_finite(np.asarray(source_light, np.float64), "the source record's light")

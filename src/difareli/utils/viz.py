@@ -209,6 +209,13 @@ def write_gif(frames: np.ndarray, path, fps: int = 20):
     return path
 
 
+def enlarge(images: np.ndarray, height: int) -> np.ndarray:
+    """``images`` (..., H, W, C) upscaled by the smallest whole factor that makes them at least ``height`` px
+    tall, nearest (a 64 px crop's pixels stay visible, not blurred)."""
+    k = max(1, -(-int(height) // np.asarray(images).shape[-3]))
+    return np.repeat(np.repeat(np.asarray(images), k, axis=-3), k, axis=-2)
+
+
 def write_rotation(frames: np.ndarray, out_dir: str | Path, name: str, *, axis: str | None = None, fps: int = 20,
                    fmt: str = "auto", zoom: int = 1, columns: int = 10) -> dict[str, Path]:
     """A rotation's frames written: ``<name>.<fmt>`` (upscaled ``zoom`` times, nearest) and its contact sheet
