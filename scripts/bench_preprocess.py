@@ -2,7 +2,7 @@
 """Throughput of difareli-preprocess per crop size with per-stage times, this tree beside a baseline, interleaved.
 
     python scripts/bench_preprocess.py [--sizes 256] [--rounds 3] [--passes 4] [--baseline <git ref> | none]
-                                       [--workers 2]
+                                       [--workers 2] [--previews]
 
 Each round runs the baseline, then this tree, each in a fresh process (start-up and one warm-up photo, which builds
 the mediapipe graphs and loads dlib, not timed): rounds interleave the two sides so that a change of the machine's
@@ -12,8 +12,9 @@ times, on the same photos (scikit-image's astronaut and cameraman, matplotlib's 
 
 - ``process()``: ``Pipeline.process`` one photo after the other, in memory (what a photo relight and SynthFaces'
   estimated inputs call);
-- ``run()``: ``estimators.batch.run`` on a folder of those photos as PNGs, the store written, previews off: what
-  ``difareli-preprocess`` does (decoding, alignment and estimators overlapped where the tree does so).
+- ``run()``: ``estimators.batch.run`` on a folder of those photos as PNGs, the store written, previews off (on with
+  ``--previews``, as ``difareli-preprocess`` writes them by default): what ``difareli-preprocess`` does (decoding,
+  alignment and estimators overlapped where the tree does so).
 
 The rows "mediapipe graphs" and "identity network" are the wall time inside those third-party calls (part of the
 stages above them), and "networks alone" the images/s with every other line free, one call after the other: the
@@ -110,7 +111,7 @@ def _row(n: int, dt: float, cpu: float, stages: dict, nets: dict) -> dict:
             "networks_ms": {k: 1000 * v / n for k, v in nets.items()}}
 
 
-def measure(size: int, passes: int) -> dict:
+def measure(size: int, passes: int, previews: bool = False) -> dict:
     """``{"process": row, "run": row}`` of the importable ``difareli`` at ``size`` (see the module doc)."""
     from PIL import Image
 
@@ -136,7 +137,7 @@ def measure(size: int, passes: int) -> dict:
                 Image.fromarray(img).save(src / f"p{p}_{i}.png")
         nets.clear()
         t0, c0 = time.perf_counter(), _cpu()
-        summary = run(pipe, str(src), str(Path(tmp) / "out"), previews=False, progress=False)
+        summary = run(pipe, str(src), str(Path(tmp) / "out"), previews=previews, progress=False)
         dt, cpu = time.perf_counter() - t0, _cpu() - c0
     if summary.failed:
         raise RuntimeError(f"{summary.failed} photos failed in run()")
@@ -165,10 +166,11 @@ def measure_workers(size: int, passes: int, workers: int) -> float:
         return summary.written / (time.perf_counter() - t0)
 
 
-def run_side(src: Path, size: int, passes: int) -> dict:
+def run_side(src: Path, size: int, passes: int, previews: bool) -> dict:
     """:func:`measure` in a fresh process importing the package from ``src``."""
     env = dict(os.environ, PYTHONPATH=str(src) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     cmd = [sys.executable, __file__, "--worker", "--sizes", str(size), "--passes", str(passes)]
+    cmd += ["--previews"] if previews else []
     res = subprocess.run(cmd, env=env, capture_output=True, text=True, cwd=tempfile.gettempdir(), check=False)
     if res.returncode != 0:
         raise RuntimeError(f"benchmark of {src} failed:\n{res.stderr[-2000:]}")
@@ -219,6 +221,9 @@ def table(mode: str, before: list[dict] | None, after: list[dict]) -> str:
             lines.append(f"{'  ' + s:<22}{fmt(x):>13}{fmt(y):>14}  (within the stages)")
     ips = f"{b['images_per_s']:.2f}" if b else "-"
     lines.append(f"{'images/s':<22}{ips:>13}{a['images_per_s']:>14.2f}")
+    if before:
+        each = ", ".join(f"{x['ms_per_image'] / y['ms_per_image']:.2f}x" for x, y in zip(before, after))
+        lines.append(f"each round's wall speed-up: {each}")
     for side, row in (("baseline", b), ("this tree", a)):
         floor = sum((row or {}).get("networks_ms", {}).values())
         if floor:
@@ -234,10 +239,11 @@ def main(argv=None) -> None:
     ap.add_argument("--passes", type=int, default=4, help="passes over the six photos in each run")
     ap.add_argument("--baseline", default=BASELINE, help="git ref to compare with, or 'none'")
     ap.add_argument("--workers", type=int, default=0, help="also time this tree with this many worker processes")
+    ap.add_argument("--previews", action="store_true", help="run() writes the previews (difareli-preprocess's default)")
     ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.worker:
-        print(json.dumps(measure(args.sizes[0], args.passes)))
+        print(json.dumps(measure(args.sizes[0], args.passes, args.previews)))
         return
     with tempfile.TemporaryDirectory() as tmp:
         base_src = None if args.baseline == "none" else baseline_tree(args.baseline, Path(tmp))
@@ -247,11 +253,12 @@ def main(argv=None) -> None:
             after: list[dict] = []
             for _ in range(args.rounds):
                 if base_src:
-                    before.append(run_side(base_src, size, args.passes))
-                after.append(run_side(REPO / "src", size, args.passes))
+                    before.append(run_side(base_src, size, args.passes, args.previews))
+                after.append(run_side(REPO / "src", size, args.passes, args.previews))
             print(f"size {size} px")
             for mode in ("process", "run"):
-                print(table(f"{mode}()", [r[mode] for r in before] or None, [r[mode] for r in after]), flush=True)
+                name = "run(), previews on" if mode == "run" and args.previews else f"{mode}()"
+                print(table(name, [r[mode] for r in before] or None, [r[mode] for r in after]), flush=True)
             if args.workers > 1:
                 ips = measure_workers(size, args.passes, args.workers)
                 print(f"{'images/s, ' + str(args.workers) + ' workers':<22}{'':>13}{ips:>14.2f}"
