@@ -159,6 +159,103 @@ class ImportReport:
     skipped_incomplete: dict[str, str] = field(default_factory=dict)  # image name -> reason (strict=False)
 
 
+def _params(params_dir: Path, set_name: str, wanted: Sequence[str], shape_parts: Sequence[str],
+            prefix: str) -> dict[str, dict[str, list]]:
+    """The parameter files the ``wanted`` encodings read (light, the shape parts, cam, faceemb, shadow), by key."""
+    keys = ((["light"] if "light" in wanted else []) + (list(shape_parts) if "shape" in wanted else [])
+            + (["cam"] if "cam" in wanted else []) + (["faceemb"] if "identity" in wanted else [])
+            + (["shadow"] if "shadow" in wanted else []))
+    for k in keys:
+        if k not in _PARAM_PRODUCER:
+            raise UserError(f"unknown DiFaReli parameter {k!r} in shape_parts; known: {sorted(_PARAM_PRODUCER)}")
+    params = {k: _param_file(params_dir, set_name, k, prefix) for k in keys}
+    if "light" in params and any(len(v) != 27 for v in params["light"].values()):
+        raise UserError(f"{params_dir}: DECA light vectors must have 27 values (9 SH x RGB)")
+    return params
+
+
+def _image_files(name: str, problems: list[str], seg_files: dict | None, seg_dir: Path, shade_files: dict | None,
+                 shading_dir, img_files: dict, images_dir) -> dict[str, Path]:
+    """One image's spatial source files (its label map, shading render and image, where they are read); what is
+    missing is appended to ``problems``."""
+    stem = os.path.splitext(name)[0]
+    paths: dict[str, Path] = {}
+    if seg_files is not None:
+        paths["masks"] = seg_files.get(f"anno_{stem}.png")
+        if paths["masks"] is None:
+            problems.append(f"{seg_dir / f'anno_{stem}.png'} missing")
+    if shade_files is not None:
+        paths["shading"] = shade_files.get(f"{stem}.npy")
+        if paths["shading"] is None:
+            problems.append(f"{Path(shading_dir) / f'{stem}.npy'} missing")
+    if images_dir is not None:
+        paths["image"] = img_files.get(name) or next(
+            (img_files[stem + e] for e in _IMAGE_EXTS if stem + e in img_files), None)
+        if paths["image"] is None:
+            problems.append(f"no image {name!r} (or {stem}.png/.jpg) in {images_dir}")
+    return paths
+
+
+def _shading_dir(src: Path, set_name: str, shading_dir) -> Path:
+    """Where the unclipped DECA shading renders are: ``shading_dir``, else the first of the preprocessing's own
+    folders that exists."""
+    if shading_dir is None:
+        cands = [src / "rendered_images" / d / set_name for d in _SHADING_DIRS]
+        shading_dir = next((c for c in cands if c.is_dir()), None)
+        if shading_dir is None:
+            raise UserFileNotFoundError(f"missing {cands[0]} (or {cands[1]}): unclipped DECA shading renders "
+                                        f"(.npy), produced by {_PRODUCERS['shading']}")
+    return Path(shading_dir)
+
+
+def _wanted(encodings: Sequence[str] | None, images_dir) -> list[str]:
+    """The encodings to import: those asked for (default: everything derivable; ``image`` and ``background``
+    only with ``images_dir``), each one the importer makes."""
+    if images_dir is None and ("image" in (encodings or ()) or "background" in (encodings or ())):
+        raise UserError("encodings 'image'/'background' need images_dir (the aligned images DiFaReli processed)")
+    wanted = [n for n in (encodings or _DEFAULT) if images_dir is not None or n not in ("image", "background")]
+    for n in wanted:
+        E.get(n)
+    unknown = [n for n in wanted if n not in _DEFAULT]
+    if unknown:
+        raise UserError(f"the DiFaReli importer cannot produce {unknown}; it makes {list(_DEFAULT)}")
+    return wanted
+
+
+def _names(params: dict, seg_files: dict, shade_files: dict, img_files: dict) -> list[str]:
+    """The image list: names in the first parameter file, else the files of the first spatial source
+    (``anno_<stem>.png`` counts as ``<stem>.png``, as DiFaReli's loader does)."""
+    if params:
+        return sorted(next(iter(params.values())))
+    if seg_files:
+        return sorted(n[len("anno_"):] for n in seg_files if n.startswith("anno_") and n.endswith(".png"))
+    return sorted(n for n in (shade_files or img_files) if not n.startswith("."))
+
+
+def _dims(sources: dict[str, dict[str, Path]], params: dict, wanted: Sequence[str], shape_parts: Sequence[str],
+          size) -> tuple[dict[str, int], dict[str, list[int]]]:
+    """The store's dims from the data (S and D from the parameter vectors, H and W from ``size`` or the first
+    record) and where each shape part lies in ``shape``."""
+    first = next(iter(sources))
+    dims: dict[str, int] = {}
+    if "shape" in wanted:
+        dims["S"] = int(sum(len(params[k][first]) for k in shape_parts))
+    if "identity" in wanted:
+        dims["D"] = len(params["faceemb"][first])
+    if any(E.get(n).spatial for n in wanted):
+        if size is not None:
+            dims["H"], dims["W"] = (size, size) if isinstance(size, int) else size
+        else:
+            probe = _load_spatial(sources[first], None)
+            dims["H"], dims["W"] = next(iter(probe.values())).shape[:2]
+    layout, off = {}, 0
+    for k in shape_parts if "shape" in wanted else ():
+        n = len(params[k][first])
+        layout[k] = [off, off + n]
+        off += n
+    return dims, layout
+
+
 def import_difareli(
     src_root: str | os.PathLike,
     set_name: str,
@@ -186,47 +283,14 @@ def import_difareli(
     skipped (resume) unless ``overwrite``. With ``strict=False`` images lacking an input are skipped and
     listed in the report instead of raising.
     """
-    src = Path(src_root)
-    if images_dir is None and ("image" in (encodings or ()) or "background" in (encodings or ())):
-        raise UserError("encodings 'image'/'background' need images_dir (the aligned images DiFaReli processed)")
-    wanted = [n for n in (encodings or _DEFAULT) if images_dir is not None or n not in ("image", "background")]
-    for n in wanted:
-        E.get(n)
-    unknown = [n for n in wanted if n not in _DEFAULT]
-    if unknown:
-        raise UserError(f"the DiFaReli importer cannot produce {unknown}; it makes {list(_DEFAULT)}")
-
+    src, wanted = Path(src_root), _wanted(encodings, images_dir)
     params_dir = src / "params" / set_name
-    keys = []
-    if "light" in wanted:
-        keys.append("light")
-    if "shape" in wanted:
-        keys.extend(shape_parts)
-    if "cam" in wanted:
-        keys.append("cam")
-    if "identity" in wanted:
-        keys.append("faceemb")
-    if "shadow" in wanted:
-        keys.append("shadow")
-    for k in keys:
-        if k not in _PARAM_PRODUCER:
-            raise UserError(f"unknown DiFaReli parameter {k!r} in shape_parts; known: {sorted(_PARAM_PRODUCER)}")
-    params = {k: _param_file(params_dir, set_name, k, prefix) for k in keys}
-    if "light" in params and any(len(v) != 27 for v in params["light"].values()):
-        raise UserError(f"{params_dir}: DECA light vectors must have 27 values (9 SH x RGB)")
-
+    params = _params(params_dir, set_name, wanted, shape_parts, prefix)
     need_masks = any(n in wanted for n in ("masks", "face_mask", "background"))
     seg_dir = src / "face_segment" / set_name / "anno"
     if need_masks and not seg_dir.is_dir():
         raise UserFileNotFoundError(f"missing {seg_dir} (face-parsing label maps, produced by {_PRODUCERS['masks']})")
-    if "shading" in wanted:
-        if shading_dir is None:
-            cands = [src / "rendered_images" / d / set_name for d in _SHADING_DIRS]
-            shading_dir = next((c for c in cands if c.is_dir()), None)
-            if shading_dir is None:
-                raise UserFileNotFoundError(f"missing {cands[0]} (or {cands[1]}): unclipped DECA shading renders "
-                                            f"(.npy), produced by {_PRODUCERS['shading']}")
-        shading_dir = Path(shading_dir)
+    shading_dir = _shading_dir(src, set_name, shading_dir) if "shading" in wanted else shading_dir
     seg_files = _listing(seg_dir) if need_masks else {}
     shade_files = _listing(shading_dir) if "shading" in wanted else {}
     img_files = _listing(Path(images_dir)) if images_dir is not None else {}
@@ -234,35 +298,12 @@ def import_difareli(
         raise UserFileNotFoundError(f"images_dir {images_dir} is missing or empty (the aligned images DiFaReli "
                                     "processed)")
 
-    # The image list: names in the first parameter file, else the files of the first spatial source
-    # (``anno_<stem>.png`` counts as ``<stem>.png``, as DiFaReli's loader does).
-    if params:
-        names = sorted(next(iter(params.values())))
-    elif seg_files:
-        names = sorted(n[len("anno_"):] for n in seg_files if n.startswith("anno_") and n.endswith(".png"))
-    else:
-        names = sorted(n for n in (shade_files or img_files) if not n.startswith("."))
-    if limit is not None:
-        names = names[:limit]
     sources: dict[str, dict[str, Path]] = {}
     report_missing: dict[str, str] = {}
-    for name in names:
-        stem = os.path.splitext(name)[0]
+    for name in _names(params, seg_files, shade_files, img_files)[:limit]:
         problems = [f"no '{k}' entry in {params_dir}" for k in params if name not in params[k]]
-        paths: dict[str, Path] = {}
-        if need_masks:
-            paths["masks"] = seg_files.get(f"anno_{stem}.png")
-            if paths["masks"] is None:
-                problems.append(f"{seg_dir / f'anno_{stem}.png'} missing")
-        if "shading" in wanted:
-            paths["shading"] = shade_files.get(f"{stem}.npy")
-            if paths["shading"] is None:
-                problems.append(f"{shading_dir / f'{stem}.npy'} missing")
-        if images_dir is not None:
-            paths["image"] = img_files.get(name) or next(
-                (img_files[stem + e] for e in _IMAGE_EXTS if stem + e in img_files), None)
-            if paths["image"] is None:
-                problems.append(f"no image {name!r} (or {stem}.png/.jpg) in {images_dir}")
+        paths = _image_files(name, problems, seg_files if need_masks else None, seg_dir,
+                             shade_files if "shading" in wanted else None, shading_dir, img_files, images_dir)
         if problems:
             if strict:
                 raise UserFileNotFoundError(f"image {name!r} of set {set_name!r}: " + "; ".join(problems))
@@ -276,41 +317,21 @@ def import_difareli(
     if len(set(rids.values())) != len(rids):
         raise UserError("image names collide after turning them into record ids (same stem, different extension?)")
 
-    # Store dims from the data: S and D from the parameter vectors, H and W from `size` or the first record.
-    first = next(iter(sources))
-    dims: dict[str, int] = {}
-    if "shape" in wanted:
-        dims["S"] = int(sum(len(params[k][first]) for k in shape_parts))
-    if "identity" in wanted:
-        dims["D"] = len(params["faceemb"][first])
-    if any(E.get(n).spatial for n in wanted):
-        if size is not None:
-            dims["H"], dims["W"] = (size, size) if isinstance(size, int) else size
-        else:
-            probe = _load_spatial(sources[first], None)
-            dims["H"], dims["W"] = next(iter(probe.values())).shape[:2]
-    layout, off = {}, 0
-    for k in shape_parts if "shape" in wanted else ():
-        n = len(params[k][first])
-        layout[k] = [off, off + n]
-        off += n
-    store_meta = {
-        "source": "difareli", "src_root": str(src.resolve()), "shape_layout": layout,
-        "light_layout": "DECA 9x3 (SH coefficient, RGB), row-major from the 27-value anno line",
-        "mask_source": "BiSeNet 19 classes merged by difareli.official.importers.BISENET_TO_PART",
-        "shading_albedo": 180 / 255,
-    }
+    dims, layout = _dims(sources, params, wanted, shape_parts, size)
+    store_meta = {"source": "difareli", "src_root": str(src.resolve()), "shape_layout": layout,
+                  "light_layout": "DECA 9x3 (SH coefficient, RGB), row-major from the 27-value anno line",
+                  "mask_source": "BiSeNet 19 classes merged by difareli.official.importers.BISENET_TO_PART",
+                  "shading_albedo": 180 / 255}
     store = EncodingStore.create(out_root, dims, wanted, store_meta, durable=durable)
     report = ImportReport(store=store, skipped_incomplete=report_missing)
     for name, paths in sources.items():
-        rid = rids[name]
-        if store.has(rid) and not overwrite:
-            report.skipped_existing.append(rid)
-            continue
-        arrays = _record_arrays(name, params, paths, wanted, shape_parts, (dims.get("H"), dims.get("W")), size)
-        meta = {"split": split or set_name, "subject": rid, "source": "difareli", "image_name": name}
-        store.write(rid, arrays, meta, overwrite=overwrite)
-        report.written.append(rid)
+        if store.has(rids[name]) and not overwrite:
+            report.skipped_existing.append(rids[name])
+        else:
+            arrays = _record_arrays(name, params, paths, wanted, shape_parts, (dims.get("H"), dims.get("W")), size)
+            store.write(rids[name], arrays, {"split": split or set_name, "subject": rids[name], "source": "difareli",
+                                             "image_name": name}, overwrite=overwrite)
+            report.written.append(rids[name])
     log.info("imported %d records into %s (%d existing skipped, %d incomplete skipped)",
              len(report.written), out_root, len(report.skipped_existing), len(report_missing))
     return report

@@ -81,6 +81,24 @@ def march_shadow(depth: np.ndarray, hit: np.ndarray, cam: OrthoCamera, direction
                          estimate_normals=estimate_normals)[0]
 
 
+def _ray_starts(dirs: np.ndarray, untested: np.ndarray, tested: np.ndarray, facing: np.ndarray, pixel: float,
+                max_distance: float) -> list[tuple[int, np.ndarray, float, int]]:
+    """Per direction that can cast a visible shadow: its index, the flat pixels whose rays it marches (those
+    whose normal is not tested, and those facing it), its step (one pixel of screen-space travel) and step count
+    (``max_distance`` along the ray, at most twice the image's side)."""
+    h, w = untested.shape
+    starts = []
+    for n, d in enumerate(dirs):
+        dxy = np.hypot(d[0], d[1])
+        if dxy < 1e-6:
+            continue  # light along the view axis: nothing visible can occlude
+        flat = np.flatnonzero(untested | (tested & (facing @ d > 0)))
+        step = pixel / dxy
+        if len(flat):
+            starts.append((n, flat, step, int(min(np.ceil(max_distance / step), 2 * max(h, w)))))
+    return starts
+
+
 def march_shadows(depth: np.ndarray, hit: np.ndarray, cam: OrthoCamera, directions, *, max_distance: float = 2.0,
                   thickness: float = 0.5, bias_pixels: float = 0.0, normal: np.ndarray | None = None,
                   sample: str = "plane", estimate_normals: bool = True) -> np.ndarray:
@@ -119,17 +137,7 @@ def march_shadows(depth: np.ndarray, hit: np.ndarray, cam: OrthoCamera, directio
     # A ray rising toward the viewer (dz >= 0) at or above the highest surface less the bias can never be blocked
     # again (blocking needs surface - z > bias): it is dropped there, which ends most lit rays early.
     top = reach.max() - bias
-    starts = []  # per direction: the pixels whose rays it marches
-    for n, d in enumerate(dirs):
-        dxy = np.hypot(d[0], d[1])
-        if dxy < 1e-6:
-            continue  # light along the view axis: nothing visible can occlude
-        cand = hit & (~test | (facing @ d > 0))
-        flat = np.flatnonzero(cand)
-        step = pixel / dxy  # one pixel of screen-space travel per step; stop after max_distance along the ray
-        n_steps = int(min(np.ceil(max_distance / step), 2 * max(h, w)))
-        if len(flat):
-            starts.append((n, flat, step, n_steps))
+    starts = _ray_starts(dirs, hit & ~test, hit & test, facing, pixel, max_distance)
     if not starts:
         return out
     ray_dir = np.concatenate([np.repeat(n, len(f)) for n, f, _, _ in starts])

@@ -140,18 +140,10 @@ def _cast_list(cast, n: int, hit: np.ndarray) -> list[np.ndarray]:
     return [m & hit for m in maps]
 
 
-def shade(subject: Subject, light: Light, cast, cfg: SynthConfig,
-          est_image: np.ndarray | None = None) -> tuple[dict[str, np.ndarray], dict]:
-    """All encodings of ``subject`` under ``light`` and the record's effect meta; ``cast``: one bool cast-shadow
-    map per sun of ``light.suns()`` (a single map or None are accepted for one sun or none); ``est_image``: the
-    same record rendered at the estimation resolution (v3)."""
-    gb = subject.gbuffer
-    hit = gb.hit
-    n = gb.normal.astype(np.float64)
-    e_amb_open = sh.irradiance(light.ambient, n)
-    e_amb = e_amb_open if subject.ao is None else e_amb_open * subject.ao[..., None]
-    suns = light.suns()
-    casts = _cast_list(cast, len(suns), hit) if suns else []
+def _sunlight(subject: Subject, suns, casts, n: np.ndarray, e_amb: np.ndarray):
+    """The suns' light on ``subject`` added to the ambient ``e_amb``: the irradiance with and without the cast
+    shadows (``e``, ``e_open``), the specular and subsurface terms (None without the effect) and each sun's
+    unshadowed term."""
     e, e_open = e_amb, e_amb
     spec = sss_gain = None
     sun_terms = []
@@ -169,6 +161,22 @@ def shade(subject: Subject, light: Light, cast, cfg: SynthConfig,
         e = e + sun * (~c)[..., None]
         e_open = e_open + sun
         sun_terms.append(sun)
+    return e, e_open, spec, sss_gain, sun_terms
+
+
+def shade(subject: Subject, light: Light, cast, cfg: SynthConfig,
+          est_image: np.ndarray | None = None) -> tuple[dict[str, np.ndarray], dict]:
+    """All encodings of ``subject`` under ``light`` and the record's effect meta; ``cast``: one bool cast-shadow
+    map per sun of ``light.suns()`` (a single map or None are accepted for one sun or none); ``est_image``: the
+    same record rendered at the estimation resolution (v3)."""
+    gb = subject.gbuffer
+    hit = gb.hit
+    n = gb.normal.astype(np.float64)
+    e_amb_open = sh.irradiance(light.ambient, n)
+    e_amb = e_amb_open if subject.ao is None else e_amb_open * subject.ao[..., None]
+    suns = light.suns()
+    casts = _cast_list(cast, len(suns), hit) if suns else []
+    e, e_open, spec, sss_gain, sun_terms = _sunlight(subject, suns, casts, n, e_amb)
     diffuse = subject.albedo * e
     lit = np.clip(diffuse if spec is None else diffuse + spec, 0.0, 1.0)
     img = np.where(hit[..., None], lit, subject.background)
