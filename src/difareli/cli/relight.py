@@ -17,7 +17,7 @@ from difareli import errors
 from difareli.cli import common
 from difareli.relight import batch
 from difareli.relight.relighter import Relighter
-from difareli.relight.request import Answer, Request, answer
+from difareli.relight.request import Answer, Request, respond
 from difareli.utils import viz
 
 
@@ -30,7 +30,7 @@ def run(cfg: DictConfig) -> dict[str, Path]:
     request = Request.from_config(cfg)  # every value of the request checked, before any work
     relighter = Relighter(request.checkpoint, request.sampler, runtime=request.runtime,
                           mean_matching=request.mean_matching, batch_size=request.batch_size, progress=request.progress)
-    return write(answer(relighter, request, say), request)
+    return write(respond(relighter, request, say), request)
 
 
 def say(line: str) -> None:
@@ -41,33 +41,33 @@ def say(line: str) -> None:
         print(line)
 
 
-def write(answer: Answer, request: Request) -> dict[str, Path]:
+def write(result: Answer, request: Request) -> dict[str, Path]:
     """The answer's images written into the request's ``out_dir`` (its lines were said as they arose): relit.png
     and a labelled comparison (with the ground truth where the target record is the same subject); a photo's
     aligned crop and whole relit photo; the rotation video, its captioned contact sheet and, for a photo, the
     video composited. A batch of photos (already written as it went): its counts said (:func:`write_counts`)."""
-    if answer.counts is not None:
-        return write_counts(answer.counts, request)
-    out_dir, written, source = Path(request.out_dir), {}, answer.source
-    if answer.relit is not None:
-        row, names = [source.arrays["image"], answer.relit[0]], ["input", "relit"]
-        if answer.truth is not None:
-            row, names = [*row, answer.truth], [*names, "ground truth"]
-        written["image"] = viz.save_png(answer.relit[0], out_dir / "relit.png")
+    if result.counts is not None:
+        return write_counts(result.counts, request)
+    out_dir, written, source = Path(request.out_dir), {}, result.source
+    if result.relit is not None:
+        row, names = [source.arrays["image"], result.relit[0]], ["input", "relit"]
+        if result.truth is not None:
+            row, names = [*row, result.truth], [*names, "ground truth"]
+        written["image"] = viz.save_png(result.relit[0], out_dir / "relit.png")
         written["comparison"] = viz.save_png(viz.grid([[viz.enlarge(im, COMPARISON_PX) for im in row]],
                                                       col_labels=names), out_dir / "comparison.png")
-        if answer.whole is not None:
+        if result.whole is not None:
             written["aligned"] = viz.save_png(source.arrays["image"], out_dir / "aligned.png")
-            written["composite"] = viz.save_png(answer.whole, out_dir / "composite.png")
+            written["composite"] = viz.save_png(result.whole, out_dir / "composite.png")
             written["composite_comparison"] = viz.save_png(
-                viz.grid([[source.photo.rgb, answer.whole]], col_labels=["photo", "relit photo"]),
+                viz.grid([[source.photo.rgb, result.whole]], col_labels=["photo", "relit photo"]),
                 out_dir / "composite_comparison.png")
-    if answer.video is not None:
+    if result.video is not None:
         axis, fmt, fps = request.video_axis, request.video_format, request.video_fps
-        rotation = viz.write_rotation(answer.video.images, out_dir, f"rotation_{axis}", axis=axis, fps=fps, fmt=fmt)
+        rotation = viz.write_rotation(result.video.images, out_dir, f"rotation_{axis}", axis=axis, fps=fps, fmt=fmt)
         written["video"], written["sheet"] = rotation["video"], rotation["sheet"]
-        if answer.whole_video is not None:
-            written["video_composite"] = viz.write_video(answer.whole_video,
+        if result.whole_video is not None:
+            written["video_composite"] = viz.write_video(result.whole_video,
                                                          out_dir / f"rotation_{axis}_composite.{fmt}", fps)
     for k, p in written.items():
         print(f"{k}: {viz.describe_file(p)}")

@@ -7,7 +7,7 @@ shadow map is marched), a rotation video of the source's light (:class:`Rotation
 oracle's shadow strengths and maps), how a photo's relights go back into it, where and how the answer is written,
 and how it is relit (the checkpoint, the sampler by its spec, the runtime: what a
 :class:`~difareli.relight.relighter.Relighter` is built with). :meth:`Request.from_config` takes it from a
-command's config (``conf/relight.yaml``) and checks it, each value once, before any work. :func:`answer` reads the
+command's config (``conf/relight.yaml``) and checks it, each value once, before any work. :func:`respond` reads the
 source once through the relighter, builds the targets, relights, composites, and returns an :class:`Answer` that a
 command only writes out; a batch of photos is answered photo by photo into the request's ``out_dir``
 (:mod:`difareli.relight.batch`), its answer the counts. The app, ``difareli-video`` and the demo relight through
@@ -35,8 +35,8 @@ from difareli.relight.composite import MODES, part_mask
 from difareli.relight.relighter import Relighter
 from difareli.relight.relit import Relit
 from difareli.relight.sources import Source
-from difareli.relight.targets import TARGET_KEYS, TURNS, Targets, is_named, load_envmap, rotation_targets, \
-    target_lights
+from difareli.relight.targets import (TARGET_KEYS, TURNS, Targets, is_named, load_envmap, rotation_targets,
+                                      target_lights)
 from difareli.render import sun_fit
 from difareli.render.sun_fit import TARGET_SUNS
 from difareli.runtime.core import Runtime
@@ -320,7 +320,7 @@ class Answer:
             self.say(line)
 
 
-def answer(relighter: Relighter, request: Request, say: Callable[[str], None] | None = None) -> Answer:
+def respond(relighter: Relighter, request: Request, say: Callable[[str], None] | None = None) -> Answer:
     """``request`` answered by ``relighter`` (module doc): the source read and checked once, its target relit
     (its map toward the key sun found from the cast shadows of the image whose light it is, turned with a yaw,
     roll or pitch), the video's frames relit, a photo's relights composited back; a batch of photos:
