@@ -38,6 +38,8 @@ def test_a_guided_decode_is_the_decode_of_the_combined_denoiser():
 def test_guidance_is_checked_and_round_trips():
     spec = SamplerSpec.from_config({"preset": "default", "guidance": 2})
     assert spec.guidance == 2.0 and SamplerSpec.from_config(spec.to_config()) == spec
+    # At 1 a spec records as before guidance existed: earlier benchmark runs' settings still match.
+    assert "guidance" not in SamplerSpec.preset("default").to_config()
     for bad in (0, -1, 11, "strong", True):
         with pytest.raises(SamplerConfigError, match="sampler guidance must be a number in"):
             SamplerSpec("ddim", guidance=bad)

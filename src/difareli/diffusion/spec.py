@@ -157,7 +157,7 @@ class SamplerSpec:
         if "preset" in cfg:
             base = _preset(cfg.pop("preset")).to_config()
             if cfg.get("name", base["name"]) != base["name"]:  # another sampler: keep the common fields only
-                base = {k: base[k] for k in _FIELDS}
+                base = {k: base[k] for k in _FIELDS if k in base}
             cfg = {**base, **cfg}
         if "name" not in cfg:
             raise SamplerConfigError("a sampler config needs a name (a sampler: "
@@ -172,8 +172,11 @@ class SamplerSpec:
         return cls.from_config({"preset": preset, **overrides})
 
     def to_config(self) -> dict[str, Any]:
-        """The flat mapping ``conf/sampler/*.yaml`` holds; ``from_config(spec.to_config()) == spec``."""
-        return {**{f: getattr(self, f) for f in _FIELDS}, **dict(self.options)}
+        """The flat mapping ``conf/sampler/*.yaml`` holds; ``from_config(spec.to_config()) == spec``. ``guidance``
+        at 1 (the plain decode) is left out, so such a spec records as every spec did before guidance existed
+        (a finished benchmark run is resumed, not refused for a key it never had)."""
+        fields = {f: getattr(self, f) for f in _FIELDS if not (f == "guidance" and self.guidance == 1.0)}
+        return {**fields, **dict(self.options)}
 
     # ------------------------------------------------------------------ running
     def grids(self, schedule: DiffusionSchedule) -> tuple[torch.Tensor, torch.Tensor]:
