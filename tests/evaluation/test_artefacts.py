@@ -111,5 +111,12 @@ def test_cast_shadow_response_is_one_for_the_predicted_shadow_and_zero_for_none(
     tiny = np.zeros((20, 20), bool)
     tiny[0, 0] = True  # 1 of 400 face pixels: below the 3% a map must cover
     assert math.isnan(art.cast_shadow_response(shadowed, lit, face, tiny, share))
+    # Shading that darkens toward the map's side, no cast shadow: only the 3 px ring around the map (columns 5-7)
+    # counts, not the far side of the face (against which the same image reads as half a shadow, 0.53).
+    ramp = (lit * (0.5 + 0.5 * np.arange(20) / 19)[None, :, None]).astype(np.float64)
+    y = ramp[..., 0] / 255
+    want = (y[:, 5:8].mean() - y[:, :5].mean()) / (150 / 255 * 0.5)
+    assert art.cast_shadow_response(ramp.round().astype(np.uint8), lit, face, m, share) == pytest.approx(want, abs=0.01)
+    assert want < 0.25  # against the rest of the whole face it would read as half a shadow
     # A light whose key sun gives 1% of the light predicts a darkening of 0.006: too little to take a ratio over.
     assert math.isnan(art.cast_shadow_response(shadowed, lit, face, m, np.full((20, 20), 0.01)))

@@ -144,28 +144,27 @@ def key_sun_share(light: np.ndarray, normal: np.ndarray) -> np.ndarray:
     return np.where(known, np.clip(share, 0.0, 1.0), 0.0)
 
 
-def _darkening(y: np.ndarray, face: np.ndarray, m: np.ndarray) -> float:
-    return float(y[face & ~m].mean() - y[face & m].mean())
-
-
 def cast_shadow_response(relit: np.ndarray, unshadowed: np.ndarray, face: np.ndarray, m: np.ndarray,
-                         share: np.ndarray, min_share: float = MIN_SHADOW_SHARE,
+                         share: np.ndarray, ring: int = 3, min_share: float = MIN_SHADOW_SHARE,
                          min_predicted: float = MIN_PREDICTED) -> float:
     """How much of a target cast shadow a relight shows: the darkening of the target map ``m`` in ``relit``
-    (the face's mean luminance outside ``m`` minus inside) beyond its darkening in ``unshadowed`` (the same face
-    under the target light without cast shadows, e.g. the Lambertian ratio relight: its own shading differs
-    inside and outside ``m``), over the darkening the cast shadow predicts: the mean over ``m`` of
-    ``Y(unshadowed) * share`` (``share``: :func:`key_sun_share`). 1: the shadow the light casts; 0: none. NaN
-    unless ``m`` covers between ``min_share`` and ``1 - min_share`` of the face and predicts a darkening of at
-    least ``min_predicted``."""
+    (the mean luminance of the face pixels within ``ring`` px around ``m`` minus its mean inside ``m``: a cast
+    shadow is a local drop, and a ring keeps a change of shading across the whole face out) beyond the same
+    darkening in ``unshadowed`` (the same face under the target light without cast shadows, e.g. the Lambertian
+    ratio relight: its own shading differs inside and around ``m``), over the darkening the cast shadow predicts:
+    the mean over ``m`` of ``Y(unshadowed) * share`` (``share``: :func:`key_sun_share`). 1: the shadow the light
+    casts; 0: none. NaN unless ``m`` covers between ``min_share`` and ``1 - min_share`` of the face and predicts
+    a darkening of at least ``min_predicted``."""
     face, m = np.asarray(face, bool), np.asarray(m, bool) & np.asarray(face, bool)
     if not face.any():
         return math.nan
     cover = m.sum() / face.sum()
-    if not min_share <= cover <= 1.0 - min_share:
+    around = ndimage.binary_dilation(m, iterations=int(ring)) & face & ~m
+    if not min_share <= cover <= 1.0 - min_share or not around.any():
         return math.nan
     y, y0 = _y(relit), _y(unshadowed)
     predicted = float((y0 * np.asarray(share, np.float64))[m].mean())
     if predicted < min_predicted:
         return math.nan
-    return (_darkening(y, face, m) - _darkening(y0, face, m)) / predicted
+    dark = lambda v: float(v[around].mean() - v[m].mean())  # noqa: E731
+    return (dark(y) - dark(y0)) / predicted

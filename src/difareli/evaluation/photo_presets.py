@@ -23,7 +23,7 @@ Per photo and target:
   light predicts);
 - ``shadow_cover`` / ``shadow_response``: the share of the face the target's cast-shadow map covers (the march
   toward the light's radiance peak, as the relight makes it, whatever shadow strength it is given) and the
-  darkening the relit crop shows inside it over what the light's key sun predicts
+  darkening the relit crop shows inside it (against a 3 px ring around it) over what the light's key sun predicts
   (:func:`~difareli.evaluation.artefacts.cast_shadow_response`);
 - ``recon_dssim`` / ``recon_mse`` (``own`` only): the reconstruction against the aligned photo on the face.
 """
