@@ -306,12 +306,12 @@ def test_default_multirun_sweep_dir_resolves_before_any_job(tmp_path, monkeypatc
     assert Path(cfg.paths.data_dir) == tmp_path / "data"
 
 
-def test_cpu_recipes_train_compiled_on_stores_with_every_input_estimated(tmp_path):
+def test_cpu_recipes_train_on_stores_with_every_input_estimated(tmp_path):
     """The CPU reference recipes read a store whose every input is estimated (as a photo's are), DiFaReli++ on the
-    relight's own maker's maps, and train the compiled step."""
+    relight's own maker's maps; eager steps (the compiled one measured slower on this CPU)."""
     for experiment in ("reference_cpu", "student_cpu"):
         cfg = compose_train(tmp_path / experiment, [f"experiment={experiment}"])
-        assert cfg.model.compile is True, experiment
+        assert cfg.model.compile is False, experiment
         assert cfg.data.synth.inputs == "estimated" and cfg.data.root.endswith("sf_est_64"), experiment
     cfg = compose_train(tmp_path / "pp", ["experiment=reference_cpu"])
     assert cfg.data.versions.shadow_map == "march_suns"
