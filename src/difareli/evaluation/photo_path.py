@@ -46,6 +46,7 @@ from difareli.relight.relighter import Relighter
 from difareli.relight.request import Request, Target
 from difareli.relight.sources import Source
 from difareli.relight.targets import Targets
+from difareli.utils import viz
 
 #: The model the photo path relights with when none is named: the app's default (``conf/app.yaml``).
 DEFAULT_CHECKPOINT = "difareli_pp-synth64"
@@ -312,8 +313,6 @@ def paired_tests(records: list[Record]) -> str:
 
 def contact_sheet(sheet: list[dict], rows: int = 4) -> np.ndarray:
     """photo | relit composite | Lambertian composite | ground truth for the first ``rows`` pairs (protocol i)."""
-    from difareli.utils import viz
-
     picked = sheet[:rows]
     return viz.grid([[s[k] for k in ("photo", "relit", "lambertian", "truth")] for s in picked],
                     col_labels=["photo", "relit composite", "Lambertian composite", "ground truth"],
