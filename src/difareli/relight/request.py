@@ -245,8 +245,13 @@ def check_target(t: Mapping[str, Any]) -> Target:
     for key in (*TURNS, "shadow"):
         errors.check_number(t.get(key), f"target.{key}")
     for key, names, kind in (("light", presets.NAMES, "9x3 SH light"), ("envmap", presets.ENVMAPS, "HDR map")):
-        if t.get(key) is not None and not is_named(t[key], key) and not Path(str(t[key])).is_file():
-            raise errors.UserFileNotFoundError(f"target.{key}={t[key]}: no such named light or file; give one of "
+        value = t.get(key)
+        if value is None or is_named(value, key):
+            continue
+        if "/" in str(value) or Path(str(value)).suffix:  # a path: said as a missing file
+            errors.check_file(value, f"target.{key}")
+        elif not Path(str(value)).is_file():
+            raise errors.UserFileNotFoundError(f"target.{key}={value}: no such named light or file; give one of "
                                                f"{', '.join(names)}, or a {kind} file")
     target = Target(**{k: t.get(k) for k in (*TARGET_KEYS[:-1], "shadow", "sun")})
     given = [k for k in TARGET_KEYS if getattr(target, k) is not None]
