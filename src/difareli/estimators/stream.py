@@ -5,8 +5,9 @@ estimators that read only the crop (:attr:`Pipeline.image_steps`: the geometry, 
 G-buffer), whose graphs only it touches, while this thread runs the others on the photos read before
 (:meth:`Pipeline.finish_many`, ``chunk`` at a time, so that the identity network takes them in one batch).
 mediapipe's graph runs, torch and OpenCV release the GIL, so on two cores the two stages run side by side (the
-split puts about half of the work on each side). Results come back in input order; the reader stays at most
-``2 * chunk`` photos ahead (memory stays bounded) and stops when the consumer does.
+split puts about half of the work on each side). Results come back in input order; the reader stays at most one
+chunk ahead of the chunk being finished (memory stays bounded: a photo read is 6 MB at 256 px, 25 MB at 512) and
+stops when the consumer does.
 
 Which photos share a chunk depends only on the input order, and the identity network's result does not depend on
 its batch (``identity.BATCH``): the output is the same whatever the load or the timing.
@@ -71,7 +72,7 @@ def stream(pipeline, items: Iterable, load: Callable[[Any], tuple[Any, list[str]
     ``(rgb, notes)`` (or raises, e.g. :class:`~.loading.BadInput`); ``extra`` holds ``load_notes`` and
     ``input_size`` (empty for a photo that failed to load or align); ``seconds`` is the photo's time in both stages
     (a chunk's estimator time shared equally)."""
-    q: queue.Queue = queue.Queue(maxsize=2 * chunk)
+    q: queue.Queue = queue.Queue(maxsize=chunk)
     stop = threading.Event()
     reader = threading.Thread(target=_read, args=(pipeline, items, load, q, stop), name="preprocess-reader",
                               daemon=True)
