@@ -19,7 +19,7 @@ from difareli.evaluation import paired, published, tables
 from difareli.evaluation.benchmark import SETTINGS
 from difareli.data import shard as sharding
 from difareli.cli import common
-from difareli.utils.fileio import staged_outputs, write_text_atomic
+from difareli.utils.fileio import read_json_mapping, staged_outputs, write_text_atomic
 
 
 def expand_runs(patterns: Iterable[str]) -> list[Path]:
@@ -124,16 +124,9 @@ def run(cfg: DictConfig) -> tables.Table:
 def recorded_store(run_dir: Path) -> tuple[str | None, str]:
     """(the store identity ``run_dir`` records in its benchmark settings or None, the store as its provenance names
     it: path and identity)."""
-    def read(name: str) -> dict:
-        try:
-            doc = json.loads((run_dir / name).read_text())
-        except (OSError, ValueError):
-            return {}
-        return doc if isinstance(doc, dict) else {}
-
-    identity = read(SETTINGS).get("store")
+    identity = read_json_mapping(run_dir / SETTINGS).get("store")
     identity = identity if isinstance(identity, str) else None
-    return identity, str(read("provenance.json").get("store") or identity or "unrecorded")
+    return identity, str(read_json_mapping(run_dir / "provenance.json").get("store") or identity or "unrecorded")
 
 
 def origins(runs: dict[str, list[Path]]) -> dict[str, paired.Origin]:

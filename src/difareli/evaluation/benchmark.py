@@ -52,7 +52,7 @@ from difareli.evaluation.baselines import Method
 from difareli.lighting.light_fit import LightFit
 from difareli.data import encodings
 from difareli.utils.fileio import (RESUME, append_csv_row, atomic_path, folder_lock, on_full_disk,
-                                   write_json_atomic, write_text_atomic)
+                                   read_json_mapping, write_json_atomic, write_text_atomic)
 from difareli.data.store import CorruptRecordError, EncodingStore
 from difareli.data.protocols import PROTOCOLS
 from difareli.evaluation.pairs import Lights, Pair, StoredFace, load_pairs, protocols_doc
@@ -233,11 +233,7 @@ def finished_run(store: EncodingStore, method: Method, protocols: Sequence[str],
 
 def _recorded(out_dir: Path) -> dict:
     """The settings recorded in ``out_dir`` ({} if none; an unreadable file is left to provenance.ensure)."""
-    try:
-        have = json.loads((out_dir / SETTINGS).read_text())
-    except (OSError, ValueError):
-        return {}
-    return have if isinstance(have, dict) else {}
+    return read_json_mapping(out_dir / SETTINGS)
 
 
 def run_settings(store: EncodingStore, method: Method, protocols: Sequence[str], *, limit: int | None,

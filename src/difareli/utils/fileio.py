@@ -190,6 +190,16 @@ def write_text_atomic(path: str | Path, text: str, *, durable: bool = False) -> 
     return Path(path)
 
 
+def read_json_mapping(path: str | Path) -> dict:
+    """The JSON object in ``path``, or {} where the file is missing, unreadable or holds no object (callers that
+    must refuse an unreadable record read it themselves)."""
+    try:
+        doc = json.loads(Path(path).read_text())
+    except (OSError, ValueError):
+        return {}
+    return doc if isinstance(doc, dict) else {}
+
+
 def write_json_atomic(path: str | Path, obj: Any, *, durable: bool = False, indent: int | None = 2) -> Path:
     """Write ``obj`` as JSON into ``path`` atomically (numpy values as lists, other objects as strings)."""
     text = json.dumps(obj, indent=indent, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))
