@@ -20,7 +20,6 @@ from pathlib import Path
 from difareli import errors
 from difareli.evaluation import photo_path as pp
 from difareli.utils.fileio import write_text_atomic
-from difareli.utils.viz import save_png
 
 #: The seeds of this project's SynthFaces stores (trained or benchmarked on): a fresh seed keeps the faces unseen.
 USED_SEEDS = (0, 777, 4242, 9001, 1011, 2022, 3033)
@@ -62,18 +61,12 @@ def main() -> None:
     out.mkdir(parents=True, exist_ok=True)
     write_text_atomic(out / "photo_path.csv", pp.to_csv(rows))
     write_text_atomic(out / "photo_path_pairs.csv", pp.pairs_csv(records))
-    image = pp.contact_sheet(sheet, args.sheet_rows)
-    save_png(image, out / "photo_path_sheet.png")
     text = "\n".join([
         f"Photo path at full resolution: {len(sheet)} SynthFaces pairs per protocol, seed {args.seed}, "
         f"{args.resolution} px, realism=full.", "", pp.provenance(relighter, time.perf_counter() - start), "",
         pp.to_markdown(rows), *(f"Not relit: {line}" for line in failed), "", pp.paired_tests(records)])
-    write_text_atomic(out / "photo_path.md", text)
-    if args.sheet:
-        save_png(image, args.sheet)
-    print(text)
-    print(f"written: {out}/photo_path.md, photo_path.csv, photo_path_pairs.csv, photo_path_sheet.png"
-          + (f"; {args.sheet}" if args.sheet else ""))
+    pp.publish(out, "photo_path", text, pp.contact_sheet(sheet, args.sheet_rows), args.sheet,
+               ("photo_path.csv", "photo_path_pairs.csv"))
 
 
 if __name__ == "__main__":

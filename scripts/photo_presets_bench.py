@@ -21,7 +21,7 @@ from difareli import errors
 from difareli.evaluation import photo_path as pp
 from difareli.evaluation import photo_presets as pr
 from difareli.utils.fileio import write_text_atomic
-from difareli.utils.viz import grid, save_png
+from difareli.utils.viz import grid
 
 
 def parse() -> argparse.Namespace:
@@ -63,19 +63,13 @@ def main() -> None:
     image = grid([c for _, c in cells], col_labels=["photo", *pr.TARGETS], row_labels=[n for n, _ in cells])
     out.mkdir(parents=True, exist_ok=True)
     write_text_atomic(out / "photo_presets.csv", pr.to_csv(rows))
-    save_png(image, out / "photo_presets_sheet.png")
     listing = "\n".join(f"- {p.name}: {p.about}" for p in photos)
     text = "\n".join([f"Named lights on {len(photos)} photos:", "", listing, "",
                       pp.provenance(relighter, time.perf_counter() - start), "", pr.summary(rows),
                       *([] if limits is None else [f"Beyond the ground truth's own (90th percentiles over the pairs "
                                                    f"of {args.bounds}, protocol (i)):", "", pr.beyond(rows, limits)]),
                       pr.matrix(rows, "lum_change"), pr.matrix(rows, "lum_dev"), pr.matrix(rows, "shadow_response")])
-    write_text_atomic(out / "photo_presets.md", text)
-    if args.sheet:
-        save_png(image, args.sheet)
-    print(text)
-    print(f"written: {out}/photo_presets.md, photo_presets.csv, photo_presets_sheet.png"
-          + (f"; {args.sheet}" if args.sheet else ""))
+    pp.publish(out, "photo_presets", text, image, args.sheet, ("photo_presets.csv",))
 
 
 if __name__ == "__main__":

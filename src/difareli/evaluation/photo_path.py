@@ -47,6 +47,7 @@ from difareli.relight.request import Request, Target
 from difareli.relight.sources import Source
 from difareli.relight.targets import Targets
 from difareli.utils import viz
+from difareli.utils.fileio import write_text_atomic
 
 #: The model the photo path relights with when none is named: the app's default (``conf/app.yaml``).
 DEFAULT_CHECKPOINT = "difareli_pp-synth64"
@@ -317,3 +318,14 @@ def contact_sheet(sheet: list[dict], rows: int = 4) -> np.ndarray:
     return viz.grid([[s[k] for k in ("photo", "relit", "lambertian", "truth")] for s in picked],
                     col_labels=["photo", "relit composite", "Lambertian composite", "ground truth"],
                     row_labels=[s["id"] for s in picked])
+
+
+def publish(out, stem: str, text: str, image: np.ndarray, sheet=None, written: tuple[str, ...] = ()) -> None:
+    """A photo bench's report: ``<out>/<stem>.md`` and ``<stem>_sheet.png`` (and the sheet at ``sheet`` too),
+    the text printed, then every file written (``written``: the bench's CSVs, already in ``out``)."""
+    write_text_atomic(out / f"{stem}.md", text)
+    viz.save_png(image, out / f"{stem}_sheet.png")
+    if sheet:
+        viz.save_png(image, sheet)
+    print(text)
+    print(f"written: {out}/{stem}.md, {', '.join([*written, f'{stem}_sheet.png'])}" + (f"; {sheet}" if sheet else ""))
