@@ -14,6 +14,7 @@ from typing import Any, Mapping, Sequence
 
 import lightning as L
 import numpy as np
+import torch
 from torch.utils.data import DataLoader, Dataset
 
 from difareli.data import encodings as enc
@@ -26,25 +27,51 @@ from difareli.synth.config import ConfigError, SynthConfig
 
 
 class EncodingsDataset(Dataset):
-    """Records of a store, each as ``image``, ``spatial``, ``nonspatial`` tensors and its ``record_id``."""
+    """Records of a store, each as ``image``, ``spatial``, ``nonspatial`` tensors and its ``record_id``.
 
-    def __init__(self, store: EncodingStore, ids: Sequence[str], spatial: Sequence[str], nonspatial: Sequence[str]):
+    ``exact_share`` > 0 (a store with every input estimated that also keeps the exact ones as ``<name>_gt``, as
+    SynthFaces ``inputs=estimated`` does): each record is served with its exact inputs in place of the estimated
+    ones with that probability, so one run trains on both kinds (:func:`exact_counterparts`).
+    """
+
+    def __init__(self, store: EncodingStore, ids: Sequence[str], spatial: Sequence[str], nonspatial: Sequence[str],
+                 exact_share: float = 0.0):
         self.store, self.ids = store, list(ids)
         self.spatial, self.nonspatial = list(spatial), list(nonspatial)
         self.names = ["image", *self.spatial, *self.nonspatial]
+        self.exact_share = float(exact_share)
+        self.exact = exact_counterparts(store, self.names) if self.exact_share > 0 else {}
 
     def __len__(self) -> int:
         return len(self.ids)
 
+    def _read(self, rid: str) -> dict[str, np.ndarray]:
+        # torch's generator: seeded per worker by seed_everything(workers=True), so a run's draws repeat.
+        if self.exact and float(torch.rand(())) < self.exact_share:
+            arrays = self.store.read(rid, [self.exact.get(n, n) for n in self.names])
+            return {n: arrays[self.exact.get(n, n)] for n in self.names}
+        return self.store.read(rid, self.names)
+
     def __getitem__(self, i: int) -> dict[str, Any]:
         rid = self.ids[i]
-        arrays = check_record(self.store.read(rid, self.names), rid, self.store.root)  # NaN would poison training
+        arrays = check_record(self._read(rid), rid, self.store.root)  # NaN would poison training
         return {
             "image": image_to_tensor(arrays["image"]),
             "spatial": prepare_spatial(self.spatial, arrays),
             "nonspatial": prepare_nonspatial(self.nonspatial, arrays),
             "record_id": rid,
         }
+
+
+def exact_counterparts(store: EncodingStore, names: Sequence[str]) -> dict[str, str]:
+    """``{name: name_gt}`` for each of ``names`` whose exact counterpart the store keeps; a store that keeps none
+    is refused (training on "both kinds" there would silently train on one)."""
+    found = {n: f"{n}_gt" for n in names if n != "image" and store.available(f"{n}_gt")}
+    if not found:
+        raise UserError(f"data.exact_share > 0 but store {store.root} keeps no exact counterpart (<name>_gt) of "
+                        f"{[n for n in names if n != 'image']}; make it with difareli-synth inputs=estimated, or "
+                        "set data.exact_share=0")
+    return found
 
 
 class EncodingsDataModule(L.LightningDataModule):
@@ -72,6 +99,7 @@ class EncodingsDataModule(L.LightningDataModule):
         gt_identity: bool = False,
         gt_maps: str = "march",
         versions: Mapping[str, str | None] | None = None,
+        exact_share: float = 0.0,
     ):
         super().__init__()
         self.root = Path(root)
@@ -91,6 +119,10 @@ class EncodingsDataModule(L.LightningDataModule):
         #: derived encoding versions read in place of their base (``{"shadow_map": "diff-1a2b"}``;
         #: difareli.data.derived)
         self.versions = {k: v for k, v in dict(versions or {}).items() if v is not None}
+        if not 0.0 <= float(exact_share) <= 1.0:
+            raise UserError(f"data.exact_share={exact_share} is a probability: give a number in [0, 1]")
+        #: share of training records served with their exact inputs (the store's ``*_gt``) in place of the estimated
+        self.exact_share = float(exact_share)
         self.store: EncodingStore | None = None
         self.train_set = self.val_set = None
 
@@ -206,7 +238,7 @@ class EncodingsDataModule(L.LightningDataModule):
             kind = "gt" if self.pairs in ("teacher", "mix") and store.meta(val[0]).get("subject") else self.pairs
             self.val_set = pair_dataset(kind, store, val, self.spatial, self.nonspatial, teacher, self.gt_light)
             return
-        self.train_set = EncodingsDataset(store, train, self.spatial, self.nonspatial)
+        self.train_set = EncodingsDataset(store, train, self.spatial, self.nonspatial, self.exact_share)
         self.val_set = EncodingsDataset(store, val, self.spatial, self.nonspatial)
 
     def nonspatial_stats(self) -> tuple[np.ndarray, np.ndarray]:
