@@ -102,6 +102,31 @@ def merge_boxes(found: list[tuple[float, np.ndarray]], overlap: float = 0.5) -> 
     return kept
 
 
+#: A box with more than this share of its area outside the photo is a face only if FaceMesh confirms it (a box
+#: running 28 px past a sports photo's edge over a blurred crowd was the "largest face" and no face at all).
+PAST_EDGE = 0.05
+
+
+def clip_box(box: np.ndarray, shape: tuple[int, int]) -> tuple[np.ndarray, float]:
+    """``box`` (x0, y0, w, h) clipped to a photo of ``shape`` (h, w), and the share of its area inside the photo."""
+    x0, y0 = max(box[0], 0.0), max(box[1], 0.0)
+    x1, y1 = min(box[0] + box[2], shape[1]), min(box[1] + box[3], shape[0])
+    inside = max(x1 - x0, 0.0) * max(y1 - y0, 0.0)
+    return np.array([x0, y0, max(x1 - x0, 0.0), max(y1 - y0, 0.0)]), inside / max(box[2] * box[3], 1e-12)
+
+
+def inside_boxes(found: list[tuple[float, np.ndarray]], shape: tuple[int, int], confirmed
+                 ) -> list[tuple[float, np.ndarray]]:
+    """Detections clipped to the photo: a box with more than :data:`PAST_EDGE` of it outside is kept (clipped) only
+    where ``confirmed(clipped box)`` (FaceMesh finds a face there), so that the largest box is a real face."""
+    out = []
+    for score, box in found:
+        clipped, share = clip_box(np.asarray(box, np.float64), shape)
+        if clipped[2] * clipped[3] > 0 and (share >= 1.0 - PAST_EDGE or confirmed(clipped)):
+            out.append((score, clipped))
+    return out
+
+
 def quad_to_crop(points_xy: np.ndarray, quad: np.ndarray, size: int) -> np.ndarray:
     """Map original-image points (N, 2) into the aligned crop's pixel coordinates."""
     quad = np.asarray(quad, dtype=np.float64)
@@ -187,6 +212,7 @@ class FaceAligner:
             # A face only a tile saw must also be one to FaceMesh (tiles see faces in shirts and patterns).
             boxes = [(s - 1.0, b) if s > 1.0 else (s, b) for s, b in merged
                      if s > 1.0 or self._confirmed(rgb, b)]
+        boxes = inside_boxes(boxes, (h, w), lambda b: self._confirmed(rgb, b))
         return sorted(boxes, key=lambda sb: -sb[1][2] * sb[1][3])
 
     def _confirmed(self, rgb: np.ndarray, box: np.ndarray) -> bool:
