@@ -86,11 +86,20 @@ class RelightingModule(L.LightningModule):
     ``setup`` of a fit (per-rank seeds, ``torch.compile``). Subclasses set ``net``, ``spatial_inputs``,
     ``nonspatial_inputs``, ``ns_mean`` / ``ns_std``, ``_optimizer`` / ``_scheduler`` and the hyperparameters."""
 
-    def _inputs(self, input_dims: Mapping[str, int] | None, spatial_inputs: Sequence[str],
-                nonspatial_inputs: Sequence[str], spatial: str | Mapping[str, Any] | None
-                ) -> tuple[dict[str, int], dict[str, Any] | None]:
-        """Set ``spatial_inputs`` / ``nonspatial_inputs``; return the input widths as ints and the spatial
-        component in its one recorded form, ``{type: <name>, <options>}`` (None without spatial encodings)."""
+    def _common(self, own: Mapping[str, Any], *, name: str, preset: str = "tiny",
+                spatial: str | Mapping[str, Any] | None = "modulator",
+                spatial_inputs: Sequence[str] = ("shading", "shadow_map", "masks"),
+                nonspatial_inputs: Sequence[str] = ("shape", "cam", "identity"),
+                input_dims: Mapping[str, int] | None = None, adagn_scale_plus_one: bool = True,
+                adagn_out_silu: bool = True, net_overrides: Mapping[str, Any] | None = None,
+                optimizer: Callable | Mapping[str, Any] | None = None,
+                scheduler: Callable | Mapping[str, Any] | None = None,
+                nonspatial_stats: Mapping[str, Sequence[float]] | None = None, compile: bool = False,
+                training_maps: Mapping[str, Any] | None = None) -> tuple[dict[str, int], dict[str, Any] | None]:
+        """What every model's constructor takes beside its ``own`` hyperparameters: sets the inputs, the statistics,
+        the optimizer / scheduler partials, the network's overrides (``self._net_overrides``) and the recorded
+        hyperparameters; returns the input widths as ints and the spatial component in its one recorded form,
+        ``{type: <name>, <options>}`` (None without spatial encodings)."""
         if input_dims is None:
             raise UserError(f"{type(self).__name__} needs input_dims (spatial_channels, nonspatial_dim, "
                             "resolution): difareli-train takes them from the DataModule")
@@ -99,6 +108,23 @@ class RelightingModule(L.LightningModule):
         spatial = {"type": spatial} if isinstance(spatial, str) else dict(spatial) if spatial is not None else None
         if not self.spatial_inputs or (spatial is not None and spatial.get("type") in (None, "none")):
             spatial = None  # an ablation that drops the spatial encodings
+        self.ns_mean, self.ns_std = self._check_stats(nonspatial_stats, dims["nonspatial_dim"])
+        self.save_hyperparameters({
+            "name": name, "preset": preset, "spatial": spatial, "spatial_inputs": self.spatial_inputs,
+            "nonspatial_inputs": self.nonspatial_inputs, "input_dims": dims,
+            "adagn_scale_plus_one": bool(adagn_scale_plus_one), "adagn_out_silu": bool(adagn_out_silu),
+            "net_overrides": dict(net_overrides or {}),
+            "optimizer": factory_config(optimizer if optimizer is not None else DEFAULT_OPTIMIZER, "optimizer"),
+            "scheduler": factory_config(scheduler, "scheduler"),
+            "nonspatial_stats": {"mean": self.ns_mean.tolist(), "std": self.ns_std.tolist()},
+            "compile": bool(compile), **own,
+            # What made the shadow maps it trained on (render.retarget.check_maker compares a relight's).
+            "training_maps": dict(training_maps) if training_maps else None,
+        })
+        self._optimizer, self._scheduler = optimizer, scheduler
+        # Attention resolutions are feature-map sizes at the data resolution unless overridden.
+        self._net_overrides = {"image_size": dims["resolution"], "adagn_scale_plus_one": bool(adagn_scale_plus_one),
+                               "adagn_out_silu": bool(adagn_out_silu), **dict(net_overrides or {})}
         return dims, spatial
 
     @staticmethod
@@ -166,53 +192,20 @@ class DiffusionModule(RelightingModule):
     ``schedule``, ``net``, ``spatial_inputs`` / ``nonspatial_inputs`` and ``consumes``.
     """
 
-    def __init__(
-        self,
-        name: str = "difareli_pp",
-        preset: str = "tiny",
-        spatial: str | Mapping[str, Any] | None = "modulator",
-        spatial_inputs: Sequence[str] = ("shading", "shadow_map", "masks"),
-        nonspatial_inputs: Sequence[str] = ("shape", "cam", "identity"),
-        nonspatial: str | Mapping[str, Any] | None = "adagn",
-        input_dims: Mapping[str, int] | None = None,
-        adagn_scale_plus_one: bool = True,
-        adagn_out_silu: bool = True,
-        net_overrides: Mapping[str, Any] | None = None,
-        optimizer: Callable | Mapping[str, Any] | None = None,
-        scheduler: Callable | Mapping[str, Any] | None = None,
-        schedule: Mapping[str, Any] | None = None,
-        nonspatial_stats: Mapping[str, Sequence[float]] | None = None,
-        compile: bool = False,
-        loss: Mapping[str, Any] | None = None,
-        training_maps: Mapping[str, Any] | None = None,
-    ):
+    def __init__(self, name: str = "difareli_pp", nonspatial: str | Mapping[str, Any] | None = "adagn",
+                 schedule: Mapping[str, Any] | None = None, loss: Mapping[str, Any] | None = None, **common: Any):
+        """``nonspatial``, ``schedule`` and ``loss`` are the DDIM's own; the rest (the preset, the inputs and their
+        widths, the optimizer, ...) every model takes (:meth:`RelightingModule._common`)."""
         super().__init__()
-        dims, spatial = self._inputs(input_dims, spatial_inputs, nonspatial_inputs, spatial)
-        d = dims["nonspatial_dim"]
         # The non-spatial component, recorded as {type: ..., <options>}; checkpoints without it: AdaGN.
         nonspatial = {"type": nonspatial or "adagn"} if not isinstance(nonspatial, Mapping) else dict(nonspatial)
-        mean, std = self._check_stats(nonspatial_stats, d)
-        self.save_hyperparameters({
-            "name": name, "preset": preset, "spatial": spatial, "spatial_inputs": self.spatial_inputs,
-            "nonspatial_inputs": self.nonspatial_inputs, "nonspatial": nonspatial, "input_dims": dims,
-            "adagn_scale_plus_one": bool(adagn_scale_plus_one), "adagn_out_silu": bool(adagn_out_silu),
-            "net_overrides": dict(net_overrides or {}),
-            "optimizer": factory_config(optimizer if optimizer is not None else DEFAULT_OPTIMIZER, "optimizer"),
-            "scheduler": factory_config(scheduler, "scheduler"), "schedule": dict(schedule or {}),
-            "nonspatial_stats": {"mean": mean.tolist(), "std": std.tolist()}, "compile": bool(compile),
-            "loss": loss_config(loss),
-            # What made the shadow maps it trained on (render.retarget.check_maker compares a relight's).
-            "training_maps": dict(training_maps) if training_maps else None,
-        })
-        self._optimizer, self._scheduler = optimizer, scheduler
-        # Attention resolutions are feature-map sizes at the data resolution unless overridden.
-        overrides = {"image_size": dims["resolution"], "adagn_scale_plus_one": bool(adagn_scale_plus_one),
-                     "adagn_out_silu": bool(adagn_out_silu), **dict(net_overrides or {})}
-        self.net = build_network(preset, spatial, dims["spatial_channels"] if spatial is not None else 0, d,
-                                 overrides=overrides, nonspatial=nonspatial,
+        dims, spatial = self._common({"nonspatial": nonspatial, "schedule": dict(schedule or {}),
+                                      "loss": loss_config(loss)}, name=name, **common)
+        d = dims["nonspatial_dim"]
+        self.net = build_network(self.hparams.preset, spatial, dims["spatial_channels"] if spatial is not None else 0,
+                                 d, overrides=self._net_overrides, nonspatial=nonspatial,
                                  nonspatial_widths=self._nonspatial_widths(d))
         self.schedule = DiffusionSchedule(**dict(schedule or {}))
-        self.ns_mean, self.ns_std = mean, std
 
     def _nonspatial_widths(self, dim: int) -> list[int]:
         """Each non-spatial encoding's width (cross-attention makes tokens per encoding), at the producers'

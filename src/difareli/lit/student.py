@@ -11,7 +11,7 @@ the benchmark and the speed tables take its checkpoint unchanged.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import torch
@@ -19,7 +19,7 @@ import torch.nn.functional as F
 
 from difareli.data import encodings as enc
 from difareli.errors import UserError
-from difareli.lit.diffusion import DEFAULT_OPTIMIZER, RelightingModule, factory_config
+from difareli.lit.diffusion import RelightingModule
 from difareli.nn import build_network
 from difareli.nn.lpips import get_lpips
 
@@ -42,45 +42,16 @@ class StudentModule(RelightingModule):
     Modulator needs both conditions) and ``relight_once(x0, source_cond, target_cond)``.
     """
 
-    def __init__(
-        self,
-        name: str = "student",
-        preset: str = "tiny",
-        spatial: str | Mapping[str, Any] | None = "modulator",
-        spatial_inputs: Sequence[str] = ("shading", "shadow_map", "masks"),
-        nonspatial_inputs: Sequence[str] = ("shape", "cam", "identity"),
-        input_dims: Mapping[str, int] | None = None,
-        adagn_scale_plus_one: bool = True,
-        adagn_out_silu: bool = True,
-        net_overrides: Mapping[str, Any] | None = None,
-        optimizer: Callable | Mapping[str, Any] | None = None,
-        scheduler: Callable | Mapping[str, Any] | None = None,
-        nonspatial_stats: Mapping[str, Sequence[float]] | None = None,
-        residual: bool = True,
-        timestep: int = 0,
-        lpips_weight: float = 0.0,
-        compile: bool = False,
-        training_maps: Mapping[str, Any] | None = None,
-    ):
+    def __init__(self, name: str = "student", residual: bool = True, timestep: int = 0, lpips_weight: float = 0.0,
+                 **common: Any):
+        """``residual``, ``timestep`` and ``lpips_weight`` are the student's own; the rest (the preset, the inputs
+        and their widths, the optimizer, ...) every model takes (:meth:`RelightingModule._common`)."""
         super().__init__()
-        dims, spatial = self._inputs(input_dims, spatial_inputs, nonspatial_inputs, spatial)
+        dims, spatial = self._common({"residual": bool(residual), "timestep": int(timestep),
+                                      "lpips_weight": float(lpips_weight)}, name=name, **common)
         if not enc.light_dependent(self.spatial_inputs + self.nonspatial_inputs):
             raise UserError(f"a student needs light-dependent inputs (e.g. shading, shadow_map) to know the target; "
                             f"got {self.spatial_inputs + self.nonspatial_inputs}")
-        mean, std = self._check_stats(nonspatial_stats, dims["nonspatial_dim"])
-        self.save_hyperparameters({
-            "name": name, "preset": preset, "spatial": spatial, "spatial_inputs": self.spatial_inputs,
-            "nonspatial_inputs": self.nonspatial_inputs, "input_dims": dims,
-            "adagn_scale_plus_one": bool(adagn_scale_plus_one), "adagn_out_silu": bool(adagn_out_silu),
-            "net_overrides": dict(net_overrides or {}),
-            "optimizer": factory_config(optimizer if optimizer is not None else DEFAULT_OPTIMIZER, "optimizer"),
-            "scheduler": factory_config(scheduler, "scheduler"),
-            "nonspatial_stats": {"mean": mean.tolist(), "std": std.tolist()}, "residual": bool(residual),
-            "timestep": int(timestep), "lpips_weight": float(lpips_weight), "compile": bool(compile),
-            # What made the shadow maps it trained on (render.retarget.check_maker compares a relight's).
-            "training_maps": dict(training_maps) if training_maps else None,
-        })
-        self._optimizer, self._scheduler = optimizer, scheduler
         # Light-dependent channels only depend on H, W (shading 3, shadow map 1, light 27, c 1).
         hw = {"H": dims["resolution"], "W": dims["resolution"]}
         self._sp_dep = _slices(self.spatial_inputs, hw)
@@ -91,10 +62,7 @@ class StudentModule(RelightingModule):
                             f"{dims['nonspatial_dim']}-wide vector: list them before shape / identity")
         sc = dims["spatial_channels"] + len(self._sp_dep) if spatial is not None else 0
         nd = dims["nonspatial_dim"] + len(self._ns_dep)
-        overrides = {"image_size": dims["resolution"], "adagn_scale_plus_one": bool(adagn_scale_plus_one),
-                     "adagn_out_silu": bool(adagn_out_silu), **dict(net_overrides or {})}
-        self.net = build_network(preset, spatial, sc, nd, overrides=overrides)
-        self.ns_mean, self.ns_std = mean, std
+        self.net = build_network(self.hparams.preset, spatial, sc, nd, overrides=self._net_overrides)
         self._lpips = None
 
     # ------------------------------------------------------------------ relighting interface
@@ -106,7 +74,8 @@ class StudentModule(RelightingModule):
     def relight_once(self, x0: torch.Tensor, source, target, runtime=None) -> torch.Tensor:
         """The relit image [B, 3, H, W] of ``x0`` in [-1, 1] from the source and target conditions. With a
         :class:`~difareli.runtime.core.Runtime` the pass runs as its denoiser does (autocast, the inference copy with
-        weights cast once, channels-last, compile), as a diffusion model's passes do; float32 out."""
+        weights cast once, channels-last, compile), as a diffusion model's passes do, its Modulator too
+        (:meth:`~difareli.runtime.core.Runtime.condition`); float32 out."""
         (s_sp, s_ns), (t_sp, t_ns) = source, target
         sp = torch.cat([s_sp, t_sp[:, self._sp_dep]], 1) if s_sp is not None and self.net.spatial is not None else None
         ns = s_ns
@@ -115,10 +84,8 @@ class StudentModule(RelightingModule):
         t = torch.full((x0.shape[0],), self.hparams.timestep, device=x0.device, dtype=torch.long)
         if runtime is None:
             out = self.net(x0, t, self.net.condition(sp, ns))
-        else:
-            with runtime.autocast():
-                cond = self.net.condition(sp, ns)
-            out = runtime.denoiser(self.net, cond)(x0, t)
+        else:  # the Modulator too on the inference copy: it runs at every relight, not once for many passes
+            out = runtime.denoiser(self.net, runtime.condition(self.net, sp, ns))(x0, t)
         return x0 + out if self.hparams.residual else out
 
     # ------------------------------------------------------------------ training
