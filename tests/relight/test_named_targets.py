@@ -14,7 +14,7 @@ import pytest
 
 from difareli.errors import UserError
 from difareli.lighting import sh
-from difareli.lighting.presets import DIRECTIONS, envmap_light
+from difareli.lighting.presets import DIRECTIONS, preset_light
 from difareli.relight.request import Request, Target
 from tests.helpers import compose_train
 
@@ -30,8 +30,8 @@ def test_named_lights_pitch_and_envmap_names_are_the_apps():
     for name, (direction, _) in DIRECTIONS.items():
         np.testing.assert_allclose(sh.dominant_direction(light_of(Target(light=name))),
                                    np.asarray(direction) / np.linalg.norm(direction), atol=1e-6)
-    np.testing.assert_allclose(light_of(Target(light="studio")), envmap_light("studio", OWN))
-    np.testing.assert_allclose(light_of(Target(envmap="studio", yaw=30.0)), sh.yaw(envmap_light("studio", OWN), 30))
+    np.testing.assert_allclose(light_of(Target(light="studio")), preset_light("studio", OWN))
+    np.testing.assert_allclose(light_of(Target(envmap="studio", yaw=30.0)), preset_light("studio", OWN, yaw=30.0))
     up = sh.dominant_direction(light_of(Target(pitch=30.0, sun="peak")))
     np.testing.assert_allclose(up, [0.0, np.sin(np.radians(30)), np.cos(np.radians(30))], atol=1e-6)
 

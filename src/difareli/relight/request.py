@@ -84,7 +84,8 @@ class Target:
         finds = self.sun == "shadows" and (other is not None or self.turns_own())
         found = relighter.key_sun(source if other is None else other) if finds else None
         light = target_lights(source.arrays["light"], light=self.light, other_light=o.get("light"), yaw=self.yaw,
-                              roll=self.roll, pitch=self.pitch, envmap=self.envmap, direction=self.direction)
+                              roll=self.roll, pitch=self.pitch, envmap=self.envmap, direction=self.direction,
+                              normals=source.arrays.get("normal"))
         shadow = self.shadow if self.shadow is not None else (float(o["shadow"][0]) if "shadow" in o else None)
         sun = None if found is None else self.turn() @ found.direction
         return Targets.of([light], [shadow], "the target", suns=[sun]), found

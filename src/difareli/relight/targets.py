@@ -155,13 +155,14 @@ def is_named(value, key: str = "light") -> bool:
 
 def target_lights(source_light: np.ndarray, *, light: str | None = None, other_light: np.ndarray | None = None,
                   yaw: float | None = None, roll: float | None = None, pitch: float | None = None,
-                  envmap: str | None = None, direction=None) -> np.ndarray:
+                  envmap: str | None = None, direction=None, normals: np.ndarray | None = None) -> np.ndarray:
     """One target as a (9, 3) light: a 9x3 SH file or a named light (``light``: :mod:`difareli.lighting.presets`),
     another record's light, the source's own light turned by a yaw, roll or pitch (degrees) or toward a
     ``direction``, or an environment map (an HDR file, SH-projected, or a named map at the source light's ambient;
     turned by ``yaw`` when given); nothing given: the source's own light. Its numbers are checked once, where they
     are given (:meth:`~difareli.relight.request.Request.from_config`; a caller that checked nothing hears of a
-    non-finite angle from :mod:`difareli.lighting.sh`), and the light's bound once, by :meth:`Targets.of`."""
+    non-finite angle from :mod:`difareli.lighting.sh`), and the light's bound once, by :meth:`Targets.of`. A named
+    light or a direction is made plausible for the face (``normals``: its normal map; :func:`presets.plausible`)."""
     given = {k for k, v in dict(light=light, record=other_light, yaw=yaw, roll=roll, pitch=pitch, envmap=envmap,
                                 direction=direction).items() if v is not None}
     if len(given) > 1 and given != {"envmap", "yaw"}:
@@ -176,10 +177,9 @@ def target_lights(source_light: np.ndarray, *, light: str | None = None, other_l
         return out if yaw is None else sh.yaw(out, yaw)
     src = check_finite(np.asarray(source_light, np.float64), "the source record's light")
     if light is not None or envmap is not None:
-        out = presets.preset_light(light or envmap, src)
-        return out if yaw is None else sh.yaw(out, yaw)
+        return presets.preset_light(light or envmap, src, normals, yaw=yaw)
     if direction is not None:
-        return sh.light_toward(src, direction)
+        return presets.toward(src, direction, normals)
     turn = next(((TURNS[k], v) for k, v in dict(yaw=yaw, roll=roll, pitch=pitch).items() if v is not None), None)
     return src if turn is None else sh.rotate(src, turn[0](turn[1]))
 
