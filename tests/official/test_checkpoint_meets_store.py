@@ -14,7 +14,7 @@ from difareli.evaluation.baselines import DiffusionMethod
 from difareli.evaluation.benchmark import run_benchmark
 from difareli.official import weights as official
 
-from tests.helpers import compose_train
+from tests.helpers import HAS_DLIB_MODELS, HAS_ESTIMATORS, compose_train
 from tests.official.test_official_checkpoint import write_run
 
 
@@ -77,3 +77,52 @@ def test_training_from_it_on_the_store_is_refused_before_the_model_is_built(impo
     with pytest.raises(UserError) as e:  # it had stopped on "nonspatial_stats needs 185 means ... got 672"
         train(cfg)
     assert str(e.value) == expected(imported, synth_store)
+
+
+needs_estimators = pytest.mark.skipif(not (HAS_ESTIMATORS and HAS_DLIB_MODELS),
+                                      reason="photo estimators not installed (DIFARELI_PREPROCESS=1)")
+
+
+@needs_estimators
+def test_imported_16px_checkpoint_on_a_photo_names_the_model_not_the_skin(imported, monkeypatch):
+    from skimage import data as skdata
+
+    from difareli.relight import photo
+    from difareli.relight.relighter import Relighter
+
+    ran = []
+    monkeypatch.setattr(photo, "prepare_photo", lambda *a, **k: ran.append(a))  # never run: the model said first
+    relighter = Relighter(str(imported))
+    with pytest.raises(UserError) as e:  # it had said "too few usable skin pixels for the light fit (6 < 100)"
+        relighter.photo_source(skdata.astronaut())
+    assert str(e.value) == (
+        f"checkpoint={imported} cannot relight photo: it expects 16 px, spatial inputs shading, background (6 "
+        "channels) and a non-spatial condition of 672 values (shape, cam, identity, shadow); what the photo estimators "
+        "write (difareli-preprocess's) gives 6 channels (shading 3, background 3) and 185 values (shape 53, cam 3, "
+        "identity 128, shadow 1); relight photos with a checkpoint trained on such encodings (e.g. "
+        "difareli_pp-synth64), or this one on a store made like its training data (an imported official "
+        "checkpoint reads stores written by difareli.official.importers)")
+    assert ran == []
+
+
+@needs_estimators
+def test_a_crop_too_small_for_the_estimators_names_its_size(monkeypatch):
+    from skimage import data as skdata
+
+    from difareli.relight import photo
+    from difareli.relight.relighter import Relighter
+
+    ran = []
+    monkeypatch.setattr(photo, "prepare_photo", lambda *a, **k: ran.append(a))
+    relighter = Relighter("difareli_pp_ss-synth64")  # reads the estimators' encodings: only the size is wrong
+    with pytest.raises(UserError, match=r"^photo_size=16 is too small for the photo estimators \(a face crop under "
+                                        r"32 px holds too few skin pixels to fit its light\); give photo_size=32 "
+                                        "or more$"):
+        relighter.photo_source(skdata.astronaut(), size=16)
+    relighter.resolution = 24  # a model trained at 24 px, the crop size by default
+    with pytest.raises(UserError, match=r"^checkpoint=difareli_pp_ss-synth64 was trained at 24 px, too small a face "
+                                        r"crop .* give photo_size=32 or more \(the model then runs outside its 24 "
+                                        r"px\), or a checkpoint trained at 32 px or more$"):
+        relighter.photo_source(skdata.astronaut())
+    assert ran == []
+    photo.check_photo_size(photo.MIN_PHOTO_SIZE, "x", given=True)  # the smallest crop the light fit was seen to fit

@@ -93,9 +93,34 @@ def variant_widths(model: str, dims: Mapping[str, int] | None = None) -> tuple[i
     return d["spatial_channels"], d["nonspatial_dim"]
 
 
-def _widths(names: Sequence[str], store) -> str:
-    return ", ".join(f"{n} {enc.channels(n, {**enc.PRODUCER_DIMS, **store.dims})}" if store.available(n)
-                     else f"{n} missing" for n in names)
+def _widths(names: Sequence[str], dims: Mapping[str, int], available=lambda name: True) -> str:
+    return ", ".join(f"{n} {enc.channels(n, {**enc.PRODUCER_DIMS, **dims})}" if available(n) else f"{n} missing"
+                     for n in names)
+
+
+def _expects(config: Mapping[str, Any]) -> str:
+    """What a checkpoint's model reads (resolution, inputs, widths), for a message: ``it expects ...``."""
+    want = config["input_dims"]
+    res = f"{want['resolution']} px, " if want.get("resolution") else ""
+    spatial, nonspatial = list(config.get("spatial_inputs") or []), list(config.get("nonspatial_inputs") or [])
+    return (f"it expects {res}spatial inputs {', '.join(spatial) or 'none'} ({want['spatial_channels']} channels) "
+            f"and a non-spatial condition of {want['nonspatial_dim']} values ({', '.join(nonspatial) or 'none'})")
+
+
+def _fits(config: Mapping[str, Any], dims: Mapping[str, int], available=lambda name: True
+          ) -> tuple[bool, str | None]:
+    """(whether ``config``'s model reads encodings of ``dims``, what they give: None where it is not checked)."""
+    want = dict(config.get("input_dims") or {})
+    if "spatial_channels" not in want or "nonspatial_dim" not in want:
+        return True, None
+    spatial, nonspatial = list(config.get("spatial_inputs") or []), list(config.get("nonspatial_inputs") or [])
+    missing = [n for n in spatial + nonspatial if not available(n)]
+    if missing:
+        return False, f"lacks {missing}"
+    have = input_dims(spatial, nonspatial, dims)
+    ok = (have["spatial_channels"], have["nonspatial_dim"]) == (want["spatial_channels"], want["nonspatial_dim"])
+    return ok, (f"gives {have['spatial_channels']} channels ({_widths(spatial, dims, available)}) and "
+                f"{have['nonspatial_dim']} values ({_widths(nonspatial, dims, available)})")
 
 
 def check_store_fits(config: Mapping[str, Any], store, checkpoint: Any = "the checkpoint") -> None:
@@ -104,25 +129,26 @@ def check_store_fits(config: Mapping[str, Any], store, checkpoint: Any = "the ch
     checkpoint, what it expects (resolution, inputs, sizes), what the store gives and the fix, in place of a
     tensor-size mismatch deep in the model. A resolution alone that differs is not refused (the network is
     convolutional; the relighter says it in its notes). A config without ``input_dims`` is not checked."""
-    want = dict(config.get("input_dims") or {})
-    if "spatial_channels" not in want or "nonspatial_dim" not in want:
+    ok, gives = _fits(config, store.dims, store.available)
+    if ok:
         return
-    spatial, nonspatial = list(config.get("spatial_inputs") or []), list(config.get("nonspatial_inputs") or [])
-    missing = [n for n in spatial + nonspatial if not store.available(n)]
-    have = None if missing else input_dims(spatial, nonspatial, store.dims)
-    if have and (have["spatial_channels"], have["nonspatial_dim"]) == (want["spatial_channels"],
-                                                                       want["nonspatial_dim"]):
-        return
-    res = f"{want['resolution']} px, " if want.get("resolution") else ""
     size = int(store.dims.get("H", 0))
     kind = store.store_meta.get("generator") or store.store_meta.get("source") or "a store"
-    gives = (f"lacks {missing}" if missing else
-             f"gives {have['spatial_channels']} channels ({_widths(spatial, store)}) and {have['nonspatial_dim']} "
-             f"values ({_widths(nonspatial, store)})")
     raise UserError(
-        f"checkpoint={checkpoint} cannot read store {store.root}: it expects {res}spatial inputs "
-        f"{', '.join(spatial) or 'none'} ({want['spatial_channels']} channels) and a non-spatial condition of "
-        f"{want['nonspatial_dim']} values ({', '.join(nonspatial) or 'none'}); the store ({kind}, {size} px) "
+        f"checkpoint={checkpoint} cannot read store {store.root}: {_expects(config)}; the store ({kind}, {size} px) "
         f"{gives}; use a checkpoint trained on a store like this one (difareli-train data.root={store.root}), or a "
         "store made like the checkpoint's training data (an imported official checkpoint reads stores written by "
         "difareli.official.importers)")
+
+
+def check_photo_fits(config: Mapping[str, Any], dims: Mapping[str, int], checkpoint: Any, what: str) -> None:
+    """Like :func:`check_store_fits` for a photo, before its estimators run: ``dims`` are the photo estimators'
+    (``Pipeline.dims``). An imported official checkpoint reads other widths (its shape, identity) than they write:
+    said here, with the model's resolution, in place of what a run of the estimators at that size would blame."""
+    ok, gives = _fits(config, dims)
+    if not ok:
+        raise UserError(
+            f"checkpoint={checkpoint} cannot relight {what}: {_expects(config)}; what the photo estimators write "
+            f"(difareli-preprocess's) {gives}; relight photos with a checkpoint trained on such encodings (e.g. "
+            "difareli_pp-synth64), or this one on a store made like its training data (an imported official "
+            "checkpoint reads stores written by difareli.official.importers)")

@@ -42,6 +42,10 @@ from difareli.relight.composite import DEFAULT_PARTS, Compositor
 BORDERS = ("reflect", "mask")
 EXTRAS_FIX = "install the photo estimators: DIFARELI_PREPROCESS=1 bash scripts/install.sh"
 PHOTO_FIX = "use a photo with one clearly visible face"
+#: The smallest aligned crop the photo estimators fit a light on: the fit needs 100 usable skin pixels
+#: (``SkinSHLight.min_pixels``) and a face's skin is about a tenth of the crop (the astronaut: 6 at 16 px, 50 at 24,
+#: 68 at 28; 32 px and up fit). A 16 px model's photo had failed on "too few usable skin pixels".
+MIN_PHOTO_SIZE = 32
 
 
 def resolution_warning(checkpoint: Any, trained: int | None, what: str, size: int, fix: str) -> str | None:
@@ -50,6 +54,30 @@ def resolution_warning(checkpoint: Any, trained: int | None, what: str, size: in
         return None
     return (f"warning: checkpoint={checkpoint} was trained at {trained} px, {what} is {size} px: the model runs "
             f"outside its training resolution (slower, grainy results); {fix}")
+
+
+def check_photo_size(size: int, checkpoint: Any, given: bool) -> None:
+    """A crop of ``size`` px is one the estimators can read (:data:`MIN_PHOTO_SIZE`); else one line naming the
+    size, where it came from (``given``: photo_size=, else the checkpoint's training resolution) and the fix."""
+    if int(size) >= MIN_PHOTO_SIZE:
+        return
+    if given:
+        raise UserError(f"photo_size={size} is too small for the photo estimators (a face crop under "
+                        f"{MIN_PHOTO_SIZE} px holds too few skin pixels to fit its light); give photo_size="
+                        f"{MIN_PHOTO_SIZE} or more")
+    raise UserError(f"checkpoint={checkpoint} was trained at {size} px, too small a face crop for the photo "
+                    f"estimators (under {MIN_PHOTO_SIZE} px it holds too few skin pixels to fit its light); give "
+                    f"photo_size={MIN_PHOTO_SIZE} or more (the model then runs outside its {size} px), or a "
+                    f"checkpoint trained at {MIN_PHOTO_SIZE} px or more")
+
+
+def photo_dims(encodings: Sequence[str], size: int, estimators: Mapping[str, Any] | None = None,
+               composite: bool = True) -> dict[str, int]:
+    """The dimensions (H, W, S, D) of what :func:`prepare_photo` writes, before any photo is read."""
+    try:
+        return pipeline_for([*encodings, *(["masks"] if composite else [])], size, estimators).dims()
+    except ImportError as e:
+        raise ImportError(f"relighting a photo needs the estimators' packages ({e}); {EXTRAS_FIX}") from e
 
 
 def grey_like(images: np.ndarray) -> np.ndarray:

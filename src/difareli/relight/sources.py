@@ -21,7 +21,7 @@ import numpy as np
 
 from difareli import errors
 from difareli.data.encodings import c_range_arrays
-from difareli.data.inputs import check_store_fits, condition_tensors, read_record, relight_reads
+from difareli.data.inputs import check_photo_fits, check_store_fits, condition_tensors, read_record, relight_reads
 from difareli.data.store import EncodingStore
 from difareli.relight import photo as photos
 from difareli.relight import photo_check
@@ -144,6 +144,10 @@ class Sources:
             self.checkpoint, self.resolution, f"photo_size={size}", px,
             f"leave photo_size unset (null) or give photo_size={self.resolution}")] if line]
         reads = list(dict.fromkeys([*self.needed_encodings(), *self.sun_reads(), *also]))
+        # Before the estimators run (seconds): a model that cannot read their encodings, or a crop too small for
+        # them, is said in terms of the model (a 16 px imported model had been blamed on the photo's skin).
+        check_photo_fits(self.config, photos.photo_dims(reads, px), self.checkpoint, what)
+        photos.check_photo_size(px, self.checkpoint, given=size is not None)
         prepared = photos.prepare_photo(rgb, reads, size=px, what=what, face=face)
         stages = ", ".join(f"{k} {1000 * v:.0f} ms" for k, v in prepared.meta.get("seconds", {}).items())
         notes.append(f"preprocessed {what} in {prepared.seconds:.1f} s ({px} px crop of "
