@@ -94,7 +94,7 @@ def test_page_examples_presets_gallery_slider_download(page, tmp_path):
     wait.until(lambda d: by_id("relight").is_enabled() or by_id("error").text)
     assert by_id("error").text == "" and by_id("notice").is_displayed()
     notice = by_id("notice").text
-    assert "may relight poorly: yaw_deg" in notice and "warning: grey photo" in notice
+    assert "may relight poorly: the head is turned" in notice and "warning: grey photo" in notice
 
     # The astronaut: a good verdict; the input photo is the "before" of the slider.
     driver.find_element(By.CSS_SELECTOR, "#examples button[data-example=astronaut]").click()

@@ -131,7 +131,7 @@ def test_an_example_photo_is_a_source_with_its_photo_check_and_relights_whole(ap
     photo = _png(cam["photo"])
     assert photo.shape[:2] == (512, 512) and _png(cam["crop"]).shape == (64, 64, 3)
     # The cameraman's head is turned ~45 degrees: the verdict says so, and the grey photo's note is a warning.
-    assert cam["check"]["ok"] is False and any(p.startswith("yaw_deg") for p in cam["check"]["problems"])
+    assert cam["check"]["ok"] is False and any(p.startswith("the head is turned") for p in cam["check"]["problems"])
     assert cam["check"]["line"].startswith("image=camera.png: may relight poorly")
     assert any("grey photo" in w for w in cam["warnings"])
     status, ast = raw(port, "POST", "/api/source", {"kind": "example", "name": "astronaut"}, timeout=300)
