@@ -9,7 +9,7 @@ import torch
 
 from difareli.runtime.inference_copy import inference_copy
 from difareli.runtime.core import Runtime, clear_caches
-from tests.runtime.test_runtime import random_network, relight_inputs
+from tests.runtime.test_runtime import BF16_TOL, random_network, rel_error, relight_inputs
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -76,3 +76,29 @@ def test_copy_follows_every_change_of_the_original(change):
     expected = _eps(rt, other)
     assert not torch.equal(after, first)
     assert torch.equal(after, expected)  # the refreshed copy equals a copy made from the new weights
+
+
+@torch.no_grad()
+def test_runtime_condition_runs_the_modulator_on_the_inference_copy():
+    """Runtime.condition (a one-pass model's Modulator at every relight): contiguous bf16 equals autocast on the
+    original network bit for bit; channels-last gives channels-last states within the runtime's bf16 tolerance
+    (relative L2, BF16_TOL) of it, and no further from fp32 than bf16 itself is; fp32 is the plain condition; the
+    caller's network is left alone."""
+    net = random_network()
+    _, source, _ = relight_inputs(net)
+    with torch.autocast("cpu", dtype=torch.bfloat16, cache_enabled=False):
+        ref = net.condition(*source)
+    plain = net.condition(*source)
+    flat = Runtime(device="cpu", precision="bf16", memory_format="contiguous").condition(net, *source)
+    assert all(torch.equal(a, b) for a, b in zip(flat.spatial, ref.spatial))
+    assert torch.equal(flat.nonspatial, ref.nonspatial)
+    cl = Runtime(device="cpu", precision="bf16").condition(net, *source)
+    for a, b in zip(cl.spatial, ref.spatial):
+        assert a.is_contiguous(memory_format=torch.channels_last)
+        assert a.dtype == b.dtype == torch.bfloat16 and rel_error(a, b) < BF16_TOL
+    for a, b, p in zip(cl.spatial, ref.spatial, plain.spatial):
+        assert rel_error(a, p) < 1.5 * rel_error(b, p) + 1e-3
+    assert any(not torch.equal(a, b) for a, b in zip(ref.spatial, plain.spatial))  # bf16 did change the states
+    fp32 = Runtime(device="cpu", precision="fp32").condition(net, *source)
+    assert all(torch.equal(a, b) for a, b in zip(fp32.spatial, plain.spatial))
+    assert all(p.dtype == torch.float32 for p in net.parameters())

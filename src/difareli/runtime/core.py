@@ -146,12 +146,9 @@ class Runtime:
         graph-captured as configured. Eager and compiled passes of an ``nn.Module`` run its inference copy
         (:mod:`difareli.runtime.inference_copy`: weights cast once to the autocast dtype, the configured memory format);
         CUDA graphs read the network's own parameters in place."""
-        if isinstance(forward, torch.nn.Module) and not self.graphs_active and (
-                self.dtype is not None or self.memory_format == "channels_last"):
-            channels_last = self.memory_format == "channels_last"
-            forward = inference_copy(forward, self.dtype, channels_last)
-            if channels_last:
-                cond = to_channels_last(cond)
+        if self._copies(forward):
+            forward = inference_copy(forward, self.dtype, self.memory_format == "channels_last")
+            cond = self._layout(cond)
         fn = _compiled(forward) if self.compile else forward
 
         def eager(x: Tensor, t: Tensor, c: Any = cond) -> Tensor:
@@ -164,6 +161,24 @@ class Runtime:
             warnings.warn(f"runtime.cuda_graphs=true on {self.torch_device}: no CUDA, running eagerly", stacklevel=2)
             return eager
         return _GraphedDenoiser(self, forward, eager, cond)
+
+    def condition(self, net: torch.nn.Module, *inputs: Any) -> Any:
+        """``net.condition(*inputs)`` (the Modulator) run as :meth:`denoiser` runs ``net``'s passes: on its
+        inference copy with channels-last inputs, under autocast; the path a one-pass model takes, whose Modulator
+        runs at every relight (contiguous, it equals autocast on ``net`` bit for bit, the copy's contract)."""
+        if self._copies(net):
+            net = inference_copy(net, self.dtype, self.memory_format == "channels_last")
+            inputs = self._layout(inputs)
+        with self.autocast():
+            return net.condition(*inputs)
+
+    def _copies(self, forward: Any) -> bool:
+        """Whether ``forward`` runs as its inference copy (a module, no CUDA graph, low precision or channels-last)."""
+        return isinstance(forward, torch.nn.Module) and not self.graphs_active and (
+            self.dtype is not None or self.memory_format == "channels_last")
+
+    def _layout(self, tree: Any) -> Any:
+        return to_channels_last(tree) if self.memory_format == "channels_last" else tree
 
     # ------------------------------------------------------------------ timing
     def synchronize(self) -> None:
