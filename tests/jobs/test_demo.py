@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 
 import imageio.v3 as iio
 import numpy as np
@@ -15,14 +16,24 @@ from tests.helpers import HAS_ESTIMATORS, compose_train
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 
-def test_demo_writes_grid_video_and_table(tiny_checkpoint, tmp_path):
+def test_demo_writes_grid_video_and_table(tiny_checkpoint, tmp_path, capsys):
     from difareli.cli.demo import run
 
     ckpt = tiny_checkpoint("difareli_pp")  # 32 px
     cfg = compose_train(tmp_path, [f"checkpoint={ckpt}", "resolution=32", "subjects=10", "frames=4", "pairs=2",
                                    "rows=1", "photo=false", "progress=false", "sampler.steps=3",
                                    "runtime.device=cpu"], config_name="demo")
-    res = run(cfg)
+    capsys.readouterr()  # the tiny checkpoint's own training log
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        res = run(cfg)
+    # No warning about the lights the demo chose itself (its rotation's frames).
+    assert not [w for w in caught if "irradiance" in str(w.message)]
+    # The answer first, short: what was relit, by which model, where the files are.
+    out = capsys.readouterr().out.splitlines()
+    assert out[0] == "== difareli-demo: the answer ==" and out.index("== the detail ==") <= 6
+    assert out[1].startswith("relit: 1 unseen SynthFaces subjects") and out[2].startswith(f"model: {ckpt}")
+    assert out[3].startswith(f"files in {tmp_path.resolve()}") and "comparison.png (input | relit" in out[3]
     grid = iio.imread(res.paths["comparison"])
     assert grid.shape == (96 + 4 + 18 + 14, 3 * 98 + 2, 3)  # header, one captioned row x3: input | relit | ground truth
     frames = iio.imread(res.paths["video"])
@@ -106,6 +117,39 @@ def test_relight_a_photo_in_one_command(tmp_path):
     src = comparison[-258:-2, 2:258][::4, ::4].astype(float)
     assert src.std() > 10  # the aligned face crop, not a blank
     assert np.abs(relit.astype(float) - src).mean() > 1.0  # the light changed the image
+
+
+def test_the_demos_suite_verdict_is_one_line_with_the_suites_paired_test():
+    from difareli.cli.demo import suite_verdict
+
+    suite = zoo.suite()
+    if suite is None:
+        pytest.skip("no shipped suite")
+    line = suite_verdict(suite, "difareli_pp_ss-synth64")
+    assert "\n" not in line and "same subject 0.137, level with the Lambertian ratio image's 0.144 (p = 0.29)" in line
+    assert "different subject 0.204, better than the Lambertian ratio image's 0.270 (p = 1.2e-16)" in line
+    assert suite_verdict(suite, "not-shipped") is None
+
+
+def test_the_demo_makes_its_own_lights_plausible(synth_store):
+    from types import SimpleNamespace
+
+    from difareli.data.store import EncodingStore
+    from difareli.jobs.demo import plausible
+    from difareli.lighting import sh
+    from difareli.relight.targets import Targets
+
+    store = EncodingStore.open(synth_store)
+    arrays = store.read(store.ids()[0], ["light", "normal"])
+    arrays["light"] = arrays["light"].astype(np.float64)
+    arrays["light"][0] *= 0.3  # a strongly directional light, as photos give: its back turn is negative
+    turned = sh.rotate(arrays["light"], sh.rotation_frames("yaw", 8)[1])
+    n = arrays["normal"][np.linalg.norm(arrays["normal"], axis=-1) > 0.5]
+    assert min(sh.irradiance(light, n).min() for light in turned) < 0
+    out = plausible(Targets.of(turned, [None] * 8), SimpleNamespace(arrays=arrays))
+    assert all(sh.irradiance(light, n).min() >= 0 for light in out.lights)
+    np.testing.assert_allclose([sh.irradiance(light, n).mean() for light in out.lights],
+                               sh.irradiance(arrays["light"], n).mean(), rtol=1e-6)
 
 
 def test_the_demo_labels_its_live_table_and_prints_the_cards():

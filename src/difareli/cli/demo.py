@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+import re
 import time
 from pathlib import Path
 
@@ -17,7 +19,8 @@ from difareli.jobs.demo import DemoResult, run_demo
 
 
 def run(cfg: DictConfig) -> DemoResult:
-    """Run the demo as configured; prints what it wrote and the benchmark table."""
+    """Run the demo as configured; prints the answer first (:func:`answer`), then the detail: the live table, the
+    notes and the seconds."""
     validate(cfg)
     if cfg.num_threads is not None:
         torch.set_num_threads(int(cfg.num_threads))
@@ -26,51 +29,68 @@ def run(cfg: DictConfig) -> DemoResult:
                    runtime=OmegaConf.to_container(cfg.runtime), subjects=int(cfg.subjects),
                    resolution=int(cfg.resolution), seed=int(cfg.seed), frames=int(cfg.frames), pairs=int(cfg.pairs),
                    rows=int(cfg.rows), photo=bool(cfg.photo), progress=bool(cfg.progress))
+    print(answer(cfg, res))
+    print("\n== the detail ==")
     if res.table is not None:
         print(f"Live check on {cfg.pairs} pairs per protocol of unseen subjects ({res.how}): "
               "too few pairs to rank the methods; read the ± standard errors")
         print(res.table.to_markdown())
-    suite = zoo.suite()
-    if suite:
-        print(f"The shipped models' suite (the figures the README quotes):\n{suite}")
+    if zoo.suite():
+        print(f"The shipped models' suite (the figures the README quotes): {zoo.SHIPPED_DIR / 'suite.md'}")
     elif card := card_benchmark(cfg.checkpoint):
         print(f"The model card's table for {cfg.checkpoint} (the figures the README quotes):\n{card}")
     for note in res.notes:
         print(note)
-    for key, path in res.paths.items():
-        print(f"{key}: {path}")
     print("seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in res.seconds.items())
           + f"; total {time.perf_counter() - start:.1f}")
-    print(answer(cfg, res))
     return res
 
 
+#: What each of the demo's pictures shows.
+LOOK = {"comparison": "input | relit | ground truth", "video": "the light turning 360 degrees",
+        "sheet": "the rotation's frames", "photo": "the astronaut under 4 turned lights",
+        "benchmark": "the live check's table"}
+
+
 def answer(cfg: DictConfig, res: DemoResult) -> str:
-    """The block the demo ends with: what ran, the pictures to open, and the live check in one line per
-    protocol (the tables above are the detail)."""
-    lines = ["", "== difareli-demo: the answer ==",
-             f"model: {cfg.checkpoint} ({res.how}), on SynthFaces subjects it never saw (seed {cfg.seed})"]
-    look = {"comparison": "input | relit | ground truth", "video": "the light turning 360 degrees",
-            "sheet": "the rotation's frames with their light angle", "photo": "the astronaut: input | 4 new lights"}
-    for key, what in look.items():
-        if key in res.paths:
-            path = Path(res.paths[key])
-            size = f", {path.stat().st_size / 1024:.0f} kB" if key == "video" and path.is_file() else ""
-            lines.append(f"open: {path} ({what}{size})")
-    table = res.table
-    baselines = ("identity", "lambertian")
-    if table is not None and any(m not in baselines for m in table.methods):
-        model = next(m for m in table.methods if m not in baselines)
-        for proto in table.protocols:
-            got = {m: table.cells[(m, proto)]["dssim"] for m in table.methods if (m, proto) in table.cells}
-            best = min(got, key=lambda m: got[m].mean)
-            lines.append(f"DSSIM, {proto}-subject pairs (lower is better, n={got[model].n}): "
-                         + ", ".join(f"{'model' if m == model else m} {v.mean:.3f} ± {v.se:.3f}"
-                                     for m, v in got.items())
-                         + f"; best: {'the model' if best == model else best}")
-    lines.append("the shipped suite above (100 pairs per protocol) is the measured ranking; these few live pairs "
-                 "only show the model runs here")
+    """The answer, short: what was relit, by which model, where the files are, and the shipped suite's verdict
+    on this model in one line (:func:`suite_verdict`; the live check's few pairs only show that the model runs)."""
+    what = [f"{cfg.rows} unseen SynthFaces subjects under another light (with ground truth)",
+            "one's light turned 360 degrees"] + (["scikit-image's astronaut photo"] if "photo" in res.paths else [])
+    files = ", ".join(f"{Path(path).name} ({LOOK[k]})" for k, path in res.paths.items() if k in LOOK)
+    lines = ["== difareli-demo: the answer ==", f"relit: {', '.join(what)} (seed {cfg.seed})",
+             f"model: {cfg.checkpoint} ({res.how})", f"files in {Path(cfg.out_dir).resolve()}: {files}"]
+    verdict = suite_verdict(zoo.suite(), Path(str(cfg.checkpoint)).stem)
+    if verdict:
+        lines.append(verdict)
     return "\n".join(lines)
+
+
+def suite_verdict(suite: str | None, checkpoint: str) -> str | None:
+    """The shipped suite's DSSIM of ``checkpoint`` beside the Lambertian ratio image and the unrelit input, per
+    protocol, in one line (lower is better); None where the suite does not list it."""
+    if not suite:
+        return None
+    label = next((m.group(1) for m in re.finditer(r"`([^`]+)` = `([^`]+)`", suite) if m.group(2) == checkpoint), None)
+    table = [line for line in suite.splitlines() if line.startswith("| ")]
+    if label is None or not table:
+        return None
+    head = [c.strip() for c in table[0].strip("|").split("|")]
+    rows = {r[0]: r for r in ([c.strip() for c in line.strip("|").split("|")] for line in table[1:])}
+    if label not in rows or "lambertian" not in rows or "identity" not in rows:
+        return None
+    dssim = lambda row, proto: float(row[head.index(f"{proto} DSSIM")].strip("*").split()[0])  # noqa: E731
+    parts = []
+    for proto in ("(i) same subject", "(ii) different subject"):
+        got, lam, idn = (dssim(rows[k], proto) for k in (label, "lambertian", "identity"))
+        # The paired Wilcoxon test of the suite's own table says whether the gap to the ratio image is real.
+        paired = [c.strip() for line in table if line.startswith(f"| {proto} | DSSIM | lambertian | {label} |")
+                  for c in line.strip("|").split("|")]
+        p = float(paired[-1]) if paired else math.nan
+        than = "level with" if not p < 0.05 else ("better than" if got < lam else "worse than")
+        parts.append(f"{proto.split(' ', 1)[1]} {got:.3f}, {than} the Lambertian ratio image's {lam:.3f}"
+                     f"{f' (p = {p:.2g})' if math.isfinite(p) else ''}, the unrelit input {idn:.3f}")
+    return f"the shipped suite (100 pairs of an unseen seed, DSSIM, lower is better): {'; '.join(parts)}"
 
 
 def card_benchmark(checkpoint: str) -> str | None:

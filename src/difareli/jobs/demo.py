@@ -7,7 +7,7 @@ trained on, and scikit-image's astronaut photo when the photo estimators are ins
   the columns and rows labelled;
 - ``rotation_yaw.mp4`` (where imageio-ffmpeg is installed, else an optimised ``rotation_yaw.gif``) and
   ``rotation_yaw.png``, its contact sheet with each frame's light angle: a 360-degree yaw rotation of the input's
-  light, cast shadows included;
+  light, cast shadows included, each frame's light made plausible for the face (:func:`plausible`);
 - ``benchmark.md`` / ``benchmark.csv``: the checkpoint against identity and the Lambertian ratio image on a few
   pairs of both protocols (fitted target lights, as a user has them).
 """
@@ -26,7 +26,9 @@ from difareli.data.store import EncodingStore
 from difareli.evaluation import tables
 from difareli.jobs.compare import compare_to_baselines
 from difareli.relight.relighter import Relighter
-from difareli.relight.request import Rotation, Target, relight_targets, rotation_video
+from difareli.lighting import presets
+from difareli.relight.request import Rotation, Target
+from difareli.relight.targets import Targets
 from difareli.utils import viz
 from difareli.utils.fileio import write_text_atomic
 
@@ -108,7 +110,9 @@ def run_demo(checkpoint: Any, out_dir: str | Path, *, sampler: Mapping[str, Any]
     #    re-rendered toward every frame's light (its key sun found from the input's cast shadows, turned with it).
     t0 = time.perf_counter()
     first = max(test, key=lambda r: directionality(lights[r]))
-    video, notes = rotation_video(relighter, relighter.source(store, first), Rotation("yaw", frames), store)
+    source = relighter.source(store, first)
+    targets, notes = Rotation("yaw", frames).for_source(relighter, source, store)
+    video = relighter.relight(source, plausible(targets, source))
     res.notes.append(f"rotation video of {first}, shadow strength: {notes['shadow']}")
     res.paths.update(viz.write_rotation(np.asarray(video), out, "rotation_yaw", axis="yaw", fps=20, zoom=2,
                                         fmt="auto"))
@@ -140,10 +144,22 @@ def relight_photo(relighter: Relighter, path: Path, resolution: int) -> Path:
 
     source = relighter.photo_source(data.astronaut(), size=resolution, what="the astronaut photo",
                                     key=("photo", "astronaut"))
-    relit = relight_targets(relighter, source, [Target(yaw=a) for a in (-60, -30, 30, 60)])
+    made = [Target(yaw=a).for_source(relighter, source)[0] for a in (-60, -30, 30, 60)]
+    relit = relighter.relight(source, plausible(Targets.of([m.lights[0] for m in made], [m.shadows[0] for m in made],
+                                                           suns=[m.suns[0] if m.suns else None for m in made]),
+                                                source))
     strip = viz.grid(_zoom([[source.arrays["image"], *relit]], 2),
                      col_labels=["input", "yaw -60°", "yaw -30°", "yaw +30°", "yaw +60°"])
     return viz.save_png(strip, path)
+
+
+def plausible(targets: Targets, source) -> Targets:
+    """The demo's own lights (the input's turned) made plausible for the face (``lighting.presets.plausible``: never
+    negative on it, its energy kept): a turned light that is negative on most of a face decodes to noise, and the
+    demo chose these lights itself, so it warned about itself (26 of 60 rotation frames)."""
+    like, normals = source.arrays["light"], source.arrays.get("normal")
+    return Targets.of([presets.plausible(light, like, normals) for light in targets.lights], targets.shadows,
+                      "the demo's lights", maps=targets.maps, suns=targets.suns)
 
 
 def directionality(light: np.ndarray) -> float:
