@@ -23,7 +23,7 @@ OWN[0] += 1.0
 
 
 def light_of(target: Target) -> np.ndarray:
-    return target.for_source(None, SimpleNamespace(arrays={"light": OWN}, what="a face"))[0].lights[0]
+    return target.for_source(None, SimpleNamespace(arrays={"light": OWN}, what="a face", photo=None))[0].lights[0]
 
 
 def test_named_lights_pitch_and_envmap_names_are_the_apps():
@@ -91,3 +91,23 @@ def test_a_comparison_shows_a_face_at_least_256_px_tall(synth_store, tmp_path):
     cell = comparison[-2 - 256:-2, 2 + 256 + 2:2 + 2 * 256 + 2]  # the relit face, 8x, below the labels
     np.testing.assert_array_equal(cell[::8, ::8], relit)
     np.testing.assert_array_equal(cell, np.repeat(np.repeat(relit, 8, axis=0), 8, axis=1))
+
+
+def test_a_photo_under_a_new_light_gets_the_photo_default_shadow_unless_its_own_is_stronger():
+    from difareli.data.encodings import denormalise_c
+    from difareli.relight.targets import PHOTO_SHADOW, photo_shadow, rotation_targets
+
+    default = denormalise_c(PHOTO_SHADOW)
+    frontal = -4.122039794921875  # the frontal photo: its own c drew no nose shadow
+    assert photo_shadow(frontal)[0] == default and "default strength" in photo_shadow(frontal)[1]
+    assert photo_shadow(default + 0.0)[0] == default and photo_shadow(None)[0] == default
+    arrays = {"light": OWN, "shadow": np.array([frontal], np.float32)}
+    photo = SimpleNamespace(arrays=arrays, what="a photo", photo=object())
+    record = SimpleNamespace(arrays=arrays, what="a record", photo=None)
+    shadow_of = lambda t, s: t.for_source(None, s)[0].shadows[0]  # noqa: E731
+    assert shadow_of(Target(light="left", sun="peak"), photo) == pytest.approx(default)
+    assert shadow_of(Target(light="left", shadow=-3.0), photo) == -3.0  # a given strength stays
+    assert shadow_of(Target(), photo) is None  # its own light: the reconstruction keeps its own c
+    assert shadow_of(Target(light="left"), record) is None  # a store record keeps its policy (its own c)
+    targets, why = rotation_targets(arrays, "yaw", 4)
+    assert targets.shadows == (pytest.approx(default),) * 4 and "default strength" in why

@@ -41,6 +41,7 @@ from difareli.relight import photo_check
 from difareli.relight.photo import read_photo
 from difareli.relight.relighter import Relighter
 from difareli.relight.request import Target, relight_targets
+from difareli.relight.targets import photo_shadow
 from difareli.utils.lru import LRU
 from difareli.utils.viz import png_data_url
 
@@ -224,6 +225,7 @@ class Service:
         """What the page shows of a source: the aligned crop, its light's direction and shadow strength."""
         arrays = s.source.arrays
         c = encodings.shadow_logit(arrays)
+        c = photo_shadow(c)[0] if c is not None and s.prepared is not None else c  # the slider's start: a new light's
         out = {"id": s.id, "what": s.source.what, "crop": png_data_url(np.asarray(arrays["image"])),
                "preprocess_s": round(s.preprocess_s, 3), "direction": sh.dominant_direction(arrays["light"]).tolist(),
                "shadow": None if c is None else float(encodings.normalise_c(c)), "warnings": list(s.notes)}
@@ -270,7 +272,8 @@ class Service:
             s = (self.photo(s.source.what.removeprefix("image="), s.prepared.rgb, ckpt, s.notes)
                  if s.prepared is not None else self.record(s.id.removeprefix("record-"), ckpt))
         own_c = encodings.shadow_logit(s.source.arrays)
-        target = dataclasses.replace(light, shadow=own_c if strength is None else encodings.denormalise_c(strength))
+        default = photo_shadow(own_c)[0] if own_c is not None and s.prepared is not None else own_c
+        target = dataclasses.replace(light, shadow=default if strength is None else encodings.denormalise_c(strength))
         own = Target(shadow=own_c)
         # The reconstruction (the source relit under its own light) joins the first decode's batch, then is cached.
         key = (id(relighter), s.id)

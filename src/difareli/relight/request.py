@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from difareli import errors
-from difareli.data import provenance
+from difareli.data import encodings, provenance
 from difareli.data.store import EncodingStore
 from difareli.diffusion.spec import SamplerSpec
 from difareli.lighting import presets, sh
@@ -35,8 +35,8 @@ from difareli.relight.composite import MODES, part_mask
 from difareli.relight.relighter import Relighter
 from difareli.relight.relit import Relit
 from difareli.relight.sources import Source
-from difareli.relight.targets import (TARGET_KEYS, TURNS, Targets, is_named, load_envmap, rotation_targets,
-                                      target_lights)
+from difareli.relight.targets import (TARGET_KEYS, TURNS, Targets, is_named, load_envmap, photo_shadow,
+                                      rotation_targets, target_lights)
 from difareli.render import sun_fit
 from difareli.render.sun_fit import TARGET_SUNS
 from difareli.runtime.core import Runtime
@@ -46,8 +46,8 @@ from difareli.utils import viz
 @dataclass(frozen=True)
 class Target:
     """The target of a request: at most one of ``TARGET_KEYS`` (an environment map may take a ``yaw`` too; none:
-    the source's own light), its shadow strength c' (None: the other record's, else the source's own) and where its
-    map is marched (``sun_fit.TARGET_SUNS``)."""
+    the source's own light), its shadow strength c' (None: the other record's, else for a photo under a new light
+    ``targets.photo_shadow``, else the source's own) and where its map is marched (``sun_fit.TARGET_SUNS``)."""
 
     light: str | None = None
     record: str | None = None
@@ -87,6 +87,9 @@ class Target:
                               roll=self.roll, pitch=self.pitch, envmap=self.envmap, direction=self.direction,
                               normals=source.arrays.get("normal"))
         shadow = self.shadow if self.shadow is not None else (float(o["shadow"][0]) if "shadow" in o else None)
+        if (shadow is None and self.given and other is None and getattr(source, "photo", None) is not None
+                and "shadow" in source.arrays):
+            shadow = photo_shadow(encodings.shadow_logit(source.arrays))[0]  # a photo's own c draws no shadow
         sun = None if found is None else self.turn() @ found.direction
         return Targets.of([light], [shadow], "the target", suns=[sun]), found
 

@@ -205,9 +205,10 @@ def rotation_targets(source: Mapping[str, np.ndarray], axis: str, frames: int, *
         own = encodings.shadow_logit(source)
         if store is not None and own is not None:
             c, why = video_shadow(store, own, given, split)
-        else:
-            c = given if given is not None else own
-            why = f"target c' = {c} ({'given' if given is not None else 'the input own c'})"
+        elif given is not None:
+            c, why = given, f"target c' = {given} (given)"
+        else:  # a photo: no store to take a typical c from
+            c, why = photo_shadow(own)
         cs = [c] * len(rots)
     lights = sh.rotate(source["light"] if light is None else light, rots)
     suns = None if sun is None else list(rots @ np.asarray(sun, np.float64))
@@ -218,6 +219,24 @@ def rotation_targets(source: Mapping[str, np.ndarray], axis: str, frames: int, *
 #: A record counts as shadowed when its cast shadows remove at least this share of the light (c >= logit of it).
 SHADOWED_SHARE = 0.01
 _TYPICAL_C: dict[tuple[str, str], float | None] = {}
+#: A photo's target shadow strength when none is given, normalised (the app's slider; ``encodings.normalise_c``:
+#: c' = -1.83, 14% of the light removed), unless its own is stronger. Measured on the four frontal photos of
+#: scripts/photo_presets_bench.py under left, right and top (docs/photo_quality.md): the photos' own c (about
+#: 0.48) drew no visible nose shadow, 0.75 a faint one, 0.875 a visible one (cast-shadow response 1.3-2.3), 1.0 a
+#: dark blotch (1.5-3.0, three times what the light predicts).
+PHOTO_SHADOW = 0.875
+
+
+def photo_shadow(own: float | None) -> tuple[float, str]:
+    """The shadow strength c' a photo's target gets when none is given, and a sentence saying so: the photo's own
+    c where it is stronger than :data:`PHOTO_SHADOW`, else that strength (a photo's own c is its estimate of the
+    shadows it has, and a frontal photo has almost none: kept, a new light drew none)."""
+    default = encodings.denormalise_c(PHOTO_SHADOW)
+    if own is not None and own >= default:
+        return own, f"target c' = {own:.3f} (the photo's own c)"
+    return default, (f"target c' = {default:.3f} (a photo's default strength {PHOTO_SHADOW:g}; its own c "
+                     f"{'unknown' if own is None else f'{own:.3f}'} is weaker; give target.shadow to change it)")
+
 
 
 def is_shadowed(c: float) -> bool:
