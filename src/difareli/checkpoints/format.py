@@ -208,6 +208,9 @@ def check_config(config: Any, where: Path, fix: str) -> None:
             continue
         if not _is(config[key], kind):
             raise _wrong(where, key, config[key], _JSON[kind], fix)
+    if not config[MODULE_KEY].startswith("difareli."):  # said here, naming the file: the loader would not import it
+        raise _wrong(where, MODULE_KEY, config[MODULE_KEY], "a model class under difareli. (a checkpoint is data: "
+                     "no other module is imported)", fix)
     for key, lo in (("version", 1), ("global_step", 0), ("epoch", 0), (FORMAT_KEY, 1)):
         if key in config and config[key] < lo:
             raise _wrong(where, key, config[key], f"an integer >= {lo}", fix)
@@ -331,7 +334,7 @@ def check_parameters(cls: type, config: Mapping[str, Any], where: Any, fix: str)
     import inspect
     import typing
 
-    params = {k: q for k, q in inspect.signature(cls.__init__).parameters.items() if k != "self"}
+    params = {k: q for k, q in inspect.signature(cls).parameters.items() if k != "self"}
     if not any(q.kind is q.VAR_KEYWORD for q in params.values()):
         unknown = sorted(set(config) - set(params))
         if unknown:
