@@ -63,6 +63,7 @@ def test_upgrade_strips_stat_buffers_for_resuming():
 
 def test_module_class_allow_list(tmp_path):
     assert module_class("difareli.lit.diffusion.DiffusionModule") is DiffusionModule
+    assert module_class("difareli.lit.student.StudentModule").__name__ == "StudentModule"  # registered, not imported
     for bad in ("os.system", "builtins.eval", "difareli.checkpoints.loading.load_checkpoint", "difareli"):
         with pytest.raises(ValueError, match="module class|not a LightningModule"):
             module_class(bad)

@@ -22,10 +22,9 @@ ALLOWED = {
     "utils/lazy.py": "a package's own submodules (relative to the package that asks)",
     "perf/measure.py": "a config's _target_ (conf/ is above every layer: the command that reads it chose it)",
     "evaluation/baselines.py": "a method config's _target_ (conf/method/*.yaml, chosen by the command)",
-    "checkpoints/loading.py": "the module class a checkpoint records, within the difareli. namespace (a lit "
-                              "class: the one tie left that climbs; loading is deferred until a checkpoint is read)",
 }
-#: Strings that name a class above their file as data, not as an import: resolved only by a call listed above.
+#: Strings that name a class above their file as data, not as an import: looked up among the registered classes
+#: (checkpoints.loading.MODULE_CLASSES, which difareli.lit fills), never imported.
 NAMED_AS_DATA = {"checkpoints/format.py": "the module class that checkpoints older than the module key recorded"}
 
 
@@ -87,7 +86,8 @@ def test_every_import_by_a_computed_name_is_listed():
 
 
 @pytest.mark.parametrize("low, name", [("data/encodings.py", "difareli.relight.targets:render_light"),
-                                       ("render/retarget.py", "difareli.lit.diffusion.DiffusionModule")])
+                                       ("render/retarget.py", "difareli.lit.diffusion.DiffusionModule"),
+                                       ("checkpoints/loading.py", "difareli.lit.student.StudentModule")])
 def test_a_climbing_string_is_found(tmp_path, low, name):
     import shutil
 

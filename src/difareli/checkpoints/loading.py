@@ -1,15 +1,16 @@
 """Loading trained models from checkpoints, for notebooks and CLIs: only the package and the file.
 
 A checkpoint records the module class that wrote it and its format (:mod:`difareli.checkpoints.format`, which
-also translates older formats); :func:`load_checkpoint` imports that class (only from the ``difareli.``
-namespace) and builds it from the plain hyperparameters. A checkpoint is a ``.ckpt`` file (``torch.load`` with
-``weights_only=True``), a weights folder written by ``difareli-export`` (``model.safetensors`` + ``config.json``,
-:mod:`difareli.checkpoints.export`: no pickle at all), or a shipped name (its folder when it has one).
+also translates older formats); :func:`load_checkpoint` finds that class among the registered ones
+(:mod:`difareli.checkpoints.registry`: ``difareli.lit``'s models register themselves as they are defined, so the
+loader never imports a layer above its own by a name) and builds it from the plain hyperparameters. A checkpoint
+is a ``.ckpt`` file (``torch.load`` with ``weights_only=True``), a weights folder written by ``difareli-export``
+(``model.safetensors`` + ``config.json``, :mod:`difareli.checkpoints.export`: no pickle at all), or a shipped name
+(its folder when it has one).
 """
 
 from __future__ import annotations
 
-import importlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping
@@ -18,13 +19,10 @@ import lightning as L
 import torch
 
 from difareli.checkpoints import zoo
+from difareli.checkpoints.registry import module_class
 from difareli.errors import UserError
 from difareli.checkpoints.format import (MODULE_KEY, build_module, is_folder, load_torch_file, read_folder,
                                          refuse_official, training_resolution, upgrade_checkpoint)
-
-#: Modules a checkpoint may name: the package's own namespace only (a checkpoint is data, not code).
-ALLOWED_PREFIX = "difareli."
-
 
 @dataclass
 class LoadedCheckpoint:
@@ -54,21 +52,6 @@ class LoadedCheckpoint:
         """A module already in memory (the one in training, an untrained one) as a loaded checkpoint, its own
         hyperparameters the config; nothing is copied."""
         return cls.of(module, getattr(module, "hparams", None) or {}, global_step)
-
-
-def module_class(path: str) -> type[L.LightningModule]:
-    """Import the LightningModule class named ``package.module.Class`` (``difareli.`` namespace only)."""
-    if not isinstance(path, str) or not path.startswith(ALLOWED_PREFIX) or "." not in path[len(ALLOWED_PREFIX):]:
-        raise UserError(f"checkpoint names module class {path!r}; only classes under {ALLOWED_PREFIX!r} load")
-    module, _, name = path.rpartition(".")
-    try:
-        cls = getattr(importlib.import_module(module), name, None)
-    except ImportError as e:
-        raise UserError(f"checkpoint names module class {path!r}, which this difareli version does not have "
-                        f"({e}); it was written by another version of difareli: load it with that version") from None
-    if not (isinstance(cls, type) and issubclass(cls, L.LightningModule)):
-        raise UserError(f"checkpoint names {path!r}, which is not a LightningModule class of this package")
-    return cls
 
 
 def read_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:

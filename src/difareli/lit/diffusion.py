@@ -11,6 +11,8 @@ hyperparameters; they are constants, not weights, so they stay out of ``state_di
 from __future__ import annotations
 
 import functools
+import inspect
+import typing
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
@@ -19,6 +21,7 @@ import torch
 import torch.nn.functional as F
 
 from difareli.checkpoints.format import stamp, upgrade_checkpoint
+from difareli.checkpoints.registry import register
 from difareli.diffusion.schedule import DiffusionSchedule
 from difareli.errors import UserError
 from difareli.nn import build_network
@@ -83,8 +86,21 @@ class RelightingModule(L.LightningModule):
     """What every trained relighting model shares (the DDIM, the one-pass student): the non-spatial
     normalisation statistics (constants that follow ``.to()`` but stay out of ``state_dict`` and the EMA), the
     encodings a condition is made of, the recorded module class, the optimizer / LR-schedule partials and the
-    ``setup`` of a fit (per-rank seeds, ``torch.compile``). Subclasses set ``net``, ``spatial_inputs``,
-    ``nonspatial_inputs``, ``ns_mean`` / ``ns_std``, ``_optimizer`` / ``_scheduler`` and the hyperparameters."""
+    ``setup`` of a fit (per-rank seeds, ``torch.compile``). Subclasses set ``net`` (the rest: :meth:`_common`) and
+    are registered with the checkpoint loader as they are defined (a checkpoint names its class)."""
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        register(cls)
+        # The constructor published whole on the class (its own parameters, then what every model takes: _common's)
+        # for whoever reads it: checkpoints.format.check_parameters checks a checkpoint's hyperparameters against
+        # it. Not on __init__ itself: Lightning reads that one against the constructor's locals.
+        own = inspect.signature(cls.__init__)
+        common = [q.replace(kind=q.KEYWORD_ONLY) for k, q in inspect.signature(cls._common).parameters.items()
+                  if k not in ("self", "own", "name")]
+        cls.__signature__ = own.replace(parameters=[
+            *(q for k, q in own.parameters.items() if k != "self" and q.kind is not q.VAR_KEYWORD), *common])
+        cls.__init__.__annotations__ = {**typing.get_type_hints(cls._common), **typing.get_type_hints(cls.__init__)}
 
     def _common(self, own: Mapping[str, Any], *, name: str, preset: str = "tiny",
                 spatial: str | Mapping[str, Any] | None = "modulator",
