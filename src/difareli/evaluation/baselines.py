@@ -16,7 +16,7 @@ Target (and source) lights "as a user gets them" come from :class:`difareli.ligh
 from __future__ import annotations
 
 import inspect
-from typing import Any, Mapping, Protocol, runtime_checkable
+from typing import Any, Mapping, Protocol, Sequence, runtime_checkable
 
 import numpy as np
 
@@ -25,6 +25,7 @@ from difareli.lighting.light_fit import LightFit, face_normals
 from difareli.errors import UserError
 from difareli.evaluation.pairs import StoredFace, exact_light_name
 from difareli.data import encodings
+from difareli.relight.photo import grey_like
 from difareli.relight.targets import Targets
 from difareli.data.inputs import check_store_fits
 from difareli.relight.relightable import OnePassRelightable
@@ -166,6 +167,23 @@ class DiffusionMethod:
         record = self.relighter.source(source.store, source.id, read=source.read)
         return self.relighter.relight(record, Targets.of([target_light], [target_shadow], record.what,
                                                          suns=[target_sun]))[0]
+
+    @property
+    def batch_size(self) -> int:
+        """Sources a :meth:`relight_many` call should hold: the relighter's (one network batch of inversions)."""
+        return self.relighter.batch_size
+
+    def relight_many(self, sources: Sequence[StoredFace],
+                     targets: Sequence[Sequence[tuple[np.ndarray, float | None, np.ndarray | None]]]
+                     ) -> list[np.ndarray]:
+        """Source ``i`` under each of its (light, shadow, sun) ``targets[i]`` (as many for every source): uint8
+        (K, H, W, 3) per source, as :meth:`relight` gives them one by one, through :meth:`Relighter.relight_many`:
+        the sources inverted in one batch, their targets decoded in one batch (a grey source's relights grey)."""
+        records = [self.relighter.source(s.store, s.id, read=s.read) for s in sources]
+        sets = [Targets.of([t[0] for t in ts], [t[1] for t in ts], r.what, suns=[t[2] for t in ts])
+                for r, ts in zip(records, targets)]
+        images = self.relighter.relight_many(records, sets)
+        return [grey_like(im) if r.grey else im for r, im in zip(records, images)]
 
 
 #: What :func:`build_method` may hand a method's constructor, if its signature asks for it.

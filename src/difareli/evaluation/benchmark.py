@@ -49,6 +49,7 @@ from difareli.utils import viz
 from difareli.data import shard as sharding
 from difareli.data import provenance
 from difareli.evaluation.baselines import Method
+from difareli.evaluation.batched import BatchedRelights
 from difareli.lighting.light_fit import LightFit
 from difareli.data import encodings
 from difareli.utils.fileio import (RESUME, append_csv_row, atomic_path, folder_lock, on_full_disk,
@@ -282,12 +283,16 @@ def _run(run: _Run, result: BenchmarkResult, protocols: Sequence[str], *, limit:
     """Every pair relit and scored (or resumed from the partial CSV), then the run's outputs written."""
     store, method, out_dir, score_mask = run.store, run.method, run.out_dir, run.score_mask
     done = _scored_so_far(out_dir, method.name, run.rule)
-    for proto, pairs in load_pairs(store, protocols, limit).items():
+    selected = {proto: list(sharding.select(pairs, shard, key=lambda p: p.id))
+                for proto, pairs in load_pairs(store, protocols, limit).items()}
+    batched = BatchedRelights(store, method, run.lights, run.oracle_shadow,
+                              [(PROTOCOLS[proto], pair) for proto, pairs in selected.items() for pair in pairs
+                               if (PROTOCOLS[proto], pair.id) not in done])
+    for proto, pairs in selected.items():
         short = PROTOCOLS[proto]
         grid_rows: list[list[np.ndarray]] = []
         scorer = metrics.relight_metrics(run.rule)  # this run's scores of the protocol (rows resumed are not in it)
-        for pair in tqdm(sharding.select(pairs, shard, key=lambda p: p.id), desc=f"{method.name} {proto}",
-                         disable=not progress):
+        for pair in tqdm(pairs, desc=f"{method.name} {proto}", disable=not progress):
             light, shadow = run.lights.for_pair(pair, oracle_shadow=run.oracle_shadow)
             result.provenance.setdefault("target c", run.lights.shadow_note)
             if run.exact:  # the fitted lights' errors
@@ -301,7 +306,8 @@ def _run(run: _Run, result: BenchmarkResult, protocols: Sequence[str], *, limit:
                 # scored before the run was killed: not redone
                 rec, relit = prev, _read_png(png) if want_grid and prev.status == "ok" else None
             else:
-                rec, relit = _relight_and_score(run, pair, source, target, light, shadow, scorer)
+                rec, relit = _relight_and_score(run, pair, source, target, light, shadow, scorer,
+                                                batched.get(short, pair))
                 _keep(run, rec, relit, png)
             result.records.append(rec)
             if want_grid and relit is not None:  # input | light source | relit | ground truth
@@ -346,10 +352,12 @@ def _start(store: EncodingStore, method: Method, out_dir: Path, *, oracle_light:
 
 
 def _relight_and_score(run: _Run, pair: Pair, source: StoredFace, target: StoredFace, light: np.ndarray,
-                       shadow: float | None, scorer) -> tuple[tables.Record, np.ndarray | None]:
+                       shadow: float | None, scorer, batched: tuple[np.ndarray, float] | None = None
+                       ) -> tuple[tables.Record, np.ndarray | None]:
     """One pair relit by the method and scored: its row and relit image, or (a bad pair) its failed row and None.
     The source is read whole and checked here, once: the method takes its encodings from it; the target light and
-    shadow are checked by the method's relight (a model's ``Targets``)."""
+    shadow are checked by the method's relight (a model's ``Targets``). ``batched``: its relit image and seconds,
+    made in a batch (:class:`~difareli.evaluation.batched.BatchedRelights`), checked and scored as the method's."""
     name, short = run.method.name, PROTOCOLS[pair.protocol]
     gt = target.read(["image", run.score_mask])
     start = time.perf_counter()
@@ -358,10 +366,12 @@ def _relight_and_score(run: _Run, pair: Pair, source: StoredFace, target: Stored
     # to score, a method's wrong output) hold for every pair: they stop the run with their message.
     try:
         errors.check_record(source.read(), pair.source, run.store.root)
-        relit = errors.check_output(run.method.relight(source, light, shadow, target=target,
-                                                       target_sun=run.lights.sun(pair)),
-                                    f"{name} relight of pair {pair.id}")
-        seconds = time.perf_counter() - start
+        if batched is None:
+            relit = run.method.relight(source, light, shadow, target=target, target_sun=run.lights.sun(pair))
+            seconds = time.perf_counter() - start
+        else:
+            relit, seconds = batched
+        relit = errors.check_output(relit, f"{name} relight of pair {pair.id}")
         if relit.shape != gt["image"].shape or relit.dtype != np.uint8:
             raise errors.UserError(f"{name} returned {relit.dtype} {relit.shape}; expected uint8 {gt['image'].shape}")
         s = score(relit, gt["image"], gt[run.score_mask], run.rule, scorer)
