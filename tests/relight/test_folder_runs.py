@@ -129,3 +129,33 @@ def test_strict_is_a_boolean(tmp_path, value):
     with pytest.raises(UserError, match=f"strict={value!r} is invalid: give strict=true or strict=false"):
         Request.from_config(config(image=str(tmp_path / "p.png"), strict=value))
     assert Request.from_config(config(image=str(tmp_path / "p.png"), strict=False)).strict is False
+
+
+def test_a_full_disk_mid_folder_is_one_line_and_the_rerun_resumes(tmp_path, fake, monkeypatch):
+    """The disk fills while the second photo's composite is written: one line naming that file (a UserError, exit
+    2 through a CLI), no scratch file, the first photo's row kept; a rerun with space relights the second only."""
+    import errno
+
+    from difareli.utils import viz
+
+    for folder in "xy":
+        (tmp_path / "g" / folder).mkdir(parents=True)
+        (tmp_path / "g" / folder / "a.jpg").write_bytes(b"x")
+    paths, out = batch.photo_paths(f"{tmp_path}/g/*/a.jpg"), tmp_path / "out"
+    real = viz.iio.imwrite
+
+    def full(target, *a, **k):
+        if "y__a_composite" in str(target):
+            raise OSError(errno.ENOSPC, "No space left on device", str(target))
+        return real(target, *a, **k)
+
+    monkeypatch.setattr(viz.iio, "imwrite", full)
+    with pytest.raises(UserError) as e:
+        batch.relight_photos(paths, out, progress=False)
+    assert str(e.value) == (f"no space left on the device writing {out / 'y__a_composite.png'} (No space left on "
+                            "device); free space or write elsewhere (nothing already written was changed)")
+    assert [r["name"] for r in rows(out)] == ["x__a"] and not list(out.glob(".*.tmp-*"))
+    monkeypatch.setattr(viz.iio, "imwrite", real)
+    before = len(fake)
+    assert batch.relight_photos(paths, out, progress=False) == {"done": 1, "skipped": 0, "resumed": 1}
+    assert [r["name"] for r in rows(out)] == ["x__a", "y__a"] and fake[before:] == [paths[1]]
