@@ -135,7 +135,7 @@ def test_the_demo_makes_its_own_lights_plausible(synth_store):
     from types import SimpleNamespace
 
     from difareli.data.store import EncodingStore
-    from difareli.jobs.demo import plausible
+    from difareli.relight.request import plausible  # the demo's lights and its rotation (Rotation(plausible=True))
     from difareli.lighting import sh
     from difareli.relight.targets import Targets
 

@@ -102,7 +102,7 @@ def store(tmp_path):
 
 def test_a_request_is_checked_once_naming_the_key(store, tmp_path):
     r = Request.from_config(cfg(store=store, **{"target.yaw": 30}))
-    assert r.target == Target(yaw=30.0) and r.store == store and r.video_axis is None
+    assert r.target == Target(yaw=30.0) and str(r.store.root) == store and r.video_axis is None  # opened once
     with pytest.raises(UserError, match="either store=.* or image="):
         Request.from_config(cfg(**{"target.yaw": 30}))
     with pytest.raises(UserError, match="either store=.* or image="):
@@ -177,3 +177,19 @@ def test_the_key_sun_is_found_once_per_source_key(monkeypatch):
     Relighter.key_sun(me, anonymous)
     assert len(calls) == 4
     assert Relighter.key_sun(SimpleNamespace(model_inputs=["shading"], _suns={}), keyed) is None
+
+
+def test_a_plausible_rotation_makes_each_frames_light_plausible_for_the_face():
+    """Rotation(plausible=True), the demo's rotation: the same frames, each light through presets.plausible (a
+    strongly directional light turned is negative on much of the sphere; made plausible, it is not)."""
+    from difareli.lighting import presets
+    from difareli.relight.request import Rotation
+
+    light = np.zeros((9, 3))
+    light[0], light[3] = 0.2, 1.0  # little ambient, a strong first-order term: negative on the far side
+    rel = SimpleNamespace(model_inputs=[], key_sun=lambda s: None)
+    source = SimpleNamespace(arrays={"light": light}, what="the source")
+    plain, _ = Rotation("yaw", 8).for_source(rel, source)
+    made, _ = Rotation("yaw", 8, plausible=True).for_source(rel, source)
+    assert np.allclose(made.lights, [presets.plausible(x, light, None) for x in plain.lights])
+    assert not np.allclose(made.lights, plain.lights) and made.shadows == plain.shadows

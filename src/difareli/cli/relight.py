@@ -30,7 +30,8 @@ def run(cfg: DictConfig) -> dict[str, Path]:
     request = Request.from_config(cfg)  # every value of the request checked, before any work
     relighter = Relighter(request.checkpoint, request.sampler, runtime=request.runtime,
                           mean_matching=request.mean_matching, batch_size=request.batch_size, progress=request.progress)
-    return write(respond(relighter, request, say), request)
+    answer = respond(relighter, request, say)  # its lines said as they arise
+    return write(answer, request)
 
 
 def say(line: str) -> None:

@@ -26,8 +26,7 @@ from difareli.data.store import EncodingStore
 from difareli.evaluation import tables
 from difareli.jobs.compare import compare_to_baselines
 from difareli.relight.relighter import Relighter
-from difareli.lighting import presets
-from difareli.relight.request import Rotation, Target
+from difareli.relight.request import Rotation, Target, plausible, rotation_video
 from difareli.relight.targets import Targets
 from difareli.utils import viz
 from difareli.utils.fileio import write_text_atomic
@@ -111,8 +110,9 @@ def run_demo(checkpoint: Any, out_dir: str | Path, *, sampler: Mapping[str, Any]
     t0 = time.perf_counter()
     first = max(test, key=lambda r: directionality(lights[r]))
     source = relighter.source(store, first)
-    targets, notes = Rotation("yaw", frames).for_source(relighter, source, store)
-    video = relighter.relight(source, plausible(targets, source))
+    # The demo chose these lights itself (the input's turned), so they are made plausible for the face: it had
+    # warned about itself (26 of 60 frames negative on most of the face).
+    video, notes = rotation_video(relighter, source, Rotation("yaw", frames, plausible=True), store)
     res.notes.append(f"rotation video of {first}, shadow strength: {notes['shadow']}")
     res.paths.update(viz.write_rotation(np.asarray(video), out, "rotation_yaw", axis="yaw", fps=20, zoom=2,
                                         fmt="auto"))
@@ -147,19 +147,10 @@ def relight_photo(relighter: Relighter, path: Path, resolution: int) -> Path:
     made = [Target(yaw=a).for_source(relighter, source)[0] for a in (-60, -30, 30, 60)]
     relit = relighter.relight(source, plausible(Targets.of([m.lights[0] for m in made], [m.shadows[0] for m in made],
                                                            suns=[m.suns[0] if m.suns else None for m in made]),
-                                                source))
+                                                source, "the demo's lights"))
     strip = viz.grid(_zoom([[source.arrays["image"], *relit]], 2),
                      col_labels=["input", "yaw -60°", "yaw -30°", "yaw +30°", "yaw +60°"])
     return viz.save_png(strip, path)
-
-
-def plausible(targets: Targets, source) -> Targets:
-    """The demo's own lights (the input's turned) made plausible for the face (``lighting.presets.plausible``: never
-    negative on it, its energy kept): a turned light that is negative on most of a face decodes to noise, and the
-    demo chose these lights itself, so it warned about itself (26 of 60 rotation frames)."""
-    like, normals = source.arrays["light"], source.arrays.get("normal")
-    return Targets.of([presets.plausible(light, like, normals) for light in targets.lights], targets.shadows,
-                      "the demo's lights", maps=targets.maps, suns=targets.suns)
 
 
 def directionality(light: np.ndarray) -> float:

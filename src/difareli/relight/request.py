@@ -114,7 +114,8 @@ class Rotation:
     a file) turned about ``axis`` in ``frames`` frames, with a given shadow strength ``shadow`` (None: the policy of
     :func:`~difareli.relight.targets.rotation_targets`, from ``split``), the key sun found from the source's
     cast shadows turned with it (``sun=shadows``) or each frame's radiance peak (``peak``); ``shadows`` and
-    ``maps``: each frame's c' and target map given (an oracle's: the ground truth's) instead."""
+    ``maps``: each frame's c' and target map given (an oracle's: the ground truth's) instead; ``plausible``: each
+    frame's light made plausible for the face (:func:`plausible`: the demo's, which chose its lights itself)."""
 
     axis: str = "yaw"
     frames: int = 60
@@ -124,6 +125,7 @@ class Rotation:
     split: str = "train"
     shadows: tuple[float, ...] | None = None
     maps: np.ndarray | None = None
+    plausible: bool = False
 
     def light(self) -> np.ndarray | None:
         """The environment map's SH light (checked), or None: the source's own light turns."""
@@ -147,7 +149,17 @@ class Rotation:
         targets, why = rotation_targets(source.arrays, self.axis, self.frames, store=store, given=self.shadow,
                                         sun=None if found is None else found.direction, light=light,
                                         shadows=self.shadows, maps=self.maps, split=self.split)
+        targets = plausible(targets, source, "the rotation's lights") if self.plausible else targets
         return targets, {"shadow": why, "maps": sun_fit.describe(found) if marched else None}
+
+
+def plausible(targets: Targets, source: Source, what: str = "the target lights") -> Targets:
+    """``targets`` with each light made plausible for ``source``'s face (``lighting.presets.plausible``: never
+    negative on it, its energy kept): for a caller's own turned lights (the demo's), where a light negative on most
+    of a face would decode to noise."""
+    like, normals = source.arrays["light"], source.arrays.get("normal")
+    return Targets.of([presets.plausible(light, like, normals) for light in targets.lights], targets.shadows, what,
+                      maps=targets.maps, suns=targets.suns)
 
 
 def rotation_video(relighter: Relighter, source: Source, rotation: Rotation, store: EncodingStore | None = None,
@@ -170,15 +182,15 @@ def rotation_video(relighter: Relighter, source: Source, rotation: Rotation, sto
 
 @dataclass(frozen=True)
 class Request:
-    """One relight request (module doc). ``store``/``record`` or ``image`` is the source; ``video_axis`` adds a
+    """One relight request (module doc). ``store`` (open, its derived versions in use, its records checked:
+    :func:`check_store`) and ``record``, or ``image``, is the source; ``video_axis`` adds a
     360-degree rotation of its light; ``composite`` (mode, feather, parts) puts a photo's relights back; ``out_dir``
     gets the answer (a batch's as it goes), its video at ``video_fps`` as ``video_format`` (``mp4`` or ``gif``).
     ``checkpoint`` (a path or a shipped name), ``sampler`` (None: the model's default), ``runtime``,
     ``mean_matching``, ``batch_size`` and ``progress`` say how it is relit (the relighter's arguments)."""
 
-    store: str | None = None
+    store: EncodingStore | None = None
     record: str | None = None
-    versions: Mapping[str, Any] | None = None
     image: str | None = None
     photos: tuple[Path, ...] | None = None  # a batch of photos under one target (relight.batch), else None
     out_dir: str | None = None  # where the answer is written (a batch's as it goes: a rerun resumes)
@@ -213,8 +225,8 @@ class Request:
         if t["record"] is not None and cfg["store"] is None:
             raise errors.UserError(f"target.record={t['record']} names a store record: give store= too")
         versions = None if cfg.get("versions") is None else dict(cfg["versions"])
-        if cfg["store"] is not None:
-            check_store(cfg["store"], versions, record=cfg["record"], target_record=t["record"])
+        store = None if cfg["store"] is None else check_store(cfg["store"], versions, record=cfg["record"],
+                                                              target_record=t["record"])
         target = check_target(t)
         if not target.given and v["axis"] is None:
             raise errors.UserError("nothing to do: give a target (target.light|record|yaw|roll|pitch|envmap) or "
@@ -226,7 +238,7 @@ class Request:
         errors.check_out_dir(cfg["out_dir"])
         errors.check_int(v["frames"], "video.frames", 1, maximum=MAX_FRAMES)
         errors.check_int(v["fps"], "video.fps", 1)
-        return cls(store=cfg["store"], record=cfg["record"], versions=versions, image=image, photos=photos,
+        return cls(store=store, record=cfg["record"], image=image, photos=photos,
                    out_dir=str(cfg["out_dir"]), face=cfg["face"], photo_size=cfg["photo_size"],
                    strict=errors.check_bool(cfg["strict"], "strict"), target=target, video_axis=v["axis"],
                    video_frames=int(v["frames"]), video_fps=int(v["fps"]), video_format=fmt,
@@ -282,7 +294,7 @@ def check_photos(image: str, face: Any, axis: str | None, record: str | None, co
     return None if photos is None else tuple(photos)
 
 
-def check_store(root: str, versions: Mapping[str, Any] | None, **records: str | None):
+def check_store(root: str, versions: Mapping[str, Any] | None, **records: str | None) -> EncodingStore:
     """A source store that opens (its header, the derived ``versions`` asked for) and holds the ``records`` named
     (``record``, ``target_record``: None for none; the key is said as the config spells it); returned, open."""
     store = EncodingStore.open(root).use_versions(versions)
@@ -336,7 +348,7 @@ def respond(relighter: Relighter, request: Request, say: Callable[[str], None] |
     :func:`answer_photos`."""
     if request.photos is not None:
         return Answer(counts=answer_photos(relighter, request), say=say)
-    store = None if request.store is None else EncodingStore.open(request.store).use_versions(request.versions)
+    store = request.store  # opened once, by Request.from_config's check
     source = (relighter.photo_source(request.image, size=request.photo_size, strict=request.strict)
               if request.image is not None else relighter.source(store, request.record))
     out = Answer(source, say=say)
