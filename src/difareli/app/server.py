@@ -23,11 +23,7 @@ in the backlog until one closes); at most ``queue`` relight / source requests ar
 wait for the service's lock), and one past the bound is answered 503 with ``Retry-After`` (the seconds a queued
 request has taken lately) after its body is drained, never reset unanswered. A client has ``read_timeout`` seconds
 to send its whole request (a silent or trickling one is cut off: 408, or closed before its request line), so slow
-connections cannot hold the threads.
-
-Why the standard library: a framework would add a dependency for little (tornado and aiohttp sit in the environment
-only as other packages' dependencies); the checks here are the ones a local JSON API needs (a WSGI/ASGI framework does
-not check Host or Origin by default either), and the bounds above are a few lines on ``ThreadingHTTPServer``.
+connections cannot hold the threads. Why the standard library's server: docs/robustness.md.
 """
 
 from __future__ import annotations

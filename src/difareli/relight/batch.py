@@ -32,6 +32,9 @@ from difareli.data import provenance
 from difareli.errors import UserError
 from difareli.estimators.loading import IMAGE_SUFFIXES
 from difareli.relight import photo, photo_check
+from difareli.relight.relighter import Relighter
+from difareli.relight.sources import Source
+from difareli.relight.targets import Targets
 from difareli.utils import fileio, viz
 
 CSV_NAME = "relight.csv"
@@ -91,7 +94,7 @@ def output_names(paths: Sequence[Path]) -> list[str]:
     return names
 
 
-def relight_one(path: Path, *, relighter, target: Callable[[Any], Any], size: int | None, face: Any,
+def relight_one(path: Path, *, relighter: Relighter, target: Callable[[Source], Targets], size: int | None, face: Any,
                 composite: Mapping[str, Any], strict: bool = False, say=print
                 ) -> tuple[np.ndarray, list[np.ndarray], dict[str, Any]]:
     """One photo: every chosen face relit under ``target(source)`` (its Targets) by the relighter

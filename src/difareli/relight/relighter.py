@@ -1,16 +1,10 @@
 """The relighter (SPEC 5): the second layer of the relight spine, every model (diffusion, one-pass student,
 pipelines) relighting through it.
 
-A :class:`Relighter` is a model + a sampler + a runtime + caches. It reads its faces as :mod:`difareli.relight.sources`
-does (it is a :class:`~difareli.relight.sources.Sources`: store records, photos, arrays, checked once) and relights
-them under :class:`~difareli.relight.targets.Targets`: :meth:`Relighter.check_inputs` says once what a pair gets
-wrong, and one decode loop (:meth:`Relighter.relight_many`) inverts each source once with its own condition
-(mean-matching offsets computed once, :mod:`difareli.diffusion.relight`) and decodes its targets in batches of
-``batch_size`` relights; :meth:`Relighter.relight` is that loop for one source, its inversion and key sun cached
-under its key, and returns a :class:`~difareli.relight.relit.Relit` (images, seconds per stage, whole photos by
-``composite()``; a grey source comes back grey). Requests, photo batches and rotation videos are answered above it
-(:mod:`difareli.relight.request`). The :class:`~difareli.runtime.core.Runtime` decides device, precision, compile
-and CUDA graphs.
+A :class:`Relighter` is a model + a sampler + a runtime + caches: a :class:`~difareli.relight.sources.Sources` (it
+reads its faces, checked once) that relights them under :class:`~difareli.relight.targets.Targets` in one decode
+loop (:meth:`Relighter.relight` for one source, :meth:`Relighter.relight_many` for jobs). Requests, photo batches
+and rotation videos are answered above it (:mod:`difareli.relight.request`).
 """
 
 from __future__ import annotations

@@ -1,17 +1,10 @@
 """A relight request as a user states it, and its answer: the third layer of the relight spine, above the relighter.
 
-:class:`Request` says where the source is (a store record, or a photo preprocessed in memory), the target
-(:class:`Target`: a light file or a named light, another record's light, the source's own light turned by a yaw,
-roll or pitch or toward a direction, an environment map by file or by name; its shadow strength and where its
-shadow map is marched), a rotation video of the source's light (:class:`Rotation`, whose frames may carry an
-oracle's shadow strengths and maps), how a photo's relights go back into it, where and how the answer is written,
-and how it is relit (the checkpoint, the sampler by its spec, the runtime: what a
-:class:`~difareli.relight.relighter.Relighter` is built with). :meth:`Request.from_config` takes it from a
-command's config (``conf/relight.yaml``) and checks it, each value once, before any work. :func:`respond` reads the
-source once through the relighter, builds the targets, relights, composites, and returns an :class:`Answer` that a
-command only writes out; a batch of photos is answered photo by photo into the request's ``out_dir``
-(:mod:`difareli.relight.batch`), its answer the counts. The app, ``difareli-video`` and the demo relight through
-:class:`Target`, :class:`Rotation` and :func:`rotation_video` too.
+:class:`Request` (:meth:`Request.from_config`: a command's ``conf/relight.yaml``, each value checked once, before
+any work) names the source, the :class:`Target`, a :class:`Rotation` video, the compositing and how it is relit;
+:func:`respond` answers it through a :class:`~difareli.relight.relighter.Relighter` as an :class:`Answer` that a
+command only writes out (a batch of photos: :mod:`difareli.relight.batch`). The app, ``difareli-video`` and the
+demo relight through :class:`Target`, :class:`Rotation` and :func:`rotation_video` too.
 """
 
 from __future__ import annotations

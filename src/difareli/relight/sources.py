@@ -1,11 +1,8 @@
 """The faces a model relights, read and checked once at the boundary (SPEC 5): the first layer of the relight spine.
 
-A :class:`Source` is one face: its encodings, the key its inversion is cached under, and how messages name it.
-:class:`Sources` makes them for one model (its inputs, hyperparameters and training resolution): a store record
-(:meth:`Sources.source`, what the model reads and ``also=`` more; the store checked once against the model), a photo
-preprocessed in memory (:meth:`Sources.photo_source`, with its check before relighting) or in-memory encodings
-(:meth:`Sources.source_from_arrays`), each checked to fit the model. The relighter
-(:mod:`difareli.relight.relighter`) is a :class:`Sources` that also relights; nothing here relights.
+A :class:`Source` is one face (its encodings, the key its inversion is cached under, how messages name it);
+:class:`Sources` makes them for one model from a store record, a photo preprocessed in memory or in-memory
+encodings, each checked to fit the model. The relighter is a :class:`Sources` that also relights.
 """
 
 from __future__ import annotations
