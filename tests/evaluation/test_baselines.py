@@ -159,3 +159,26 @@ def test_mean_skin_albedo_prior():
     i = np.minimum(x.astype(int), 8)
     sampled = MONK_SCALE[i] * (1 - (x - i))[:, None] + MONK_SCALE[i + 1] * (x - i)[:, None]
     np.testing.assert_allclose(synthfaces_mean_skin_albedo(), sampled.mean(0) * SKIN_ALBEDO_SCALE, atol=1e-5)
+
+
+def test_a_record_too_small_for_the_light_fit_is_named_with_the_fix(synth_store, tmp_path):
+    """A benchmark whose light-source image has too few usable face pixels said 'light fit: only 27 usable face
+    pixels (need 30)': no store, no record, no fix. Now the record, its count and what to change."""
+    from difareli.errors import UserError
+    from difareli.evaluation.benchmark import run_benchmark
+
+    store = EncodingStore.open(synth_store)
+    rid = store.ids()[0]
+    have = int(LightFit().region(store.read(rid, list(LightFit.ENCODINGS))).sum())
+    assert have > 9
+    with pytest.raises(UserError) as e:
+        LightFit(min_pixels=have + 1).from_store(store, rid)
+    assert str(e.value) == (f"store {synth_store}, record {rid}: its image has {have} face pixels the light fit can "
+                            f"use (skin and nose, neither clipped nor black), under light_fit.min_pixels={have + 1}; "
+                            "a store at a larger resolution gives it more (this one is 32 px), or lower the bound: "
+                            f"light_fit.min_pixels={have}")
+    assert LightFit(min_pixels=have).from_store(store, rid).shape == (9, 3)  # the bound it names fits
+    with pytest.raises(UserError, match=r"^store .*, record s\d+_l\d: its image has \d+ face pixels .* \(this one "
+                                        r"is 32 px\)(, or lower the bound: light_fit.min_pixels=\d+)?$"):
+        run_benchmark(store, Identity(), ["same_subject"], tmp_path / "b", limit=1, progress=False, grid_pairs=0,
+                      estimator=LightFit(min_pixels=10 ** 6))

@@ -47,6 +47,10 @@ def robust_sigma(r: np.ndarray) -> float:
     return float(1.4826 * np.median(np.abs(r - np.median(r))))
 
 
+#: Pixels a 9-term SH light needs at the least (one per coefficient); a bound below it cannot be suggested.
+MIN_FIT_PIXELS = 9
+
+
 @dataclass(frozen=True)
 class LightFit:
     """Estimate a record's SH light from its image alone (plus its normals and face parsing).
@@ -104,7 +108,15 @@ class LightFit:
     def from_store(self, store, record_id: str) -> np.ndarray:
         """The fit of one record of an :class:`~difareli.data.store.EncodingStore`."""
         names = [e for e in self.ENCODINGS if e != "masks" or store.available("masks")]
-        return self(store.read(record_id, names))
+        arrays = store.read(record_id, names)
+        have = int(self.region(arrays).sum())
+        if have < self.min_pixels:  # said with the record and the fix, not as a bare count
+            lower = f", or lower the bound: light_fit.min_pixels={have}" if have >= MIN_FIT_PIXELS else ""
+            raise UserError(
+                f"store {store.root}, record {record_id}: its image has {have} face pixels the light fit can use "
+                f"(skin and nose, neither clipped nor black), under light_fit.min_pixels={self.min_pixels}; a "
+                f"store at a larger resolution gives it more (this one is {int(store.dims.get('H', 0))} px){lower}")
+        return self(arrays)
 
 
 def light_fit_from_config(cfg: Mapping[str, Any] | None) -> LightFit:
