@@ -352,11 +352,3 @@ def decode_upload(data_url: str) -> bytes:
     except (ValueError, TypeError) as e:
         raise RequestError(f"the upload is not base64 data ({e})") from None
 
-
-__all__ = [
-    "RequestError",
-    "Service",
-    "decode_upload",
-    "png_data_url",
-    "reconstruction_error",
-]

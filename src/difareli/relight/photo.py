@@ -196,13 +196,6 @@ def prepare_photo(rgb: np.ndarray, encodings: Sequence[str], *, size: int,
                          None if lm is None else np.asarray(lm))
 
 
-def preprocess_photo(rgb: np.ndarray, encodings: Sequence[str], *, size: int,
-                     estimators: Mapping[str, Any] | None = None, what: str = "photo") -> dict[str, np.ndarray]:
-    """The ``encodings`` of one decoded RGB photo (uint8 HxWx3), aligned to ``size`` px."""
-    prepared = prepare_photo(rgb, encodings, size=size, estimators=estimators, what=what, composite=False)
-    return prepared.arrays
-
-
 def read_photo(path: str | Path, key: str = "image", name: str | None = None) -> np.ndarray:
     """Decode a photo file to uint8 RGB (the preprocess loader's checks), or a UserError naming ``key`` and the
     file (``name``: how to name it instead of its path, e.g. an uploaded file's name). A folder or a special file
