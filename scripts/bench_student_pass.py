@@ -8,7 +8,9 @@ Loads a teacher and its one-pass student, prepares one store case for each (the 
 - ``student``: the student's whole relight through ``relight.core.relight`` (its Modulator and UNet, as shipped);
 - ``student_autocast_mod``: the same relight with the Modulator run as it was before issue 63 (plain autocast on
   the original network, contiguous inputs; the UNet still on the inference copy);
-- ``modulator``: the student's Modulator alone, on the inference copy.
+- ``modulator``: the student's Modulator alone, on the inference copy;
+- ``teacher_gn_mixed``, ``student_gn_mixed``: the teacher's pass and the student's relight with GroupNorm32 as it
+  was before issue 63 (PyTorch's mixed bf16 kernel on channels-last input too).
 
 Only ratios of one run compare on a loaded machine; the medians and minima of every entry are printed, then the
 per-op self CPU time of the teacher's and the student's pass (``--profile``, torch.profiler, interleaved).
@@ -20,12 +22,15 @@ from __future__ import annotations
 
 import argparse
 import collections
+import contextlib
 import time
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 from difareli.data.store import EncodingStore
+from difareli.nn.unet import GroupNorm32
 from difareli.perf import samplers as speed
 from difareli.relight.core import _condition, relight
 from difareli.relight.relighter import Relighter
@@ -48,10 +53,36 @@ def _passes(teacher: Relighter, student: Relighter, store: EncodingStore, runtim
             cond = sm.net.condition(sp, ns)
         return sc.x0 + runtime.denoiser(sm.net, cond)(sc.x0, ts)
 
-    return {"teacher": lambda: den(tc.x0, t),
-            "student": lambda: relight(sm, sc.x0, sc.source, sc.target_cond, runtime=runtime),
-            "student_autocast_mod": old_student,
-            "modulator": lambda: runtime.condition(sm.net, sp, ns)}
+    fns = {"teacher": lambda: den(tc.x0, t),
+           "student": lambda: relight(sm, sc.x0, sc.source, sc.target_cond, runtime=runtime),
+           "student_autocast_mod": old_student,
+           "modulator": lambda: runtime.condition(sm.net, sp, ns)}
+    return {**fns, "teacher_gn_mixed": _with_gn_mixed(fns["teacher"]),
+            "student_gn_mixed": _with_gn_mixed(fns["student"])}
+
+
+@contextlib.contextmanager
+def _gn_mixed():
+    """GroupNorm32 as before issue 63: the mixed bf16 kernel for every bf16 CPU input, channels-last too."""
+    new = GroupNorm32.forward
+
+    def old(self, x):
+        if x.dtype == torch.bfloat16 and x.device.type == "cpu" and self.weight.dtype == torch.float32:
+            return F.group_norm(x, self.num_groups, self.weight, self.bias, self.eps)
+        return new(self, x)
+
+    GroupNorm32.forward = old
+    try:
+        yield
+    finally:
+        GroupNorm32.forward = new
+
+
+def _with_gn_mixed(fn):
+    def run():
+        with _gn_mixed():
+            return fn()
+    return run
 
 
 def _timed(fns: dict, rounds: int) -> dict[str, list[float]]:
@@ -104,7 +135,9 @@ def main() -> None:
         for k, v in secs.items():
             print(f"  {k:22s} median {med[k] * 1e3:7.2f} ms  min {min(v) * 1e3:7.2f} ms")
         # Per-round ratios: the passes of one round ran within milliseconds of each other, under the same load.
-        for a, b in (("student", "teacher"), ("student_autocast_mod", "teacher"), ("student_autocast_mod", "student")):
+        for a, b in (("student", "teacher"), ("student_autocast_mod", "teacher"), ("student_autocast_mod", "student"),
+                     ("student_gn_mixed", "teacher_gn_mixed"), ("teacher_gn_mixed", "teacher"),
+                     ("student_gn_mixed", "student")):
             paired = np.median(np.array(secs[a]) / np.array(secs[b]))
             print(f"  {a} / {b}: medians {med[a] / med[b]:.3f}, minima {min(secs[a]) / min(secs[b]):.3f}, "
                   f"median of per-round ratios {paired:.3f}")
