@@ -41,13 +41,11 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
-from pathlib import Path
 from typing import Any
 
 from . import checks, examples, presets
 from .checks import MAX_BODY, Guard, RequestError  # noqa: F401 (MAX_BODY re-exported)
 from .service import Service
-from difareli.checkpoints.format import is_folder
 from difareli.errors import user_message
 
 
@@ -237,7 +235,7 @@ class Handler(BaseHTTPRequestHandler):
         if self.path in ("/", "/index.html"):
             self._send(200, page(), "text/html; charset=utf-8")
         elif self.path == "/api/info":
-            self._guarded(lambda: info(self.service))
+            self._guarded(self.service.info)
         elif self.path == "/api/examples":
             self._guarded(lambda: {"examples": examples.listing()})
         elif self.path == "/api/presets":
@@ -290,26 +288,6 @@ class Handler(BaseHTTPRequestHandler):
                 self._json(400, {"error": msg.splitlines()[0] if msg else type(e).__name__})
             return
         self._json(200, out)
-
-
-def weights_folders(paths) -> list[str]:
-    """The weights folders among and under ``paths`` (a request may name them; ``Service.served_checkpoints``
-    lists only ``.ckpt`` files)."""
-    out = []
-    for c in paths:
-        p = Path(str(c)).expanduser()
-        if is_folder(p):
-            out.append(str(c))
-        elif p.is_dir():
-            out += sorted(str(f.parent) for f in p.rglob("config.json") if is_folder(f.parent))
-    return out
-
-
-def info(service: Service) -> dict:
-    """``GET /api/info``: the service's, its checkpoints with the weights folders given at start."""
-    out = service.info()
-    out["checkpoints"] = list(dict.fromkeys([*out["checkpoints"], *weights_folders(service.checkpoints)]))
-    return out
 
 
 def make_server(service: Service | None, host: str = "127.0.0.1", port: int = 8765, quiet: bool = True,

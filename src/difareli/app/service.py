@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from difareli.checkpoints import zoo
+from difareli.checkpoints.format import is_folder
 from difareli.data import encodings
 from difareli.data.store import EncodingStore
 from difareli.diffusion.samplers import SAMPLERS
@@ -111,11 +112,16 @@ class Service:
                            "restart the app with checkpoints=[<file or folder>]")
 
     def served_checkpoints(self, limit: int = 200) -> list[str]:
-        """The checkpoints the page may offer: shipped names, start-up files, ``*.ckpt`` under start-up folders."""
+        """The checkpoints the page may offer: shipped names, start-up files and weights folders, and the ``*.ckpt``
+        files and weights folders under a start-up folder."""
         out = [self.checkpoint, *zoo.available()]
         for c in self.checkpoints:
             p = Path(str(c)).expanduser()
-            out += sorted(str(f) for f in p.rglob("*.ckpt"))[:limit] if p.is_dir() else [str(c)]
+            if is_folder(p) or not p.is_dir():
+                out.append(str(c))
+            else:
+                out += sorted(str(f) for f in p.rglob("*.ckpt"))[:limit]
+                out += sorted(str(f.parent) for f in p.rglob("config.json") if is_folder(f.parent))[:limit]
         return list(dict.fromkeys(out))[:limit]
 
     def relighter(self, checkpoint: str | None = None, sampler: str = DEFAULT.name, steps: int = DEFAULT.steps):
