@@ -41,6 +41,7 @@ from difareli.lighting.presets import ENVMAPS
 from difareli.relight import photo_check
 from difareli.relight.photo import read_photo
 from difareli.relight.relighter import Relighter
+from difareli.relight.sources import Source
 from difareli.relight.request import Target, relight_targets
 from difareli.relight.targets import photo_shadow
 from difareli.utils.lru import LRU
@@ -60,14 +61,18 @@ RELIGHT_FIELDS = ("id", "checkpoint", "sampler", "steps", "light", "shadow")
 
 @dataclass
 class AppSource:
-    """A face the page relights: the relight core's Source, and for a photo the prepared photo."""
+    """A face the page relights: the relight spine's Source (a photo's carries its prepared photo)."""
 
     id: str
-    source: Any
-    prepared: Any | None
+    source: Source
     preprocess_s: float
     checkpoint: str
     notes: tuple[str, ...] = ()  # what reading the photo changed (an alpha channel composited, ...)
+
+    @property
+    def prepared(self) -> Any | None:
+        """A photo's PreparedPhoto (None for a store record)."""
+        return self.source.photo
 
 
 @dataclass
@@ -210,7 +215,7 @@ class Service:
         if cached is not None and cached.checkpoint == checkpoint:
             return AppSource(**{**cached.__dict__, "preprocess_s": 0.0})
         source = relighter.photo_source(rgb, size=size, what=f"image={name}", key=("app", sid), also=["face_mask"])
-        self._sources[sid] = AppSource(sid, source, source.photo, source.photo.seconds, checkpoint, notes)
+        self._sources[sid] = AppSource(sid, source, source.photo.seconds, checkpoint, notes)
         return self._sources[sid]
 
     def record(self, rid: str, checkpoint: str | None = None) -> AppSource:
@@ -223,7 +228,7 @@ class Service:
             src = self.relighter(ckpt).source(st, rid, also=["face_mask"])
         except KeyError as e:  # the store lacks an encoding this model reads
             raise RequestError(f"checkpoint={ckpt}: {e}") from None
-        out = AppSource(f"record-{rid}", src, None, 0.0, ckpt)
+        out = AppSource(f"record-{rid}", src, 0.0, ckpt)
         self._sources[out.id] = out
         return out
 
