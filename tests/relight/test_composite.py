@@ -10,6 +10,7 @@ import pytest
 from difareli.checkpoints import zoo
 from difareli.relight.composite import Compositor, crop_to_photo, feathered, part_mask
 from difareli.data.encodings import PART_INDEX
+from difareli.lighting import sh
 
 from tests.helpers import HAS_CV2, HAS_ESTIMATORS, compose_train
 
@@ -178,3 +179,34 @@ def test_relight_cli_rejects_a_bad_composite_mode(tmp_path):
                                    "composite.mode=blend"], config_name="relight")
     with pytest.raises(ValueError, match="composite.mode='blend': use one of ratio, pixels"):
         Request.from_config(cfg)
+
+
+@pytest.mark.skipif(not HAS_ESTIMATORS, reason="photo estimators not installed (DIFARELI_PREPROCESS=1)")
+@pytest.mark.skipif("difareli_pp-synth64" not in zoo.available(), reason="no shipped checkpoint")
+def test_a_photos_rotation_video_lights_its_face_plausibly(tmp_path, monkeypatch):
+    """difareli-relight image=... video.axis=yaw: the photo's own light turned behind the head was negative on most
+    of its face (a dark mask, issue 61); each frame's light is now made plausible for the face (presets.plausible):
+    never negative on its normals, the face's mean irradiance kept."""
+    from skimage import data
+
+    from difareli.cli.relight import run
+    from difareli.lighting.presets import face_normals
+    from difareli.relight.relighter import Relighter
+    from difareli.relight.relit import Relit
+
+    photo, seen = tmp_path / "astronaut.png", []
+    iio.imwrite(photo, data.astronaut())
+
+    def relight(self, source, targets):
+        seen.append((source, targets))
+        return Relit(np.stack([np.asarray(source.arrays["image"])] * len(targets)), {"decode": 0.0}, source, targets)
+
+    monkeypatch.setattr(Relighter, "relight", relight)
+    run(compose_train(tmp_path, ["checkpoint=difareli_pp-synth64", f"image={photo}", "video.axis=yaw",
+                                 "video.frames=6", "progress=false", "runtime.device=cpu"], config_name="relight"))
+    source, targets = seen[-1]
+    n = face_normals(source.arrays["normal"])
+    own = sh.irradiance(np.asarray(source.arrays["light"], np.float64), n).mean()
+    e = np.stack([sh.irradiance(np.asarray(x, np.float64), n) for x in targets.lights])
+    assert len(e) == 6 and e.min() >= -1e-9  # the raw turn at 180 degrees is negative on most of the face
+    assert np.allclose(e.mean(axis=(1, 2)), own, rtol=1e-6)

@@ -363,7 +363,10 @@ def respond(relighter: Relighter, request: Request, say: Callable[[str], None] |
             out.tell(f"composited into the {out.whole.shape[1]}x{out.whole.shape[0]} photo in "
                      f"{out.relit.seconds['composite']:.2f} s ({c['mode']})")
     if request.video_axis is not None:
-        rotation = Rotation(request.video_axis, request.video_frames, shadow=t.shadow, sun=t.sun)
+        # A photo's own light turned behind the head is negative on most of its face (a dark mask, issue 61): its
+        # frames are made plausible as its named lights are; a store record's turn stays exact (its ground truth).
+        rotation = Rotation(request.video_axis, request.video_frames, shadow=t.shadow, sun=t.sun,
+                            plausible=source.photo is not None)
         out.video = rotation_video(relighter, source, rotation, store, out.tell)[0]
         if source.photo is not None:  # every frame back into the whole photo
             out.whole_video = out.video.composite(c["mode"], c["feather"], c["parts"])
