@@ -30,10 +30,10 @@ class OneByOne:
 
 
 class Batching(Identity):
-    """The input back, pair by pair or through relight_many (batch_size sources a call); ``bad``: the first
+    """The input back, pair by pair or through relight_many (batch_size relights a call); ``bad``: the first
     relight_many call fails as a non-finite result would."""
 
-    batch_size = 2
+    batch_size = 4
 
     def __init__(self, bad: bool = False):
         super().__init__("batching")
@@ -52,7 +52,7 @@ class Batching(Identity):
 
 @pytest.mark.parametrize("bad", [False, True])
 def test_pairs_go_through_relight_many_grouped_by_source(synth_store, tmp_path, bad):
-    """Each source with its pairs of both protocols, batch_size sources a call, no pair relit twice; a failed call's
+    """Each source with its pairs of both protocols, batch_size relights a call, no pair relit twice; a failed call's
     pairs are relit one by one (only a bad pair would fail its row); the rows are the identity's."""
     store = EncodingStore.open(synth_store)
     kw = dict(limit=3, progress=False, grid_pairs=0, save_images=False)
