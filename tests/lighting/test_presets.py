@@ -79,3 +79,25 @@ def test_the_relight_targets_pass_the_face_normals(synth_store):
     assert not np.allclose(got, preset_light("top", like))  # the face's normals, not the sphere's, set the scale
     np.testing.assert_allclose(target_lights(like, direction=[1, 0, 0], normals=normals), toward(like, [1, 0, 0],
                                                                                                    normals))
+
+
+def test_a_key_behind_the_face_lights_it_by_the_fill_alone(synth_store):
+    """A light turned behind the head: its linear SH term had lit the face normals that face away from it least
+    (forehead, nose bridge) several times more than the rest (issue 61's bright patch); the face now gets the fill
+    alone, its energy kept and the light's direction still readable. A light some normal faces keeps its key."""
+    from difareli.lighting.presets import behind
+
+    normals = face_normal_sets(synth_store)[0]
+    n = face_normals(normals)
+    key = sources(np.random.default_rng(2))[0]
+    raw = sh.light_toward(key, [0.0, 0.35, -1.0])
+    assert (n @ sh.dominant_direction(raw)).max() < 0  # every face normal faces away from it
+    e = sh.irradiance(raw, n).mean(-1)
+    assert e.max() - e.min() > e.mean()  # the raw turn: a strong gradient over normals it cannot light
+    out = plausible(raw, key, normals)
+    e = sh.irradiance(out, n).mean(-1)
+    assert e.max() - e.min() < 1e-4 * e.mean()
+    np.testing.assert_allclose(sh.dominant_direction(out), sh.dominant_direction(raw), atol=1e-6)
+    for name in ("left", "right", "top", "front"):
+        lit = sh.light_toward(key, DIRECTIONS[name][0])
+        assert behind(lit, n) == 1.0

@@ -8,7 +8,8 @@ convention), so that "pick an HDR map" works offline without shipping image file
 (``sh.project_envmap``).
 
 Every named light, and every direction the app turns a light toward, is made physically plausible for the face it
-lights (:func:`plausible`): ambient added until its darkest face normal gets at least :data:`FILL` of the face's
+lights (:func:`plausible`): its key (SH bands 1-2) weakened where it lies behind the face (:func:`behind`), ambient
+added until its darkest face normal gets at least :data:`FILL` of the face's
 mean irradiance (so never negative), then scaled so that its mean irradiance on the face equals the source light's
 (the source's energy kept, the target's colour and direction unchanged). Without this, a source light turned to
 ``top`` or ``rim``, or a map at the source's ambient, gave negative irradiance on much of a frontal face and took a
@@ -102,11 +103,13 @@ def face_normals(normals: np.ndarray | None) -> np.ndarray:
 
 def plausible(light: np.ndarray, like: np.ndarray, normals: np.ndarray | None = None) -> np.ndarray:
     """``light`` (9, 3) made plausible for a face whose own light is ``like`` and whose normals are ``normals``
-    (:func:`face_normals`): per channel, the ambient (band 0) raised until the darkest of the face's and
+    (:func:`face_normals`): its key weakened where it lies behind them (:func:`behind`), then per channel, the
+    ambient (band 0) raised until the darkest of the face's and
     :data:`VISIBLE`'s normals gets at least :data:`FILL` of the face's mean irradiance, then one factor for all
     channels that makes the face's mean irradiance (mean over RGB) equal ``like``'s."""
     light = np.array(light, np.float64)
     n = face_normals(normals)
+    light[1:] *= behind(light, n)
     e = sh.irradiance(light, n)  # (M, 3)
     darkest = np.minimum(e.min(0), sh.irradiance(light, VISIBLE).min(0))
     # min + a >= FILL (mean + a): the ambient a each channel needs (0 when it already has it).
@@ -116,6 +119,20 @@ def plausible(light: np.ndarray, like: np.ndarray, normals: np.ndarray | None = 
     now = float(e.mean() + add.mean())  # > 0: the darkest normal gets FILL of it, or more
     # A source light with no energy on its face (a black photo) leaves nothing to keep: the light stays as filled.
     return light * (own / now) if own > 0 and now > 0 else light
+
+
+def behind(light: np.ndarray, n: np.ndarray) -> float:
+    """The factor on ``light``'s key (SH bands 1-2) that lets it vary over the normals ``n`` no more than a real key
+    light from its dominant direction d can: ``max(0, n.d)`` spans ``max(0, c_max) - max(0, c_min)`` over them, the
+    SH key's linear term ``(c_max - c_min) / 2`` (``1/4 + c/2 + ...``, the clamped cosine's projection). 1 where some
+    normal faces the light (``left``, ``top``, ``front``); 0 where all face away: a light wholly behind the face
+    lights it by the fill alone. Without it the linear term, turned behind the head, lit the normals that face away
+    least (forehead, nose bridge) up to 8 times more than the rest (issue 61's bright patch; docs/photo_quality.md)."""
+    c = n @ sh.dominant_direction(light)
+    span = float(c.max() - c.min())
+    # A trace of the key (1e-6) stays where all face away: its direction still says where the light is (its
+    # description, the cast-shadow march) at no visible cost.
+    return 1.0 if span <= 0 else min(1.0, max(2.0 * (max(c.max(), 0.0) - max(c.min(), 0.0)) / span, 1e-6))
 
 
 def preset_light(name: str, like: np.ndarray, normals: np.ndarray | None = None, yaw: float | None = None
