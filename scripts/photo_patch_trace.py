@@ -73,9 +73,9 @@ def main() -> None:
             print(f"{name} {target} {face.max() / face.min():.2f} | " + " ".join(f"{v:+.3f}" for v in d))
         if i == 0 and args.sheet:
             blank = np.zeros_like(aligned)
-            rows = [[aligned, *crops], [aligned, *lam], *[[blank, *(grey(x * known, -1, 1) if j == 0 else
-                                                                   grey(x, -1, 1) for x in s)] for j, s in
-                                                          enumerate(logs)], [blank, *(grey(r * known, 0, 2) for r in rel)]]
+            log_rows = [[blank, *(grey(x * known, -1, 1) if j == 0 else grey(x, -1, 1) for x in s)]
+                        for j, s in enumerate(logs)]
+            rows = [[aligned, *crops], [aligned, *lam], *log_rows, [blank, *(grey(r * known, 0, 2) for r in rel)]]
             sheet = viz.grid([[viz.enlarge(x, 160) for x in r] for r in rows], col_labels=["aligned", "own",
                              *args.targets], row_labels=["relit", "Lambertian", "log E_t/E_s", "log lam/aligned",
                                                          "log relit/aligned", "log relit/own", "E_t/face mean"])

@@ -63,8 +63,8 @@ class UNetConfig:
 class GroupNorm32(nn.GroupNorm):
     """GroupNorm computed in float32 and cast back (ADM's choice: bf16/fp16 statistics are unstable).
 
-    On a CPU a contiguous bfloat16 input goes to PyTorch's mixed-type kernel (bf16 activations, fp32 affine), which computes
-    the statistics and the affine in float32 internally and rounds the output once: the same arithmetic as the
+    On a CPU a contiguous bfloat16 input goes to PyTorch's mixed-type kernel (bf16 activations, fp32 affine), which
+    computes the statistics and the affine in float32 internally and rounds the output once: the same arithmetic as the
     explicit cast, without writing an fp32 copy of the activation forward and backward (the casts were ~18% of a
     tiny-64 bf16 training step; the mixed kernel's forward + backward is ~3x faster than cast, norm, cast back).
     """
