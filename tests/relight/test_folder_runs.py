@@ -131,6 +131,21 @@ def test_strict_is_a_boolean(tmp_path, value):
     assert Request.from_config(config(image=str(tmp_path / "p.png"), strict=False)).strict is False
 
 
+@pytest.mark.parametrize("face", ["abc", "-1", "1.5", "first"])
+def test_a_face_choice_that_is_none_is_refused_before_any_photo(tmp_path, face):
+    """Before: accepted, then each photo detected and skipped with a "face=abc: not a face choice" row (exit 2 after
+    the estimators' work, a relight.csv written). Issue 64, our probe."""
+    (tmp_path / "p.png").write_bytes(b"x")
+    out = tmp_path / "out"
+    with pytest.raises(UserError) as e:
+        Request.from_config(config(image=str(tmp_path / "p.png"), face=face, out_dir=str(out)))
+    assert str(e.value) == (f"face={face} is invalid: give face=largest, face=all or face=<index> (0, 1, ...: the "
+                            "detected faces left to right)")
+    assert not out.exists()
+    for good in ("largest", "all", "2", "ALL"):
+        assert Request.from_config(config(image=str(tmp_path / "p.png"), face=good, out_dir=str(out))).face == good
+
+
 def test_a_full_disk_mid_folder_is_one_line_and_the_rerun_resumes(tmp_path, fake, monkeypatch):
     """The disk fills while the second photo's composite is written: one line naming that file (a UserError, exit
     2 through a CLI), no scratch file, the first photo's row kept; a rerun with space relights the second only."""

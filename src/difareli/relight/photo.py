@@ -135,6 +135,16 @@ def detect_faces(rgb: np.ndarray, size: int, estimators: Mapping[str, Any] | Non
     return [b for _, b in sorted(found, key=lambda sb: sb[1][0])]
 
 
+def check_face(face: Any) -> None:
+    """``face=`` as a choice (largest | all | an index >= 0), checked before any photo is read: a typo is the
+    command's error, said once, not a "skipped" line per photo."""
+    key = str(face).strip().lower()
+    if key in ("largest", "all") or key.isdigit():
+        return
+    raise UserError(f"face={face} is invalid: give face=largest, face=all or face=<index> (0, 1, ...: the detected "
+                    "faces left to right)")
+
+
 def choose_faces(boxes: Sequence[np.ndarray], face: Any, what: str) -> list[int]:
     """Indices into ``boxes`` (left to right) for ``face`` = largest | all | <index>; a UserError otherwise."""
     key = str(face).strip().lower()

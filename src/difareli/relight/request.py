@@ -275,6 +275,7 @@ def check_photos(image: str, face: Any, axis: str | None, record: str | None, co
     """The photos of ``image=`` (a folder or a glob; ``face=all|<index>``: several faces of one photo) as a batch,
     None for one photo; a batch takes a target light, not a video or a target record, and an ``out_dir`` its
     listing does not read; the compositing checked."""
+    photo.check_face(face)  # a typo is the command's error before any photo is read (not a skipped row per photo)
     photos = photo_paths(image)
     if photos is not None:
         check_out_dir(image, out_dir)
