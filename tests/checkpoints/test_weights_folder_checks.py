@@ -196,3 +196,62 @@ def test_export_onto_a_full_disk_leaves_no_folder_and_keeps_an_earlier_one(tmp_p
         export_folder("difareli_pp_ss-synth64", tmp_path / "w")
     assert {p.name: p.read_bytes() for p in (tmp_path / "w").iterdir()} == before  # the earlier folder, whole
     assert sorted(p.name for p in tmp_path.iterdir()) == ["w"]
+
+
+# Issue 64's own probe (docs/robustness.md, "our nine"): folders made to break the readers rather than lie to them.
+def _deep(n: int = 100_000) -> bytes:
+    return b"[" * n + b"]" * n
+
+
+ODD_FOLDERS = {
+    "header_deep": (lambda f: (f / "model.safetensors").write_bytes(struct.pack("<Q", 200_000) + _deep()),
+                    "model.safetensors: its header nests arrays or objects too deeply to be a tensor list: corrupt; "
+                    "export the folder again"),
+    "config_deep": (lambda f: (f / "config.json").write_bytes(_deep()),
+                    "config.json: nests arrays or objects too deeply to be a weights folder's config; export the "
+                    "folder again"),
+    "format_newer": (lambda f: _edit_config(f, difareli_format=99),
+                     "config.json: difareli_format is 99, newer than this difareli reads (2); load it with the "
+                     "difareli version that wrote it"),
+    "step_huge": (lambda f: _edit_config(f, global_step=10 ** 400),
+                  "must be an integer from 0 to 9223372036854775807; export the folder again"),
+    "weights_fifo": (lambda f: ((f / "model.safetensors").unlink(), os.mkfifo(f / "model.safetensors")),
+                     "its model.safetensors is a FIFO (named pipe), not the file a weights folder holds; copy the "
+                     "folder again whole"),
+    "weights_device": (lambda f: ((f / "model.safetensors").unlink(), os.symlink("/dev/zero", f / "model.safetensors")),
+                       "its model.safetensors is a device, not the file a weights folder holds"),
+    "config_folder": (lambda f: ((f / "config.json").unlink(), (f / "config.json").mkdir()),
+                      "its config.json is a folder, not the file a weights folder holds"),
+}
+
+
+def _edit_config(folder: Path, **values) -> None:
+    config = json.loads((folder / "config.json").read_text())
+    config.update(values)
+    (folder / "config.json").write_text(json.dumps(config))
+
+
+@pytest.mark.parametrize("name", sorted(ODD_FOLDERS))
+def test_folders_made_to_break_the_readers_are_one_line(tmp_path, name):
+    """Before: a RecursionError traceback (a header or config.json nested 100,000 deep), a newer format or an
+    absurd step loaded as if current, a FIFO, a device link or a folder in a file's place called "missing"."""
+    folder = tmp_path / name
+    shutil.copytree(SOURCE, folder)
+    make, want = ODD_FOLDERS[name]
+    make(folder)
+    with pytest.raises(UserError) as e:
+        load_checkpoint(folder)
+    msg = str(e.value)
+    assert want in msg and str(folder) in msg and "\n" not in msg, msg
+
+
+def test_a_ckpt_of_a_newer_format_is_refused(tmp_path):
+    """Before: a .ckpt stating difareli_format 99 was read as the current format (2) and built."""
+    ckpt = torch.load(zoo.SHIPPED_DIR / "difareli_pp_ss-synth64.ckpt", map_location="cpu", weights_only=True)
+    for value, shown in ((99, "99"), ("2", "'2'")):
+        ckpt["difareli_format"] = value
+        torch.save(ckpt, tmp_path / "new.ckpt")
+        with pytest.raises(UserError) as e:
+            load_checkpoint(tmp_path / "new.ckpt")
+        assert str(e.value) == (f"checkpoint={tmp_path / 'new.ckpt'}: difareli_format is {shown}, not a format this "
+                                "difareli reads (1 to 2); load it with the difareli version that wrote it")

@@ -35,14 +35,21 @@ def stamp(checkpoint: dict[str, Any], module: object) -> None:
     checkpoint[FORMAT_KEY] = FORMAT_VERSION
 
 
-def upgrade_checkpoint(ckpt: dict[str, Any]) -> dict[str, Any]:
-    """Translate a pre-format-2 checkpoint dict in place (and return it); newer ones pass unchanged.
+def upgrade_checkpoint(ckpt: dict[str, Any], where: Any = None) -> dict[str, Any]:
+    """Translate a pre-format-2 checkpoint dict in place (and return it); current ones pass unchanged, and one of a
+    format newer than this code reads (or not an integer) is a UserError naming ``where`` (its file or folder).
 
     ``spatial_type`` + ``modulate_skips`` -> ``spatial: {type, modulate_skips}``; ``lr`` + ``weight_decay`` ->
     ``optimizer`` (AdamW, as trained); ``ns_mean`` / ``ns_std`` buffers -> ``nonspatial_stats`` lists;
     ``adagn_out_silu`` -> ``False`` (those networks had no output SiLU).
     """
-    if ckpt.get(FORMAT_KEY, 1) >= FORMAT_VERSION:
+    version = ckpt.get(FORMAT_KEY, 1)
+    if not isinstance(version, int) or isinstance(version, bool) or not 1 <= version <= FORMAT_VERSION:
+        # read as the current format, a newer one's keys would be built into a model that means something else
+        raise UserError(f"{f'checkpoint={where}' if where else 'the checkpoint'}: {FORMAT_KEY} is "
+                        f"{repr(version)[:40]}, not a format this difareli "
+                        f"reads (1 to {FORMAT_VERSION}); load it with the difareli version that wrote it")
+    if version == FORMAT_VERSION:
         return ckpt
     hp = dict(ckpt["hyper_parameters"])
     kind, skips = hp.pop("spatial_type", "modulator"), hp.pop("modulate_skips", False)
@@ -115,15 +122,35 @@ def is_folder(path: str | Path) -> bool:
     return p.is_dir() and (p / WEIGHTS).is_file() and (p / CONFIG).is_file()
 
 
+def _entry_kind(path: Path) -> str | None:
+    """What ``path`` is where a weights folder needs a regular file: None for a file, else its kind in words."""
+    import stat
+
+    try:
+        mode = path.stat().st_mode
+    except OSError:
+        return "a symbolic link that leads nowhere" if path.is_symlink() else None
+    return (None if stat.S_ISREG(mode) else "a folder" if stat.S_ISDIR(mode) else
+            "a FIFO (named pipe)" if stat.S_ISFIFO(mode) else
+            "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode) else "not a regular file")
+
+
 def folder_problem(path: str | Path) -> str | None:
-    """Why ``path``, a folder holding one of a weights folder's two files, is not one (None for anything else)."""
+    """Why ``path``, a folder holding one of a weights folder's two files, is not one (None for anything else):
+    the other file missing, or either one there but not a regular file (a folder, a FIFO, a device, a dead link)."""
     p = Path(path)
-    have = [n for n in (WEIGHTS, CONFIG) if (p / n).is_file()] if p.is_dir() else []
+    if not p.is_dir():
+        return None
+    have = [n for n in (WEIGHTS, CONFIG) if (p / n).is_file()]
+    odd = [(n, _entry_kind(p / n)) for n in (WEIGHTS, CONFIG)
+           if n not in have and ((p / n).is_symlink() or (p / n).exists())]
+    fix = "copy the folder again whole, or export it again: difareli-export <checkpoint>.ckpt <folder>"
+    if have and odd:
+        return f"checkpoint={p}: its {odd[0][0]} is {odd[0][1]}, not the file a weights folder holds; {fix}"
     if len(have) != 1:
         return None
     lacks = CONFIG if have == [WEIGHTS] else WEIGHTS
-    return (f"checkpoint={p} is a weights folder without {lacks} (it holds {have[0]}); copy the folder again whole, "
-            "or export it again: difareli-export <checkpoint>.ckpt <folder>")
+    return f"checkpoint={p} is a weights folder without {lacks} (it holds {have[0]}); {fix}"
 
 
 def read_folder(folder: str | Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:
@@ -142,6 +169,9 @@ def read_folder(folder: str | Path, map_location: str | torch.device = "cpu") ->
             raise UserError(f"{folder / CONFIG}: over {MAX_CONFIG_BYTES >> 20} MiB, not a weights folder's config; "
                             f"{fix}")
         config = json.loads((folder / CONFIG).read_text(encoding="utf-8"))
+    except RecursionError:  # thousands of nested brackets: no config nests so, made to break the reader
+        raise UserError(f"{folder / CONFIG}: nests arrays or objects too deeply to be a weights folder's config; "
+                        f"{fix}") from None
     except (OSError, ValueError) as e:
         if isinstance(e, UserError):
             raise
@@ -162,6 +192,8 @@ def read_folder(folder: str | Path, map_location: str | torch.device = "cpu") ->
 #: states more is a typo or a lie, and a photo relight would allocate gigabytes at that size before anything failed.
 MAX_RESOLUTION = 1024
 MAX_CONFIG_BYTES = 64 * 2 ** 20
+#: The largest step or epoch count a config may state (a signed 64-bit integer, what Lightning counts in).
+MAX_COUNT = 2 ** 63 - 1
 #: config.json's keys: key -> (required, JSON type). Any other key is refused.
 CONFIG_SCHEMA = {"format": (True, str), "version": (True, int), MODULE_KEY: (True, str),
                  "hyper_parameters": (True, dict), FORMAT_KEY: (False, int), "global_step": (False, int),
@@ -198,6 +230,10 @@ def check_config(config: Any, where: Path, fix: str) -> None:
     if _is(version, int) and version > FOLDER_VERSION:
         raise UserError(f"{where.parent} is a weights folder of version {version}, newer than this difareli reads "
                         f"({FOLDER_VERSION}); load it with the difareli version that wrote it")
+    fmt = config.get(FORMAT_KEY)
+    if _is(fmt, int) and fmt > FORMAT_VERSION:
+        raise UserError(f"{where}: {FORMAT_KEY} is {fmt}, newer than this difareli reads ({FORMAT_VERSION}); load it "
+                        "with the difareli version that wrote it")
     unknown = sorted(set(config) - set(CONFIG_SCHEMA))
     if unknown:
         raise UserError(f"{where}: unknown key {unknown[0]!r} (known: {', '.join(CONFIG_SCHEMA)}); {fix}")
@@ -211,9 +247,10 @@ def check_config(config: Any, where: Path, fix: str) -> None:
     if not config[MODULE_KEY].startswith("difareli."):  # said here, naming the file: the loader would not import it
         raise _wrong(where, MODULE_KEY, config[MODULE_KEY], "a model class under difareli. (a checkpoint is data: "
                      "no other module is imported)", fix)
-    for key, lo in (("version", 1), ("global_step", 0), ("epoch", 0), (FORMAT_KEY, 1)):
-        if key in config and config[key] < lo:
-            raise _wrong(where, key, config[key], f"an integer >= {lo}", fix)
+    for key, lo, hi in (("version", 1, FOLDER_VERSION), ("global_step", 0, MAX_COUNT), ("epoch", 0, MAX_COUNT),
+                        (FORMAT_KEY, 1, FORMAT_VERSION)):
+        if key in config and not lo <= config[key] <= hi:
+            raise _wrong(where, key, config[key], f"an integer from {lo} to {hi}", fix)
     source = config.get("source", {})
     if set(source) - {"file", "sha256"} or not all(isinstance(v, str) for v in source.values()):
         raise _wrong(where, "source", source, "an object {file, sha256} of strings", fix)

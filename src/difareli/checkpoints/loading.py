@@ -60,12 +60,12 @@ def read_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     (its weights folder when shipped, else its .ckpt)."""
     path = zoo.resolve(path, prefer_folder=True)  # a file, a folder, or a shipped name (difareli.checkpoints.zoo)
     if is_folder(path):
-        return upgrade_checkpoint(read_folder(path, map_location))
+        return upgrade_checkpoint(read_folder(path, map_location), path)
     ckpt = load_torch_file(path, "checkpoint", map_location)  # torch.load(weights_only=True), errors name the file
     if "hyper_parameters" not in ckpt or "state_dict" not in ckpt:
         refuse_official(ckpt, path)  # the authors' ImgCond/ImgEncoder .pt: a message naming the import command
         raise UserError(f"{path} is not a difareli Lightning checkpoint (no hyper_parameters/state_dict)")
-    return upgrade_checkpoint(ckpt)
+    return upgrade_checkpoint(ckpt, path)
 
 
 def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> LoadedCheckpoint:

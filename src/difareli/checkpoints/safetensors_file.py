@@ -53,6 +53,9 @@ def read_header(path: str | Path, fix: str) -> dict[str, dict[str, Any]]:
         raw = f.read(n)
     try:
         header = json.loads(raw.decode("utf-8"))
+    except RecursionError:  # a few hundred nested brackets: no tensor list nests, so it was made to break readers
+        raise UserError(f"{path}: its header nests arrays or objects too deeply to be a tensor list: corrupt; "
+                        f"{fix}") from None
     except (UnicodeDecodeError, ValueError) as e:
         raise UserError(f"{path}: its header is not JSON ({str(e)[:80]}): corrupt; {fix}") from None
     if not isinstance(header, dict):
