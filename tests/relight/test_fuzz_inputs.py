@@ -58,6 +58,43 @@ def test_light_file_of_text_is_named(text):
             assert light.shape == (9, 3) and np.isfinite(light).all()
 
 
+def test_a_light_file_of_another_layout_is_refused_not_scrambled(tmp_path):
+    """Before: a 3x9 array (a transposed light) or 3x3x3 was read row-major as 9x3, another light, exit 0. Issue 64,
+    our probe (difareli-relight target.light=light_39.npy)."""
+    good = np.arange(27, dtype=np.float64).reshape(9, 3) / 10
+    for name, arr, fix in (("t.npy", good.T, "transpose it (light.T)"),
+                           ("c.npy", good.reshape(3, 3, 3), "save it as a 9x3 array")):
+        np.save(tmp_path / name, arr)
+        with pytest.raises(UserError) as e:
+            load_sh_file(tmp_path / name)
+        shape = "x".join(map(str, arr.shape))
+        assert str(e.value) == (f"target light file {tmp_path / name} is a {shape} array; a light is 9x3 (9 SH bands "
+                                f"of R, G, B: DECA's order) or 27 numbers in that order: {fix}")
+    np.savetxt(tmp_path / "rows.txt", good.T)  # 3 lines of 9
+    with pytest.raises(UserError, match="is a 3x9 array; a light is 9x3"):
+        load_sh_file(tmp_path / "rows.txt")
+    for name, arr in (("a.npy", good), ("b.npy", good.reshape(-1)), ("c.txt", good), ("d.txt", good.reshape(1, -1))):
+        np.save(tmp_path / name, arr) if name.endswith(".npy") else np.savetxt(tmp_path / name, arr)
+        np.testing.assert_allclose(load_sh_file(tmp_path / name), good)
+
+
+def test_an_environment_map_of_negative_radiance_is_refused(tmp_path):
+    """Before: a map of -1 everywhere relit the photo under an "anti-light" with a warning, exit 0. Issue 64, our
+    probe (difareli-relight target.envmap=env_neg.npy)."""
+    from difareli.relight.targets import load_envmap
+
+    env = np.ones((16, 32, 3))
+    env[2, 3, 1] = -0.25
+    np.save(tmp_path / "e.npy", env)
+    with pytest.raises(UserError) as e:
+        load_envmap(tmp_path / "e.npy")
+    assert str(e.value) == (f"environment map {tmp_path / 'e.npy'}: 1 of 1536 values are negative (lowest -0.25); "
+                            "radiance is >= 0: save the map unshifted (clip it at 0)")
+    env[2, 3, 1] = 0.0
+    np.save(tmp_path / "e.npy", env)
+    np.testing.assert_array_equal(load_envmap(tmp_path / "e.npy"), env)
+
+
 @pytest.mark.parametrize("key", ["yaw", "roll"])
 def test_nan_rotation_is_named(key):
     # Checked where the request is given (naming the key: test_request); a caller that checked nothing hears of

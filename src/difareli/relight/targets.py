@@ -102,11 +102,16 @@ def load_sh_file(path: str | Path) -> np.ndarray:
         raise UserFileNotFoundError(f"target light file {path} does not exist")
     try:
         arr = np.load(path, allow_pickle=False) if path.suffix == ".npy" else np.loadtxt(path, dtype=np.float64)
-        arr = np.asarray(arr, dtype=np.float64).reshape(-1)
+        shape, arr = np.shape(arr), np.asarray(arr, dtype=np.float64).reshape(-1)
     except (ValueError, TypeError, EOFError, OSError) as e:
         why = (str(e).splitlines() or [type(e).__name__])[0][:120]
         raise UserError(f"target light file {path} is not 27 numbers ({why}); give a "
                         ".npy 9x3 array or a text file of 27 numbers") from None
+    if arr.size == 27 and shape not in ((9, 3), (27,), (1, 27), (27, 1), (1, 9, 3)):
+        # a 3x9 (transposed) light read row-major would scramble bands and colours into another light, silently
+        fix = "transpose it (light.T)" if shape == (3, 9) else "save it as a 9x3 array"
+        raise UserError(f"target light file {path} is a {'x'.join(map(str, shape))} array; a light is 9x3 (9 SH "
+                        f"bands of R, G, B: DECA's order) or 27 numbers in that order: {fix}")
     if arr.size != 27:
         raise UserError(f"target light file {path} holds {arr.size} numbers; a 9x3 SH light needs 27 "
                         "(row-major, DECA basis order)")
@@ -137,7 +142,11 @@ def load_envmap(path: str | Path) -> np.ndarray:
                        fix="save finite radiance values")
     if env.ndim != 3 or env.shape[2] < 3 or env.shape[1] != 2 * env.shape[0]:
         raise UserError(f"environment map {path} has shape {env.shape}; expected equirectangular HxWx3 with W = 2H")
-    return env[..., :3]
+    env = env[..., :3]
+    if (env < 0).any():  # radiance is light arriving: a negative map relit a face with an "anti-light", exit 0
+        raise UserError(f"environment map {path}: {int((env < 0).sum())} of {env.size} values are negative (lowest "
+                        f"{env.min():.3g}); radiance is >= 0: save the map unshifted (clip it at 0)")
+    return env
 
 
 #: The ways to give a target light: exactly one, or none (the source's own light); an environment map may take a
