@@ -138,7 +138,8 @@ def test_two_different_content_lengths_are_refused(crowd):
 @pytest.mark.parametrize("name,problem", [("..", "names a folder"), ("x/..", "names a folder"),
                                           ("a\x00b.png", "holds a NUL or control character"),
                                           ("\ud800.png", "holds a lone surrogate (not UTF-8 text)"),
-                                          ("é" * 200 + ".png", "is 404 bytes long, over a file name's 255")])
+                                          ("é" * 200 + ".png", "is 404 bytes long, over a file name's 255"),
+                                          ("../../etc/passwd", "is a path"), ("C:\\me\\face.png", "is a path")])
 def test_upload_names_that_are_no_file_names_are_one_line(crowd, name, problem):
     _, server = crowd
     status, _, out = request(server.server_port, "POST", "/api/source",
@@ -181,3 +182,31 @@ def test_server_limits_are_checked_before_the_port_is_bound():
                        ("server.backlog=100000", "server.backlog=100000 is invalid")):
         with pytest.raises(UserError, match=words):
             limits(cfg(bad))
+
+
+def test_an_upload_is_read_by_its_bytes_not_its_name(monkeypatch):
+    """Before (issue 64, our probe): a PNG sent with no name (the API's default "upload") or named IMG_0001 was
+    refused "image=upload: not an image file (suffix 'none')"; empty or non-base64 data was called an unreadable
+    image ("%%%%" decoded to no bytes); ../../etc/passwd was answered "image=passwd: not an image file"."""
+    from difareli.app.examples import example_png
+    from difareli.app.service import decode_upload
+    from difareli.errors import UserError
+    from difareli.app.checks import RequestError
+
+    svc = Service(checkpoint="difareli_pp_ss-synth64")
+    seen = []
+    monkeypatch.setattr(svc, "photo", lambda name, rgb, ckpt, notes=(): seen.append((name, rgb.shape)))
+    for name in ("upload", "IMG_0001", "face.PNG", "face.jpg"):
+        svc.upload(name, example_png("astronaut"))
+    assert seen == [(n, (512, 512, 3)) for n in ("upload", "IMG_0001", "face.PNG", "face.jpg")]
+    with pytest.raises(UserError) as e:
+        svc.upload("notes", b"hello")
+    assert str(e.value) == ("image=notes: unreadable image (UnidentifiedImageError: cannot identify image file "
+                            "'notes'); give a JPEG/PNG face photo")
+    for data, words in (("", "the upload is empty (no data); send the photo's bytes as a data: URL or base64"),
+                        ("data:image/png;base64,", "the upload is empty"),
+                        ("%%%%", "the upload is not base64 data (")):
+        with pytest.raises(RequestError) as e:
+            decode_upload(data)
+        assert str(e.value).startswith(words), str(e.value)
+    assert decode_upload("data:image/png;base64,aGVs\nbG8=") == b"hello"  # line breaks are not data

@@ -137,7 +137,8 @@ def parse_body(data: bytes) -> dict:
 
 def upload_name(value: Any) -> None:
     """An upload's ``name`` the app can write as a file's name: not ``.`` or ``..``, no NUL or control character,
-    valid UTF-8 (no lone surrogate), at most 255 bytes; a string of another kind is the service's to refuse."""
+    valid UTF-8 (no lone surrogate), at most 255 bytes, no folder path (`/` or `\\`: the page sends a file's own name);
+    a string of another kind is the service's to refuse."""
     if not isinstance(value, str):
         return
     base = value.rsplit("/", 1)[-1]
@@ -148,6 +149,7 @@ def upload_name(value: Any) -> None:
         size, problem = 0, "holds a lone surrogate (not UTF-8 text)"
     if problem is None:
         problem = ("names a folder" if base in (".", "..") else
+                   "is a path" if "/" in value or "\\" in value else  # the page sends a file's own name
                    "holds a NUL or control character" if any(ord(c) < 32 or ord(c) == 127 for c in value) else
                    f"is {size} bytes long, over a file name's 255" if size > 255 else None)
     if problem:

@@ -36,6 +36,7 @@ from difareli.data import encodings
 from difareli.data.store import EncodingStore
 from difareli.diffusion.samplers import SAMPLERS
 from difareli.diffusion.spec import DEFAULT_SAMPLER, PRESETS
+from difareli.estimators.loading import IMAGE_SUFFIXES
 from difareli.lighting import sh
 from difareli.lighting.presets import ENVMAPS
 from difareli.relight import photo_check
@@ -199,7 +200,9 @@ class Service:
         ckpt = self.allowed_checkpoint(checkpoint)
         with tempfile.TemporaryDirectory() as tmp, warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            path = Path(tmp) / name  # the CLI's reader checks a file: its suffix, its size, its frames
+            # the CLI's reader checks a file: its size, its frames; an upload is read by its bytes, not its name's
+            # suffix (a PNG sent with no name, or as IMG_0001, was refused as "not an image file (suffix 'none')")
+            path = Path(tmp) / (name if Path(name).suffix.lower() in IMAGE_SUFFIXES else f"{name}.png")
             path.write_bytes(data)
             rgb = read_photo(path, "image", name=name)
         notes = tuple(str(w.message) for w in caught if issubclass(w.category, UserWarning))
@@ -357,9 +360,11 @@ def reconstruction_error(recon: np.ndarray, arrays: Mapping[str, np.ndarray]) ->
 
 def decode_upload(data_url: str) -> bytes:
     """The bytes of a ``data:...;base64,`` URL (or plain base64)."""
-    payload = data_url.split(",", 1)[1] if data_url.startswith("data:") else data_url
-    try:
-        return base64.b64decode(payload, validate=False)
+    payload = "".join((data_url.split(",", 1)[1] if data_url.startswith("data:") else data_url).split())
+    if not payload:  # said as such, not as an unreadable image
+        raise RequestError("the upload is empty (no data); send the photo's bytes as a data: URL or base64")
+    try:  # validated: characters outside base64 were dropped, and "%%%%" decoded to an empty "image"
+        return base64.b64decode(payload, validate=True)
     except (ValueError, TypeError) as e:
         raise RequestError(f"the upload is not base64 data ({e})") from None
 
