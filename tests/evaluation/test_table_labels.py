@@ -117,3 +117,33 @@ def test_table_cli_refuses_a_collision_in_one_line(tmp_path):
     assert p.returncode == 2 and "Traceback" not in p.stderr
     (line,) = p.stderr.strip().splitlines()
     assert line.startswith("difareli-table: run dirs") and "use label=" in line
+
+
+def test_runs_that_are_no_run_dirs_are_named_as_what_they_are(tmp_path):
+    """Before (issue 64, our probe): a missing path, a file and an encodings store were all "no
+    metrics_per_image.csv in run dir <p>" (no fix), and runs=[] wrote an empty table with exit 0."""
+    from difareli.cli.table import run
+
+    a = _run(tmp_path / "multi" / "0", "DiFaReli++", A)
+    (tmp_path / "f").write_text("x")
+    (tmp_path / "store").mkdir()
+    (tmp_path / "store" / "store.json").write_text("{}")
+    (tmp_path / "empty").mkdir()
+    fix = "give difareli-benchmark run dirs (each holds metrics_per_image.csv) or a glob of them"
+    for runs, want in (
+            ([tmp_path / "nope"], f"runs: {tmp_path / 'nope'} does not exist; {fix}"),
+            ([tmp_path / "f"], f"runs: {tmp_path / 'f'} is a file, not a run dir; {fix}"),
+            ([tmp_path / "store"], f"runs: {tmp_path / 'store'} is an encodings store, not a benchmark run dir; "
+                                   f"benchmark it first (difareli-benchmark store={tmp_path / 'store'} "
+                                   "method=<method>) and give that run's out_dir"),
+            ([tmp_path / "multi"], f"runs: {tmp_path / 'multi'} holds run dirs (0), not a per-image CSV itself; "
+                                   f"give '{tmp_path / 'multi'}/*'"),
+            ([tmp_path / "empty"], f"runs: {tmp_path / 'empty'} holds no metrics_per_image.csv, so no benchmark "
+                                   f"finished there; {fix}"),
+            ([], "runs=[] names no run dir; give difareli-benchmark run dirs or a glob of them, e.g. "
+                 "'runs=[logs/a,logs/b]'")):
+        with pytest.raises(UserError) as e:
+            run(_cfg(tmp_path / "o", runs))
+        assert str(e.value) == want
+    assert not (tmp_path / "o").exists() or not any((tmp_path / "o").iterdir())  # no table written
+    assert run(_cfg(tmp_path / "o", [a])).methods == ["DiFaReli++"]

@@ -35,9 +35,26 @@ def expand_runs(patterns: Iterable[str]) -> list[Path]:
             found += hits
         else:
             if not (Path(pat) / tables.PER_IMAGE_CSV).is_file():
-                raise errors.UserFileNotFoundError(f"no {tables.PER_IMAGE_CSV} in run dir {pat}")
+                raise errors.UserFileNotFoundError(not_a_run_dir(Path(pat)))
             found.append(Path(pat))
     return list(dict.fromkeys(found))
+
+
+def not_a_run_dir(path: Path) -> str:
+    """Why ``path`` (given in ``runs=``) is no benchmark run dir, and what to give: said by what it is."""
+    fix = f"give difareli-benchmark run dirs (each holds {tables.PER_IMAGE_CSV}) or a glob of them"
+    if not path.exists():
+        return f"runs: {path} does not exist; {fix}"
+    if not path.is_dir():
+        return f"runs: {path} is a file, not a run dir; {fix}"
+    if (path / "store.json").is_file():
+        return (f"runs: {path} is an encodings store, not a benchmark run dir; benchmark it first "
+                f"(difareli-benchmark store={path} method=<method>) and give that run's out_dir")
+    inner = sorted(p.parent.name for p in path.glob(f"*/{tables.PER_IMAGE_CSV}"))
+    if inner:  # a multirun folder: its jobs are the run dirs
+        shown = ", ".join(inner[:3]) + (", ..." if len(inner) > 3 else "")
+        return f"runs: {path} holds run dirs ({shown}), not a per-image CSV itself; give '{path}/*'"
+    return f"runs: {path} holds no {tables.PER_IMAGE_CSV}, so no benchmark finished there; {fix}"
 
 
 def published_methods(value) -> list[str] | None | bool:
@@ -85,6 +102,9 @@ def run(cfg: DictConfig) -> tables.Table:
     if not isinstance(cfg.runs, (str, ListConfig)):
         raise errors.UserError(f"runs={cfg.runs!r} is not a run dir, a glob or a list; e.g. 'runs=[logs/a,logs/b]'")
     runs = [cfg.runs] if isinstance(cfg.runs, str) else list(cfg.runs)
+    if not runs:  # was a table of no rows, exit 0
+        raise errors.UserError("runs=[] names no run dir; give difareli-benchmark run dirs or a glob of them, e.g. "
+                               "'runs=[logs/a,logs/b]'")
     dirs = expand_runs(runs)
     sharding.check_complete(dirs)  # sharded benchmark runs: every shard of each job exactly once
     strata, bins, mode = check_strata(cfg)
