@@ -71,6 +71,26 @@ def protocols_doc(store: EncodingStore) -> dict:
     return json.loads(path.read_text())
 
 
+def no_pairs(path: Path, protocol: str, others: Sequence[str]) -> str:
+    """Why ``protocols.json`` at ``path`` lists no ``protocol`` pairs, from the store's ``splits.json`` where it has
+    one (an empty test split: a store of fewer than 3 light groups), and the fix."""
+    from difareli.data.protocols import SPLITS_FILE
+    from difareli.utils.fileio import read_json_mapping
+
+    splits = read_json_mapping(path.parent / SPLITS_FILE).get("splits")
+    test = splits.get("test") if isinstance(splits, dict) else None
+    alone = f", or benchmark the other alone: protocols=[{others[0]}]" if others else ""
+    if isinstance(test, list) and not test:
+        n = sum(len(v) for v in splits.values() if isinstance(v, list))
+        why = (f"its test split is empty ({SPLITS_FILE}: {n} subject(s), all in train or val; a test split needs 3 "
+               "or more light groups); make the store with more subjects, e.g. difareli-synth subjects=8 lights=2")
+    elif protocol == "same_subject":
+        why = "its test subjects have one light each; make the store with lights=2 or more"
+    else:
+        why = "its test split has no light group of 2 or more subjects; make the store with light_group_size=2 or more"
+    return f"{path} has no {protocol} pairs: {why}{alone}"
+
+
 def load_pairs(store: EncodingStore, protocols: Sequence[str], limit: int | None = None) -> dict[str, list[Pair]]:
     """The pairs of each protocol from the store's ``protocols.json``; ``limit`` keeps at most that many,
     evenly spaced over the list (so a small run still covers several subjects and lights)."""
@@ -82,8 +102,7 @@ def load_pairs(store: EncodingStore, protocols: Sequence[str], limit: int | None
             raise errors.UserError(f"unknown protocol {p!r}; choose from {list(PROTOCOLS)}")
         rows = doc.get(p, [])
         if not rows:
-            raise errors.UserError(f"{path} has no pairs for protocol {p!r} (a test split with light groups of >= 2 "
-                                   "subjects is needed for different_subject)")
+            raise errors.UserError(no_pairs(path, p, [q for q in protocols if doc.get(q)]))
         if limit is not None and 0 < limit < len(rows):
             rows = [rows[i] for i in np.unique(np.linspace(0, len(rows) - 1, int(limit)).round().astype(int))]
         out[p] = [Pair(p, r["source"], r["light_source"], r["target"]) for r in rows]
