@@ -93,3 +93,47 @@ def test_rescore_refuses_a_row_of_another_method_or_rule_naming_its_line(runs, s
                                 f"{value!r}, the run recorded {was!r} (benchmark_settings.json); the CSV was edited: "
                                 "restore it or rerun the benchmark")
         assert not (tmp_path / f"re_{column}" / tables.PER_IMAGE_CSV).exists()
+
+
+def test_rescore_of_a_tampered_or_missing_run_is_one_line(runs, synth_store, tmp_path):
+    """Issue 64, our probe (difareli-benchmark rescore=<a copy of a run, one file changed>): a relit PNG replaced by
+    text or a grey PNG ended in a traceback, one of another size in "pred/target must be equal NCHW tensors" naming
+    no file; a corrupt provenance.json in a JSONDecodeError traceback, one nested 100,000 deep in a RecursionError;
+    a corrupt benchmark_settings.json and a run dir that does not exist in "the run records no store identity"."""
+    import imageio.v3 as iio
+
+    from difareli.cli.benchmark import run
+
+    root, _ = runs
+    fix = "restore the run's relit images or rerun the benchmark"
+
+    def first_png(d):
+        return sorted((d / "relit").glob("*/*.png"))[0]
+
+    cases = {
+        "text": (lambda d: first_png(d).write_text("not a png"), "is not a readable image ("),
+        "grey": (lambda d: iio.imwrite(first_png(d), np.zeros((32, 32), np.uint8)),
+                 f"is 32x32 uint8, the benchmark writes 32x32x3 uint8 (the store's size); {fix}"),
+        "small": (lambda d: iio.imwrite(first_png(d), np.zeros((16, 16, 3), np.uint8)),
+                  f"is 16x16x3 uint8, the benchmark writes 32x32x3 uint8 (the store's size); {fix}"),
+        "prov": (lambda d: (d / "provenance.json").write_text("{oops"),
+                 "provenance.json is not the JSON object the benchmark writes (JSONDecodeError): corrupt; restore it "
+                 "or rerun the benchmark"),
+        "prov_deep": (lambda d: (d / "provenance.json").write_text("[" * 100_000 + "]" * 100_000),
+                      "provenance.json is not the JSON object the benchmark writes (RecursionError)"),
+        "settings": (lambda d: (d / "benchmark_settings.json").write_text('{"method": '),
+                     "benchmark_settings.json is not the JSON object the benchmark writes (JSONDecodeError)"),
+    }
+    for name, (tamper, want) in cases.items():
+        bad = tmp_path / name
+        shutil.copytree(root / "oracle", bad)
+        tamper(bad)
+        with pytest.raises(UserError) as e:
+            run(_bench_cfg(tmp_path / f"re_{name}", synth_store, "method=oracle", f"rescore={bad}"))
+        msg = str(e.value)
+        assert msg.startswith(f"rescore={bad}: ") and want in msg and "\n" not in msg, (name, msg)
+        assert not (tmp_path / f"re_{name}" / tables.PER_IMAGE_CSV).exists()
+    with pytest.raises(UserError) as e:
+        run(_bench_cfg(tmp_path / "re_none", synth_store, "method=oracle", f"rescore={tmp_path / 'nope'}"))
+    assert str(e.value) == (f"rescore={tmp_path / 'nope'} does not exist; give the out_dir of a finished "
+                            "difareli-benchmark run (save_images=true)")

@@ -147,3 +147,15 @@ def test_runs_that_are_no_run_dirs_are_named_as_what_they_are(tmp_path):
         assert str(e.value) == want
     assert not (tmp_path / "o").exists() or not any((tmp_path / "o").iterdir())  # no table written
     assert run(_cfg(tmp_path / "o", [a])).methods == ["DiFaReli++"]
+
+
+def test_a_run_dir_json_nested_too_deeply_is_read_as_unrecorded(tmp_path):
+    """Before: a benchmark_settings.json of 100,000 nested brackets in a run dir was a RecursionError traceback in
+    difareli-table's paired check (fileio.read_json_mapping caught OSError and ValueError only)."""
+    from difareli.cli.table import run
+
+    a = _run(tmp_path / "a", "DiFaReli++", A)
+    b = _run(tmp_path / "b", "DiFaReli", A + 0.01)
+    (a / "benchmark_settings.json").write_text("[" * 100_000 + "]" * 100_000)
+    assert run(_cfg(tmp_path / "o", [a, b], "n_boot=200")).methods == ["DiFaReli++", "DiFaReli"]
+    assert "| (i) same subject | DSSIM | DiFaReli++ | DiFaReli | 12 |" in (tmp_path / "o" / "paired.md").read_text()

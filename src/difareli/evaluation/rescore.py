@@ -10,13 +10,15 @@ import json
 from pathlib import Path
 from typing import Sequence
 
+import numpy as np
+
 from difareli import errors
 from difareli.data import provenance
 from difareli.data import shard as sharding
 from difareli.data.store import EncodingStore
 from difareli.evaluation import metrics, tables
 from difareli.data.protocols import PROTOCOLS
-from difareli.evaluation.benchmark import (SETTINGS, BenchmarkResult, _read_png, _recorded, check_score_mask, score,
+from difareli.evaluation.benchmark import (SETTINGS, BenchmarkResult, _recorded, check_score_mask, score,
                                            write_outputs)
 from difareli.evaluation.pairs import Lights, load_pairs
 from difareli.evaluation.extras import PairExtras
@@ -32,13 +34,13 @@ def rescore(store: EncodingStore, run_dir: str | Path, out_dir: str | Path, rule
     its pairs exactly once; the lighting error refits the target light with ``estimator`` (default LightFit)."""
     run_dir, rule = Path(run_dir), metrics.check_rule(rule)
     score_mask = check_score_mask(store, score_mask)
+    recorded = {name: _run_json(run_dir, name) for name in (SETTINGS, "provenance.json")}  # each readable or absent
     settings = _recorded(run_dir)
     _check_same_store(store, run_dir, settings)
     rows = tables.read_records(run_dir / tables.PER_IMAGE_CSV)
     _check_rows(store, run_dir, rows, settings)
     pairs = {(PROTOCOLS[p.protocol], p.id): p for v in load_pairs(store, list(PROTOCOLS)).values() for p in v}
-    prov = run_dir / "provenance.json"
-    result = BenchmarkResult(records=[], provenance={**(json.loads(prov.read_text()) if prov.is_file() else {}),
+    result = BenchmarkResult(records=[], provenance={**recorded["provenance.json"],
                                                      "metrics rule": rule, "score mask": score_mask,
                                                      "rescored from": str(run_dir)})
     extras = PairExtras(store, score_mask, fit=estimator)
@@ -58,7 +60,7 @@ def rescore(store: EncodingStore, run_dir: str | Path, out_dir: str | Path, rule
             raise errors.UserError(f"rescore={run_dir}: no relit image {png} for {r.protocol} pair {r.record_id} "
                                    "(was the run made with save_images=true on this store?); rerun the benchmark")
         gt = store.read(pair.target, ["image", score_mask])
-        relit = _read_png(png)
+        relit = _relit_png(png, run_dir, np.shape(gt["image"])[:2])
         s = score(relit, gt["image"], gt[score_mask], rule, scorers[r.protocol])
         ex, info = extras(relit, pair.source, pair.target, lights.get(pair.target if oracle else pair.light_source))
         result.records.append(dataclasses.replace(r, dssim=s["dssim"], mse=s["mse"], lpips=s["lpips"], rule=rule,
@@ -71,6 +73,44 @@ def rescore(store: EncodingStore, run_dir: str | Path, out_dir: str | Path, rule
     return result
 
 
+def _run_json(run_dir: Path, name: str) -> dict:
+    """``run_dir``'s JSON file ``name`` as an object ({} where the run wrote none); a run dir that is none, or a file
+    that is no JSON object, is one line (it was a JSONDecodeError or RecursionError traceback, or "records no store
+    identity" for a folder that does not exist)."""
+    if not run_dir.is_dir():
+        raise errors.UserError(f"rescore={run_dir} {'does not exist' if not run_dir.exists() else 'is a file'}; give "
+                               "the out_dir of a finished difareli-benchmark run (save_images=true)")
+    path = run_dir / name
+    if not path.is_file():
+        return {}
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, ValueError, RecursionError) as e:
+        doc = e
+    if not isinstance(doc, dict):
+        why = f"{type(doc).__name__}" if isinstance(doc, BaseException) else f"a JSON {type(doc).__name__}"
+        raise errors.UserError(f"rescore={run_dir}: {name} is not the JSON object the benchmark writes ({why}): "
+                               "corrupt; restore it or rerun the benchmark")
+    return doc
+
+
+def _relit_png(png: Path, run_dir: Path, size: tuple[int, ...]) -> np.ndarray:
+    """A saved relit image as the benchmark wrote it (8-bit RGB of the store's size), or one line naming the file:
+    a replaced file was a traceback (not a PNG) or a metrics error naming no file (another size)."""
+    fix = "restore the run's relit images or rerun the benchmark"
+    import imageio.v3 as iio
+
+    try:
+        relit = np.asarray(iio.imread(png))  # as the benchmark's _read_png, less its [..., :3] (said below instead)
+    except Exception as e:  # noqa: BLE001 - imageio raises plugin-specific errors
+        raise errors.UserError(f"rescore={run_dir}: {png} is not a readable image ({type(e).__name__}); "
+                               f"{fix}") from None
+    if relit.ndim != 3 or relit.shape[:2] != tuple(size) or relit.shape[2] not in (3, 4) or relit.dtype != np.uint8:
+        raise errors.UserError(f"rescore={run_dir}: {png} is {'x'.join(map(str, relit.shape))} {relit.dtype}, the "
+                               f"benchmark writes {size[0]}x{size[1]}x3 uint8 (the store's size); {fix}")
+    return relit[..., :3]
+
+
 def _check_same_store(store: EncodingStore, run_dir: Path, settings: dict) -> None:
     """A rescore reads the ground truths of the store the run was scored on, or nothing: the same record ids in
     another store would score the saved images against other ground truths."""
@@ -79,8 +119,7 @@ def _check_same_store(store: EncodingStore, run_dir: Path, settings: dict) -> No
         raise errors.UserError(f"rescore={run_dir}: the run records no store identity ({SETTINGS} missing or "
                                "without 'store'), so nothing says its images belong to this store; rerun the benchmark")
     if have != now:
-        prov = run_dir / "provenance.json"
-        where = json.loads(prov.read_text()).get("store") if prov.is_file() else None
+        where = _run_json(run_dir, "provenance.json").get("store")
         raise errors.UserError(f"rescore={run_dir}: the run was scored on store {where or have}, store={store.root} "
                                f"is another one ({now}); rescore against the run's own store")
 

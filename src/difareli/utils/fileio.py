@@ -195,7 +195,7 @@ def read_json_mapping(path: str | Path) -> dict:
     must refuse an unreadable record read it themselves)."""
     try:
         doc = json.loads(Path(path).read_text())
-    except (OSError, ValueError):
+    except (OSError, ValueError, RecursionError):  # RecursionError: brackets nested thousands deep
         return {}
     return doc if isinstance(doc, dict) else {}
 
