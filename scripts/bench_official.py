@@ -189,7 +189,8 @@ def trained_check(checkpoint: str, store_root: str, records: int, sampler: str, 
     for precision in ("fp32", "bf16"):
         r = Relighter(ckpt, spec, runtime=Runtime(device="cpu", precision=precision))
         outs[precision] = [r.relight(r.source(store, rid), Targets.of(
-            sh.yaw(np.asarray(r.read(store, rid)["light"], np.float64), 60.0))).astype(np.int16) for rid in ids]
+            sh.yaw(np.asarray(r.source(store, rid).arrays["light"], np.float64), 60.0))).astype(np.int16)
+            for rid in ids]
     d = np.stack([np.abs(a - b) for a, b in zip(outs["fp32"], outs["bf16"])])
     mse = float((d.astype(np.float64) ** 2).mean())
     psnr = 10 * np.log10(255 ** 2 / mse) if mse else float("inf")

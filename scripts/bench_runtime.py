@@ -49,7 +49,8 @@ def main() -> None:
     relighters, targets = {}, {}
     for mode in args.modes:
         r = Relighter(ckpt, spec, runtime=Runtime.from_mode(mode, args.device))
-        targets = targets or {rid: Targets.of(sh.yaw(np.asarray(r.read(store, rid)["light"], np.float64), 60.0))
+        targets = targets or {rid: Targets.of(sh.yaw(np.asarray(r.source(store, rid).arrays["light"], np.float64),
+                                                     60.0))
                               for rid in ids}
         r.relight(r.source(store, ids[0]), targets[ids[0]])  # warm-up: compile, allocate
         relighters[mode] = r

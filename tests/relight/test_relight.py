@@ -131,7 +131,7 @@ def test_modulator_once_per_condition_checkpoint(pp_model, depth_store):
     store = EncodingStore.open(depth_store)
     r = Relighter(pp_model, {"name": "ddim", "steps": 3}, device="cpu", batch_size=2)
     net = r.model.net
-    src = r.read(store, "s00006_l0")
+    src = dict(r.source(store, "s00006_l0").arrays)
     lights = sh.yaw(np.asarray(src["light"]), np.linspace(0, 300, 5))
     with Counter(net.spatial) as mod, Counter(net.unet) as unet:
         out = r.relight(r.source(store, "s00006_l0"), Targets.of(lights))
@@ -227,7 +227,7 @@ def test_batched_targets_equal_separate_toy(name):
 def test_batched_targets_equal_separate_checkpoint(pp_model, depth_store):
     store = EncodingStore.open(depth_store)
     r = Relighter(pp_model, {"name": "dpm_solver_pp", "steps": 6, "order": 2}, device="cpu")
-    arrays = r.read(store, "s00006_l0")
+    arrays = dict(r.source(store, "s00006_l0").arrays)
     from difareli.render.retarget import retarget
 
     lights = sh.yaw(np.asarray(arrays["light"]), [45.0, 120.0, 250.0])
@@ -318,7 +318,7 @@ BF16_BOUND = 0.1
 def test_bf16_autocast_matches_float32_checkpoint(name, pp_model, depth_store):
     store = EncodingStore.open(depth_store)
     r = Relighter(pp_model, {**SAMPLERS[name], "steps": 10}, device="cpu")
-    arrays = r.read(store, "s00006_l0")
+    arrays = dict(r.source(store, "s00006_l0").arrays)
     model = pp_model.model
     x0 = torch.from_numpy(np.array(arrays["image"])).permute(2, 0, 1)[None].float() / 127.5 - 1
     light = np.asarray(store.read("s00006_l1", ["light"])["light"])
@@ -349,7 +349,8 @@ def test_extreme_images_finite(mean_matching, pp_model, depth_store):
         assert inv.offsets is None if not mean_matching else bool(torch.isfinite(inv.offsets).all())
         from difareli.render.retarget import retarget
 
-        cond = model.condition(*condition_tensors(r.model, [retarget(r.read(store, rid), r.model_inputs, light)]))
+        arrays = dict(r.source(store, rid).arrays)
+        cond = model.condition(*condition_tensors(r.model, [retarget(arrays, r.model_inputs, light)]))
         x = decode(model.denoiser(cond), inv, model.schedule)
         assert torch.isfinite(x).all() and float(x.abs().max()) < 10, rid
         with np.errstate(invalid="raise"):
@@ -360,13 +361,13 @@ def test_extreme_images_finite(mean_matching, pp_model, depth_store):
 def test_extreme_target_lights_finite(pp_model, depth_store):
     store = EncodingStore.open(depth_store)
     r = Relighter(pp_model, {"name": "dpm_solver_pp", "order": 2, "steps": 5}, device="cpu")
-    own = np.asarray(r.read(store, "s00006_l0")["light"], dtype=np.float64)
+    own = np.asarray(dict(r.source(store, "s00006_l0").arrays)["light"], dtype=np.float64)
     negative = own.copy()
     negative[1:4] *= -4.0  # a strong negative lobe: the (unclipped) shading goes negative on one side
     lights = {"zero": np.zeros((9, 3)), "bright10x": 10 * own, "negative_lobe": negative}
     from difareli.render.retarget import retarget
 
-    arrays = r.read(store, "s00006_l0")
+    arrays = dict(r.source(store, "s00006_l0").arrays)
     shading = {k: retarget(arrays, r.model_inputs, l)["shading"] for k, l in lights.items()}
     assert np.abs(shading["zero"]).max() == 0 and shading["negative_lobe"].min() < -0.1
     own_shading = retarget(arrays, r.model_inputs, own)["shading"]

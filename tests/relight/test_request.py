@@ -58,14 +58,14 @@ def test_a_target_record_gives_its_light_shadow_and_sun():
     d = np.array([0.0, 0.6, 0.8])
     rel = FakeRelighter(d)
     target = Target(record="s1_l2")
-    targets, _ = target.for_source(rel, src(), target.record_source(rel, FakeStore()))
+    targets, _ = target.for_source(rel, src(), rel.source(FakeStore(), target.record))
     assert rel.asked == ["s1_l2"]  # the sun of the image whose light it is: the record's, not the source's
     assert np.allclose(targets.suns[0], d) and targets.shadows == (2.5,)
     assert np.allclose(targets.lights[0][1], 0.3)
     target = Target(record="s1_l2", shadow=-1.0)
-    targets, _ = target.for_source(rel, src(), target.record_source(rel, FakeStore()))
+    targets, _ = target.for_source(rel, src(), rel.source(FakeStore(), target.record))
     assert targets.shadows == (-1.0,)  # a given c' wins over the record's
-    with pytest.raises(ValueError, match="record_source"):
+    with pytest.raises(ValueError, match="pass its source"):
         target.for_source(rel, src())  # a record target without its record read
 
 

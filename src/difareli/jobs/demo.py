@@ -96,7 +96,7 @@ def run_demo(checkpoint: Any, out_dir: str | Path, *, sampler: Mapping[str, Any]
         src = max(recs, key=lambda r: directionality(lights[r]))
         tgt = max((r for r in recs if r != src), key=lambda r: np.abs(lights[r] - lights[src]).sum())
         source, target = relighter.source(store, src), Target(record=tgt)
-        other = target.record_source(relighter, store)  # its light, c' and key sun: the light of its image
+        other = relighter.source(store, tgt)  # its light, c' and key sun: the light of its image
         relit = relighter.relight(source, target.for_source(relighter, source, other)[0])[0]
         grid.append([source.arrays["image"], relit, np.asarray(other.arrays["image"])])
         names.append(f"{src} -> {tgt}")  # the source record, the record whose light it takes

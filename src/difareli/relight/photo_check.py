@@ -12,7 +12,7 @@ Measured on the prepared photo (:class:`~difareli.relight.photo.PreparedPhoto`),
   photo cuts, which the model relights from reflected padding (the 112 px tight crop of issue 61 had 14%, past_edge
   0.37 under its limit, and gave the worst artefact);
 - ``code_z``: how far the shape / identity codes lie from the training store's (the largest |z| over the code's
-  dimensions against a store's mean and standard deviation), when a store is given.
+  dimensions against given means and standard deviations, ``stats``), where a caller gives them (no command does).
 
 Limits (:data:`LIMITS`): ``face_px``, ``yaw_deg`` and ``past_edge`` are measured (``scripts/calibrate_photo_check.py``,
 docs/photos.md): 1,632 SynthFaces photos of 48 unseen heads made small, turned, tilted, badly lit and cut, relit
@@ -20,7 +20,7 @@ by ``difareli_pp_ss-synth64``, each limit where the relights' DSSIM stays over 0
 photo's (:func:`choose_limit`). ``pitch_deg``, ``light_rel_rmse``, ``landmark_px``, ``face_outside`` and ``code_z``
 stay provisional: the renders found no stable limit for the first two, ``landmark_px`` on them only re-reads the
 pose, ``face_outside``'s 5% is where the bench's uncut photos read 0 and its cut ones 14-45%
-(``scripts/photo_presets_bench.py``'s photos), and ``code_z`` needs a store. Verdict: ok or poor with what to do,
+(``scripts/photo_presets_bench.py``'s photos), and ``code_z`` needs ``stats``. Verdict: ok or poor with what to do,
 said in plain words (:data:`WORDS`; the measures keep their names in a folder's relight.csv); ``strict=true``
 refuses a poor photo.
 """
@@ -90,18 +90,6 @@ class Check:
         if self.ok:
             return f"{self.what}: will relight well ({shown})"
         return f"{self.what}: may relight poorly: {'; '.join(self.problems)} ({shown})"
-
-
-def code_stats(store, names=("shape", "identity"), limit: int = 256) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """Mean and standard deviation of the codes ``names`` over up to ``limit`` records of a training store."""
-    ids = (store.ids(split="train") or store.ids())[:limit]
-    out = {}
-    for name in names:
-        if not store.available(name):
-            continue
-        a = np.stack([np.asarray(store.read(i, [name])[name], np.float64).ravel() for i in ids])
-        out[name] = (a.mean(0), a.std(0) + 1e-6)
-    return out
 
 
 def measure(prepared, stats: Mapping[str, tuple[np.ndarray, np.ndarray]] | None = None) -> dict[str, float]:

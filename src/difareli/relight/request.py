@@ -56,23 +56,18 @@ class Target:
     def given(self) -> bool:
         return any(getattr(self, k) is not None for k in TARGET_KEYS)
 
-    def record_source(self, relighter: Relighter, store: EncodingStore | None) -> Source | None:
-        """The target record read once, as the relighter reads a source (its light, shadow strength, image and
-        what its key sun's fit reads); None for a target without a record."""
-        return None if self.record is None else relighter.source(store, self.record)
-
     def turns_own(self) -> bool:
         """Whether this target is the source's own light turned (a yaw, roll or pitch of it)."""
         return self.envmap is None and any(getattr(self, k) is not None for k in TURNS)
 
     def for_source(self, relighter: Relighter, source: Source, other: Source | None = None
                    ) -> tuple[Targets, Any]:
-        """This target for ``source`` (``other``: the target record's, :meth:`record_source`) and the key sun its
+        """This target for ``source`` (``other``: the target record, read as a source) and the key sun its
         map is marched toward: found by ``relighter.key_sun`` from the cast shadows of the image whose light it is
         (the other record's; the source's own, turned with a yaw, roll or pitch), None for ``sun=peak``, a light
         file, a named light, a direction or an environment map (the light's radiance peak)."""
         if (self.record is None) != (other is None):
-            raise ValueError(f"target.record={self.record}: pass its source (Target.record_source), and only then")
+            raise ValueError(f"target.record={self.record}: pass its source (relighter.source), and only then")
         o = {} if other is None else other.arrays
         finds = self.sun == "shadows" and (other is not None or self.turns_own())
         found = relighter.key_sun(source if other is None else other) if finds else None
@@ -350,7 +345,7 @@ def respond(relighter: Relighter, request: Request, say: Callable[[str], None] |
         out.tell(line)
     t, c = request.target, request.composite
     if t.given:
-        other = t.record_source(relighter, store)
+        other = None if t.record is None else relighter.source(store, t.record)  # read once: light, c', image
         targets, found = t.for_source(relighter, source, other)
         out.relit = relighter.relight(source, targets)
         out.tell(f"target light 0: {photo.describe_light(targets.lights[0])}")

@@ -192,7 +192,3 @@ class Sources:
                     f"checkpoint={self.checkpoint} reads {dims[dim]} {dim.replace('_', ' ')} from {list(names)}, "
                     f"{what} gives {int(t.shape[1])}; relight sources written for this model (an imported official "
                     "checkpoint: a store from difareli.official.importers)")
-
-    def read(self, store: EncodingStore, record_id: str) -> dict[str, np.ndarray]:
-        """The checked encodings of a store record (``source(...).arrays``)."""
-        return dict(self.source(store, record_id).arrays)
