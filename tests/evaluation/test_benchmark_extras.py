@@ -137,3 +137,7 @@ def test_rescore_of_a_tampered_or_missing_run_is_one_line(runs, synth_store, tmp
         run(_bench_cfg(tmp_path / "re_none", synth_store, "method=oracle", f"rescore={tmp_path / 'nope'}"))
     assert str(e.value) == (f"rescore={tmp_path / 'nope'} does not exist; give the out_dir of a finished "
                             "difareli-benchmark run (save_images=true)")
+    with pytest.raises(UserError) as e:
+        run(_bench_cfg(tmp_path / "re_store", synth_store, "method=oracle", f"rescore={synth_store}"))
+    assert str(e.value) == (f"rescore={synth_store} is an encodings store, not a benchmark run dir; give the out_dir "
+                            "of a finished difareli-benchmark run (save_images=true)")

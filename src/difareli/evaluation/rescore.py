@@ -77,9 +77,12 @@ def _run_json(run_dir: Path, name: str) -> dict:
     """``run_dir``'s JSON file ``name`` as an object ({} where the run wrote none); a run dir that is none, or a file
     that is no JSON object, is one line (it was a JSONDecodeError or RecursionError traceback, or "records no store
     identity" for a folder that does not exist)."""
+    fix = "give the out_dir of a finished difareli-benchmark run (save_images=true)"
     if not run_dir.is_dir():
-        raise errors.UserError(f"rescore={run_dir} {'does not exist' if not run_dir.exists() else 'is a file'}; give "
-                               "the out_dir of a finished difareli-benchmark run (save_images=true)")
+        raise errors.UserError(f"rescore={run_dir} {'does not exist' if not run_dir.exists() else 'is a file'}; {fix}")
+    if not (run_dir / tables.PER_IMAGE_CSV).is_file():
+        what = "is an encodings store" if (run_dir / "store.json").is_file() else "holds no per-image CSV"
+        raise errors.UserError(f"rescore={run_dir} {what}, not a benchmark run dir; {fix}")
     path = run_dir / name
     if not path.is_file():
         return {}
