@@ -192,21 +192,18 @@ def run_benchmark(store: EncodingStore, method: Method, protocols: Sequence[str]
     resumed run with other settings is refused, naming what differs, instead of keeping another checkpoint's rows."""
     out_dir = Path(out_dir)
     scoring = scoring or Scoring.of(store, rule, score_mask, target_sun)
-    rule, score_mask, target_sun = scoring.rule, scoring.score_mask, scoring.target_sun
     if hasattr(method, "check_store"):  # a model that cannot read the store: one line, not a failed row per pair
         method.check_store(store)
     with folder_lock(out_dir, "benchmark"), on_full_disk(out_dir, scratch=[out_dir], fix=RESUME):
-        settings = run_settings(store, method, protocols, limit=limit, oracle_light=oracle_light,
-                                oracle_shadow=oracle_shadow, rule=rule, shard=shard, score_mask=score_mask,
-                                target_sun=target_sun)
+        settings = run_settings(store, method, protocols, scoring, limit=limit, oracle_light=oracle_light,
+                                oracle_shadow=oracle_shadow, shard=shard)
         recorded = _recorded(out_dir)
-        if score_mask == DEFAULT_MASK and recorded and "score_mask" not in recorded:
+        if scoring.score_mask == DEFAULT_MASK and recorded and "score_mask" not in recorded:
             settings.pop("score_mask")  # rows of a run from before the option: scored on face_mask, resumable
         provenance.ensure(out_dir, settings, "benchmark rows", name=SETTINGS,
                           has_results=(out_dir / PARTIAL_CSV).is_file() or (out_dir / tables.PER_IMAGE_CSV).is_file())
-        run, result = _start(store, method, out_dir, oracle_light=oracle_light, oracle_shadow=oracle_shadow,
-                             estimator=estimator, save_images=save_images, rule=rule, score_mask=score_mask,
-                             target_sun=target_sun)
+        run, result = _start(store, method, out_dir, scoring, oracle_light=oracle_light, oracle_shadow=oracle_shadow,
+                             estimator=estimator, save_images=save_images)
         return _run(run, result, protocols, limit=limit, shard=shard, grid_pairs=grid_pairs, progress=progress)
 
 
@@ -220,9 +217,8 @@ def finished_run(store: EncodingStore, method: Method, protocols: Sequence[str],
     out_dir = Path(out_dir)
     if not (out_dir / tables.PER_IMAGE_CSV).is_file() or (out_dir / PARTIAL_CSV).is_file():
         return None
-    scoring = Scoring.of(store, rule, score_mask, target_sun)
-    want = run_settings(store, method, protocols, limit=limit, oracle_light=oracle_light, oracle_shadow=oracle_shadow,
-                        rule=scoring.rule, shard=None, score_mask=scoring.score_mask, target_sun=scoring.target_sun)
+    want = run_settings(store, method, protocols, Scoring.of(store, rule, score_mask, target_sun), limit=limit,
+                        oracle_light=oracle_light, oracle_shadow=oracle_shadow, shard=None)
     if provenance.differences(_recorded(out_dir), provenance.plain(want)):
         return None
     try:
@@ -237,20 +233,20 @@ def _recorded(out_dir: Path) -> dict:
     return read_json_mapping(out_dir / SETTINGS)
 
 
-def run_settings(store: EncodingStore, method: Method, protocols: Sequence[str], *, limit: int | None,
-                 oracle_light: bool, oracle_shadow: bool, rule: str, shard: str | None,
-                 score_mask: str = DEFAULT_MASK, target_sun: str = "shadows") -> dict[str, Any]:
+def run_settings(store: EncodingStore, method: Method, protocols: Sequence[str], scoring: Scoring, *,
+                 limit: int | None, oracle_light: bool, oracle_shadow: bool, shard: str | None) -> dict[str, Any]:
     """What decides a benchmark run's rows (compared when a run resumes into the same folder). ``target_sun``
     counts only where it changes a relight: fitted lights and a method that reads a shadow map."""
     relighter = getattr(method, "relighter", None)
     model = getattr(relighter, "model", None)
-    marched = {"target_sun": target_sun} if not oracle_light and _marches(method) else {}
+    marched = {"target_sun": scoring.target_sun} if not oracle_light and _marches(method) else {}
     return {"method": method.name, "model": provenance.model_identity(model) if model is not None else None,
             "sampler": relighter.spec.to_config() if getattr(relighter, "spec", None) is not None else None,
             "precision": relighter.runtime.precision if relighter is not None else None,
             "store": provenance.store_identity(store), "versions": dict(getattr(store, "versions", {}) or {}),
             "protocols": list(protocols), "limit": limit, "oracle_light": bool(oracle_light),
-            "oracle_shadow": bool(oracle_shadow), "rule": rule, "score_mask": score_mask, "shard": shard, **marched}
+            "oracle_shadow": bool(oracle_shadow), "rule": scoring.rule, "score_mask": scoring.score_mask,
+            "shard": shard, **marched}
 
 
 def _marches(method: Method) -> bool:
@@ -267,8 +263,7 @@ class _Run:
     store: EncodingStore
     method: Method
     out_dir: Path
-    rule: str
-    score_mask: str
+    scoring: Scoring
     lights: Lights
     extras: PairExtras
     columns: list[str]
@@ -281,8 +276,9 @@ class _Run:
 def _run(run: _Run, result: BenchmarkResult, protocols: Sequence[str], *, limit: int | None, shard: str | None,
          grid_pairs: int, progress: bool) -> BenchmarkResult:
     """Every pair relit and scored (or resumed from the partial CSV), then the run's outputs written."""
-    store, method, out_dir, score_mask = run.store, run.method, run.out_dir, run.score_mask
-    done = _scored_so_far(out_dir, method.name, run.rule)
+    store, method, out_dir = run.store, run.method, run.out_dir
+    rule, score_mask = run.scoring.rule, run.scoring.score_mask
+    done = _scored_so_far(out_dir, method.name, rule)
     selected = {proto: list(sharding.select(pairs, shard, key=lambda p: p.id))
                 for proto, pairs in load_pairs(store, protocols, limit).items()}
     batched = BatchedRelights(store, method, run.lights, run.oracle_shadow,
@@ -291,7 +287,7 @@ def _run(run: _Run, result: BenchmarkResult, protocols: Sequence[str], *, limit:
     for proto, pairs in selected.items():
         short = PROTOCOLS[proto]
         grid_rows: list[list[np.ndarray]] = []
-        scorer = metrics.relight_metrics(run.rule)  # this run's scores of the protocol (rows resumed are not in it)
+        scorer = metrics.relight_metrics(rule)  # this run's scores of the protocol (rows resumed are not in it)
         for pair in tqdm(pairs, desc=f"{method.name} {proto}", disable=not progress):
             light, shadow = run.lights.for_pair(pair, oracle_shadow=run.oracle_shadow)
             result.provenance.setdefault("target c", run.lights.shadow_note)
@@ -321,9 +317,8 @@ def _run(run: _Run, result: BenchmarkResult, protocols: Sequence[str], *, limit:
     return result
 
 
-def _start(store: EncodingStore, method: Method, out_dir: Path, *, oracle_light: bool, oracle_shadow: bool,
-           estimator: LightFit | None, save_images: bool, rule: str, score_mask: str,
-           target_sun: str = "shadows") -> tuple[_Run, BenchmarkResult]:
+def _start(store: EncodingStore, method: Method, out_dir: Path, scoring: Scoring, *, oracle_light: bool,
+           oracle_shadow: bool, estimator: LightFit | None, save_images: bool) -> tuple[_Run, BenchmarkResult]:
     """The run's shared inputs and its result so far: what it states about its inputs, no rows yet."""
     doc = protocols_doc(store)
     exact = bool(doc.get("exact_lights", True))
@@ -331,22 +326,24 @@ def _start(store: EncodingStore, method: Method, out_dir: Path, *, oracle_light:
         raise errors.UserError(f"oracle_light=true but {store.root} holds no exact lights (a "
                                f"{doc.get('dataset', 'photo')} store); drop oracle_light")
     estimator = estimator or LightFit()
-    extras = PairExtras(store, score_mask, fit=estimator)
+    extras = PairExtras(store, scoring.score_mask, fit=estimator)
     result = BenchmarkResult(records=[], provenance={
         "target light": "exact (oracle_light)" if oracle_light else "fitted to the light-source image (LightFit)",
         "target maps": getattr(method, "target_maps", "none (the method reads no light-dependent map)"),
-        "data set": str(doc.get("dataset", "synthfaces")), "metrics rule": rule, "score mask": score_mask})
+        "data set": str(doc.get("dataset", "synthfaces")), "metrics rule": scoring.rule,
+        "score mask": scoring.score_mask})
     result.provenance.update({**extras.provenance(), "store": f"{store.root} ({provenance.store_identity(store)})"})
     result.notes = list(extras.notes)
     # Methods that fit their source light (the Lambertian baseline) are scored on it too, through their own door.
     fits = method.needs_light_fit and getattr(method, "estimator", None) is not None
     source_light = method.source_light if fits else None
     marches = _marches(method) and not oracle_light
-    lights = Lights(store, None if oracle_light else estimator, sun_from_shadows=marches and target_sun == "shadows")
+    lights = Lights(store, None if oracle_light else estimator,
+                    sun_from_shadows=marches and scoring.target_sun == "shadows")
     if marches:
         result.provenance["target sun"] = ("found from the light-source image's cast shadows (render.sun_fit)"
-                                           if target_sun == "shadows" else "the fitted light's radiance peak")
-    run = _Run(store, method, out_dir, rule, score_mask, lights, extras,
+                                           if scoring.target_sun == "shadows" else "the fitted light's radiance peak")
+    run = _Run(store, method, out_dir, scoring, lights, extras,
                [*extras.metrics(), *extras.strata()], oracle_shadow, exact, source_light, save_images)
     return run, result
 
@@ -359,7 +356,8 @@ def _relight_and_score(run: _Run, pair: Pair, source: StoredFace, target: Stored
     shadow are checked by the method's relight (a model's ``Targets``). ``batched``: its relit image and seconds,
     made in a batch (:class:`~difareli.evaluation.batched.BatchedRelights`), checked and scored as the method's."""
     name, short = run.method.name, PROTOCOLS[pair.protocol]
-    gt = target.read(["image", run.score_mask])
+    rule, mask = run.scoring.rule, run.scoring.score_mask
+    gt = target.read(["image", mask])
     start = time.perf_counter()
     # Only a bad pair is a failed row, reported as failed, never a score: a non-finite input or result, or
     # a record whose file is corrupt. Other user errors (a missing record or encoding, an image too small
@@ -374,15 +372,15 @@ def _relight_and_score(run: _Run, pair: Pair, source: StoredFace, target: Stored
         relit = errors.check_output(relit, f"{name} relight of pair {pair.id}")
         if relit.shape != gt["image"].shape or relit.dtype != np.uint8:
             raise errors.UserError(f"{name} returned {relit.dtype} {relit.shape}; expected uint8 {gt['image'].shape}")
-        s = score(relit, gt["image"], gt[run.score_mask], run.rule, scorer)
-        errors.check_finite(list(s.values()), f"scores of pair {pair.id} (is its {run.score_mask} empty?)")
+        s = score(relit, gt["image"], gt[mask], rule, scorer)
+        errors.check_finite(list(s.values()), f"scores of pair {pair.id} (is its {mask} empty?)")
     except (errors.NonFiniteError, CorruptRecordError) as e:
         print(f"FAILED {pair.protocol} {pair.id}: {e}", file=sys.stderr)
         ex, info = run.extras.empty(pair.target)
         return tables.Record(name, short, pair.id, math.nan, math.nan, math.nan, time.perf_counter() - start,
-                             status="failed", rule=run.rule, extra=ex, info=info), None
+                             status="failed", rule=rule, extra=ex, info=info), None
     ex, info = run.extras(relit, pair.source, pair.target, light)
-    return tables.Record(name, short, pair.id, s["dssim"], s["mse"], s["lpips"], seconds, rule=run.rule,
+    return tables.Record(name, short, pair.id, s["dssim"], s["mse"], s["lpips"], seconds, rule=rule,
                          extra=ex, info=info), relit
 
 
