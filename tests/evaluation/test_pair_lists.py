@@ -45,3 +45,16 @@ def test_a_protocol_without_pairs_names_its_own_cause_and_the_other(tmp_path):
                                         r"store with lights=2 or more, or benchmark the other alone: "
                                         r"protocols=\[different_subject\]$"):
         load_pairs(store, ["same_subject", "different_subject"])
+
+
+@pytest.mark.parametrize("text,why", [('{"same_subject": [', "JSONDecodeError"),
+                                      ("[" * 100_000 + "]" * 100_000, "RecursionError"), ("[1]", "a JSON list")])
+def test_a_corrupt_pair_file_is_one_line(tmp_path, text, why):
+    """Before: a JSONDecodeError or RecursionError traceback from difareli-benchmark (a list: an AttributeError)."""
+    store = _store(tmp_path, ["s00000"], [PAIR], [])
+    (tmp_path / "protocols.json").write_text(text)
+    with pytest.raises(UserError) as e:
+        load_pairs(store, ["same_subject"])
+    assert str(e.value) == (f"{tmp_path / 'protocols.json'} is not the object of pair lists the store's writer made "
+                            f"({why}): corrupt; write the store's pairs again (rerun the difareli-synth or "
+                            "difareli-multipie command that made it) or restore the file")

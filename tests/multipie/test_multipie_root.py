@@ -72,6 +72,15 @@ def test_same_image_pair_is_refused(tmp_path):
                             "subject)")
 
 
+def test_a_pair_list_nested_too_deeply_is_one_line(tmp_path):
+    """Before: a RecursionError traceback (issue 64, our probe: pairs=<a file of 100,000 nested brackets>)."""
+    (tmp_path / "l.json").write_text("[" * 100_000 + "]" * 100_000)
+    with pytest.raises(UserError) as e:
+        protocols.read_lists([tmp_path / "l.json"])
+    assert str(e.value) == (f"pairs={tmp_path / 'l.json'}: nests arrays or objects too deeply to be a pair list; give "
+                            "the authors' list file")
+
+
 def test_recordings_and_illuminations_that_are_no_codes_or_absent_are_one_line(copies, tmp_path):
     """Text where a recording number goes (before: a ValueError traceback, and recordings="01" read as 00 and 01),
     an illumination Multi-PIE does not have, and one the copy lacks (before: one "missing" line per recording and

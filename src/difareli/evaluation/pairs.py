@@ -68,7 +68,16 @@ def protocols_doc(store: EncodingStore) -> dict:
     if not path.is_file():
         raise errors.UserFileNotFoundError(f"{path} missing: benchmarks need a store with evaluation pairs "
                                            "(difareli-synth or difareli-multipie writes it)")
-    return json.loads(path.read_text())
+    try:
+        doc = json.loads(path.read_text())
+    except (ValueError, RecursionError) as e:  # a JSONDecodeError / RecursionError traceback before
+        doc = e
+    if not isinstance(doc, dict):
+        why = type(doc).__name__ if isinstance(doc, BaseException) else f"a JSON {type(doc).__name__}"
+        raise errors.UserError(f"{path} is not the object of pair lists the store's writer made ({why}): corrupt; "
+                               "write the store's pairs again (rerun the difareli-synth or difareli-multipie command "
+                               "that made it) or restore the file")
+    return doc
 
 
 def no_pairs(path: Path, protocol: str, others: Sequence[str]) -> str:

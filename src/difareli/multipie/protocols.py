@@ -77,6 +77,9 @@ def read_lists(paths: Iterable[str | Path]) -> list[Triple]:
             doc = json.loads(path.read_text())
         except (json.JSONDecodeError, UnicodeDecodeError) as e:
             raise UserError(f"pairs={path}: not JSON ({e}); give the authors' list file") from None
+        except RecursionError:  # brackets nested thousands deep: a RecursionError traceback before
+            raise UserError(f"pairs={path}: nests arrays or objects too deeply to be a pair list; give the authors' "
+                            "list file") from None
         entries = _entries(doc, path)
         if not entries:
             raise UserError(f"pairs={path}: no pairs in the file")
