@@ -210,3 +210,26 @@ def test_an_upload_is_read_by_its_bytes_not_its_name(monkeypatch):
             decode_upload(data)
         assert str(e.value).startswith(words), str(e.value)
     assert decode_upload("data:image/png;base64,aGVs\nbG8=") == b"hello"  # line breaks are not data
+
+
+def test_a_full_disk_on_the_server_is_507_without_its_paths(crowd, monkeypatch):
+    """Before (issue 64, our probe: an upload while the server's temporary folder is full): 400 "no space left on the
+    device writing /tmp/tmpXXXX/face.png (...); free space or give another output folder", the server's scratch path
+    and a fix for the operator given to the client as the client's fault."""
+    import errno
+    from pathlib import Path
+
+    _, server = crowd
+    real = Path.write_bytes
+
+    def full(self, data):
+        if self.name == "face.png":
+            raise OSError(errno.ENOSPC, "No space left on device", str(self))
+        return real(self, data)
+
+    monkeypatch.setattr(Path, "write_bytes", full)
+    status, _, out = request(server.server_port, "POST", "/api/source",
+                             {"kind": "upload", "name": "face.png", "data": "data:image/png;base64,iVBORw0KGgo="})
+    assert status == 507, (status, out)
+    assert out["error"] == ("the app's server ran out of disk space; this is not your request: retry once its "
+                            "operator has fixed it (the app's console names the file)")

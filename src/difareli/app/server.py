@@ -46,7 +46,7 @@ from typing import Any
 from . import checks, examples, presets
 from .checks import MAX_BODY, Guard, RequestError  # noqa: F401 (MAX_BODY re-exported)
 from .service import Service
-from difareli.errors import user_message
+from difareli.errors import UserError, is_no_space, user_message
 
 
 def error_message(exc: BaseException) -> str | None:
@@ -280,6 +280,8 @@ class Handler(BaseHTTPRequestHandler):
             self._json(e.status, {"error": str(e).splitlines()[0]})
             return
         except Exception as e:  # noqa: BLE001 - every failure becomes a JSON answer the page can show
+            if isinstance(e, OSError) and not isinstance(e, UserError):  # the server's own disk or files: its paths
+                return self._server_fault(e)  # and fix are for the operator, not in a 400 to the client
             msg = error_message(e)
             if msg is None:
                 traceback.print_exc(file=sys.stderr)
@@ -288,6 +290,17 @@ class Handler(BaseHTTPRequestHandler):
                 self._json(400, {"error": msg.splitlines()[0] if msg else type(e).__name__})
             return
         self._json(200, out)
+
+    def _server_fault(self, e: OSError) -> None:
+        """A full disk (507) or another failing file of the server's own (500), e.g. an upload's scratch copy:
+        answered without the server's paths (it was a 400 naming /tmp/<scratch>/<name> and "give another output
+        folder"); the whole line goes to the app's stderr."""
+        print(f"difareli-app: {user_message(e) or f'{type(e).__name__}: {e}'}", file=sys.stderr)
+        full = is_no_space(e)
+        why = ("ran out of disk space" if full else
+               f"could not read or write a file of its own ({e.strerror or type(e).__name__})")
+        self._json(507 if full else 500, {"error": f"the app's server {why}; this is not your request: retry once "
+                                                   "its operator has fixed it (the app's console names the file)"})
 
 
 def make_server(service: Service | None, host: str = "127.0.0.1", port: int = 8765, quiet: bool = True,
