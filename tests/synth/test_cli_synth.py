@@ -93,3 +93,24 @@ def test_store_command_refuses_a_store_synth_did_not_make():
 
     with pytest.raises(ValueError, match="difareli-multipie|state its command"):
         synth_command("data/mp", {"generator": "multipie"})
+
+
+@pytest.mark.parametrize("subjects,warned", [(2, True), (4, True), (6, False)])
+def test_a_store_too_small_for_a_test_split_is_said(monkeypatch, tmp_path, subjects, warned):
+    """Before (issue 64, our probe): difareli-synth subjects=2 lights=2 wrote a store whose splits put every subject
+    in train, without a word; difareli-benchmark then found no pairs on it."""
+    import warnings
+
+    from difareli.synth import generator
+
+    def stop(*a, **k):
+        raise RuntimeError("stop before rendering")
+
+    monkeypatch.setattr(generator, "_open_store", stop)
+    with warnings.catch_warnings(record=True) as caught, pytest.raises(RuntimeError, match="stop before rendering"):
+        warnings.simplefilter("always")
+        generator.generate(str(tmp_path / "s"), subjects=subjects, lights=2, resolution=32, seed=0, inputs="exact")
+    said = [str(w.message) for w in caught if issubclass(w.category, UserWarning)]
+    want = (f"subjects={subjects} make {subjects // 2} light group(s) of 2, too few for a test split (3 or more): the "
+            "store has no evaluation pairs, so difareli-benchmark cannot score on it; give subjects=8 or more for one")
+    assert said == ([want] if warned else []), said

@@ -124,6 +124,13 @@ def _generate(out_dir: str, subjects: int, lights: int, resolution: int, seed: i
         splits = sp.assign_splits(cfg.subjects, cfg.splits, cfg.light_group_size, cfg.seed)
     except ValueError as e:
         raise ConfigError(str(e)) from None
+    if cfg.splits.get("test", 0) > 0 and not splits["test"]:  # a training-only store is fine, but said
+        import warnings
+
+        groups = -(-cfg.subjects // cfg.light_group_size)
+        warnings.warn(f"subjects={cfg.subjects} make {groups} light group(s) of {cfg.light_group_size}, too few for a "
+                      "test split (3 or more): the store has no evaluation pairs, so difareli-benchmark cannot "
+                      "score on it; give subjects=8 or more for one", UserWarning, stacklevel=2)
     if cfg.inputs == "estimated":
         if why := missing_estimators():
             raise ConfigError(why)
