@@ -39,7 +39,6 @@ from difareli.diffusion.spec import DEFAULT_SAMPLER, PRESETS
 from difareli.estimators.loading import IMAGE_SUFFIXES
 from difareli.lighting import sh
 from difareli.lighting.presets import ENVMAPS
-from difareli.relight import photo_check
 from difareli.relight.photo import read_photo
 from difareli.relight.relighter import Relighter
 from difareli.relight.sources import Source
@@ -179,17 +178,6 @@ class Service:
             self.lock.release()
 
     # ------------------------------------------------------------------ sources
-    def source_request(self, body: Mapping[str, Any]) -> dict:
-        """``POST /api/source``: every field checked, then :meth:`upload` or :meth:`record`, described."""
-        kind = checks.choice(body, "kind", ("upload", "record"))
-        ckpt = checks.text(body, "checkpoint", default=None)
-        if kind == "record":
-            checks.only(body, ("kind", "id", "checkpoint"))
-            return self.describe(self.record(checks.text(body, "id", limit=256), ckpt))
-        checks.only(body, ("kind", "name", "data", "checkpoint"))
-        data = decode_upload(checks.text(body, "data", limit=checks.MAX_BODY))
-        return self.describe(self.upload(checks.text(body, "name", limit=255, default="upload"), data, ckpt))
-
     def upload(self, name: str, data: bytes, checkpoint: str | None = None) -> AppSource:
         """An uploaded photo, decoded with the CLI's checks and preprocessed once for ``checkpoint``'s model;
         a bad upload raises the CLI's UserError (``image=<name>: ...``)."""
@@ -318,27 +306,31 @@ class Service:
         return self.upload(f"{name}.png", example_png(name), checkpoint)
 
     def source_answer(self, body: Mapping[str, Any]) -> dict:
-        """``POST /api/source`` as the page uses it: :meth:`source_request`, or ``{"kind": "example", "name"}``;
-        the answer also carries the whole input photo (``photo``: the before of the page's before/after) and, for
-        a photo, the photo check's verdict (``check``) with the estimators' notes among the ``warnings``."""
+        """``POST /api/source``: an upload (``name``, ``data``), a store record (``id``) or a shipped example
+        (``name``), each with an optional ``checkpoint``, every field checked, then :meth:`describe` d; the answer
+        also carries the whole input photo (``photo``: the before of the page's before/after) and, for a photo, the
+        photo check's verdict (``check``) with the estimators' notes among the ``warnings``."""
         kind = checks.choice(body, "kind", ("upload", "record", "example"))
-        if kind == "example":
-            checks.only(body, ("kind", "name", "checkpoint"))
-            name = checks.choice(body, "name", EXAMPLES)
-            out = self.describe(self.example(name, checks.text(body, "checkpoint", default=None)))
+        checks.only(body, {"upload": ("kind", "name", "data", "checkpoint"), "record": ("kind", "id", "checkpoint"),
+                           "example": ("kind", "name", "checkpoint")}[kind])
+        ckpt = checks.text(body, "checkpoint", default=None)
+        if kind == "record":
+            s = self.record(checks.text(body, "id", limit=256), ckpt)
+        elif kind == "example":
+            s = self.example(checks.choice(body, "name", EXAMPLES), ckpt)
         else:
-            out = self.source_request(body)
-        s = self._sources.get(out["id"])
-        if s is None or s.prepared is None:  # a store record: its crop is the whole input
+            data = decode_upload(checks.text(body, "data", limit=checks.MAX_BODY))
+            s = self.upload(checks.text(body, "name", limit=255, default="upload"), data, ckpt)
+        out = self.describe(s)
+        if s.prepared is None:  # a store record: its crop is the whole input
             out["photo"], out["check"] = out["crop"], None
             return out
         out["photo"] = png_data_url(np.asarray(s.prepared.rgb))
-        verdict = s.source.check or photo_check.check(s.prepared, s.source.what)
+        verdict = s.source.check  # the photo's check, made as it was read (Sources.photo_source)
         out["check"] = {"ok": verdict.ok, "line": verdict.line(), "problems": list(verdict.problems)}
         notes = [str(n) for n in s.prepared.meta.get("notes", [])]
         out["warnings"] = list(dict.fromkeys([*out.get("warnings", []), *notes]))
         return out
-
 
 def _zoo_name(value: str) -> bool:
     """A shipped checkpoint's name (no path)."""
