@@ -214,7 +214,8 @@ ODD_FOLDERS = {
                      "config.json: difareli_format is 99, newer than this difareli reads (2); load it with the "
                      "difareli version that wrote it"),
     "step_huge": (lambda f: _edit_config(f, global_step=10 ** 400),
-                  "must be an integer from 0 to 9223372036854775807; export the folder again"),
+                  "config.json: global_step is 100000000000000000000000000000... (401 characters), must be an "
+                  "integer from 0 to 9223372036854775807; export the folder again"),
     "weights_fifo": (lambda f: ((f / "model.safetensors").unlink(), os.mkfifo(f / "model.safetensors")),
                      "its model.safetensors is a FIFO (named pipe), not the file a weights folder holds; copy the "
                      "folder again whole"),

@@ -216,7 +216,9 @@ def _is(value: Any, kind: type) -> bool:
 
 def _wrong(where: Path, key: str, value: Any, want: str, fix: str) -> UserError:
     plain = isinstance(value, (str, int, float, bool, type(None)))
-    shown = json.dumps(value)[:40] if plain else _JSON.get(type(value), f"a {type(value).__name__}")
+    text = json.dumps(value)
+    shown = (text if len(text) <= 40 else f"{text[:30]}... ({len(text)} characters)") if plain else \
+        _JSON.get(type(value), f"a {type(value).__name__}")
     return UserError(f"{where}: {key} is {shown}, must be {want}; {fix}")
 
 
