@@ -130,11 +130,9 @@ class Service:
         return list(dict.fromkeys(out))[:limit]
 
     def relighter(self, checkpoint: str | None = None, sampler: str = DEFAULT.name, steps: int = DEFAULT.steps):
-        """A cached :class:`~difareli.relight.relighter.Relighter` of an allowed checkpoint; a one-pass student
-        ignores the sampler."""
+        """A cached :class:`~difareli.relight.relighter.Relighter` of an allowed checkpoint, with a sampler and steps
+        :meth:`relight` checked (a one-pass student ignores them)."""
         ckpt = self.allowed_checkpoint(checkpoint)
-        checks.choice({"sampler": sampler}, "sampler", SAMPLERS)
-        steps = checks.number({"steps": steps}, "steps", 1, checks.MAX_STEPS, integer=True)
         key = (ckpt, sampler, steps)
         if key not in self._relighters:
             rel = Relighter(ckpt, {"name": sampler, "steps": steps}, runtime=self.runtime,
@@ -273,10 +271,9 @@ class Service:
         if ckpt != s.checkpoint:  # another model may read more
             s = (self.photo(s.source.what.removeprefix("image="), s.prepared.rgb, ckpt, s.notes)
                  if s.prepared is not None else self.record(s.id.removeprefix("record-"), ckpt))
-        own_c = encodings.shadow_logit(s.source.arrays)
-        default = photo_shadow(own_c)[0] if own_c is not None and s.prepared is not None else own_c
-        target = dataclasses.replace(light, shadow=default if strength is None else encodings.denormalise_c(strength))
-        own = Target(shadow=own_c)
+        # No strength: the relight spine's rule (Target.for_source: a photo's targets.photo_shadow, a record's own c).
+        target = light if strength is None else dataclasses.replace(light, shadow=encodings.denormalise_c(strength))
+        own = Target()  # the source's own light and c
         # The reconstruction (the source relit under its own light) joins the first decode's batch, then is cached.
         key = (id(relighter), s.id)
         with warnings.catch_warnings(record=True) as caught:  # e.g. "unstable at this step count": show it
