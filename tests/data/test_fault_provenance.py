@@ -23,12 +23,40 @@ SAMPLER = {"name": "ddim", "steps": 3}
 def test_ensure_records_then_refuses_other_settings_naming_them(tmp_path):
     provenance.ensure(tmp_path / "out", {"checkpoint": "sha256:aa", "steps": 20}, "benchmark rows")
     provenance.ensure(tmp_path / "out", {"checkpoint": "sha256:aa", "steps": 20}, "benchmark rows")  # same: fine
+    (tmp_path / "out" / "metrics_per_image.csv").write_text("x\n")  # a result made under the record
     with pytest.raises(UserError, match=r"checkpoint: 'sha256:aa' there, 'sha256:bb' now"):
         provenance.ensure(tmp_path / "out", {"checkpoint": "sha256:bb", "steps": 20}, "benchmark rows")
     (tmp_path / "old").mkdir()
     (tmp_path / "old" / "metrics_per_image.csv").write_text("x\n")
     with pytest.raises(UserError, match="without a record of what made them"):
         provenance.ensure(tmp_path / "old", {"steps": 20}, "benchmark rows")
+
+
+def test_a_record_over_no_results_is_replaced_not_a_refusal(tmp_path, synth_store):
+    """Before (issue 64, our probe): difareli-benchmark on a store without pairs stopped after recording its settings
+    in out_dir; the same command on a store with pairs into that out_dir was refused "holds benchmark rows made with
+    other settings (limit ...; store ...)" over a folder that held no rows."""
+    import json
+    import shutil
+
+    from difareli.evaluation.baselines import Identity
+    from difareli.evaluation.benchmark import SETTINGS, run_benchmark
+
+    provenance.ensure(tmp_path / "out", {"steps": 20}, "rows")
+    provenance.ensure(tmp_path / "out", {"steps": 30}, "rows")  # nothing was made under steps 20
+    assert json.loads((tmp_path / "out" / "provenance.json").read_text()) == {"steps": 30}
+    with pytest.raises(UserError, match="steps: 30 there, 40 now"):
+        provenance.ensure(tmp_path / "out", {"steps": 40}, "rows", has_results=True)
+    empty = tmp_path / "empty"
+    shutil.copytree(synth_store, empty)
+    (empty / "protocols.json").write_text(json.dumps({"same_subject": [], "different_subject": []}))
+    out = tmp_path / "bench"
+    with pytest.raises(UserError, match="has no same_subject pairs"):
+        run_benchmark(EncodingStore.open(empty), Identity(), ["same_subject"], out, limit=1, progress=False)
+    assert (out / SETTINGS).is_file()  # the stopped run's record, over no rows
+    res = run_benchmark(EncodingStore.open(synth_store), Identity(), ["same_subject"], out, limit=1,
+                        progress=False)
+    assert len(res.records) == 1
 
 
 def test_model_identity_follows_the_weights_not_the_file(tiny_checkpoint):

@@ -84,24 +84,26 @@ def ensure(folder: str | Path, want: Mapping[str, Any], what: str, *, has_result
     """Record ``want`` in ``folder``/``name`` (default provenance.json), or check it against the recorded one.
 
     A folder that already holds results (``has_results``, default: any file but the provenance) without a record
-    of what made them is refused too: nothing says they match.
+    of what made them is refused too: nothing says they match. A record of other settings over no results (a run
+    that stopped before its first one, e.g. on a store without pairs) is replaced: nothing was made under it.
     """
     folder = Path(folder)
     path = folder / name
     want = plain(dict(want))
+    if has_results is None:
+        has_results = folder.is_dir() and any(p.name not in (name, ".difareli.lock") for p in folder.iterdir())
     if path.is_file():
         try:
             have = json.loads(path.read_text())
-        except (OSError, ValueError) as e:
-            raise UserError(f"{path} is unreadable ({e}); remove {folder} to redo {what}") from None
+        except (OSError, ValueError, RecursionError) as e:
+            raise UserError(f"{path} is unreadable ({str(e)[:120]}); remove {folder} to redo {what}") from None
         diff = differences(have, want)
-        if diff:
+        if not diff:
+            return
+        if has_results:
             lines = "; ".join(f"{k}: {a!r} there, {b!r} now" for k, a, b in ((k, *v) for k, v in diff.items()))
             raise UserError(f"{folder} holds {what} made with other settings ({lines}); give another output folder "
                             f"or remove {folder}")
-        return
-    if has_results is None:
-        has_results = folder.is_dir() and any(p.name not in (name, ".difareli.lock") for p in folder.iterdir())
     if has_results:
         raise UserError(f"{folder} holds {what} without a record of what made them ({name}); give another "
                         f"output folder or remove {folder}")
