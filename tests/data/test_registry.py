@@ -116,7 +116,7 @@ def test_one_pass_model_goes_through_the_same_door(synth_store):
     assert r.inversion(r.source(EncodingStore.open(synth_store), "s00006_l0")) is None
     assert needed_encodings(model) == ["image", "light", "shading", "normal"]
     store = EncodingStore.open(synth_store)
-    arrays = r.read(store, "s00006_l0")
+    arrays = dict(r.source(store, "s00006_l0").arrays)
     own = r.relight(r.source_from_arrays(arrays), Targets.of([arrays["light"]]))[0]
     np.testing.assert_array_equal(own, arrays["image"])  # own light: unchanged image (within uint8 rounding)
 
@@ -124,7 +124,7 @@ def test_one_pass_model_goes_through_the_same_door(synth_store):
 def test_in_memory_record_relights_like_the_store_record(tiny_checkpoint, synth_store):
     store = EncodingStore.open(synth_store)
     r = Relighter(tiny_checkpoint("difareli_pp"), {"name": "ddim", "steps": 3}, device="cpu")
-    arrays = r.read(store, "s00006_l0")
+    arrays = dict(r.source(store, "s00006_l0").arrays)
     light = sh.yaw(arrays["light"].astype(np.float64), 45.0)
     from_store = r.relight(r.source(store, "s00006_l0"), Targets.of([light]))
     in_memory = r.relight(r.source_from_arrays({k: v.copy() for k, v in arrays.items()}), Targets.of([light]))

@@ -246,10 +246,11 @@ def test_teacher_pairs_resume_after_kill(synth_store, tiny_checkpoint, tmp_path)
     pid = sorted(a)[0]
     meta, arrays = a[pid]
     sun = np.asarray(meta["sun"])
-    one = relighter.relight(relighter.source_from_arrays(relighter.read(store, meta[SOURCE_KEY])),
+    own = dict(relighter.source(store, meta[SOURCE_KEY]).arrays)
+    one = relighter.relight(relighter.source_from_arrays(own),
                             Targets.of([arrays["light"]], [float(arrays["shadow"][0])], suns=[sun]))[0]
     assert np.abs(one.astype(int) - arrays["image"]).max() <= 1
-    assert np.array_equal(arrays["shadow_map"], retarget(relighter.read(store, meta[SOURCE_KEY]), ["shadow_map"],
+    assert np.array_equal(arrays["shadow_map"], retarget(own, ["shadow_map"],
                                                          arrays["light"], float(arrays["shadow"][0]),
                                                          sun=sun)["shadow_map"])
 

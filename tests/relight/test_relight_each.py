@@ -1,4 +1,4 @@
-"""Relighter.relight_many / relight_each: many sources, each under its own targets, in batches (the door
+"""Relighter.relight_many: many sources, each under its own targets, in batches (the door
 store-wide jobs use: teacher pairs, shadow maps, the map-response probe): equal to relighting each source alone."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from difareli.relight.relighter import Relighter
 from difareli.relight.targets import Targets
 
 
-def test_relight_each_equals_one_at_a_time(tiny_checkpoint, synth_store, one_thread):
+def test_relight_many_of_one_target_each_equals_one_at_a_time(tiny_checkpoint, synth_store, one_thread):
     store = EncodingStore.open(synth_store)
     r = Relighter(tiny_checkpoint("difareli_pp"), SamplerSpec(name="ddim", steps=4), batch_size=2,
                   runtime={"precision": "fp32"})
@@ -20,12 +20,12 @@ def test_relight_each_equals_one_at_a_time(tiny_checkpoint, synth_store, one_thr
     sources = [r.source(store, rid) for rid in ids]
     lights = [store.read(rid, ["light"])["light"] for rid in reversed(ids)]
     targets = Targets.of(lights, [-3.0, -2.0, -4.0])
-    both = r.relight_each(sources, targets)
+    both = r.relight_many(sources, [targets.take(k, k + 1) for k in range(3)])[:, 0]
     alone = np.stack([r.relight(s, Targets.of([lights[k]], [targets.shadows[k]]))[0] for k, s in enumerate(sources)])
     assert both.shape == (3, *store.read(ids[0], ["image"])["image"].shape)
     assert np.abs(both.astype(int) - alone.astype(int)).max() <= 1  # batched convolutions round differently
-    with pytest.raises(ValueError, match="one target per source"):
-        r.relight_each(sources, Targets.of(lights[:2], [-3.0, -2.0]))
+    with pytest.raises(ValueError, match="3 sources but 2 sets of targets: give one per source"):
+        r.relight_many(sources, [targets.take(k, k + 1) for k in range(2)])
 
 
 def test_relight_many_shares_each_inversion_and_equals_one_at_a_time(tiny_checkpoint, synth_store, one_thread):

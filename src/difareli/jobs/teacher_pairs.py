@@ -111,7 +111,8 @@ def _generate(relighter, store: EncodingStore, out: str | Path, *, split: str, p
         suns = [None if f is None else f.direction for f in found]
         targets = Targets.of([l["light"] for l in lights], [enc.shadow_logit(l) for l in lights], "teacher targets",
                              suns=suns)
-        relit = relighter.relight_each(srcs, targets)  # one batched inversion and decode; NaN refused there
+        # Source k under target k: one batched inversion and decode; NaN refused there.
+        relit = relighter.relight_many(srcs, [targets.take(k, k + 1) for k in range(len(srcs))])[:, 0]
         tgts = [targets.retarget(s.arrays, inputs, k, k + 1)[0] for k, s in enumerate(srcs)]
         for (rid, k, lid), img, light, tgt, sun in zip(batch, relit, lights, tgts, suns):
             arrays = {**{n: tgt[n] for n in dependent}, "image": img,

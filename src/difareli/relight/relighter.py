@@ -110,8 +110,6 @@ class Relighter(Sources):
         source cached under its key (``cache``), for several in one batch; None for a one-pass model."""
         if isinstance(self.model, OnePassRelightable):
             return None
-        if self.spec is None:
-            raise errors.UserError("this model is a diffusion model: give the Relighter a sampler")
 
         def make():
             return invert_image(self.model, x0, cond, self.spec, runtime=self.runtime,
@@ -123,7 +121,8 @@ class Relighter(Sources):
         checked when the :class:`Source` was made), the targets (lights and shadows: checked by
         :meth:`Targets.of`), what only the pair can tell (given target maps at the source's resolution; a target
         light this face cannot be lit with: :func:`~difareli.lighting.plausible.implausible_lights`, warned about
-        and returned as target indices) and the sampler a diffusion model needs. A UserError naming the input."""
+        and returned as target indices); a diffusion model always has its sampler (the default where none is
+        named). A UserError naming the input."""
         if not isinstance(source, Source) or not isinstance(targets, Targets):
             raise errors.UserError(f"relight takes a Source (Relighter.source / photo_source / source_from_arrays) "
                                    f"and Targets (Targets.of); got {type(source).__name__}, {type(targets).__name__}")
@@ -131,8 +130,6 @@ class Relighter(Sources):
         if targets.maps is not None and targets.maps.shape[1:] != hw:
             raise errors.UserError(f"target shadow maps are {targets.maps.shape[1:]} px, {source.what} is {hw}: "
                                    "give maps at the source's resolution")
-        if self.spec is None and not isinstance(self.model, OnePassRelightable):
-            raise errors.UserError(f"checkpoint={self.checkpoint} is a diffusion model: give the Relighter a sampler")
         implausible = implausible_lights(source.arrays, targets.lights)
         for why in implausible.values():
             warnings.warn(f"relight of {source.what}: {why}", RuntimeWarning, stacklevel=4)
@@ -145,14 +142,6 @@ class Relighter(Sources):
         seconds: dict[str, float] = {}
         images = self._relight([source], [targets], cache=True, seconds=seconds)[0]
         return Relit(photos.grey_like(images) if source.grey else images, seconds, source, targets)
-
-    def relight_each(self, sources: Sequence[Source], targets: Targets) -> np.ndarray:
-        """Source ``i`` under target ``i`` for many sources at once (N, H, W, 3) uint8: :meth:`relight_many` with
-        one target each. The door for jobs that relight a whole store under one light per record (teacher pairs)."""
-        if len(sources) != len(targets):
-            raise errors.UserError(f"{len(sources)} sources but {len(targets)} targets: give one target per source")
-        one = [targets.take(k, k + 1) for k in range(len(targets))]
-        return self.relight_many(sources, one)[:, 0]
 
     def relight_many(self, sources: Sequence[Source], targets: Sequence[Targets], *,
                      as_float: bool = False) -> np.ndarray:
