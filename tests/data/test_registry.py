@@ -15,7 +15,6 @@ from difareli.lit import LoadedCheckpoint
 from difareli.relight.relightable import DiffusionRelightable, OnePassRelightable, Relightable
 from difareli.relight.core import relight
 from difareli.relight.relighter import Relighter
-from difareli.relight.sources import needed_encodings
 from difareli.data.store import EncodingStore
 from difareli.render.retarget import RENDERERS, retarget
 from difareli.relight.targets import Targets
@@ -114,7 +113,7 @@ def test_one_pass_model_goes_through_the_same_door(synth_store):
     np.testing.assert_allclose(out[:, 0, 0, 0].numpy(), [0.5, 0.75])
     r = Relighter(LoadedCheckpoint(model, {}, {}, 0), None, device="cpu")
     assert r.inversion(r.source(EncodingStore.open(synth_store), "s00006_l0")) is None
-    assert needed_encodings(model) == ["image", "light", "shading", "normal"]
+    assert r.needed_encodings() == ["image", "light", "shading", "normal"]
     store = EncodingStore.open(synth_store)
     arrays = dict(r.source(store, "s00006_l0").arrays)
     own = r.relight(r.source_from_arrays(arrays), Targets.of([arrays["light"]]))[0]

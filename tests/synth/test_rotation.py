@@ -35,13 +35,16 @@ def test_rotate_light_is_sh_rotation():
     np.testing.assert_allclose(turned.extra_dirs[0], R @ light.extra_dirs[0], atol=1e-12)
 
 
-def test_rotation_frames_match_rotation_lights():
-    from difareli.relight.targets import rotation_lights
+def test_rotation_frames_match_the_rotation_videos_lights():
+    from types import SimpleNamespace
+
+    from difareli.relight.request import Rotation
 
     own = np.random.default_rng(2).normal(0, 0.3, (9, 3))
     angles, rots = sh.rotation_frames("roll", 8)
     np.testing.assert_allclose(angles, np.arange(8) * 45.0)
-    np.testing.assert_allclose(sh.rotate(own, rots), rotation_lights(own, "roll", 8), atol=1e-12)
+    lights = Rotation("roll", 8).lights(SimpleNamespace(arrays={"light": own}))
+    np.testing.assert_allclose(sh.rotate(own, rots), lights, atol=1e-12)
     with pytest.raises(ValueError, match="axis"):
         sh.rotation_frames("pitch", 4)
 

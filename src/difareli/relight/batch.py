@@ -157,8 +157,7 @@ def relight_photos(paths: Sequence[Path], out_dir: str | Path, *, progress: bool
                 viz.save_png(full, out_dir / f"{name}_composite.png")
                 row = {"status": "relit", **row}
                 counts["done"] += 1
-            before[name] = _formatted({"name": name, "photo": str(path), "seconds": time.perf_counter() - start,
-                                       **row})
+            before[name] = {"name": name, "photo": str(path), "seconds": time.perf_counter() - start, **row}
             write_rows(csv_path, before)
         bar.close()
     return counts
@@ -181,10 +180,7 @@ def write_rows(path: Path, rows: Mapping[str, Mapping[str, Any]]) -> None:
     buf = io.StringIO()
     w = csv.DictWriter(buf, FIELDS, extrasaction="ignore")
     w.writeheader()
-    w.writerows(rows.values())
+    w.writerows({k: (f"{v:.4g}" if isinstance(v, float) else v) for k, v in row.items()}  # numbers people read
+                for row in rows.values())
     fileio.write_text_atomic(path, buf.getvalue())
 
-
-def _formatted(row: Mapping[str, Any]) -> dict[str, Any]:
-    # Numbers to 4 significant digits: a CSV people read.
-    return {k: (f"{v:.4g}" if isinstance(v, float) else v) for k, v in row.items()}

@@ -38,9 +38,9 @@ from difareli.utils import viz
 
 @dataclass(frozen=True)
 class Target:
-    """The target of a request: at most one of ``TARGET_KEYS`` (an environment map may take a ``yaw`` too; none:
-    the source's own light), its shadow strength c' (None: the other record's, else for a photo under a new light
-    ``targets.photo_shadow``, else the source's own) and where its map is marched (``sun_fit.TARGET_SUNS``)."""
+    """The target of a request: at most one of ``TARGET_KEYS``, checked as it is made (an environment map may take a
+    ``yaw`` too; none: the source's own light), its shadow strength c' (None: the other record's, else for a photo
+    under a new light ``targets.photo_shadow``, else the source's own) and where its map is marched (``sun``)."""
 
     light: str | None = None
     record: str | None = None
@@ -51,6 +51,12 @@ class Target:
     direction: tuple[float, float, float] | None = None
     shadow: float | None = None
     sun: str = "shadows"
+
+    def __post_init__(self) -> None:
+        given = [k for k in TARGET_KEYS if getattr(self, k) is not None]
+        if len(given) > 1 and set(given) != {"envmap", "yaw"}:
+            raise errors.UserError(f"{' and '.join(f'target.{k}' for k in given)}: give exactly one target (an "
+                                   "envmap may take target.yaw, its rotation)")
 
     @property
     def given(self) -> bool:
@@ -244,7 +250,7 @@ MAX_FRAMES = 3600
 
 def check_target(t: Mapping[str, Any]) -> Target:
     """A config's ``target`` block as a :class:`Target`, each value checked: its sun, its numbers, a named light
-    or an existing file for ``light`` and ``envmap``, and one way to give the light."""
+    or an existing file for ``light`` and ``envmap``, and one way to give the light (:class:`Target`)."""
     errors.check_choice(t["sun"], "target.sun", TARGET_SUNS)
     for key in (*TURNS, "shadow"):
         errors.check_number(t.get(key), f"target.{key}")
@@ -257,19 +263,14 @@ def check_target(t: Mapping[str, Any]) -> Target:
         elif not Path(str(value)).is_file():
             raise errors.UserFileNotFoundError(f"target.{key}={value}: no such named light or file; give one of "
                                                f"{', '.join(names)}, or a {kind} file")
-    target = Target(**{k: t.get(k) for k in (*TARGET_KEYS[:-1], "shadow", "sun")})
-    given = [k for k in TARGET_KEYS if getattr(target, k) is not None]
-    if len(given) > 1 and set(given) != {"envmap", "yaw"}:
-        raise errors.UserError(f"{' and '.join(f'target.{k}' for k in given)}: give exactly one target (an envmap "
-                               "may take target.yaw, its rotation)")
-    return target
+    return Target(**{k: t.get(k) for k in (*TARGET_KEYS[:-1], "shadow", "sun")})
 
 
 def check_photos(image: str, face: Any, axis: str | None, record: str | None, composite: Mapping[str, Any],
                  out_dir: str) -> tuple[Path, ...] | None:
     """The photos of ``image=`` (a folder or a glob; ``face=all|<index>``: several faces of one photo) as a batch,
     None for one photo; a batch takes a target light, not a video or a target record, and an ``out_dir`` its
-    listing does not read; the compositing checked."""
+    listing does not read; the compositing (a known mode, known parts, a feather >= 0)."""
     photo.check_face(face)  # a typo is the command's error before any photo is read (not a skipped row per photo)
     photos = photo_paths(image)
     if photos is not None:
@@ -279,7 +280,13 @@ def check_photos(image: str, face: Any, axis: str | None, record: str | None, co
     if photos is not None and (axis is not None or record is not None):
         raise errors.UserError(f"image={image} face={face}: a folder or several faces take a target light "
                                "(target.light|yaw|roll|pitch|envmap), not video.axis or target.record")
-    check_composite(composite)
+    errors.check_choice(composite["mode"], "composite.mode", MODES)
+    try:
+        part_mask(np.zeros((1, 1), np.uint8), list(composite["parts"] or []))
+    except ValueError as e:
+        raise errors.UserError(f"composite.parts: {e}") from None
+    if errors.check_number(composite["feather"], "composite.feather", allow_none=False) < 0:
+        raise errors.UserError(f"composite.feather={composite['feather']}: must be >= 0 (a fraction of the crop size)")
     return None if photos is None else tuple(photos)
 
 
@@ -294,16 +301,6 @@ def check_store(root: str, versions: Mapping[str, Any] | None, **records: str | 
                                    f"records{', e.g. ' + some if some else ''}); give one of its record ids")
     return store
 
-
-def check_composite(c: Mapping[str, Any]) -> None:
-    """A photo's compositing settings: a known mode, known parts, a feather >= 0."""
-    errors.check_choice(c["mode"], "composite.mode", MODES)
-    try:
-        part_mask(np.zeros((1, 1), np.uint8), list(c["parts"] or []))
-    except ValueError as e:
-        raise errors.UserError(f"composite.parts: {e}") from None
-    if errors.check_number(c["feather"], "composite.feather", allow_none=False) < 0:
-        raise errors.UserError(f"composite.feather={c['feather']}: must be >= 0 (a fraction of the crop size)")
 
 
 @dataclass

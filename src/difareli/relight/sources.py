@@ -40,11 +40,6 @@ class Source:
     check: Any = None        # a photo's check before relighting (photo_check.Check: measures and verdict)
 
 
-def needed_encodings(model: Relightable) -> list[str]:
-    """Encodings read per record: the image, its light, the model's inputs and what re-rendering them needs."""
-    return relight_reads(model_inputs(model))
-
-
 class Sources:
     """What one model reads of a face, and its faces as checked :class:`Source` s (module doc). ``checkpoint``
     names the model in messages; ``resolution``: its training resolution (None: unrecorded)."""
@@ -58,7 +53,8 @@ class Sources:
         return model_inputs(self.model)
 
     def needed_encodings(self) -> list[str]:
-        return needed_encodings(self.model)
+        """Encodings read per record: the image, its light, the model's inputs and what re-rendering them needs."""
+        return relight_reads(self.model_inputs)
 
     def sun_reads(self) -> list[str]:
         """What a source holds beyond the model's inputs so that its light's key sun can be found (the

@@ -168,15 +168,11 @@ def target_lights(source_light: np.ndarray, *, light: str | None = None, other_l
     """One target as a (9, 3) light: a 9x3 SH file or a named light (``light``: :mod:`difareli.lighting.presets`),
     another record's light, the source's own light turned by a yaw, roll or pitch (degrees) or toward a
     ``direction``, or an environment map (an HDR file, SH-projected, or a named map at the source light's ambient;
-    turned by ``yaw`` when given); nothing given: the source's own light. Its numbers are checked once, where they
+    turned by ``yaw`` when given; one way, or an envmap and its yaw: :class:`~difareli.relight.request.Target`);
+    nothing given: the source's own light. Its numbers are checked once, where they
     are given (:meth:`~difareli.relight.request.Request.from_config`; a caller that checked nothing hears of a
     non-finite angle from :mod:`difareli.lighting.sh`), and the light's bound once, by :meth:`Targets.of`. A named
     light or a direction is made plausible for the face (``normals``: its normal map; :func:`presets.plausible`)."""
-    given = {k for k, v in dict(light=light, record=other_light, yaw=yaw, roll=roll, pitch=pitch, envmap=envmap,
-                                direction=direction).items() if v is not None}
-    if len(given) > 1 and given != {"envmap", "yaw"}:
-        raise UserError(f"give exactly one target ({', '.join(f'target.{k}' for k in TARGET_KEYS[:-1])}; an "
-                        f"envmap may take target.yaw, its rotation); got {sorted(given)}")
     if other_light is not None:
         return np.asarray(other_light, np.float64)
     if light is not None and not is_named(light):
@@ -191,11 +187,6 @@ def target_lights(source_light: np.ndarray, *, light: str | None = None, other_l
         return presets.toward(src, direction, normals)
     turn = next(((TURNS[k], v) for k, v in dict(yaw=yaw, roll=roll, pitch=pitch).items() if v is not None), None)
     return src if turn is None else sh.rotate(src, turn[0](turn[1]))
-
-
-def rotation_lights(source_light: np.ndarray, axis: str, frames: int = 60) -> np.ndarray:
-    """``frames`` lights rotating the input's own light 360 degrees about ``axis`` (yaw | roll), (N, 9, 3)."""
-    return sh.rotate(source_light, sh.rotation_frames(axis, frames)[1])
 
 
 def rotation_targets(source: Mapping[str, np.ndarray], axis: str, frames: int, *, store=None,

@@ -83,7 +83,7 @@ def contact_sheet(frames: Sequence[np.ndarray], captions: Sequence[str] | None =
 
 def rotation_captions(axis: str, frames: int) -> list[str]:
     """``yaw 0°``, ``yaw 6°``, ...: each frame's light angle in a 360-degree rotation of ``frames`` frames (the
-    angles of :func:`difareli.relight.targets.rotation_lights`)."""
+    angles of :func:`difareli.lighting.sh.rotation_frames`)."""
     return [f"{axis} {360.0 * i / frames:.0f}°" for i in range(frames)]
 
 
