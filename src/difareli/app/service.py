@@ -36,7 +36,6 @@ from difareli.data import encodings
 from difareli.data.store import EncodingStore
 from difareli.diffusion.samplers import SAMPLERS
 from difareli.diffusion.spec import DEFAULT_SAMPLER, PRESETS
-from difareli.estimators.loading import IMAGE_SUFFIXES
 from difareli.lighting import sh
 from difareli.lighting.presets import ENVMAPS
 from difareli.relight.photo import read_photo
@@ -186,9 +185,9 @@ class Service:
         ckpt = self.allowed_checkpoint(checkpoint)
         with tempfile.TemporaryDirectory() as tmp, warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            # the CLI's reader checks a file: its size, its frames; an upload is read by its bytes, not its name's
-            # suffix (a PNG sent with no name, or as IMG_0001, was refused as "not an image file (suffix 'none')")
-            path = Path(tmp) / (name if Path(name).suffix.lower() in IMAGE_SUFFIXES else f"{name}.png")
+            # the CLI's reader checks a file: its suffix, its size, its frames; a name with no suffix (the API's
+            # default "upload", IMG_0001) is read by its bytes (it was "not an image file (suffix 'none')")
+            path = Path(tmp) / (f"{name}.png" if not Path(name).suffix else name)
             path.write_bytes(data)
             rgb = read_photo(path, "image", name=name)
         notes = tuple(str(w.message) for w in caught if issubclass(w.category, UserWarning))
