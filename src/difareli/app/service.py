@@ -1,15 +1,11 @@
-"""What the app's page asks for, without HTTP: sources (an uploaded photo, preprocessed once; a store record),
-target lights (a direction on the sphere, an HDR map and a rotation), relights with their seconds and the model's
-reconstruction error. It parses requests and formats answers; the relighting is the relight spine's: its sources,
-its relighter, and its targets (:class:`~difareli.relight.request.Target`: a direction, a named map turned by a yaw,
-the source's own light).
+"""What the app's page asks for, without HTTP: it parses requests (a source: an upload, a store record, an
+example; a relight under a direction or a turned HDR map) and formats answers (images, seconds, the reconstruction
+error); the relighting is the relight spine's (its sources, relighter and :class:`~difareli.relight.request.Target`).
 
-Everything expensive is cached in bounded LRU caches (sizes on :class:`Service`, ``cache`` in ``conf/app.yaml``):
-relighters per (checkpoint, sampler, steps), sources (an upload keeps its full-size photo) and the inversions
-inside each relighter. A request is checked whole (fields, source id, checkpoint) before a relighter is built.
-Checkpoints come only from the shipped zoo and the files / folders the app was started with; any other path is
-refused in words that do not depend on whether it exists. One lock runs one relight at a time (the CPU is the
-limit, and the estimators are not thread-safe); a client that leaves gives it back (:mod:`difareli.app.cache`).
+Relighters, sources and inversions are kept in bounded LRU caches (``cache`` in ``conf/app.yaml``). A request is
+checked whole before a relighter is built; checkpoints come only from the zoo and the start-up files / folders
+(:meth:`Service.allowed_checkpoint`). One lock runs one relight at a time (the CPU is the limit, and the estimators
+are not thread-safe); a client that leaves gives it back (:mod:`difareli.app.cache`).
 """
 
 from __future__ import annotations

@@ -16,8 +16,7 @@ from difareli.evaluation import video as vid
 from difareli.jobs.video import VideoRun, angles, rotate_and_measure
 from difareli.lighting import sh
 from difareli.relight.relighter import Relighter
-from difareli.relight.request import MAX_FRAMES, Rotation, check_store
-from difareli.render import sun_fit
+from difareli.relight.request import MAX_FRAMES, Rotation, check_store, check_target
 from difareli.utils import viz
 from difareli.utils.fileio import staged_outputs, write_json_atomic
 
@@ -88,9 +87,8 @@ def validate(cfg: DictConfig) -> tuple[EncodingStore, bool]:
     errors.check_out_dir(cfg.out_dir)
     errors.check_int(cfg.fps, "fps", 1)
     errors.check_choice(cfg.rotation.axis, "rotation.axis", sh.AXES)
-    errors.check_choice(cfg.target.sun, "target.sun", sun_fit.TARGET_SUNS)
+    check_target(cfg.target)  # its sun and shadow strength, as a relight request's
     errors.check_int(cfg.rotation.frames, "rotation.frames", 2, maximum=MAX_FRAMES)
-    errors.check_number(cfg.target.shadow, "target.shadow")
     errors.check_int(cfg.sheet_columns, "sheet_columns", 1)
     if cfg.rotation.envmap is not None:
         errors.check_file(cfg.rotation.envmap, "rotation.envmap")

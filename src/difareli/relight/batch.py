@@ -1,16 +1,12 @@
 """Photos in one command: ``difareli-relight image=<folder or glob>`` and ``face=all|<index>``.
 
-:func:`photo_paths` expands the ``image=`` value (a dangling or looping symbolic link is kept, and named when its
-photo is read); :func:`relight_photos` relights every photo under one target (a progress bar), composites every
-chosen face into the one photo, and writes per input ``<name>_composite.png`` and ``<name>_relit.png`` (the relit
-crops side by side) into ``out_dir`` and its row to ``relight.csv`` (seconds, faces, the check's measures, the
-outcome). Each input's ``<name>`` is its path below the inputs' common folder (:func:`output_names`), so no two
-inputs share one, and the CSV holds one row per name, its latest outcome. A photo that cannot be relit
-(unreadable or truncated file, no face, too small, ``strict`` and a poor check) is one line on stderr and a
-``skipped`` row. The folder is locked while a run writes it, and its settings (checkpoint, target, sampler, ...)
-are recorded beside the CSV (:data:`SETTINGS`): a rerun with other settings is refused, one with the same skips
-the photos relit before (a killed run resumes: files are written atomically, the row last) and tries the skipped
-ones again (the error said to fix them)."""
+:func:`relight_photos` relights every photo of :func:`photo_paths` under one target, composites every chosen face
+into the one photo and writes per input ``<name>_composite.png``, ``<name>_relit.png`` (the relit crops side by
+side) and its row of ``relight.csv`` (seconds, faces, the check's measures, the outcome; one row per
+:func:`output_names` name, its latest). A photo that cannot be relit is one line on stderr and a ``skipped`` row.
+The folder is locked while a run writes it and its settings are recorded (:data:`SETTINGS`): a rerun with other
+settings is refused, one with the same resumes (files written atomically, the row last) and tries the skipped
+photos again."""
 
 from __future__ import annotations
 

@@ -371,9 +371,6 @@ def answer_photos(relighter: Relighter, request: Request) -> dict[str, int]:
     ``relighter`` under the request's one target: :func:`difareli.relight.batch.relight_photos` writes each photo's
     composite, relit crops and CSV row into ``request.out_dir`` as it goes (a rerun resumes; a progress bar where
     the relighter shows progress); counts {done, skipped, resumed}."""
-    if request.photos is None or request.out_dir is None:
-        raise ValueError("answer_photos takes a request with photos (image=<folder or glob>, or face=all|<index>) "
-                         "and an out_dir")
     settings = {"checkpoint": provenance.model_identity(relighter.model), "precision": relighter.runtime.precision,
                 "sampler": None if relighter.spec is None else relighter.spec.to_config(),
                 "mean_matching": relighter.mean_matching, "photo_size": request.photo_size, "face": str(request.face),
