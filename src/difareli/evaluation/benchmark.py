@@ -1,20 +1,15 @@
 """Benchmark a relighting method on the protocols of SPEC 11 (the paper's Tables I/II/IV): a SynthFaces store, or a
 Multi-PIE store made by ``difareli-multipie`` from a user's copy (the same ``protocols.json``).
 
-For each pair of ``protocols.json`` (written with the store by ``synth.splits``): relight ``source`` under the
-light estimated from ``light_source`` (protocol (i) ``same_subject``: the same person under the target light;
-(ii) ``different_subject``: another person under that very light) and score the result against ``target``
-on the target's ``face_mask`` (``score_mask``: another mask key of the store, e.g. ``face_mask_gt``, the
-renderer's exact face region that SynthFaces v3 stores beside its estimated ``face_mask``). The light is fitted from the
-light-source image (:class:`baselines.LightFit`) as a user would get it, with the shadow strength c a user has
-(``targets.target_shadow_of``: the estimated c of a v2 ``inputs=estimated`` store, else the training split's median
-shadowed c); ``oracle_light`` takes the exact light and c instead (``light_gt``/``shadow_gt`` in SynthFaces v2 stores,
-whose ``light``/``shadow`` are estimated), ``oracle_shadow`` the exact c alone. ``summary.md`` and ``provenance.json``
-state which inputs were used, the metric rule (``rule``: :data:`difareli.evaluation.metrics.RULES`, default ``paper``,
-the authors' evaluator) and the data set. Scores go through the torchmetrics ``Metric`` s of
-:func:`difareli.evaluation.metrics.relight_metrics`. A store without exact lights (``"exact_lights": false`` in
-``protocols.json``: Multi-PIE) gets no light-estimation errors and no oracle. The pairs, the records a method is given
-and the pairs' lights: :mod:`difareli.evaluation.pairs`.
+For each pair (:mod:`difareli.evaluation.pairs`): relight ``source`` under the light fitted to ``light_source``
+(protocol (i) ``same_subject``: the same person under the target light; (ii) ``different_subject``: another person
+under that very light) as a user would get it (:class:`~difareli.lighting.light_fit.LightFit`), with the shadow
+strength c a user has (``targets.target_shadow_of``), and score it against ``target`` on its ``score_mask``
+(:class:`Scoring`) through the torchmetrics ``Metric`` s of :func:`difareli.evaluation.metrics.relight_metrics`.
+``oracle_light`` takes the exact light and c instead (``light_gt`` / ``shadow_gt`` where the store's ``light`` /
+``shadow`` are estimated), ``oracle_shadow`` the exact c alone; a store without exact lights (``"exact_lights":
+false`` in ``protocols.json``: Multi-PIE) gets no light-estimation errors and no oracle. ``summary.md`` and
+``provenance.json`` state which inputs were used, the metric rule and the data set.
 
 Beyond DSSIM / MSE / LPIPS (:mod:`difareli.evaluation.extras`), each row carries the identity cosines of
 the relit face (vs the input, vs the ground truth), the lighting error of the relit image against the target light
@@ -85,8 +80,10 @@ def check_score_mask(store: EncodingStore, key: str | None) -> str:
 
 @dataclass(frozen=True)
 class Scoring:
-    """How a run scores its pairs, checked once at the door (:meth:`of`): the metric ``rule``, the ``score_mask``,
-    and ``target_sun``, where a fitted target light's cast-shadow maps are marched."""
+    """How a run scores its pairs, checked once at the door (:meth:`of`): the metric ``rule`` (None: ``paper``), the
+    ``score_mask`` (None: ``face_mask``) and ``target_sun``, where a fitted target light's cast-shadow maps are
+    marched: ``shadows`` (toward the key sun found from the light-source image's cast shadows: ``render.sun_fit``)
+    or ``peak`` (the fitted SH's radiance peak)."""
 
     rule: str
     score_mask: str
@@ -178,18 +175,12 @@ def run_benchmark(store: EncodingStore, method: Method, protocols: Sequence[str]
                   grid_pairs: int = 4, save_images: bool = True, progress: bool = True,
                   shard: str | None = None, rule: str | None = None, score_mask: str | None = None,
                   target_sun: str = "shadows", scoring: Scoring | None = None) -> BenchmarkResult:
-    """Relight and score every pair of ``protocols`` under the metric ``rule`` (None: ``paper``) on the target's
-    ``score_mask`` (None: ``face_mask``); write the run's outputs into ``out_dir``. ``target_sun``: where a
-    fitted target light's cast-shadow maps are marched, ``shadows`` (its key sun found from the light-source
-    image's cast shadows: ``render.sun_fit``) or ``peak`` (the fitted SH's radiance peak). ``scoring``: the three
-    checked by the caller's door (:meth:`Scoring.of`), in place of them.
-
-    ``shard="i/n"`` scores only that shard's pairs (by pair id, after ``limit``): the n shards' per-image
-    CSVs together hold exactly the unsharded run's rows (``difareli-table`` merges them).
-
-    ``out_dir`` is locked for the run, and :data:`SETTINGS` records what scores its rows (the method and its
-    model's weights, sampler and precision, the store, protocols, limit, oracles, rule, score mask, shard): a
-    resumed run with other settings is refused, naming what differs, instead of keeping another checkpoint's rows."""
+    """Relight and score every pair of ``protocols`` (module doc) and write the run's outputs into ``out_dir``, scored
+    as ``scoring`` says (:class:`Scoring`; None: made of ``rule``, ``score_mask`` and ``target_sun``, or their
+    defaults). ``shard="i/n"`` scores only that shard's pairs (by pair id, after ``limit``): the n shards' rows are
+    the unsharded run's (``difareli-table`` merges them). ``out_dir`` is locked for the run, and :data:`SETTINGS`
+    records what scores its rows (:func:`run_settings`): a resumed run with other settings is refused, naming what
+    differs, instead of keeping another checkpoint's rows."""
     out_dir = Path(out_dir)
     scoring = scoring or Scoring.of(store, rule, score_mask, target_sun)
     if hasattr(method, "check_store"):  # a model that cannot read the store: one line, not a failed row per pair
