@@ -93,9 +93,8 @@ class Relighter(Sources):
 
     def key_sun(self, source: Source) -> sun_fit.SunFit | None:
         """Where this model's target map for the source's light is marched: the key sun found from the source
-        image's cast shadows under the light fitted to it (``render.sun_fit``); None for a model that reads no
-        shadow map, or a source without what the fit reads. Cached under the source's key, as its inversion is
-        (a request with a target and a video of the source's own light asks twice; the fit takes about 1 s)."""
+        image's cast shadows (``render.sun_fit``), cached under its key (the fit takes about 1 s); None for a model
+        that reads no shadow map, or a source without what the fit reads."""
         if "shadow_map" not in self.model_inputs:
             return None
         return _cached(self._suns, source.key, lambda: sun_fit.key_sun(source.arrays, source.arrays["light"]))
@@ -145,20 +144,18 @@ class Relighter(Sources):
 
     def relight_many(self, sources: Sequence[Source], targets: Sequence[Targets], *,
                      as_float: bool = False) -> np.ndarray:
-        """Source ``i`` under each of its own K targets ``targets[i]`` (S, K, H, W, 3), every source with K targets
-        (module doc: ``batch_size`` sources inverted in one batch, their targets decoded in one batch, each
-        inversion shared by its source's targets; a one-pass model: one pass per source). uint8, or ``as_float``:
-        float32 in [0, 1], unrounded (differences of relights, which a uint8 step would change). For jobs over many
-        records: no inversion is cached, a grey source is not made grey."""
+        """Source ``i`` under each of its own K targets ``targets[i]`` (S, K, H, W, 3): ``batch_size`` sources
+        inverted in one batch and their targets decoded in one. uint8, or ``as_float``: float32 in [0, 1] unrounded
+        (differences of relights, which a uint8 step would change). For jobs over many records: no inversion is
+        cached, a grey source is not made grey."""
         return self._relight(sources, targets, cache=False, as_float=as_float)
 
     def _relight(self, sources: Sequence[Source], targets: Sequence[Targets], *, cache: bool, as_float: bool = False,
                  seconds: dict[str, float] | None = None) -> np.ndarray:
-        """The one decode loop: every pair checked, then chunks of sources each inverted once (with their images
-        and condition built once) and decoded under their targets. ``cache`` (:meth:`relight`, one source): its
-        inversion cached under its key and its targets decoded ``batch_size`` at a time; else (:meth:`relight_many`)
-        ``batch_size`` sources a chunk, each chunk's targets in one decode. ``seconds``: filled with the time spent
-        inverting and decoding."""
+        """The one decode loop: every pair checked, then chunks of sources each inverted once and decoded under
+        their targets: ``cache`` (:meth:`relight`, one source) its inversion cached and its targets decoded
+        ``batch_size`` at a time, else ``batch_size`` sources a chunk and its targets in one decode. ``seconds``:
+        filled with the time spent inverting and decoding."""
         if len(sources) != len(targets):
             raise errors.UserError(f"{len(sources)} sources but {len(targets)} sets of targets: give one per source")
         blamed = [self.check_inputs(s, t) for s, t in zip(sources, targets)]  # each source with its own targets

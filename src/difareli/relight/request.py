@@ -104,12 +104,11 @@ def relight_targets(relighter: Relighter, source: Source, targets: Sequence[Targ
 
 @dataclass(frozen=True)
 class Rotation:
-    """A 360-degree rotation video's target: the source's own light (or the environment map ``envmap``'s light,
-    a file) turned about ``axis`` in ``frames`` frames, with a given shadow strength ``shadow`` (None: the policy of
-    :func:`~difareli.relight.targets.rotation_targets`, from ``split``), the key sun found from the source's
-    cast shadows turned with it (``sun=shadows``) or each frame's radiance peak (``peak``); ``shadows`` and
-    ``maps``: each frame's c' and target map given (an oracle's: the ground truth's) instead; ``plausible``: each
-    frame's light made plausible for the face (:func:`plausible`: the demo's, which chose its lights itself)."""
+    """A 360-degree rotation video's target: the source's own light (or the environment map file ``envmap``'s)
+    turned about ``axis`` in ``frames`` frames, with ``shadow`` (None: the policy of ``targets.rotation_targets``,
+    from ``split``), toward the key sun found from the source's cast shadows turned with it (``sun=shadows``) or
+    each frame's radiance peak (``peak``); ``shadows`` and ``maps``: each frame's c' and target map given (an
+    oracle's) instead; ``plausible``: each frame's light made plausible for the face (:func:`plausible`)."""
 
     axis: str = "yaw"
     frames: int = 60
@@ -176,12 +175,9 @@ def rotation_video(relighter: Relighter, source: Source, rotation: Rotation, sto
 
 @dataclass(frozen=True)
 class Request:
-    """One relight request (module doc). ``store`` (open, its derived versions in use, its records checked:
-    :func:`check_store`) and ``record``, or ``image``, is the source; ``video_axis`` adds a
-    360-degree rotation of its light; ``composite`` (mode, feather, parts) puts a photo's relights back; ``out_dir``
-    gets the answer (a batch's as it goes), its video at ``video_fps`` as ``video_format`` (``mp4`` or ``gif``).
-    ``checkpoint`` (a path or a shipped name), ``sampler`` (None: the model's default), ``runtime``,
-    ``mean_matching``, ``batch_size`` and ``progress`` say how it is relit (the relighter's arguments)."""
+    """One relight request (module doc): ``store`` (open and checked: :func:`check_store`) and ``record``, or
+    ``image``, is the source; ``video_*`` a 360-degree rotation of its light; ``composite`` puts a photo's relights
+    back; ``checkpoint`` to ``progress`` are the relighter's arguments (``sampler`` None: the model's default)."""
 
     store: EncodingStore | None = None
     record: str | None = None
@@ -206,12 +202,9 @@ class Request:
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any]) -> "Request":
-        """The request of a relight command's config, checked before any work, each value once: one source (a
-        folder or glob of photos, or ``face=all|<index>``: a batch under one target light), a store that opens and
-        holds the records named, a target or a video, a target record only with a store, the photos' compositing,
-        the target (:func:`check_target`), the video's frame count; how it is relit (the sampler whole by its
-        spec, the runtime, the batch size); where the answer goes (the output folder, the video's frame rate and
-        format). The checkpoint is read by the relighter, the first work."""
+        """The request of a relight command's config, each value checked once, before any work (the checkpoint is
+        read by the relighter, the first work): the source (:func:`check_store`, :func:`check_photos`), the target
+        (:func:`check_target`) or a video, how it is relit and where the answer goes."""
         t, c, v, image = cfg["target"], cfg["composite"], cfg["video"], cfg["image"]
         if (image is None) == (cfg["store"] is None):
             raise errors.UserError("give the source as either store=<encodings store> (and record=) or "
