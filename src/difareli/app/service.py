@@ -56,18 +56,13 @@ RELIGHT_FIELDS = ("id", "checkpoint", "sampler", "steps", "light", "shadow")
 
 @dataclass
 class AppSource:
-    """A face the page relights: the relight spine's Source (a photo's carries its prepared photo)."""
+    """A face the page relights: the relight spine's Source (a photo's ``source.photo``: its prepared photo)."""
 
     id: str
     source: Source
     preprocess_s: float
     checkpoint: str
     notes: tuple[str, ...] = ()  # what reading the photo changed (an alpha channel composited, ...)
-
-    @property
-    def prepared(self) -> Any | None:
-        """A photo's PreparedPhoto (None for a store record)."""
-        return self.source.photo
 
 
 @dataclass
@@ -218,15 +213,15 @@ class Service:
 
     def describe(self, s: AppSource) -> dict:
         """What the page shows of a source: the aligned crop, its light's direction and shadow strength."""
-        arrays = s.source.arrays
+        arrays, photo = s.source.arrays, s.source.photo
         c = encodings.shadow_logit(arrays)
-        c = photo_shadow(c)[0] if c is not None and s.prepared is not None else c  # the slider's start: a new light's
+        c = photo_shadow(c)[0] if c is not None and photo is not None else c  # the slider's start: a new light's
         out = {"id": s.id, "what": s.source.what, "crop": png_data_url(np.asarray(arrays["image"])),
                "preprocess_s": round(s.preprocess_s, 3), "direction": sh.dominant_direction(arrays["light"]).tolist(),
                "shadow": None if c is None else float(encodings.normalise_c(c)), "warnings": list(s.notes)}
-        if s.prepared is not None:
-            out.update(width=int(s.prepared.rgb.shape[1]), height=int(s.prepared.rgb.shape[0]),
-                       stages={k: round(v, 3) for k, v in s.prepared.meta.get("seconds", {}).items()})
+        if photo is not None:
+            out.update(width=int(photo.rgb.shape[1]), height=int(photo.rgb.shape[0]),
+                       stages={k: round(v, 3) for k, v in photo.meta.get("seconds", {}).items()})
         return out
 
     # ------------------------------------------------------------------ relighting
@@ -264,8 +259,8 @@ class Service:
         light = self.target(request.get("light") or {})
         relighter = self.relighter(ckpt, sampler, steps)
         if ckpt != s.checkpoint:  # another model may read more
-            s = (self.photo(s.source.what.removeprefix("image="), s.prepared.rgb, ckpt, s.notes)
-                 if s.prepared is not None else self.record(s.id.removeprefix("record-"), ckpt))
+            s = (self.photo(s.source.what.removeprefix("image="), s.source.photo.rgb, ckpt, s.notes)
+                 if s.source.photo is not None else self.record(s.id.removeprefix("record-"), ckpt))
         # No strength: the relight spine's rule (Target.for_source: a photo's targets.photo_shadow, a record's own c).
         target = light if strength is None else dataclasses.replace(light, shadow=encodings.denormalise_c(strength))
         own = Target()  # the source's own light and c
@@ -280,7 +275,7 @@ class Service:
                "error": self._errors[key],
                "warnings": list(dict.fromkeys(str(w.message) for w in caught
                                               if issubclass(w.category, RuntimeWarning)))}
-        if s.prepared is not None:
+        if s.source.photo is not None:
             out["image"] = png_data_url(relit.composite(self.composite.get("mode", "ratio"),
                                                         self.composite.get("feather", 0.03), images=relit[:1])[0])
         else:
@@ -314,13 +309,13 @@ class Service:
             data = decode_upload(checks.text(body, "data", limit=checks.MAX_BODY))
             s = self.upload(checks.text(body, "name", limit=255, default="upload"), data, ckpt)
         out = self.describe(s)
-        if s.prepared is None:  # a store record: its crop is the whole input
+        if s.source.photo is None:  # a store record: its crop is the whole input
             out["photo"], out["check"] = out["crop"], None
             return out
-        out["photo"] = png_data_url(np.asarray(s.prepared.rgb))
+        out["photo"] = png_data_url(np.asarray(s.source.photo.rgb))
         verdict = s.source.check  # the photo's check, made as it was read (Sources.photo_source)
         out["check"] = {"ok": verdict.ok, "line": verdict.line(), "problems": list(verdict.problems)}
-        notes = [str(n) for n in s.prepared.meta.get("notes", [])]
+        notes = [str(n) for n in s.source.photo.meta.get("notes", [])]
         out["warnings"] = list(dict.fromkeys([*out.get("warnings", []), *notes]))
         return out
 

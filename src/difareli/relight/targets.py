@@ -218,6 +218,7 @@ def rotation_targets(source: Mapping[str, np.ndarray], axis: str, frames: int, *
 # ------------------------------------------------------------------------------------------ target c policy
 #: A record counts as shadowed when its cast shadows remove at least this share of the light (c >= logit of it).
 SHADOWED_SHARE = 0.01
+_SHADOWED_C = math.log(SHADOWED_SHARE / (1 - SHADOWED_SHARE))
 _TYPICAL_C: dict[tuple[str, str], float | None] = {}
 #: A photo's target shadow strength when none is given, normalised (the app's slider; ``encodings.normalise_c``:
 #: c' = -1.83, 14% of the light removed), unless its own is stronger. Measured on the four frontal photos of
@@ -239,15 +240,10 @@ def photo_shadow(own: float | None) -> tuple[float, str]:
 
 
 
-def is_shadowed(c: float) -> bool:
-    """Whether a shadow logit ``c`` means a visible cast shadow (share >= ``SHADOWED_SHARE``)."""
-    return c >= math.log(SHADOWED_SHARE / (1 - SHADOWED_SHARE))
-
-
 def typical_shadowed_c(shadows) -> float | None:
     """The median c of the records whose cast shadows remove at least ``SHADOWED_SHARE`` of the light."""
     c = np.asarray(shadows, dtype=np.float64).reshape(-1)
-    shadowed = c[np.isfinite(c) & (c >= math.log(SHADOWED_SHARE / (1 - SHADOWED_SHARE)))]
+    shadowed = c[np.isfinite(c) & (c >= _SHADOWED_C)]
     return float(np.median(shadowed)) if shadowed.size else None
 
 
@@ -293,7 +289,7 @@ def video_shadow(store, record_c: float | None, given: float | None, split: str 
     else the input's own c when it is shadowed; else the median shadowed c of ``split`` (the training split)."""
     if given is not None:
         return float(given), f"target c' = {float(given):.3f} (given: target.shadow)"
-    if record_c is not None and is_shadowed(record_c):
+    if record_c is not None and record_c >= _SHADOWED_C:  # a visible cast shadow
         return record_c, f"target c' = {record_c:.3f} (the input's own c: it has a cast shadow)"
     c = split_typical_c(store, split)
     own = "no 'shadow' encoding" if record_c is None else f"c = {record_c:.2f}"
