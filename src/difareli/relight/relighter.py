@@ -1,9 +1,6 @@
 """The relighter (SPEC 5): the second layer of the relight spine, every model (diffusion, one-pass student,
-pipelines) relighting through it.
-
-A :class:`Relighter` is a model + a sampler + a runtime + caches: a :class:`~difareli.relight.sources.Sources` (it
-reads its faces, checked once) that relights them under :class:`~difareli.relight.targets.Targets` in one decode
-loop (:meth:`Relighter.relight` for one source, :meth:`Relighter.relight_many` for jobs). Requests, photo batches
+pipelines) relighting through it: a :class:`~difareli.relight.sources.Sources` (it reads its faces, checked once)
+that relights them under :class:`~difareli.relight.targets.Targets` in one decode loop. Requests, photo batches
 and rotation videos are answered above it (:mod:`difareli.relight.request`).
 """
 
@@ -50,9 +47,8 @@ def _cached(cache: dict, key: Any, make):
 
 
 class Relighter(Sources):
-    """A relightable model + a sampler + a runtime: ``relight(source, targets)`` for a source it reads
-    (:class:`~difareli.relight.sources.Sources`). Each source's inversion and key sun are cached under its key:
-    all of them, or the last ``cache_size`` sources' for a long-lived caller."""
+    """A relightable model + a sampler + a runtime + caches: each source's inversion and key sun under its key (all
+    of them, or the last ``cache_size`` sources' for a long-lived caller)."""
 
     def __init__(self, checkpoint, sampler: SamplerSpec | Mapping[str, Any] | None = None, *,
                  runtime: Runtime | Mapping[str, Any] | None = None, device: str | None = None,

@@ -1,8 +1,6 @@
-"""What one relight request gives back: :class:`Relit`, the relit crops (N, H, W, 3) uint8 with the seconds per
-stage, the source and its targets, and the whole photos for a photo source (:meth:`Relit.composite`).
-
-A :class:`Relit` *is* its images (an ``ndarray`` subclass, as ``np.ma`` arrays are), so code that reads a relight
-as an array keeps working; arithmetic and reductions on it give plain arrays and scalars.
+"""What a relight gives back: :class:`Relit`, the relit crops with the seconds per stage, the source and its
+targets. It *is* its images (an ``ndarray`` subclass, as ``np.ma`` arrays are): code that reads a relight as an
+array keeps working, and arithmetic and reductions on it give plain arrays and scalars.
 """
 
 from __future__ import annotations

@@ -94,8 +94,8 @@ class Target:
 
 
 def relight_targets(relighter: Relighter, source: Source, targets: Sequence[Target]) -> Relit:
-    """``source`` relit under several targets of its own (e.g. the app's target and its reconstruction, the source's
-    own light), in one decode batch: each :meth:`Target.for_source` (none takes another record)."""
+    """``source`` relit under several targets of its own (none takes another record) in one decode batch: the
+    app's target and its reconstruction, say."""
     made = [t.for_source(relighter, source)[0] for t in targets]
     suns = [s for m in made for s in (m.suns or (None,) * len(m))]
     return relighter.relight(source, Targets.of([m.lights[0] for m in made], [m.shadows[0] for m in made],

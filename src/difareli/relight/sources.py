@@ -84,10 +84,9 @@ class Sources:
 
     def source(self, store: EncodingStore, record_id: str | None = None, *, also: Sequence[str] = (),
                read: Callable[[list[str]], Mapping[str, np.ndarray]] | None = None) -> Source:
-        """A store record as a :class:`Source`: the encodings relighting it reads, what finding its light's key sun
-        reads where the store has it (:meth:`sun_reads`) and ``also`` (where the store has them), checked.
-        ``record_id=None``: the first record of the test split (said in its notes). ``read``: where the record's
-        arrays come from when a caller has already read and checked them (a benchmark's pair); else the store."""
+        """A store record as a checked :class:`Source`: what relighting it reads, and where the store has them
+        :meth:`sun_reads` and ``also``; ``record_id=None``: the test split's first record (said in its notes).
+        ``read``: the record's arrays as a caller already read and checked them (a benchmark's pair)."""
         notes = self.check_store(store)
         if record_id is None:
             test = store.ids(split="test")
@@ -124,11 +123,10 @@ class Sources:
     def photo_source(self, image: str | Path | np.ndarray, *, size: int | None = None, face: Any = None,
                      strict: bool = False, what: str | None = None, key: Any = None,
                      also: Sequence[str] = ()) -> Source:
-        """A photo (a path, or decoded RGB uint8) preprocessed in memory by difareli-preprocess's estimators (the
-        encodings this model reads) at ``size`` px (None: the training resolution), ``face`` a box of
-        :func:`~difareli.relight.photo.detect_faces` (None: the largest), with what finding its light's key sun
-        reads (:meth:`sun_reads`) and ``also``. Checked before relighting (:mod:`~difareli.relight.photo_check`:
-        one line in its notes; ``strict``: a poor photo is refused). Its ``photo`` composites the relights back."""
+        """A photo (a path, or decoded RGB uint8) preprocessed in memory by the photo estimators at ``size`` px
+        (None: the training resolution), ``face`` a box of :func:`~difareli.relight.photo.detect_faces` (None: the
+        largest), with :meth:`sun_reads` and ``also``; its check (:mod:`~difareli.relight.photo_check`) one line of
+        its notes (``strict``: a poor photo is refused). Its ``photo`` composites the relights back."""
         is_path = isinstance(image, (str, Path))
         what = what or (f"image={image}" if is_path else "photo")
         rgb = photos.read_photo(image) if is_path else np.asarray(image)
