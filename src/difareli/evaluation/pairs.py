@@ -14,12 +14,13 @@ from typing import Callable, Iterable, Sequence
 import numpy as np
 
 from difareli import errors
-from difareli.data.protocols import PROTOCOLS, PROTOCOLS_FILE
+from difareli.data.protocols import PROTOCOLS, PROTOCOLS_FILE, SPLITS_FILE
 from difareli.data.store import EncodingStore
 from difareli.lighting import sh
 from difareli.lighting.light_fit import LightFit
 from difareli.relight.targets import target_shadow_of
 from difareli.render import sun_fit
+from difareli.utils.fileio import read_json_mapping
 
 
 @dataclass(frozen=True)
@@ -83,9 +84,6 @@ def protocols_doc(store: EncodingStore) -> dict:
 def no_pairs(path: Path, protocol: str, others: Sequence[str]) -> str:
     """Why ``protocols.json`` at ``path`` lists no ``protocol`` pairs, from the store's ``splits.json`` where it has
     one (an empty test split: a store of fewer than 3 light groups), and the fix."""
-    from difareli.data.protocols import SPLITS_FILE
-    from difareli.utils.fileio import read_json_mapping
-
     splits = read_json_mapping(path.parent / SPLITS_FILE).get("splits")
     test = splits.get("test") if isinstance(splits, dict) else None
     alone = f", or benchmark the other alone: protocols=[{others[0]}]" if others else ""
