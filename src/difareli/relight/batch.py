@@ -59,7 +59,7 @@ def _entry(path: Path) -> bool:
     return path.is_file() or (path.is_symlink() and not path.is_dir())
 
 
-def check_out_dir(image: str, out_dir: str | Path) -> None:
+def check_out_dir_apart(image: str, out_dir: str | Path) -> None:
     """An ``out_dir`` where the photos ``image=`` names are listed (the folder itself, or a folder a glob's
     wildcards reach) is refused: the next run would read its outputs as photos."""
     text = str(image)

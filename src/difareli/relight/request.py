@@ -23,7 +23,7 @@ from difareli.data.store import EncodingStore
 from difareli.diffusion.spec import SamplerSpec
 from difareli.lighting import presets, sh
 from difareli.relight import photo
-from difareli.relight.batch import check_out_dir, photo_paths, relight_photos
+from difareli.relight.batch import check_out_dir_apart, photo_paths, relight_photos
 from difareli.relight.composite import MODES, part_mask
 from difareli.relight.relighter import Relighter
 from difareli.relight.relit import Relit
@@ -267,7 +267,7 @@ def check_photos(image: str, face: Any, axis: str | None, record: str | None, co
     photo.check_face(face)  # a typo is the command's error before any photo is read (not a skipped row per photo)
     photos = photo_paths(image)
     if photos is not None:
-        check_out_dir(image, out_dir)
+        check_out_dir_apart(image, out_dir)
     if photos is None and str(face).lower() != "largest":
         photos = [Path(str(image))]  # several faces of one photo
     if photos is not None and (axis is not None or record is not None):
