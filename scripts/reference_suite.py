@@ -62,12 +62,14 @@ def main() -> None:
     store_cmd = a.store_cmd if a.store_cmd is not None else [synth_command(store) for store in a.store]
     claims: dict[str, list[str]] = {}
     pooled: list[tables.Record] = []
+    labels: dict[str, str] = {}
     sections = [section(store, a.models or zoo.available(), a.pairs, out / Path(store).name, claims,
-                        pooled if a.pool else None, a.guidance)
+                        pooled if a.pool else None, a.guidance, labels)
                 for store in a.store]
     if a.pool:
-        sections.insert(0, pooled_section(a.store, pooled, out))
-    command = f"python scripts/reference_suite.py --store {' '.join(a.store)} --pairs {a.pairs} --out <folder>"
+        sections.insert(0, pooled_section(a.store, pooled, out, labels))
+    command = (f"python scripts/reference_suite.py{' --pool' if a.pool else ''} --store {' '.join(a.store)} "
+               f"--pairs {a.pairs} --out <folder>{' --models ' + ' '.join(a.models) if a.models else ''}")
     text = "\n".join([*sections, *([a.note, ""] if a.note else []), "Reproduce:", "", "```bash", *store_cmd, command,
                       "```", ""])
     if a.cards:
@@ -81,10 +83,12 @@ def main() -> None:
 
 
 def section(store: str, models: list[str], pairs: int, out: Path, claims: dict[str, list[str]] | None = None,
-            pooled: list[tables.Record] | None = None, guidance: float | None = None) -> str:
+            pooled: list[tables.Record] | None = None, guidance: float | None = None,
+            labels: dict[str, str] | None = None) -> str:
     """Every model (and identity, Lambertian, run once) on ``store``; the table and what it measured. ``claims``
     gets, per shipped name, the sentence of its paired comparisons on this store (:func:`model_claims`);
-    ``pooled`` gets the store's rows with their record ids prefixed by the store's name."""
+    ``pooled`` gets the store's rows with their record ids prefixed by the store's name; ``labels`` each row's
+    label and what it is."""
     sampler = PRESETS[DEFAULT_SAMPLER].to_config()
     if guidance is not None:
         sampler["guidance"] = guidance
@@ -100,6 +104,8 @@ def section(store: str, models: list[str], pairs: int, out: Path, claims: dict[s
         names[comparison.facts["model"]] = f"`{name}` ({comparison.facts['sampler']})"
         rows[name] = comparison.facts["model"]
     records = [r for run in runs.values() for r in run.records]
+    if labels is not None:
+        labels.update(names)
     if pooled is not None:
         pooled += [dataclasses.replace(r, record_id=f"{Path(store).name}/{r.record_id}") for r in records]
     if claims is not None:
@@ -116,8 +122,10 @@ def section(store: str, models: list[str], pairs: int, out: Path, claims: dict[s
         comparisons(records, table.methods, out / "paired.csv")])
 
 
-def pooled_section(stores: list[str], records: list[tables.Record], out: Path) -> str:
-    """The pairs of every store in one table and one set of paired comparisons (a pair is its store and record)."""
+def pooled_section(stores: list[str], records: list[tables.Record], out: Path,
+                   labels: dict[str, str] | None = None) -> str:
+    """The pairs of every store in one table and one set of paired comparisons (a pair is its store and record);
+    ``labels``: each row's label and what it is (the Rows sentence a reader, and the demo's verdict, looks up)."""
     table = tables.summarize(records)
     out.mkdir(parents=True, exist_ok=True)
     table.to_csv(out / "pooled.csv")
@@ -125,7 +133,8 @@ def pooled_section(stores: list[str], records: list[tables.Record], out: Path) -
     per = ", ".join(f"{n} {p}" for p, n in sorted(counts.items()))
     return "\n".join([
         f"**Pooled: {', '.join(stores)}** ({per} pairs in all; each store a seed no shipped model trained on), "
-        "target lights fitted to the target images and c estimated, every model at its defaults.", "",
+        "target lights fitted to the target images and c estimated, every model at its defaults."
+        + (" Rows: " + "; ".join(f"`{row}` = {what}" for row, what in labels.items()) + "." if labels else ""), "",
         table.to_markdown(), "", comparisons(records, table.methods, out / "pooled_paired.csv")])
 
 

@@ -158,3 +158,31 @@ def test_the_demo_labels_its_live_table_and_prints_the_cards():
 
     card = card_benchmark("difareli_pp-synth64")
     assert card is not None and "100 test pairs per protocol" in card and "| identity |" in card
+
+
+def test_the_demos_verdict_reads_the_suites_first_table_only():
+    """A suite with a pooled table first and per-store tables after: the verdict is the pooled table's row and
+    its own paired test, never a later table's row of the same label."""
+    from difareli.cli.demo import suite_verdict
+
+    head = "| Method | (i) same subject DSSIM | (ii) different subject DSSIM |\n|---|---:|---:|\n"
+    paired = ("| protocol | metric | A | B | n | mean(B - A) | 95% CI | Wilcoxon p |\n"
+              "|---|---|---|---|---:|---:|---|---:|\n"
+              "| (i) same subject | DSSIM | lambertian | m/unipc-50 | 300 | -0.01 | [-0.02, -0.005] | 0.001 |\n"
+              "| (ii) different subject | DSSIM | lambertian | m/unipc-50 | 300 | -0.06 | [-0.07, -0.05] | 2e-30 |\n")
+    pooled = ("**Pooled: a, b, c** (300 different, 300 same pairs in all). "
+              "Rows: `m/unipc-50` = `m-synth64` (unipc-50).\n\n"
+              + head + "| identity | 0.2600 ± 0.01 | 0.2600 ± 0.01 |\n| lambertian | 0.1830 ± 0.01 | 0.2910 ± 0.01 |\n"
+              "| m/unipc-50 | 0.1750 ± 0.01 | 0.2300 ± 0.01 |\n\n" + paired)
+    later = ("**a**: 100 pairs per protocol. Rows: `m/unipc-50` = `m-synth64` (unipc-50).\n\n" + head
+             + "| identity | 0.9 ± 0.01 | 0.9 ± 0.01 |\n| lambertian | 0.1 ± 0.01 | 0.1 ± 0.01 |\n"
+             "| m/unipc-50 | 0.5 ± 0.01 | 0.5 ± 0.01 |\n")
+    line = suite_verdict(pooled + "\n" + later, "m-synth64")
+    assert line == ("the shipped suite (300 pairs per protocol of unseen seeds, DSSIM, lower is better): "
+                    "same subject 0.175, better than the Lambertian ratio image's 0.183 (p = 0.001), the unrelit "
+                    "input 0.260; different subject 0.230, better than the Lambertian ratio image's 0.291 "
+                    "(p = 2e-30), the unrelit input 0.260")
+    assert suite_verdict(later + "\n" + pooled, "m-synth64").startswith(
+        "the shipped suite (100 pairs per protocol of unseen seeds, DSSIM, lower is better): same subject 0.500, "
+        "level with")  # a per-store table first: its own rows, and no paired line there: level with
+    assert suite_verdict(pooled, "other-synth64") is None

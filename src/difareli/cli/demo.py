@@ -67,12 +67,12 @@ def answer(cfg: DictConfig, res: DemoResult) -> str:
 
 
 def suite_verdict(suite: str | None, checkpoint: str) -> str | None:
-    """The shipped suite's DSSIM of ``checkpoint`` beside the Lambertian ratio image and the unrelit input, per
-    protocol, in one line (lower is better); None where the suite does not list it."""
-    if not suite:
-        return None
-    label = next((m.group(1) for m in re.finditer(r"`([^`]+)` = `([^`]+)`", suite) if m.group(2) == checkpoint), None)
-    table = [line for line in suite.splitlines() if line.startswith("| ")]
+    """The DSSIM of ``checkpoint`` in the shipped suite's first table (its headline: the pooled fresh seeds),
+    beside the Lambertian ratio image and the unrelit input, per protocol, in one line (lower is better); None where
+    that table does not list it."""
+    first = first_section(suite or "")
+    label = next((m.group(1) for m in re.finditer(r"`([^`]+)` = `([^`]+)`", first) if m.group(2) == checkpoint), None)
+    table = [line for line in first.splitlines() if line.startswith("| ")]
     if label is None or not table:
         return None
     head = [c.strip() for c in table[0].strip("|").split("|")]
@@ -83,14 +83,26 @@ def suite_verdict(suite: str | None, checkpoint: str) -> str | None:
     parts = []
     for proto in ("(i) same subject", "(ii) different subject"):
         got, lam, idn = (dssim(rows[k], proto) for k in (label, "lambertian", "identity"))
-        # The paired Wilcoxon test of the suite's own table says whether the gap to the ratio image is real.
+        # The paired Wilcoxon test of the same table's pairs says whether the gap to the ratio image is real.
         paired = [c.strip() for line in table if line.startswith(f"| {proto} | DSSIM | lambertian | {label} |")
                   for c in line.strip("|").split("|")]
         p = float(paired[-1]) if paired else math.nan
         than = "level with" if not p < 0.05 else ("better than" if got < lam else "worse than")
         parts.append(f"{proto.split(' ', 1)[1]} {got:.3f}, {than} the Lambertian ratio image's {lam:.3f}"
                      f"{f' (p = {p:.2g})' if math.isfinite(p) else ''}, the unrelit input {idn:.3f}")
-    return f"the shipped suite (100 pairs of an unseen seed, DSSIM, lower is better): {'; '.join(parts)}"
+    n = re.search(r"(\d+) pairs per protocol|(\d+) different", first)
+    pairs = next((g for g in (n.groups() if n else ()) if g), "?")
+    return f"the shipped suite ({pairs} pairs per protocol of unseen seeds, DSSIM, lower is better): {'; '.join(parts)}"
+
+
+def first_section(suite: str) -> str:
+    """The suite's first section: from its first bold heading line (``**<store>**: ...``) up to the next one."""
+    lines = suite.splitlines()
+    starts = [k for k, line in enumerate(lines) if line.startswith("**")]
+    if not starts:
+        return ""
+    end = starts[1] if len(starts) > 1 else len(lines)
+    return "\n".join(lines[starts[0]:end])
 
 
 def card_benchmark(checkpoint: str) -> str | None:
