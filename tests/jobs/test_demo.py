@@ -125,9 +125,10 @@ def test_the_demos_suite_verdict_is_one_line_with_the_suites_paired_test():
     suite = zoo.suite()
     if suite is None:
         pytest.skip("no shipped suite")
-    line = suite_verdict(suite, "difareli_pp_ss-synth64")
-    assert "\n" not in line and "same subject 0.137, level with the Lambertian ratio image's 0.144 (p = 0.29)" in line
-    assert "different subject 0.204, better than the Lambertian ratio image's 0.270 (p = 1.2e-16)" in line
+    line = suite_verdict(suite, "difareli_pp_ss_est-synth64")  # the demo's default, in the pooled fresh seeds
+    assert "\n" not in line and line.startswith("the shipped suite (300 pairs per protocol of unseen seeds")
+    assert "same subject 0.147, better than the Lambertian ratio image's 0.183 (p = 4.2e-42)" in line
+    assert "different subject 0.188, better than the Lambertian ratio image's 0.291 (p = 1.7e-48)" in line
     assert suite_verdict(suite, "not-shipped") is None
 
 

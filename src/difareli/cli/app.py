@@ -2,7 +2,7 @@
 sphere (or picks an HDR map and a rotation), sets the shadow strength and the sampler, and sees the relit photo
 with the seconds it took and the model's reconstruction error (``difareli.app``).
 
-    difareli-app [checkpoint=difareli_pp-synth64] [store=<store>] [port=8765] [checkpoints=[<file or folder>]]
+    difareli-app [checkpoint=difareli_pp_ss_est-synth64] [store=<store>] [port=8765] [checkpoints=[<file or folder>]]
                  [server.queue=8] [server.connections=64]
 
 It binds its port first (a port in use is one line, before the model loads), serves 127.0.0.1 unless told
