@@ -116,10 +116,14 @@ def section(store: str, models: list[str], pairs: int, out: Path, claims: dict[s
     counts = sorted({n for run in runs.values() for n in Counter(r.protocol for r in run.records).values()})
     return "\n".join([
         f"**{store}**: {' and '.join(map(str, counts))} pairs per protocol (a seed no shipped model trained on), "
-        "target lights fitted to the target images and c estimated (no oracle inputs), every model at its defaults. "
-        "Rows: "
-        + "; ".join(f"`{row}` = {shipped}" for row, shipped in names.items()) + ".", "", table.to_markdown(), "",
-        comparisons(records, table.methods, out / "paired.csv")])
+        "target lights fitted to the target images and c estimated (no oracle inputs), every model at its defaults."
+        + rows_sentence(names), "", table.to_markdown(), "", comparisons(records, table.methods, out / "paired.csv")])
+
+
+def rows_sentence(labels: dict[str, str] | None) -> str:
+    """The sentence naming each row's label and what it is (``Rows: `<label>` = <what>; ...``, empty without
+    labels): what a reader, and the demo's verdict (``cli.demo.suite_verdict``), look a row up by."""
+    return " Rows: " + "; ".join(f"`{row}` = {what}" for row, what in labels.items()) + "." if labels else ""
 
 
 def pooled_section(stores: list[str], records: list[tables.Record], out: Path,
@@ -134,7 +138,7 @@ def pooled_section(stores: list[str], records: list[tables.Record], out: Path,
     return "\n".join([
         f"**Pooled: {', '.join(stores)}** ({per} pairs in all; each store a seed no shipped model trained on), "
         "target lights fitted to the target images and c estimated, every model at its defaults."
-        + (" Rows: " + "; ".join(f"`{row}` = {what}" for row, what in labels.items()) + "." if labels else ""), "",
+        + rows_sentence(labels), "",
         table.to_markdown(), "", comparisons(records, table.methods, out / "pooled_paired.csv")])
 
 
