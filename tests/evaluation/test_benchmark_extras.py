@@ -26,12 +26,13 @@ def runs(synth_store, tmp_path_factory):
 def test_known_values_of_the_extra_columns(runs):
     root, res = runs
     header = (root / "oracle" / tables.PER_IMAGE_CSV).read_text().splitlines()[0].split(",")
-    want = ["light_angle", "light_rel_error", "shadow_adherence", "shadow_darkening", "shadow_iou",
+    want = ["light_angle", "light_rel_error", "light_angle_gt", "shadow_adherence", "shadow_darkening", "shadow_iou",
             "light_category", "shadow_share"]
     if identity.unavailable() is None:
         want = ["identity_input", "identity_gt", *want]
     assert header == [*tables.COLUMNS, "rule", *want]
     for r in res["oracle"].records:  # the relit image is the ground truth itself
+        assert r.extra["light_angle_gt"] == pytest.approx(0.0, abs=1e-6)
         if not math.isnan(r.extra["shadow_adherence"]):
             assert r.extra["shadow_adherence"] == 1.0
         if "identity_gt" in r.extra:
@@ -41,6 +42,8 @@ def test_known_values_of_the_extra_columns(runs):
         if "identity_input" in r.extra:
             assert r.extra["identity_input"] == pytest.approx(1.0, abs=1e-6)
         assert 0 <= r.extra["light_angle"] <= 180 and r.extra["light_rel_error"] >= 0
+    # The input under another light: its fitted light is not the truth's (a metric that cannot tell them apart fails)
+    assert np.nanmean([r.extra["light_angle_gt"] for r in res["identity"].records]) > 5.0
     summary = (root / "oracle" / "summary.md").read_text()
     assert "light angle (deg)" in summary and "target shadow M: shadow_" in summary
 

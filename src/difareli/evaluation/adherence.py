@@ -44,12 +44,17 @@ def light_error(fitted: np.ndarray, target: np.ndarray) -> tuple[float, float]:
     return angle, float(np.linalg.norm(fitted - target) / max(np.linalg.norm(target), 1e-12))
 
 
+def relit_light(relit: np.ndarray, geometry: Mapping[str, np.ndarray], fit: LightFit | None = None) -> np.ndarray:
+    """The light ``fit`` (default :class:`LightFit`) finds in ``relit`` (uint8 HxWx3) on ``geometry``'s
+    ``normal``, ``face_mask`` (and ``masks``)."""
+    arrays = {k: v for k, v in geometry.items() if k in LightFit.ENCODINGS}
+    return (fit or LightFit())({**arrays, "image": relit})
+
+
 def relit_light_error(relit: np.ndarray, geometry: Mapping[str, np.ndarray], target: np.ndarray,
                       fit: LightFit | None = None) -> tuple[float, float]:
-    """:func:`light_error` of the light ``fit`` (default :class:`LightFit`) finds in ``relit`` (uint8 HxWx3) on
-    ``geometry``'s ``normal``, ``face_mask`` (and ``masks``) against ``target``."""
-    arrays = {k: v for k, v in geometry.items() if k in LightFit.ENCODINGS}
-    return light_error((fit or LightFit())({**arrays, "image": relit}), target)
+    """:func:`light_error` of :func:`relit_light` against ``target``."""
+    return light_error(relit_light(relit, geometry, fit), target)
 
 
 def face_luminance(image: np.ndarray) -> np.ndarray:

@@ -19,7 +19,10 @@ from difareli.evaluation import identity as ident
 from difareli.lighting.light_fit import LightFit
 
 IDENTITY = ("identity_input", "identity_gt")
-LIGHT = ("light_angle", "light_rel_error")
+#: ``light_angle_gt``: the light fitted to the relit image against the one fitted to the ground truth, both on the
+#: input's geometry (the truth scores 0; ``light_angle`` is against the target light as a user has it, fitted to
+#: the light-source image, on which the ground truth itself scores far from 0: docs/evaluation.md).
+LIGHT = ("light_angle", "light_rel_error", "light_angle_gt")
 SHADOW = ("shadow_adherence", "shadow_darkening", "shadow_iou")
 
 
@@ -93,11 +96,14 @@ class PairExtras:
             out.update(identity_input=sims["input"], identity_gt=sims["gt"])
         if self.light:
             names = [n for n in LightFit.ENCODINGS if n != "image" and self.store.available(n)]
+            geometry = self.store.read(source, names)
             try:
-                angle, rel = adherence.relit_light_error(relit, self.store.read(source, names), light, self.fit)
+                fitted = adherence.relit_light(relit, geometry, self.fit)
+                angle, rel = adherence.light_error(fitted, light)
+                vs_gt = adherence.light_error(fitted, adherence.relit_light(gt["image"], geometry, self.fit))[0]
             except ValueError:  # too few usable face pixels in the relit image (clipped or black): undefined
-                angle, rel = math.nan, math.nan
-            out.update(light_angle=angle, light_rel_error=rel)
+                angle, rel, vs_gt = math.nan, math.nan, math.nan
+            out.update(light_angle=angle, light_rel_error=rel, light_angle_gt=vs_gt)
         if self.shadow_key:
             m = np.asarray(self.store.read(target, [self.shadow_key])[self.shadow_key]) > 0
             out.update(adherence.shadow_scores(relit, gt["image"], face, m, min_share=self.min_share,

@@ -46,14 +46,16 @@ METRICS = ("dssim", "mse", "lpips")
 METRIC_LABELS = {"dssim": "DSSIM", "mse": "MSE", "lpips": "LPIPS"}
 #: Optional per-image metrics, in table order: identity cosine of the relit face vs the input and vs the
 #: ground truth, the lighting error of the relit image (degrees, relative SH), shadow adherence (ratio, raw, IoU).
-EXTRA_METRICS = ("identity_input", "identity_gt", "light_angle", "light_rel_error", "shadow_adherence",
-                 "shadow_darkening", "shadow_iou")
+EXTRA_METRICS = ("identity_input", "identity_gt", "light_angle", "light_rel_error", "light_angle_gt",
+                 "shadow_adherence", "shadow_darkening", "shadow_iou")
 METRIC_LABELS.update({"identity_input": "ID vs input", "identity_gt": "ID vs GT", "light_angle": "light angle (deg)",
-                      "light_rel_error": "light SH rel. err", "shadow_adherence": "shadow darkening ratio",
+                      "light_rel_error": "light SH rel. err", "light_angle_gt": "light angle vs GT (deg)",
+                      "shadow_adherence": "shadow darkening ratio",
                       "shadow_darkening": "shadow darkening", "shadow_iou": "shadow IoU"})
 #: Which way is better: "low", "high", "one" (closest to 1); metrics absent here are never marked best.
 BETTER = {"dssim": "low", "mse": "low", "lpips": "low", "identity_input": "high", "identity_gt": "high",
-          "light_angle": "low", "light_rel_error": "low", "shadow_adherence": "one", "shadow_iou": "high"}
+          "light_angle": "low", "light_rel_error": "low", "light_angle_gt": "low", "shadow_adherence": "one",
+          "shadow_iou": "high"}
 #: Optional per-image strata columns (text): the target light's category, the target shadow's share of the face.
 STRATA = ("light_category", "shadow_share")
 
