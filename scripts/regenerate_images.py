@@ -84,7 +84,6 @@ def rotation(out: Path, checkpoint: str, frames: int) -> Path:
     from skimage import data
 
     from difareli.evaluation.photo_presets import face_window
-    from difareli.relight.relighter import Relighter
     from difareli.relight.request import Request, respond
     from difareli.utils import viz
 
@@ -94,9 +93,7 @@ def rotation(out: Path, checkpoint: str, frames: int) -> Path:
         request = Request.from_config(request_config(
             [f"checkpoint={checkpoint}", f"image={photo}", "video.axis=yaw", f"video.frames={frames}",
              "progress=false"], Path(tmp)))
-        relighter = Relighter(request.checkpoint, request.sampler, runtime=request.runtime,
-                              mean_matching=request.mean_matching, batch_size=request.batch_size)
-        answer = respond(relighter, request, print)
+        answer = respond(request.how.make_relighter(), request, print)
     cells = [face_window(answer.source, frame, side=192) for frame in answer.whole_video]
     sheet = viz.contact_sheet(cells, viz.rotation_captions("yaw", frames), columns=min(frames, 6))
     return viz.save_png(sheet, out / "photo_rotation_yaw.png")

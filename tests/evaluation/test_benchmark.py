@@ -7,7 +7,7 @@ import pytest
 
 from difareli.evaluation import tables
 from difareli.evaluation.baselines import Identity, Oracle
-from difareli.evaluation.benchmark import run_benchmark
+from difareli.evaluation.benchmark import Scoring, run_benchmark
 from difareli.evaluation.pairs import StoredFace, load_pairs
 from difareli.data.store import EncodingStore
 
@@ -54,12 +54,13 @@ def test_a_method_that_reads_a_shadow_map_is_given_the_light_sources_key_sun(sto
         np.testing.assert_array_equal(got, want)
     assert "cast shadows" in res.provenance["target sun"]
     seen.clear()
-    run_benchmark(store, Marching("marching"), ["different_subject"], tmp_path / "b", target_sun="peak", **kw)
+    peak = Scoring.of(store, target_sun="peak")
+    run_benchmark(store, Marching("marching"), ["different_subject"], tmp_path / "b", scoring=peak, **kw)
     assert seen == [None, None]
     with pytest.raises(UserError, match="target_sun"):  # the rows in "a" were marched toward the found suns
-        run_benchmark(store, Marching("marching"), ["different_subject"], tmp_path / "a", target_sun="peak", **kw)
+        run_benchmark(store, Marching("marching"), ["different_subject"], tmp_path / "a", scoring=peak, **kw)
     with pytest.raises(UserError, match="target_sun='sky': use one of shadows, peak"):
-        run_benchmark(store, Marching("marching"), ["different_subject"], tmp_path / "c", target_sun="sky", **kw)
+        Scoring.of(store, target_sun="sky")
 
 
 def test_load_pairs_limit_spreads_over_the_list(store):

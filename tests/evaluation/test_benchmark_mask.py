@@ -12,7 +12,7 @@ import pytest
 
 from difareli import errors
 from difareli.evaluation.baselines import Identity
-from difareli.evaluation.benchmark import SETTINGS, run_benchmark
+from difareli.evaluation.benchmark import SETTINGS, Scoring, run_benchmark
 from difareli.errors import UserError
 from difareli.data.store import EncodingStore
 
@@ -42,7 +42,8 @@ def test_face_mask_gt_equal_to_face_mask_scores_the_same_and_another_mask_differ
     same = _with_gt_mask(synth_store, tmp_path / "same")
     kw = {"limit": 2, "progress": False, "grid_pairs": 0, "save_images": False}
     base = run_benchmark(same, Identity(), SAME, tmp_path / "a", **kw)
-    gt = run_benchmark(same, Identity(), SAME, tmp_path / "b", score_mask="face_mask_gt", **kw)
+    gt = run_benchmark(same, Identity(), SAME, tmp_path / "b", scoring=Scoring.of(same, score_mask="face_mask_gt"),
+                       **kw)
     assert _scores(gt) == _scores(base) and all(r.mse > 1e-4 for r in base.records)
 
     def top_half_off(m):
@@ -51,7 +52,8 @@ def test_face_mask_gt_equal_to_face_mask_scores_the_same_and_another_mask_differ
         return m
 
     other = _with_gt_mask(synth_store, tmp_path / "other", top_half_off)
-    half = run_benchmark(other, Identity(), SAME, tmp_path / "c", score_mask="face_mask_gt", **kw)
+    half = run_benchmark(other, Identity(), SAME, tmp_path / "c", scoring=Scoring.of(other, score_mask="face_mask_gt"),
+                         **kw)
     assert len(half.records) == len(base.records) == 2
     for a, b in zip(sorted(half.records, key=lambda r: r.record_id), sorted(base.records, key=lambda r: r.record_id)):
         assert a.record_id == b.record_id and a.mse != pytest.approx(b.mse, rel=1e-6)
@@ -97,4 +99,5 @@ def test_a_run_recorded_before_the_option_resumes_on_face_mask(synth_store, tmp_
     path.write_text(json.dumps(settings))
     assert len(run_benchmark(store, Identity(), SAME, tmp_path / "old", **kw).records) == 2
     with pytest.raises(UserError, match=r"score_mask: None there, 'face_mask_gt' now"):
-        run_benchmark(store, Identity(), SAME, tmp_path / "old", score_mask="face_mask_gt", **kw)
+        run_benchmark(store, Identity(), SAME, tmp_path / "old", scoring=Scoring.of(store, score_mask="face_mask_gt"),
+                      **kw)

@@ -140,16 +140,16 @@ def test_a_request_is_checked_once_naming_the_key(store, tmp_path):
 
 
 def test_how_a_request_is_relit_is_checked_with_it(store):
-    """The sampler (whole, by its spec), the runtime and the batch size are the request's values, checked by
-    from_config before any work and handed to the relighter as typed values."""
+    """The sampler (whole, by its spec), the runtime and the batch size are the request's values (``how``, a
+    Relighting), checked by from_config before any work and handed to the relighter as typed values."""
     from difareli.diffusion.spec import PRESETS, SamplerSpec
     from difareli.runtime.core import Runtime
 
-    r = Request.from_config(cfg(store=store, **{"target.yaw": 30, "sampler.steps": 7}))
+    r = Request.from_config(cfg(store=store, **{"target.yaw": 30, "sampler.steps": 7})).how
     assert r.sampler == SamplerSpec.preset("default", steps=7) and r.sampler != PRESETS["default"]
     assert r.runtime == Runtime(precision="fp32") and (r.batch_size, r.mean_matching, r.progress) == (4, True, False)
     assert r.checkpoint == "difareli_pp-synth64"
-    assert Request.from_config(cfg(store=store, sampler="null", **{"target.yaw": 30})).sampler is None
+    assert Request.from_config(cfg(store=store, sampler="null", **{"target.yaw": 30})).how.sampler is None
     for override, want in {"sampler.name": ("euler", "unknown sampler 'euler'"),
                            "sampler.steps": (0, "steps must be an integer >= 1"),
                            "runtime.precision": ("fp8", "runtime.precision='fp8' is not one of"),

@@ -31,13 +31,13 @@ from difareli.checkpoints.format import is_folder
 from difareli.data import encodings
 from difareli.data.store import EncodingStore
 from difareli.diffusion.samplers import SAMPLERS
-from difareli.diffusion.spec import DEFAULT_SAMPLER, PRESETS
+from difareli.diffusion.spec import DEFAULT_SAMPLER, PRESETS, SamplerSpec
 from difareli.lighting import sh
 from difareli.lighting.presets import ENVMAPS
+from difareli.runtime.core import Runtime
 from difareli.relight.photo import read_photo
-from difareli.relight.relighter import Relighter
 from difareli.relight.sources import Source
-from difareli.relight.request import Target, relight_targets
+from difareli.relight.request import Relighting, Target, relight_targets
 from difareli.relight.targets import photo_shadow
 from difareli.utils.lru import LRU
 from difareli.utils.viz import png_data_url
@@ -120,13 +120,13 @@ class Service:
         return list(dict.fromkeys(out))[:limit]
 
     def relighter(self, checkpoint: str | None = None, sampler: str = DEFAULT.name, steps: int = DEFAULT.steps):
-        """A cached :class:`~difareli.relight.relighter.Relighter` of an allowed checkpoint, with a sampler and steps
+        """A cached relighter (``Relighting.make_relighter``) of an allowed checkpoint, with a sampler and steps
         :meth:`relight` checked (a one-pass student ignores them)."""
         ckpt = self.allowed_checkpoint(checkpoint)
         key = (ckpt, sampler, steps)
         if key not in self._relighters:
-            rel = Relighter(ckpt, {"name": sampler, "steps": steps}, runtime=self.runtime,
-                            cache_size=self.max_inversions)
+            how = Relighting(ckpt, SamplerSpec(sampler, steps), Runtime.from_config(self.runtime))
+            rel = how.make_relighter(cache_size=self.max_inversions)
             attach(rel.model, self.cancel)
             self.built += 1
             self._relighters[key] = rel
@@ -275,11 +275,8 @@ class Service:
                "error": self._errors[key],
                "warnings": list(dict.fromkeys(str(w.message) for w in caught
                                               if issubclass(w.category, RuntimeWarning)))}
-        if s.source.photo is not None:
-            out["image"] = png_data_url(relit.composite(self.composite.get("mode", "ratio"),
-                                                        self.composite.get("feather", 0.03), images=relit[:1])[0])
-        else:
-            out["image"] = out["crop"]
+        out["image"] = out["crop"] if s.source.photo is None else png_data_url(relit.composite(  # the whole photo
+            self.composite.get("mode", "ratio"), self.composite.get("feather", 0.03), images=relit[:1])[0])
         seconds = dict(relit.seconds)
         seconds["total"] = time.perf_counter() - t_all
         out["seconds"] = {k: round(v, 3) for k, v in seconds.items()}

@@ -16,7 +16,6 @@ from omegaconf import DictConfig
 from difareli import errors
 from difareli.cli import common
 from difareli.relight import batch
-from difareli.relight.relighter import Relighter
 from difareli.relight.request import Answer, Request, respond
 from difareli.utils import viz
 
@@ -28,9 +27,7 @@ COMPARISON_PX = 256
 def run(cfg: DictConfig) -> dict[str, Path]:
     """Relight as configured; returns the paths written."""
     request = Request.from_config(cfg)  # every value of the request checked, before any work
-    relighter = Relighter(request.checkpoint, request.sampler, runtime=request.runtime,
-                          mean_matching=request.mean_matching, batch_size=request.batch_size, progress=request.progress)
-    answer = respond(relighter, request, say)  # its lines said as they arise
+    answer = respond(request.how.make_relighter(), request, say)  # its lines said as they arise
     return write(answer, request)
 
 

@@ -15,8 +15,7 @@ from difareli.data.store import EncodingStore
 from difareli.evaluation import video as vid
 from difareli.jobs.video import VideoRun, angles, rotate_and_measure
 from difareli.lighting import sh
-from difareli.relight.relighter import Relighter
-from difareli.relight.request import MAX_FRAMES, Rotation, check_store, check_target
+from difareli.relight.request import MAX_FRAMES, Relighting, Rotation, check_store, check_target
 from difareli.utils import viz
 from difareli.utils.fileio import staged_outputs, write_json_atomic
 
@@ -25,16 +24,39 @@ OUTPUTS = ("relit.gif", "relit.mp4", "relit.png", "contact_sheet.png", "ground_t
            "side_by_side.gif", "side_by_side.mp4", "frames.csv", "temporal.png", "summary.json")
 
 
+def validate(cfg: DictConfig) -> tuple[EncodingStore, bool, Relighting]:
+    """Config values and input files, checked before any work: the outputs, the rotation, the target, the store and
+    its record (as a relight request checks them), the oracles (they need the ground truth), the sampler, runtime
+    and batch size (the relighter reads the checkpoint first, then takes these). The store, open, whether its
+    ground truth is rendered, and how it is relit."""
+    common.check_relighting(cfg)  # the sampler said by key
+    how = Relighting.from_config(cfg)
+    viz.video_format(cfg.format)
+    errors.check_out_dir(cfg.out_dir)
+    errors.check_int(cfg.fps, "fps", 1)
+    errors.check_choice(cfg.rotation.axis, "rotation.axis", sh.AXES)
+    check_target(cfg.target)  # its sun and shadow strength, as a relight request's
+    errors.check_int(cfg.rotation.frames, "rotation.frames", 2, maximum=MAX_FRAMES)
+    errors.check_int(cfg.sheet_columns, "sheet_columns", 1)
+    if cfg.rotation.envmap is not None:
+        errors.check_file(cfg.rotation.envmap, "rotation.envmap")
+    store = check_store(cfg.store, cfg.get("versions"), record=cfg.record)
+    with_gt = errors.check_bool(cfg.ground_truth, "ground_truth") and store.store_meta.get("generator") == "synthfaces"
+    for key in ("oracle_shadow", "oracle_maps"):
+        if errors.check_bool(cfg.get(key), key) and not with_gt:
+            raise errors.UserError(f"{key}=true needs the SynthFaces ground truth (a SynthFaces store and "
+                                   f"ground_truth=true); set {key}=false")
+    return store, with_gt, how
+
+
 def run(cfg: DictConfig) -> dict[str, Path]:
     """Relight, render the ground truth, measure and write; returns the paths written."""
-    store, with_gt = validate(cfg)
-    relighter = Relighter(cfg.checkpoint, cfg.sampler, runtime=cfg.runtime, mean_matching=cfg.mean_matching,
-                          batch_size=cfg.batch_size, progress=cfg.progress)
+    store, with_gt, how = validate(cfg)
     rotation = Rotation(cfg.rotation.axis, int(cfg.rotation.frames), cfg.rotation.envmap, cfg.target.shadow,
                         "peak" if cfg.oracle_maps else cfg.target.sun, cfg.shadow_split)
-    video = rotate_and_measure(relighter, store, cfg.record or (store.ids(split="test") or store.ids())[0], rotation,
-                               ground_truth=with_gt, oracle_shadow=bool(cfg.oracle_shadow),
-                               oracle_maps=bool(cfg.oracle_maps))
+    record = cfg.record or (store.ids(split="test") or store.ids())[0]
+    video = rotate_and_measure(how.make_relighter(), store, record, rotation, ground_truth=with_gt,
+                               oracle_shadow=bool(cfg.oracle_shadow), oracle_maps=bool(cfg.oracle_maps))
     sun_note = None if video.notes["maps"] is None else f"target shadow maps {video.notes['maps']}"
     print(f"{video.record}: {video.what}; {video.notes['shadow']}" + (f"; {sun_note}" if sun_note else ""))
     seconds = sum(video.relit.seconds.values())
@@ -74,31 +96,6 @@ def write(cfg: DictConfig, video: VideoRun, rotation: Rotation, summary: dict) -
                 f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in video.report.summary().items()))
         written["summary"] = write_json_atomic(out / "summary.json", summary)
     return {k: Path(cfg.out_dir) / Path(v).name for k, v in written.items()}
-
-
-def validate(cfg: DictConfig) -> tuple[EncodingStore, bool]:
-    """Config values and input files, checked before any work: the outputs, the rotation, the target, the store and
-    its record (as a relight request checks them), the oracles (they need the ground truth), the sampler, runtime
-    and batch size (the relighter reads the checkpoint first, then takes these). The store, open, and whether its
-    ground truth is rendered."""
-    common.check_relighting(cfg)
-    errors.check_int(cfg.batch_size, "batch_size", 1)
-    viz.video_format(cfg.format)
-    errors.check_out_dir(cfg.out_dir)
-    errors.check_int(cfg.fps, "fps", 1)
-    errors.check_choice(cfg.rotation.axis, "rotation.axis", sh.AXES)
-    check_target(cfg.target)  # its sun and shadow strength, as a relight request's
-    errors.check_int(cfg.rotation.frames, "rotation.frames", 2, maximum=MAX_FRAMES)
-    errors.check_int(cfg.sheet_columns, "sheet_columns", 1)
-    if cfg.rotation.envmap is not None:
-        errors.check_file(cfg.rotation.envmap, "rotation.envmap")
-    store = check_store(cfg.store, cfg.get("versions"), record=cfg.record)
-    with_gt = errors.check_bool(cfg.ground_truth, "ground_truth") and store.store_meta.get("generator") == "synthfaces"
-    for key in ("oracle_shadow", "oracle_maps"):
-        if errors.check_bool(cfg.get(key), key) and not with_gt:
-            raise errors.UserError(f"{key}=true needs the SynthFaces ground truth (a SynthFaces store and "
-                                   f"ground_truth=true); set {key}=false")
-    return store, with_gt
 
 
 @hydra.main(version_base="1.3", config_path=common.CONFIG_PATH, config_name="video")

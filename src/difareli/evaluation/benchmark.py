@@ -116,13 +116,6 @@ def _read_png(path: Path) -> np.ndarray:
     return np.asarray(iio.imread(path))[..., :3]
 
 
-def _append_row(out_dir: Path, r: tables.Record, extra: Sequence[str] = ()) -> None:
-    """Append one scored row with the run's ``extra`` columns (whole or not at all: a full disk leaves the rows
-    before it intact)."""
-    header = tables.header(extra)
-    append_csv_row(out_dir / PARTIAL_CSV, header, dict(zip(header, tables.record_row(r, extra=extra))))
-
-
 def score(pred: np.ndarray, target: np.ndarray, face_mask: np.ndarray, rule: str | None = None,
           scorer=None) -> dict[str, float]:
     """DSSIM / MSE / LPIPS of one uint8 image against the ground truth on the mask under ``rule``; through
@@ -173,16 +166,15 @@ def run_benchmark(store: EncodingStore, method: Method, protocols: Sequence[str]
                   limit: int | None = None, oracle_light: bool = False, oracle_shadow: bool = False,
                   estimator: LightFit | None = None,
                   grid_pairs: int = 4, save_images: bool = True, progress: bool = True,
-                  shard: str | None = None, rule: str | None = None, score_mask: str | None = None,
-                  target_sun: str = "shadows", scoring: Scoring | None = None) -> BenchmarkResult:
+                  shard: str | None = None, scoring: Scoring | None = None) -> BenchmarkResult:
     """Relight and score every pair of ``protocols`` (module doc) and write the run's outputs into ``out_dir``, scored
-    as ``scoring`` says (:class:`Scoring`; None: made of ``rule``, ``score_mask`` and ``target_sun``, or their
-    defaults). ``shard="i/n"`` scores only that shard's pairs (by pair id, after ``limit``): the n shards' rows are
+    as ``scoring`` says (:class:`Scoring`, checked at the door; None: its defaults). ``shard="i/n"`` scores only that
+    shard's pairs (by pair id, after ``limit``): the n shards' rows are
     the unsharded run's (``difareli-table`` merges them). ``out_dir`` is locked for the run, and :data:`SETTINGS`
     records what scores its rows (:func:`run_settings`): a resumed run with other settings is refused, naming what
     differs, instead of keeping another checkpoint's rows."""
     out_dir = Path(out_dir)
-    scoring = scoring or Scoring.of(store, rule, score_mask, target_sun)
+    scoring = scoring or Scoring.of(store)
     if hasattr(method, "check_store"):  # a model that cannot read the store: one line, not a failed row per pair
         method.check_store(store)
     with folder_lock(out_dir, "benchmark"), on_full_disk(out_dir, scratch=[out_dir], fix=RESUME):
@@ -343,9 +335,9 @@ def _relight_and_score(run: _Run, pair: Pair, source: StoredFace, target: Stored
                        shadow: float | None, scorer, batched: tuple[np.ndarray, float] | None = None
                        ) -> tuple[tables.Record, np.ndarray | None]:
     """One pair relit by the method and scored: its row and relit image, or (a bad pair) its failed row and None.
-    The source is read whole and checked here, once: the method takes its encodings from it; the target light and
-    shadow are checked by the method's relight (a model's ``Targets``). ``batched``: its relit image and seconds,
-    made in a batch (:class:`~difareli.evaluation.batched.BatchedRelights`), checked and scored as the method's."""
+    Its source is read whole and checked once: here (the method takes its encodings from it), or for ``batched``
+    (its relit image and seconds, made in a batch) by :class:`~difareli.evaluation.batched.BatchedRelights`; the
+    target light and shadow are checked by the method's relight (a model's ``Targets``)."""
     name, short = run.method.name, PROTOCOLS[pair.protocol]
     rule, mask = run.scoring.rule, run.scoring.score_mask
     gt = target.read(["image", mask])
@@ -354,8 +346,8 @@ def _relight_and_score(run: _Run, pair: Pair, source: StoredFace, target: Stored
     # a record whose file is corrupt. Other user errors (a missing record or encoding, an image too small
     # to score, a method's wrong output) hold for every pair: they stop the run with their message.
     try:
-        errors.check_record(source.read(), pair.source, run.store.root)
         if batched is None:
+            errors.check_record(source.read(), pair.source, run.store.root)
             relit = run.method.relight(source, light, shadow, target=target, target_sun=run.lights.sun(pair))
             seconds = time.perf_counter() - start
         else:
@@ -376,10 +368,12 @@ def _relight_and_score(run: _Run, pair: Pair, source: StoredFace, target: Stored
 
 
 def _keep(run: _Run, rec: tables.Record, relit: np.ndarray | None, png: Path) -> None:
-    """A newly scored pair's relit PNG (if the run saves images), then its row in the partial CSV."""
+    """A newly scored pair's relit PNG (if the run saves images), then its row with the run's extra columns in the
+    partial CSV (whole or not at all: a full disk leaves the rows before it intact)."""
     if relit is not None and run.save_images:
         viz.save_png(relit, png)
-    _append_row(run.out_dir, rec, run.columns)  # after the image: a resumed run finds both
+    header = tables.header(run.columns)  # the row after the image: a resumed run finds both
+    append_csv_row(run.out_dir / PARTIAL_CSV, header, dict(zip(header, tables.record_row(rec, extra=run.columns))))
 
 
 def write_outputs(result: BenchmarkResult, out_dir: Path, caption: str | None = None) -> dict[str, Path]:

@@ -57,7 +57,7 @@ class Relighter(Sources):
         from difareli.checkpoints.loading import LoadedCheckpoint, load_checkpoint  # Lightning: when one is loaded
 
         # The checkpoint first: a command's values (sampler, runtime, batch size) were checked before any work by its
-        # config (Request.from_config, cli.common.check_relighting); the conversions and checks here serve a caller
+        # config (Relighting.from_config, cli.common.check_relighting); the conversions and checks here serve a caller
         # that passes mappings.
         ckpt = checkpoint if isinstance(checkpoint, LoadedCheckpoint) else load_checkpoint(checkpoint)
         rt = runtime if isinstance(runtime, Runtime) else Runtime.from_config(runtime)

@@ -174,10 +174,36 @@ def rotation_video(relighter: Relighter, source: Source, rotation: Rotation, sto
 
 
 @dataclass(frozen=True)
+class Relighting:
+    """How a request is relit: the relighter's arguments, typed (``sampler`` None: the model's default); the door
+    through which the relight and video commands and the app get their relighter."""
+
+    checkpoint: Any = None
+    sampler: SamplerSpec | None = None
+    runtime: Runtime = field(default_factory=Runtime)
+    mean_matching: bool = True
+    batch_size: int = 16
+    progress: bool = False
+
+    @classmethod
+    def from_config(cls, cfg: Mapping[str, Any]) -> "Relighting":
+        """A command config's ``checkpoint`` (read by :meth:`make_relighter`, the first work), ``sampler``, ``runtime``,
+        ``mean_matching``, ``batch_size`` and ``progress``, each checked."""
+        return cls(cfg["checkpoint"], None if cfg["sampler"] is None else SamplerSpec.from_config(cfg["sampler"]),
+                   Runtime.from_config(cfg["runtime"]), bool(cfg["mean_matching"]),
+                   errors.check_int(cfg["batch_size"], "batch_size", 1), bool(cfg["progress"]))
+
+    def make_relighter(self, cache_size: int | None = None) -> Relighter:
+        """The relighter (``cache_size``: its caches bounded to the last sources, for a long-lived caller)."""
+        return Relighter(self.checkpoint, self.sampler, runtime=self.runtime, mean_matching=self.mean_matching,
+                         batch_size=self.batch_size, progress=self.progress, cache_size=cache_size)
+
+
+@dataclass(frozen=True)
 class Request:
     """One relight request (module doc): ``store`` (open and checked: :func:`check_store`) and ``record``, or
     ``image``, is the source; ``video_*`` a 360-degree rotation of its light; ``composite`` puts a photo's relights
-    back; ``checkpoint`` to ``progress`` are the relighter's arguments (``sampler`` None: the model's default)."""
+    back; ``how`` builds its relighter (:class:`Relighting`)."""
 
     store: EncodingStore | None = None
     record: str | None = None
@@ -193,12 +219,7 @@ class Request:
     video_fps: int = 20
     video_format: str = "gif"
     composite: Mapping[str, Any] = field(default_factory=lambda: {"mode": "ratio", "feather": 0.03, "parts": None})
-    checkpoint: Any = None
-    sampler: SamplerSpec | None = None
-    runtime: Runtime = field(default_factory=Runtime)
-    mean_matching: bool = True
-    batch_size: int = 16
-    progress: bool = False
+    how: Relighting = Relighting()
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any]) -> "Request":
@@ -221,7 +242,7 @@ class Request:
         photos = None if image is None else check_photos(image, cfg["face"], v["axis"], t["record"], c,
                                                          cfg["out_dir"])
         fmt = viz.video_format(v["format"], "video.format")
-        errors.check_int(cfg["batch_size"], "batch_size", 1)
+        how = Relighting.from_config(cfg)
         errors.check_out_dir(cfg["out_dir"])
         errors.check_int(v["frames"], "video.frames", 1, maximum=MAX_FRAMES)
         errors.check_int(v["fps"], "video.fps", 1)
@@ -230,11 +251,7 @@ class Request:
                    strict=errors.check_bool(cfg["strict"], "strict"), target=target, video_axis=v["axis"],
                    video_frames=int(v["frames"]), video_fps=int(v["fps"]), video_format=fmt,
                    composite={"mode": c["mode"], "feather": float(c["feather"]),
-                              "parts": list(c["parts"]) if c["parts"] else None},
-                   checkpoint=cfg["checkpoint"],
-                   sampler=None if cfg["sampler"] is None else SamplerSpec.from_config(cfg["sampler"]),
-                   runtime=Runtime.from_config(cfg["runtime"]), mean_matching=bool(cfg["mean_matching"]),
-                   batch_size=int(cfg["batch_size"]), progress=bool(cfg["progress"]))
+                              "parts": list(c["parts"]) if c["parts"] else None}, how=how)
 
 
 #: The longest rotation video a command makes (60 s at 60 fps): anything longer is a typo, and would fill the disk.
@@ -293,7 +310,6 @@ def check_store(root: str, versions: Mapping[str, Any] | None, **records: str | 
             raise errors.UserError(f"{key.replace('_', '.')}={rid}: no such record in the store {root} ({len(store)} "
                                    f"records{', e.g. ' + some if some else ''}); give one of its record ids")
     return store
-
 
 
 @dataclass
