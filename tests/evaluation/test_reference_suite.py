@@ -11,7 +11,7 @@ import pytest
 
 from difareli.evaluation import tables
 from difareli.evaluation.baselines import Identity
-from difareli.evaluation.benchmark import finished_run
+from difareli.evaluation.benchmark import Scoring, finished_run
 from difareli.data.store import EncodingStore
 from difareli.synth.command import synth_command
 from difareli.diffusion import DEFAULT_SAMPLER, PRESETS
@@ -58,7 +58,7 @@ def test_suite_tables_every_model_beside_the_baselines_at_the_default_sampler(ti
     assert kept is not None and {r.record_id for r in kept.records} == {r.record_id for r in records
                                                                           if r.method == "identity"}
     assert finished_run(store, Identity(), protocols, where, limit=3) is None
-    assert finished_run(store, Identity(), protocols, where, limit=2, rule="composite") is None
+    assert finished_run(store, Identity(), protocols, where, limit=2, scoring=Scoring.of(store, "composite")) is None
 
 
 def _suite_module():

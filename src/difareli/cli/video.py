@@ -25,11 +25,10 @@ OUTPUTS = ("relit.gif", "relit.mp4", "relit.png", "contact_sheet.png", "ground_t
 
 
 def validate(cfg: DictConfig) -> tuple[EncodingStore, bool, Relighting]:
-    """Config values and input files, checked before any work: the outputs, the rotation, the target, the store and
-    its record (as a relight request checks them), the oracles (they need the ground truth), the sampler, runtime
-    and batch size (the relighter reads the checkpoint first, then takes these). The store, open, whether its
-    ground truth is rendered, and how it is relit."""
-    common.check_relighting(cfg)  # the sampler said by key
+    """Config values and input files, checked before any work: how it is relit, the outputs, the rotation, the
+    target, the store and its record (as a relight request checks them), the oracles (they need the ground truth).
+    The store, open, whether its ground truth is rendered, and how it is relit (a Relighting)."""
+    common.check_relighting(cfg)  # the sampler said by key, before Relighting.from_config takes it whole
     how = Relighting.from_config(cfg)
     viz.video_format(cfg.format)
     errors.check_out_dir(cfg.out_dir)

@@ -37,16 +37,13 @@ import torch
 from tqdm.auto import tqdm
 
 from difareli import errors
-from difareli.evaluation import metrics
-from difareli.evaluation import tables
+from difareli.data import encodings, provenance, shard as sharding
+from difareli.evaluation import metrics, tables
 from difareli.evaluation.extras import PairExtras
 from difareli.utils import viz
-from difareli.data import shard as sharding
-from difareli.data import provenance
 from difareli.evaluation.baselines import Method
 from difareli.evaluation.batched import BatchedRelights
 from difareli.lighting.light_fit import LightFit
-from difareli.data import encodings
 from difareli.utils.fileio import (RESUME, append_csv_row, atomic_path, folder_lock, on_full_disk,
                                    read_json_mapping, write_json_atomic, write_text_atomic)
 from difareli.data.store import CorruptRecordError, EncodingStore
@@ -192,15 +189,14 @@ def run_benchmark(store: EncodingStore, method: Method, protocols: Sequence[str]
 
 def finished_run(store: EncodingStore, method: Method, protocols: Sequence[str], out_dir: str | Path, *,
                  limit: int | None = None, oracle_light: bool = False, oracle_shadow: bool = False,
-                 rule: str | None = None, score_mask: str | None = None,
-                 target_sun: str = "shadows") -> BenchmarkResult | None:
-    """The completed run in ``out_dir`` when it was made with exactly these settings (its scored rows and what it
-    states about its inputs), else None: what a whole suite rerun reuses instead of relighting again. A killed run
-    (rows still partial) is not finished: :func:`run_benchmark` resumes it."""
+                 scoring: Scoring | None = None) -> BenchmarkResult | None:
+    """The completed run in ``out_dir`` when it was made with exactly these settings (``scoring`` as in
+    :func:`run_benchmark`; its scored rows and what it states about its inputs), else None: what a whole suite
+    rerun reuses instead of relighting again. A killed run (rows still partial) is not finished: it is resumed."""
     out_dir = Path(out_dir)
     if not (out_dir / tables.PER_IMAGE_CSV).is_file() or (out_dir / PARTIAL_CSV).is_file():
         return None
-    want = run_settings(store, method, protocols, Scoring.of(store, rule, score_mask, target_sun), limit=limit,
+    want = run_settings(store, method, protocols, scoring or Scoring.of(store), limit=limit,
                         oracle_light=oracle_light, oracle_shadow=oracle_shadow, shard=None)
     if provenance.differences(_recorded(out_dir), provenance.plain(want)):
         return None

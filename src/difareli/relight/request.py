@@ -223,9 +223,9 @@ class Request:
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any]) -> "Request":
-        """The request of a relight command's config, each value checked once, before any work (the checkpoint is
-        read by the relighter, the first work): the source (:func:`check_store`, :func:`check_photos`), the target
-        (:func:`check_target`) or a video, how it is relit and where the answer goes."""
+        """The request of a relight command's config, each value checked once, before any work: the source
+        (:func:`check_store`, :func:`check_photos`), the target (:func:`check_target`) or a video, how it is relit
+        (:meth:`Relighting.from_config`) and where the answer goes."""
         t, c, v, image = cfg["target"], cfg["composite"], cfg["video"], cfg["image"]
         if (image is None) == (cfg["store"] is None):
             raise errors.UserError("give the source as either store=<encodings store> (and record=) or "
@@ -244,12 +244,11 @@ class Request:
         fmt = viz.video_format(v["format"], "video.format")
         how = Relighting.from_config(cfg)
         errors.check_out_dir(cfg["out_dir"])
-        errors.check_int(v["frames"], "video.frames", 1, maximum=MAX_FRAMES)
-        errors.check_int(v["fps"], "video.fps", 1)
         return cls(store=store, record=cfg["record"], image=image, photos=photos,
                    out_dir=str(cfg["out_dir"]), face=cfg["face"], photo_size=cfg["photo_size"],
-                   strict=errors.check_bool(cfg["strict"], "strict"), target=target, video_axis=v["axis"],
-                   video_frames=int(v["frames"]), video_fps=int(v["fps"]), video_format=fmt,
+                   video_frames=errors.check_int(v["frames"], "video.frames", 1, maximum=MAX_FRAMES),
+                   video_fps=errors.check_int(v["fps"], "video.fps", 1), video_format=fmt, video_axis=v["axis"],
+                   strict=errors.check_bool(cfg["strict"], "strict"), target=target,
                    composite={"mode": c["mode"], "feather": float(c["feather"]),
                               "parts": list(c["parts"]) if c["parts"] else None}, how=how)
 

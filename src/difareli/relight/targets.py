@@ -239,7 +239,6 @@ def photo_shadow(own: float | None) -> tuple[float, str]:
                      f"{'unknown' if own is None else f'{own:.3f}'} is weaker; give target.shadow to change it)")
 
 
-
 def typical_shadowed_c(shadows) -> float | None:
     """The median c of the records whose cast shadows remove at least ``SHADOWED_SHARE`` of the light."""
     c = np.asarray(shadows, dtype=np.float64).reshape(-1)
