@@ -26,6 +26,7 @@ import dataclasses
 import time
 from collections import Counter
 from pathlib import Path
+from typing import Sequence
 
 from difareli.evaluation import paired, tables
 from difareli.checkpoints import zoo
@@ -48,6 +49,9 @@ def main() -> None:
     ap.add_argument("--pool", action="store_true",
                     help="first a table of every store's pairs pooled (record ids prefixed with the store's name), "
                          "then each store's own table: several fresh seeds judged together and one by one")
+    ap.add_argument("--paired-metrics", nargs="+", default=list(tables.METRICS),
+                    help="the columns the paired comparisons test (default: DSSIM, MSE, LPIPS; e.g. add "
+                         "light_angle_gt light_angle)")
     ap.add_argument("--guidance", type=float, default=None,
                     help="the models' light guidance (sampler.guidance; default: the default sampler's)")
     ap.add_argument("--ship", action="store_true", help="also write src/difareli/checkpoints/suite.md")
@@ -64,12 +68,13 @@ def main() -> None:
     pooled: list[tables.Record] = []
     labels: dict[str, str] = {}
     sections = [section(store, a.models or zoo.available(), a.pairs, out / Path(store).name, claims,
-                        pooled if a.pool else None, a.guidance, labels)
+                        pooled if a.pool else None, a.guidance, labels, a.paired_metrics)
                 for store in a.store]
     if a.pool:
-        sections.insert(0, pooled_section(a.store, pooled, out, labels))
+        sections.insert(0, pooled_section(a.store, pooled, out, labels, a.paired_metrics))
+    extra = ("" if a.paired_metrics == list(tables.METRICS) else f" --paired-metrics {' '.join(a.paired_metrics)}")
     command = (f"python scripts/reference_suite.py{' --pool' if a.pool else ''} --store {' '.join(a.store)} "
-               f"--pairs {a.pairs} --out <folder>{' --models ' + ' '.join(a.models) if a.models else ''}")
+               f"--pairs {a.pairs} --out <folder>{' --models ' + ' '.join(a.models) if a.models else ''}{extra}")
     text = "\n".join([*sections, *([a.note, ""] if a.note else []), "Reproduce:", "", "```bash", *store_cmd, command,
                       "```", ""])
     if a.cards:
@@ -84,7 +89,7 @@ def main() -> None:
 
 def section(store: str, models: list[str], pairs: int, out: Path, claims: dict[str, list[str]] | None = None,
             pooled: list[tables.Record] | None = None, guidance: float | None = None,
-            labels: dict[str, str] | None = None) -> str:
+            labels: dict[str, str] | None = None, metrics: Sequence[str] = tables.METRICS) -> str:
     """Every model (and identity, Lambertian, run once) on ``store``; the table and what it measured. ``claims``
     gets, per shipped name, the sentence of its paired comparisons on this store (:func:`model_claims`);
     ``pooled`` gets the store's rows with their record ids prefixed by the store's name; ``labels`` each row's
@@ -117,7 +122,8 @@ def section(store: str, models: list[str], pairs: int, out: Path, claims: dict[s
     return "\n".join([
         f"**{store}**: {' and '.join(map(str, counts))} pairs per protocol (a seed no shipped model trained on), "
         "target lights fitted to the target images and c estimated (no oracle inputs), every model at its defaults."
-        + rows_sentence(names), "", table.to_markdown(), "", comparisons(records, table.methods, out / "paired.csv")])
+        + rows_sentence(names), "", table.to_markdown(), "", comparisons(records, table.methods, out / "paired.csv",
+                                                                 metrics=metrics)])
 
 
 def rows_sentence(labels: dict[str, str] | None) -> str:
@@ -127,7 +133,7 @@ def rows_sentence(labels: dict[str, str] | None) -> str:
 
 
 def pooled_section(stores: list[str], records: list[tables.Record], out: Path,
-                   labels: dict[str, str] | None = None) -> str:
+                   labels: dict[str, str] | None = None, metrics: Sequence[str] = tables.METRICS) -> str:
     """The pairs of every store in one table and one set of paired comparisons (a pair is its store and record);
     ``labels``: each row's label and what it is (the Rows sentence a reader, and the demo's verdict, looks up)."""
     table = tables.summarize(records)
@@ -139,7 +145,7 @@ def pooled_section(stores: list[str], records: list[tables.Record], out: Path,
         f"**Pooled: {', '.join(stores)}** ({per} pairs in all; each store a seed no shipped model trained on), "
         "target lights fitted to the target images and c estimated, every model at its defaults."
         + rows_sentence(labels), "",
-        table.to_markdown(), "", comparisons(records, table.methods, out / "pooled_paired.csv")])
+        table.to_markdown(), "", comparisons(records, table.methods, out / "pooled_paired.csv", metrics=metrics)])
 
 
 #: The strata the suite breaks its table down by, with their headings.
@@ -148,10 +154,10 @@ BREAKDOWNS = {"light_category": "the target light's category",
 
 
 def comparisons(records: list[tables.Record], methods: list[str], csv_path: Path | None = None,
-                n_boot: int = paired.N_BOOT, seed: int = 0) -> str:
+                n_boot: int = paired.N_BOOT, seed: int = 0, metrics: Sequence[str] = tables.METRICS) -> str:
     """Paired differences of every two ``methods`` on the pairs both scored (DSSIM, MSE, LPIPS), with the sentence
     naming the significant orderings, then the summary broken down by each of :data:`BREAKDOWNS`."""
-    rows, notes = paired.compare(records, tables.METRICS, n_boot=n_boot, seed=seed, strict=False, methods=methods)
+    rows, notes = paired.compare(records, metrics, n_boot=n_boot, seed=seed, strict=False, methods=methods)
     if csv_path is not None:
         write_text_atomic(csv_path, paired.to_csv(rows))
     out = ["Paired differences, every two rows on the same pairs:", "", paired.to_markdown(rows, notes, n_boot, seed)]
