@@ -37,9 +37,9 @@ def run(cfg: DictConfig) -> BenchmarkResult:
     # The rule, the score mask and the target sun, checked once, before the method (and its checkpoint) is built.
     scoring = Scoring.of(store, OmegaConf.select(cfg, "metrics.rule", default=None), cfg.get("score_mask"),
                          cfg.get("target_sun", "shadows"))
+    estimator = light_fit_from_config(OmegaConf.to_container(cfg.light_fit, resolve=True))
     if cfg.get("rescore"):  # the saved relit images of a finished run, scored again under `rule`
-        result = rescore(store, cfg.rescore, cfg.out_dir, scoring.rule, score_mask=scoring.score_mask,
-                         estimator=light_fit_from_config(OmegaConf.to_container(cfg.light_fit, resolve=True)))
+        result = rescore(store, cfg.rescore, cfg.out_dir, scoring, estimator)
         print(result.paths["summary_md"].read_text())
         return result
     try:
@@ -48,7 +48,6 @@ def run(cfg: DictConfig) -> BenchmarkResult:
         raise errors.UserError(f"shard={cfg.get('shard')!r}: {e}") from None
     if cfg.num_threads:
         torch.set_num_threads(int(cfg.num_threads))
-    estimator = light_fit_from_config(OmegaConf.to_container(cfg.light_fit, resolve=True))
     method = build_method(OmegaConf.to_container(cfg.method, resolve=True),
                           sampler=OmegaConf.to_container(cfg.sampler, resolve=True),
                           runtime=OmegaConf.to_container(cfg.runtime, resolve=True),

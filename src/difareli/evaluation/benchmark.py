@@ -355,10 +355,10 @@ def _relight_and_score(run: _Run, pair: Pair, source: StoredFace, target: Stored
         errors.check_finite(list(s.values()), f"scores of pair {pair.id} (is its {mask} empty?)")
     except (errors.NonFiniteError, CorruptRecordError) as e:
         print(f"FAILED {pair.protocol} {pair.id}: {e}", file=sys.stderr)
-        ex, info = run.extras.empty(pair.target)
+        ex, info = run.extras.empty(target)
         return tables.Record(name, short, pair.id, math.nan, math.nan, math.nan, time.perf_counter() - start,
                              status="failed", rule=rule, extra=ex, info=info), None
-    ex, info = run.extras(relit, pair.source, pair.target, light)
+    ex, info = run.extras(relit, source, target, light)
     return tables.Record(name, short, pair.id, s["dssim"], s["mse"], s["lpips"], seconds, rule=rule,
                          extra=ex, info=info), relit
 

@@ -67,36 +67,36 @@ class PairExtras:
             out["identity"] = "cosine of dlib's 128-d descriptor, each face upsampled to a 150 px aligned chip"
         return out
 
-    def info(self, target: str, face: np.ndarray | None = None) -> dict[str, str]:
-        """The strata of a pair whose ground truth is ``target`` (``face``: its scored region, read if None)."""
+    def info(self, target, face: np.ndarray | None = None) -> dict[str, str]:
+        """The strata of a pair whose ground truth is ``target`` (a :class:`~.pairs.StoredFace`; ``face``: its
+        scored region, read if None)."""
         out = {}
         if self.category:
-            out["light_category"] = str(self.store.meta(target).get("category", ""))
+            out["light_category"] = str(self.store.meta(target.id).get("category", ""))
         if self.shadow_key:
-            a = self.store.read(target, [self.score_mask, self.shadow_key])
+            a = target.read([self.score_mask, self.shadow_key])
             face = a[self.score_mask] if face is None else face
             out["shadow_share"] = repr(adherence.shadow_share(face, np.asarray(a[self.shadow_key]) > 0))
         return out
 
-    def empty(self, target: str) -> tuple[dict[str, float], dict[str, str]]:
+    def empty(self, target) -> tuple[dict[str, float], dict[str, str]]:
         """NaN scores (a failed relight) with the pair's strata."""
         return {k: math.nan for k in self.metrics()}, self.info(target)
 
-    def __call__(self, relit: np.ndarray, source: str, target: str, light: Any) -> tuple[dict, dict]:
+    def __call__(self, relit: np.ndarray, source, target, light: Any) -> tuple[dict, dict]:
         """(extra scores, strata) of ``relit`` (uint8 HxWx3): ``source`` relit toward ``light``, ground truth
-        ``target``."""
+        ``target`` (each a :class:`~.pairs.StoredFace`: what the benchmark read of them is not read again)."""
         out: dict[str, float] = {}
-        gt = self.store.read(target, ["image", self.score_mask])
+        gt = target.read(["image", self.score_mask])
         face = np.asarray(gt[self.score_mask], bool)
         if self.identity:
-            src = self.store.read(source, ["image", "face_mask"])
-            tgt_face = self.store.read(target, ["face_mask"])["face_mask"]
+            src = source.read(["image", "face_mask"])
+            tgt_face = target.read(["face_mask"])["face_mask"]
             sims = ident.similarities(relit, src["face_mask"], {"input": (src["image"], src["face_mask"]),
                                                                 "gt": (gt["image"], tgt_face)})
             out.update(identity_input=sims["input"], identity_gt=sims["gt"])
         if self.light:
-            names = [n for n in LightFit.ENCODINGS if n != "image" and self.store.available(n)]
-            geometry = self.store.read(source, names)
+            geometry = source.read([n for n in LightFit.ENCODINGS if n != "image" and self.store.available(n)])
             try:
                 fitted = adherence.relit_light(relit, geometry, self.fit)
                 angle, rel = adherence.light_error(fitted, light)
@@ -105,7 +105,7 @@ class PairExtras:
                 angle, rel, vs_gt = math.nan, math.nan, math.nan
             out.update(light_angle=angle, light_rel_error=rel, light_angle_gt=vs_gt)
         if self.shadow_key:
-            m = np.asarray(self.store.read(target, [self.shadow_key])[self.shadow_key]) > 0
+            m = np.asarray(target.read([self.shadow_key])[self.shadow_key]) > 0
             out.update(adherence.shadow_scores(relit, gt["image"], face, m, min_share=self.min_share,
                                                rel=self.detect_rel))
         return out, self.info(target, face)

@@ -18,30 +18,27 @@ from difareli.data import shard as sharding
 from difareli.data.store import EncodingStore
 from difareli.evaluation import metrics, tables
 from difareli.data.protocols import PROTOCOLS
-from difareli.evaluation.benchmark import (SETTINGS, BenchmarkResult, _recorded, check_score_mask, score,
-                                           write_outputs)
-from difareli.evaluation.pairs import Lights, load_pairs
+from difareli.evaluation.benchmark import SETTINGS, BenchmarkResult, Scoring, score, write_outputs
+from difareli.evaluation.pairs import Lights, StoredFace, load_pairs
 from difareli.evaluation.extras import PairExtras
 from difareli.lighting.light_fit import LightFit
 from difareli.utils.fileio import on_full_disk, write_json_atomic
 
 
-def rescore(store: EncodingStore, run_dir: str | Path, out_dir: str | Path, rule: str | None = None,
-            score_mask: str | None = None, estimator: LightFit | None = None) -> BenchmarkResult:
-    """Score the relit PNGs a finished run saved (``relit/<protocol>/<pair id>.png``) again under ``rule`` on
-    ``score_mask``, into ``out_dir``: the same images, another metric rule or mask (seconds and failed rows are
-    kept from the run). The store must be the run's (its recorded identity), and the run's CSV must hold each of
-    its pairs exactly once; the lighting error refits the target light with ``estimator`` (default LightFit)."""
-    run_dir, rule = Path(run_dir), metrics.check_rule(rule)
-    score_mask = check_score_mask(store, score_mask)
-    recorded = {name: _run_json(run_dir, name) for name in (SETTINGS, "provenance.json")}  # each readable or absent
-    settings = _recorded(run_dir)
-    _check_same_store(store, run_dir, settings)
+def rescore(store: EncodingStore, run_dir: str | Path, out_dir: str | Path, scoring: Scoring,
+            estimator: LightFit | None = None) -> BenchmarkResult:
+    """Score the relit PNGs a finished run saved (``relit/<protocol>/<pair id>.png``) again as ``scoring`` says (the
+    benchmark's :class:`~.benchmark.Scoring`, checked at the door), into ``out_dir``: the same images, another metric
+    rule or mask (seconds and failed rows are kept from the run). The store must be the run's (its recorded
+    identity), and the run's CSV must hold each of its pairs exactly once; the lighting error refits the target light
+    with ``estimator`` (default LightFit). Each file of the run is read once."""
+    run_dir, rule, score_mask = Path(run_dir), scoring.rule, scoring.score_mask
+    settings, stated = (_run_json(run_dir, name) for name in (SETTINGS, "provenance.json"))  # each readable or absent
+    _check_same_store(store, run_dir, settings, stated)
     rows = tables.read_records(run_dir / tables.PER_IMAGE_CSV)
     _check_rows(store, run_dir, rows, settings)
     pairs = {(PROTOCOLS[p.protocol], p.id): p for v in load_pairs(store, list(PROTOCOLS)).values() for p in v}
-    result = BenchmarkResult(records=[], provenance={**recorded["provenance.json"],
-                                                     "metrics rule": rule, "score mask": score_mask,
+    result = BenchmarkResult(records=[], provenance={**stated, "metrics rule": rule, "score mask": score_mask,
                                                      "rescored from": str(run_dir)})
     extras = PairExtras(store, score_mask, fit=estimator)
     result.provenance.update(extras.provenance())
@@ -51,18 +48,19 @@ def rescore(store: EncodingStore, run_dir: str | Path, out_dir: str | Path, rule
     scorers = {short: metrics.relight_metrics(rule) for short in PROTOCOLS.values()}
     for r in rows:
         pair = pairs.get((r.protocol, r.record_id))
+        source, target = (StoredFace(store, pair.source), StoredFace(store, pair.target)) if pair else (None, None)
         if r.status != "ok":
-            ex, info = extras.empty(pair.target) if pair else ({}, {})
+            ex, info = extras.empty(target) if pair else ({}, {})
             result.records.append(dataclasses.replace(r, rule=rule, extra=ex, info=info))
             continue
         png = run_dir / "relit" / (pair.protocol if pair else "?") / f"{r.record_id}.png"
         if pair is None or not png.is_file():
             raise errors.UserError(f"rescore={run_dir}: no relit image {png} for {r.protocol} pair {r.record_id} "
                                    "(was the run made with save_images=true on this store?); rerun the benchmark")
-        gt = store.read(pair.target, ["image", score_mask])
+        gt = target.read(["image", score_mask])
         relit = _relit_png(png, run_dir, np.shape(gt["image"])[:2])
         s = score(relit, gt["image"], gt[score_mask], rule, scorers[r.protocol])
-        ex, info = extras(relit, pair.source, pair.target, lights.get(pair.target if oracle else pair.light_source))
+        ex, info = extras(relit, source, target, lights.get(pair.target if oracle else pair.light_source))
         result.records.append(dataclasses.replace(r, dssim=s["dssim"], mse=s["mse"], lpips=s["lpips"], rule=rule,
                                                   extra=ex, info=info))
     result.metric_stats = {p: {k: m.stat() for k, m in sc.items()} for p, sc in scorers.items()}
@@ -114,15 +112,16 @@ def _relit_png(png: Path, run_dir: Path, size: tuple[int, ...]) -> np.ndarray:
     return relit[..., :3]
 
 
-def _check_same_store(store: EncodingStore, run_dir: Path, settings: dict) -> None:
+def _check_same_store(store: EncodingStore, run_dir: Path, settings: dict, stated: dict) -> None:
     """A rescore reads the ground truths of the store the run was scored on, or nothing: the same record ids in
-    another store would score the saved images against other ground truths."""
+    another store would score the saved images against other ground truths (``settings`` and ``stated``: the run's
+    :data:`~.benchmark.SETTINGS` and provenance.json)."""
     have, now = settings.get("store"), provenance.store_identity(store)
     if have is None:
         raise errors.UserError(f"rescore={run_dir}: the run records no store identity ({SETTINGS} missing or "
                                "without 'store'), so nothing says its images belong to this store; rerun the benchmark")
     if have != now:
-        where = _run_json(run_dir, "provenance.json").get("store")
+        where = stated.get("store")
         raise errors.UserError(f"rescore={run_dir}: the run was scored on store {where or have}, store={store.root} "
                                f"is another one ({now}); rescore against the run's own store")
 

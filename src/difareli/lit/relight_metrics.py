@@ -44,7 +44,7 @@ from difareli.data.protocols import PROTOCOLS, protocol_pairs
 from difareli.diffusion.spec import SamplerSpec, as_spec
 from difareli.evaluation import metrics
 from difareli.evaluation.extras import PairExtras
-from difareli.evaluation.pairs import Lights, Pair
+from difareli.evaluation.pairs import Lights, Pair, StoredFace
 from difareli.lighting.light_fit import LightFit
 from difareli.lit.logging import log_image
 from difareli.relight.relightable import OnePassRelightable, Relightable
@@ -212,8 +212,8 @@ class RelightMetrics(L.Callback):
             for k, proto in enumerate(PROTOCOLS.values()):
                 scores[proto].update(relit_unit[k:k + 1], case["gt"].to(dev), case["mask"].to(dev))
                 if self.scorer is not None:  # the benchmark's extra scores of the same uint8 image
-                    ex, _ = self.scorer(images[k], case["pair"]["source"], case["pair"]["target"],
-                                        case["targets"].lights[k])
+                    ex, _ = self.scorer(images[k], *(StoredFace(self.scorer.store, case["pair"][r])
+                                                     for r in ("source", "target")), case["targets"].lights[k])
                     for name, v in ex.items():
                         extra[proto].setdefault(name, metrics.FiniteMean().to(dev)).update(v)
                 rows[proto].append([case["source"].arrays["image"], images[k],
