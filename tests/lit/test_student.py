@@ -179,6 +179,37 @@ def test_student_overfits_a_few_pairs(synth_store):
     assert losses[-1] < losses[0] / 3, losses[::5]
 
 
+def test_shadow_weighted_l2_is_the_weighted_mean_inside_the_maps(synth_store):
+    """shadow_weight w: the loss is mean((1 + w max(map_s, map_t)) d^2) / mean(1 + w max(...)) (computed by hand
+    here); w = 0 and an empty map both give the plain MSE; a student without a map refuses a weight."""
+    batch, dims = _small_batch(EncodingStore.open(synth_store), "gt")
+    torch.manual_seed(0)
+    plain = _student(dims).eval()
+    torch.manual_seed(0)
+    weighted = _student(dims, shadow_weight=4.0).eval()
+    i = 3  # the default inputs: shading (3 channels), then the shadow map
+    batch["target_spatial"][:, i] = 0.0
+    batch["spatial"][:, i] = 0.0
+    batch["target_spatial"][0, i, :8] = 1.0  # a map on the upper half of the first pair's target
+    with torch.no_grad():
+        a, b = plain.loss(batch), weighted.loss(batch)
+        d2 = (plain.relight_once(batch["image"], plain.condition(batch["spatial"], batch["nonspatial"]),
+                                 plain.condition(batch["target_spatial"], batch["target_nonspatial"]))
+              - batch["target_image"]) ** 2
+    w = 1.0 + 4.0 * batch["target_spatial"][:, i:i + 1]
+    assert float(b["l2"]) == pytest.approx(float(a["loss"]), rel=1e-6)
+    assert float(b["loss"]) == pytest.approx(float((w * d2).mean() / w.mean()), rel=1e-5)
+    assert float(b["loss"]) != pytest.approx(float(a["loss"]), rel=1e-3)
+    batch["target_spatial"][:, i] = 0.0
+    with torch.no_grad():
+        assert float(weighted.loss(batch)["loss"]) == pytest.approx(float(a["loss"]), rel=1e-6)
+    from difareli.lit.student import StudentModule
+
+    with pytest.raises(UserError, match="shadow_weight"):
+        StudentModule(preset="tiny", input_dims={**dims, "spatial_channels": 3}, spatial_inputs=["shading"],
+                      shadow_weight=1.0)
+
+
 def test_residual_student_starts_as_the_identity(synth_store):
     # The UNet's output layer starts at zero, so input + network is exactly the input for any target.
     batch, dims = _small_batch(EncodingStore.open(synth_store), "gt")

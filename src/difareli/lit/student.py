@@ -15,7 +15,6 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 import torch
-import torch.nn.functional as F
 
 from difareli.data import encodings as enc
 from difareli.errors import UserError
@@ -35,6 +34,16 @@ def _slices(names: Sequence[str], dims: Mapping[str, int]) -> list[int]:
     return out
 
 
+def _channel(names: Sequence[str], dims: Mapping[str, int], name: str) -> int | None:
+    """The first channel of encoding ``name`` among ``names`` concatenated in order (None: not among them)."""
+    start = 0
+    for n in names:
+        if n == name:
+            return start
+        start += enc.channels(n, dims)
+    return None
+
+
 class StudentModule(RelightingModule):
     """One-pass relighting network trained on (source, target light, relit image) pairs.
 
@@ -43,18 +52,25 @@ class StudentModule(RelightingModule):
     """
 
     def __init__(self, name: str = "student", residual: bool = True, timestep: int = 0, lpips_weight: float = 0.0,
-                 **common: Any):
-        """``residual``, ``timestep`` and ``lpips_weight`` are the student's own; the rest (the preset, the inputs
-        and their widths, the optimizer, ...) every model takes (:meth:`RelightingModule._common`)."""
+                 shadow_weight: float = 0.0, **common: Any):
+        """``residual``, ``timestep``, ``lpips_weight`` and ``shadow_weight`` (:meth:`loss`) are the student's own;
+        the rest (the preset, the inputs and their widths, the optimizer, ...) every model takes
+        (:meth:`RelightingModule._common`)."""
         super().__init__()
         dims, spatial = self._common({"residual": bool(residual), "timestep": int(timestep),
-                                      "lpips_weight": float(lpips_weight)}, name=name, **common)
+                                      "lpips_weight": float(lpips_weight), "shadow_weight": float(shadow_weight)},
+                                     name=name, **common)
         if not enc.light_dependent(self.spatial_inputs + self.nonspatial_inputs):
             raise UserError(f"a student needs light-dependent inputs (e.g. shading, shadow_map) to know the target; "
                             f"got {self.spatial_inputs + self.nonspatial_inputs}")
         # Light-dependent channels only depend on H, W (shading 3, shadow map 1, light 27, c 1).
         hw = {"H": dims["resolution"], "W": dims["resolution"]}
         self._sp_dep = _slices(self.spatial_inputs, hw)
+        # Where the shadow map lies among the spatial channels (the shadow-weighted L2 reads it); None: no map.
+        self._sp_map = _channel(self.spatial_inputs, hw, "shadow_map")
+        if self.hparams.get("shadow_weight", 0.0) and self._sp_map is None:
+            raise UserError(f"model.shadow_weight weights the L2 inside the shadow maps, but this student reads none "
+                            f"({self.spatial_inputs}); give model.shadow_weight=0")
         # Non-spatial widths of shape / identity are the producers' (S = 53, D = 128), as the store records.
         self._ns_dep = _slices(self.nonspatial_inputs, {**hw, **enc.PRODUCER_DIMS})
         if self._ns_dep and max(self._ns_dep) >= dims["nonspatial_dim"]:
@@ -98,11 +114,20 @@ class StudentModule(RelightingModule):
 
     def loss(self, batch: Mapping[str, Any]) -> dict[str, torch.Tensor]:
         """``l2`` (MSE in [-1, 1] units) between the one-pass relight and the pair's target image, plus
-        ``lpips`` when weighted; ``loss`` is their weighted sum."""
+        ``lpips`` when weighted; ``loss`` is their weighted sum. ``shadow_weight`` w > 0: the loss's L2 weighs each
+        pixel by ``1 + w * max(source map, target map)`` (normalised to mean weight 1), so the few pixels where a
+        cast shadow comes or goes count as much as the face around them; ``l2`` stays the plain MSE."""
         pred = self.relight_once(batch["image"], self.condition(batch.get("spatial"), batch.get("nonspatial")),
                                  self.condition(batch.get("target_spatial"), batch.get("target_nonspatial")))
-        out = {"l2": F.mse_loss(pred.float(), batch["target_image"].float())}
+        sq = (pred.float() - batch["target_image"].float()) ** 2
+        out = {"l2": sq.mean()}
         out["loss"] = out["l2"]
+        w = self.hparams.get("shadow_weight", 0.0)
+        if w > 0:
+            i = self._sp_map
+            maps = torch.maximum(batch["spatial"][:, i], batch["target_spatial"][:, i]).float().clamp(0, 1)
+            weight = (1.0 + w * maps).unsqueeze(1)
+            out["loss"] = (sq * weight).mean() / weight.mean()
         if self.hparams.lpips_weight > 0:
             if self._lpips is None:
                 self._lpips = [get_lpips("alex", str(pred.device))]  # a list: not a submodule, not in checkpoints
