@@ -106,3 +106,16 @@ def test_shipped_checkpoint_changes_the_light_of_an_unseen_face(name, tmp_path):
 
 def _relight_once(relighter, store, rid, light):
     return relighter.relight(relighter.source(store, rid), Targets.of([light], [0.0]))
+
+
+def test_one_recommended_model_is_every_default():
+    """The app, the demo and the photo benches default to one shipped model (zoo.RECOMMENDED), which is shipped."""
+    from omegaconf import OmegaConf
+
+    from difareli.evaluation import photo_path
+
+    conf = Path(__file__).resolve().parents[2] / "conf"
+    assert zoo.RECOMMENDED in zoo.available()
+    assert OmegaConf.load(conf / "app.yaml").checkpoint == zoo.RECOMMENDED
+    assert OmegaConf.load(conf / "demo.yaml").checkpoint == zoo.RECOMMENDED
+    assert photo_path.DEFAULT_CHECKPOINT == zoo.RECOMMENDED

@@ -23,6 +23,9 @@ from difareli.utils.fileio import torch_save_atomic, write_text_atomic
 
 #: Where the shipped checkpoints and their model cards live (package data).
 SHIPPED_DIR = Path(__file__).resolve().parent  # the weights ship beside this module
+#: The shipped model that wins where a user relights (suite.md's first table): the app's, the demo's and the photo
+#: benches' default (conf/app.yaml and conf/demo.yaml name it too; tests/checkpoints/test_zoo.py holds them equal).
+RECOMMENDED = "difareli_pp_ss_est-synth64"
 
 
 def available() -> list[str]:

@@ -35,6 +35,7 @@ import numpy as np
 import torch
 from scipy import ndimage
 
+from difareli.checkpoints import zoo
 from difareli.data.encodings import FACE_PARTS
 from difareli.errors import UserError
 from difareli.evaluation import artefacts as art
@@ -49,8 +50,8 @@ from difareli.relight.targets import Targets
 from difareli.utils import viz
 from difareli.utils.fileio import write_text_atomic
 
-#: The model the photo path relights with when none is named: the app's default (``conf/app.yaml``).
-DEFAULT_CHECKPOINT = "difareli_pp-synth64"
+#: The model the photo path relights with when none is named: the app's default.
+DEFAULT_CHECKPOINT = zoo.RECOMMENDED
 #: The renderer's labels that make the head a photo relight should change.
 HEAD_PARTS = (*FACE_PARTS, "neck", "hair", "hat")
 PROTOCOLS = ("same", "different", "exact")
