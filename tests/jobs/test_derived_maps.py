@@ -86,6 +86,15 @@ def test_the_datamodule_names_the_maker_of_the_maps_it_reads(store):
     plain = EncodingsDataModule(root=str(store.root), spatial=["shading", "shadow_map"], nonspatial=[],
                                 synth=None, resolution=32)
     assert plain.shadow_map_maker()["name"] == "mesh"
+    # A student's pairs: the target maps are re-rendered by the relight's maker, whatever the store holds; only
+    # ground-truth pairs that read the target record's stored map name the store's (here its mesh rays).
+    for pairs, gt_maps in (("gt", "march"), ("teacher", "march"), ("mix", "stored"), ("identity", "march")):
+        student = EncodingsDataModule(root=str(store.root), spatial=["shading", "shadow_map"], nonspatial=[],
+                                      synth=None, resolution=32, pairs=pairs, gt_maps=gt_maps)
+        assert student.shadow_map_maker() == shadow_maker(), (pairs, gt_maps)
+    stored = EncodingsDataModule(root=str(store.root), spatial=["shading", "shadow_map"], nonspatial=[],
+                                 synth=None, resolution=32, pairs="gt", gt_maps="stored")
+    assert stored.shadow_map_maker()["name"] == "mesh"
 
 
 def test_a_relighter_warns_once_when_its_model_trained_on_another_makers_maps(tiny_checkpoint):

@@ -23,6 +23,7 @@ from difareli.data.inputs import (MissingEncodingError, check_store_fits, image_
                                   prepare_nonspatial, prepare_spatial)
 from difareli.data.store import EncodingStore
 from difareli.lit.pairs import pair_dataset
+from difareli.render.retarget import shadow_maker
 from difareli.synth.config import ConfigError, SynthConfig
 
 
@@ -186,9 +187,13 @@ class EncodingsDataModule(L.LightningDataModule):
         return self.store
 
     def shadow_map_maker(self) -> dict:
-        """What made the ``shadow_map`` this module reads: a derived version's method and maker (its provenance),
-        else SynthFaces' mesh rays (toward the fitted or the exact light, as its header says), else
+        """What made the ``shadow_map`` this module reads: for a student's pairs whose target maps are re-rendered
+        (teacher, identity and mixed pairs, ground-truth pairs unless ``gt_maps=stored``), the relight's own maker
+        (:func:`render.retarget.shadow_maker`); else a derived version's method and maker (its provenance), else
+        SynthFaces' mesh rays (toward the fitted or the exact light, as its header says), else
         ``{"name": "store"}`` (not known)."""
+        if self.pairs and not (self.pairs == "gt" and self.gt_maps == "stored"):
+            return shadow_maker()
         store = self._open()
         version = self.versions.get("shadow_map")
         if version:
