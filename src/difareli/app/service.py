@@ -69,7 +69,7 @@ class AppSource:
 class Service:
     """The app's state: configuration, bounded caches, the allowed checkpoints and the lock (module doc)."""
 
-    checkpoint: str = "difareli_pp_ss_est-synth64"
+    checkpoint: str = zoo.RECOMMENDED
     store: str | None = None
     runtime: Mapping[str, Any] | None = None
     composite: Mapping[str, Any] = field(default_factory=lambda: {"mode": "ratio", "feather": 0.03})

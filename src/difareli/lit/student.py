@@ -23,25 +23,19 @@ from difareli.nn import build_network
 from difareli.nn.lpips import get_lpips
 
 
-def _slices(names: Sequence[str], dims: Mapping[str, int]) -> list[int]:
-    """Channel indices of the light-dependent encodings among ``names`` concatenated in order."""
+def _spans(names: Sequence[str], dims: Mapping[str, int]) -> list[tuple[str, range]]:
+    """Each encoding of ``names`` with its channels in the concatenation, in order."""
     out, start = [], 0
     for n in names:
         c = enc.channels(n, dims)
-        if enc.get(n).light_dependent:
-            out.extend(range(start, start + c))
+        out.append((n, range(start, start + c)))
         start += c
     return out
 
 
-def _channel(names: Sequence[str], dims: Mapping[str, int], name: str) -> int | None:
-    """The first channel of encoding ``name`` among ``names`` concatenated in order (None: not among them)."""
-    start = 0
-    for n in names:
-        if n == name:
-            return start
-        start += enc.channels(n, dims)
-    return None
+def _slices(names: Sequence[str], dims: Mapping[str, int]) -> list[int]:
+    """Channel indices of the light-dependent encodings among ``names`` concatenated in order."""
+    return [i for n, span in _spans(names, dims) if enc.get(n).light_dependent for i in span]
 
 
 class StudentModule(RelightingModule):
@@ -67,7 +61,7 @@ class StudentModule(RelightingModule):
         hw = {"H": dims["resolution"], "W": dims["resolution"]}
         self._sp_dep = _slices(self.spatial_inputs, hw)
         # Where the shadow map lies among the spatial channels (the shadow-weighted L2 reads it); None: no map.
-        self._sp_map = _channel(self.spatial_inputs, hw, "shadow_map")
+        self._sp_map = next((span.start for n, span in _spans(self.spatial_inputs, hw) if n == "shadow_map"), None)
         if self.hparams.get("shadow_weight", 0.0) and self._sp_map is None:
             raise UserError(f"model.shadow_weight weights the L2 inside the shadow maps, but this student reads none "
                             f"({self.spatial_inputs}); give model.shadow_weight=0")
