@@ -105,6 +105,36 @@ def test_gt_pairs_with_stored_maps_take_the_target_records_own_map(synth_store):
         pair_dataset("gt", store, ids, SP, NS, gt_maps="exact")
 
 
+def test_shadow_pairs_take_a_records_cast_shadows_away_or_give_them_back(synth_store):
+    """``data.pairs=gt_shadow``: ground-truth pairs plus a shadowed record under its own light, its cast shadows
+    taken away (target: the same light rendered with no cast shadow, zero map) or given back (source: that image
+    with a zero map); the light's shading is the same on both sides, so only the map changes."""
+    store = EncodingStore.open(synth_store)
+    ids = store.ids(split="train")
+    ds = pair_dataset("gt_shadow", store, ids, SP, NS, gt_maps="stored")
+    gt, shadow = ds.datasets
+    assert len(ds.ids) == len(gt) + len(shadow) and set(shadow.ids) <= set(ids)
+    rid = shadow.ids[0]
+    rec = store.read(rid, ["image", "shadow_map", "image_unshadowed_gt"])
+    assert np.asarray(rec["shadow_map"]).max() > 0
+    image, free = image_to_tensor(rec["image"]), image_to_tensor(rec["image_unshadowed_gt"])
+    assert not torch.equal(image, free)
+    own = torch.from_numpy(np.asarray(rec["shadow_map"], np.float32))
+    seen = set()
+    for seed in range(12):
+        torch.manual_seed(seed)
+        item = shadow[0]
+        away = torch.equal(item["target_image"], free)
+        assert torch.equal(item["image"], image if away else free)
+        assert torch.equal(item["target_image"], free if away else image)
+        src_map, tgt_map = item["spatial"][3], item["target_spatial"][3]
+        assert torch.allclose((src_map if away else tgt_map), own.reshape(src_map.shape))
+        assert not (tgt_map if away else src_map).any()
+        assert torch.equal(item["spatial"][:3], item["target_spatial"][:3])  # the same light's shading
+        seen.add(away)
+    assert seen == {True, False}
+
+
 def test_gt_pairs_with_group_lights_take_the_light_of_a_face_of_the_group_under_the_same_light(synth_store):
     store = EncodingStore.open(synth_store)
     ids = store.ids(split="train")

@@ -29,6 +29,23 @@ def test_every_store_records_the_visible_shadow(synth_store):
         assert ((np.asarray(a["shadow_map_gt"]) > 0) <= (frac > 0)).all()  # every cast pixel loses some light
 
 
+def test_the_unshadowed_image_is_the_same_light_with_no_cast_shadow(synth_store):
+    """``image_unshadowed_gt``: the record rendered again with every sun reaching every point: equal to the image
+    where no cast shadow falls and brighter inside the visible shadows."""
+    s = EncodingStore.open(synth_store)
+    brighter = 0
+    for rid in s.ids()[:8]:
+        a = s.read(rid, ["image", "image_unshadowed_gt", "shadow_fraction_gt", "shadow_visible_gt"])
+        img, free = np.asarray(a["image"], float), np.asarray(a["image_unshadowed_gt"], float)
+        frac, vis = np.asarray(a["shadow_fraction_gt"]), np.asarray(a["shadow_visible_gt"])
+        np.testing.assert_array_equal(img[frac == 0], free[frac == 0])
+        assert (free >= img).all()  # a cast shadow only takes light away
+        if vis.sum() > 4:
+            assert (free - img).mean(-1)[vis].mean() > 5  # grey levels, inside the visible shadows
+            brighter += 1
+    assert brighter >= 1
+
+
 def test_normalise_c_ranges_and_target_maps_use_the_records_range():
     np.testing.assert_allclose(encodings.normalise_c([-5.0, -3.0, 0.0], (-4.0, -2.0)), [0.0, 0.5, 1.0])
     np.testing.assert_allclose(encodings.normalise_c(encodings.SHADOW_C_HI), 1.0)  # the fixed range

@@ -225,6 +225,8 @@ _ENCODINGS = (
              "the ambient) that cast shadows remove, 0 off the mesh", spatial=True, oracle=True),
     Encoding("shadow_visible_gt", ("H", "W"), "bool", "visibly shadowed: shadow_fraction_gt above the store's "
              "threshold, or in the key sun's own cast shadow", spatial=True, oracle=True),
+    Encoding("image_unshadowed_gt", ("H", "W", 3), "uint8", "the image under the same light with no cast shadow "
+             "(every sun reaches every point)", spatial=True, oracle=True),
 )
 
 #: All encodings by name, in schema order.

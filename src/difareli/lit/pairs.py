@@ -11,6 +11,8 @@ DataModule (``data.pairs``) serves pairs from one of the samplers of :data:`PAIR
   same light index (``gt_light=group``: another face's fit of the same true light half the time with groups of
   two, as protocol (ii) gives the model at test time);
 - ``mix``: both, concatenated (each epoch sees every teacher pair and every ground-truth source once);
+- ``gt_shadow``: ground-truth pairs and :class:`ShadowPairs` concatenated: a shadowed record under its own light
+  with its cast shadows taken away or given back, so the target shadow map alone tells the image what changes;
 - ``identity``: the record itself (target = source), a sanity check.
 
 A teacher-pair store is an :class:`~difareli.data.store.EncodingStore` whose records hold the relit ``image``, the
@@ -151,6 +153,45 @@ class GroundTruthPairs(PairDataset):
         return self.item(rid, src, tgt, tgt_rec["image"])
 
 
+#: A record takes part in :class:`ShadowPairs` when its visible shadows cover at least this share of its face.
+SHADOW_PAIR_SHARE = 0.02
+class ShadowPairs(PairDataset):
+    """SynthFaces v3, one light: a shadowed record's cast shadows taken away (the target: the same light rendered
+    with no cast shadow, ``image_unshadowed_gt``, c at the strength scale's floor and a zero map) or given back (the
+    source: that image with a zero map and that c; the target: the record itself with its own map), one of the two
+    at random at every visit. Light and
+    geometry do not change, so only the map (and c) tells the student what to draw: what relighting at a fixed light
+    with another shadow strength asks of it, and what ``evaluation.map_response`` measures."""
+
+    def __init__(self, store, ids, spatial, nonspatial, min_share: float = SHADOW_PAIR_SHARE):
+        super().__init__(store, ids, spatial, nonspatial)
+        if not store.available("image_unshadowed_gt") or "shadow_map" not in self.inputs:
+            raise UserError(f"shadow pairs need image_unshadowed_gt (SynthFaces v3 from 2026-12-07: regenerate the store "
+                            f"with difareli-synth) and a shadow_map input; the store at {store.root} or the model lacks "
+                            "them; or use data.pairs=gt")
+        shares = {rid: _shadow_share(store.read(rid, ["face_mask", "shadow_visible_gt"])) for rid in self.ids}
+        self.ids = [rid for rid, share in shares.items() if share >= min_share]
+        if not self.ids:
+            raise UserError(f"no record of {store.root} has visible cast shadows on {min_share:.0%} of its face")
+
+    def __getitem__(self, i: int) -> dict[str, Any]:
+        rid = self.ids[i]
+        src = self.source(rid)
+        free = {**src, "image": check_record(self.store.read(rid, ["image_unshadowed_gt"]), rid,
+                                             self.store.root)["image_unshadowed_gt"],
+                "shadow_map": np.zeros_like(src["shadow_map"])}
+        if "shadow" in src:
+            free["shadow"] = np.full_like(src["shadow"], enc.SHADOW_C_LO)
+        if int(torch.randint(2, (1,))):  # taken away
+            return self.item(rid, src, free, free["image"])
+        return self.item(rid, free, src, src["image"])  # given back
+
+
+def _shadow_share(arrays: Mapping[str, np.ndarray]) -> float:
+    face = np.asarray(arrays["face_mask"], bool)
+    return float((np.asarray(arrays["shadow_visible_gt"], bool) & face).sum() / max(face.sum(), 1))
+
+
 def check_pair_source(pair_store: EncodingStore, store: EncodingStore) -> None:
     """A teacher-pair store must come from this training store (its provenance, or for pair stores written
     before provenance was recorded, the source path in its header)."""
@@ -202,6 +243,12 @@ class MixedPairs(ConcatDataset):
         self.ids = teacher.ids + gt.ids
 
 
+def _concat(parts: Sequence[PairDataset]) -> ConcatDataset:
+    out = ConcatDataset(parts)
+    out.ids = [rid for part in parts for rid in part.ids]
+    return out
+
+
 def _needs_pair_store(make_with: Callable) -> Callable:
     def make(store, ids, spatial, nonspatial, pair_store, gt=None):
         if pair_store is None:
@@ -217,6 +264,8 @@ PAIR_SAMPLERS: dict[str, Callable[..., Dataset]] = {
     "teacher": _needs_pair_store(lambda store, ids, sp, ns, ps, gt: TeacherPairs(store, ids, sp, ns, ps)),
     "gt": lambda store, ids, sp, ns, pair_store=None, gt=None: GroundTruthPairs(store, ids, sp, ns, **dict(gt or {})),
     "mix": _needs_pair_store(MixedPairs),
+    "gt_shadow": lambda store, ids, sp, ns, pair_store=None, gt=None: _concat(
+        [GroundTruthPairs(store, ids, sp, ns, **dict(gt or {})), ShadowPairs(store, ids, sp, ns)]),
     "identity": lambda store, ids, sp, ns, pair_store=None, gt=None: IdentityPairs(store, ids, sp, ns),
 }
 

@@ -12,7 +12,7 @@ from difareli.synth import effects as fx_mod
 
 ENCODINGS = ("image", "light", "shape", "cam", "identity", "shadow", "background", "masks", "shadow_map",
              "shading", "normal", "depth", "face_mask", "light_gt", "shading_gt", "shadow_gt", "shadow_map_gt",
-             "shadow_fraction_gt", "shadow_visible_gt")
+             "shadow_fraction_gt", "shadow_visible_gt", "image_unshadowed_gt")
 #: v3 (``inputs=estimated``): the geometry's exact values too.
 GEOMETRY_GT = ("shape_gt", "cam_gt", "identity_gt", "masks_gt", "normal_gt", "depth_gt", "face_mask_gt")
 #: ``inputs``: what the model-input encodings hold (the exact values are always in the ``*_gt`` ones):

@@ -164,6 +164,13 @@ def _sunlight(subject: Subject, suns, casts, n: np.ndarray, e_amb: np.ndarray):
     return e, e_open, spec, sss_gain, sun_terms
 
 
+def _unshadowed(subject: Subject, suns, n: np.ndarray, e_amb: np.ndarray, hit: np.ndarray) -> np.ndarray:
+    """The image under the same light with no cast shadow (every sun reaches every point; ambient occlusion kept)."""
+    e, _, spec, _, _ = _sunlight(subject, suns, [np.zeros_like(hit)] * len(suns), n, e_amb)
+    lit = np.clip(subject.albedo * e if spec is None else subject.albedo * e + spec, 0.0, 1.0)
+    return np.round(np.where(hit[..., None], lit, subject.background) * 255.0).astype(np.uint8)
+
+
 def shade(subject: Subject, light: Light, cast, cfg: SynthConfig,
           est_image: np.ndarray | None = None) -> tuple[dict[str, np.ndarray], dict]:
     """All encodings of ``subject`` under ``light`` and the record's effect meta; ``cast``: one bool cast-shadow
@@ -181,6 +188,7 @@ def shade(subject: Subject, light: Light, cast, cfg: SynthConfig,
     lit = np.clip(diffuse if spec is None else diffuse + spec, 0.0, 1.0)
     img = np.where(hit[..., None], lit, subject.background)
     image = np.round(img * 255.0).astype(np.uint8)
+    unshadowed = _unshadowed(subject, suns, n, e_amb, hit) if any(m.any() for m in casts) else image
 
     # c: the fraction of the light that every sun's cast shadow removes (one sun: exactly v1's expression).
     den = np.maximum(e_open @ LUMA, 1e-6)
@@ -211,7 +219,7 @@ def shade(subject: Subject, light: Light, cast, cfg: SynthConfig,
         # Whole-mesh depth (hair, hat and neck included) so target shadow maps can be ray-marched from it.
         "depth": np.where(hit, gb.depth, 0.0).astype(np.float32),
         "light_gt": light_sh, "shading_gt": shading, "shadow_gt": shadow, "shadow_map_gt": shadow_map,
-        "shadow_fraction_gt": fraction, "shadow_visible_gt": visible,
+        "shadow_fraction_gt": fraction, "shadow_visible_gt": visible, "image_unshadowed_gt": unshadowed,
     }
     # Share of the face pixels' (unclipped) light in each effect's term: what a ratio image cannot redo.
     total = float((diffuse if spec is None else diffuse + spec)[face].sum()) or 1.0
