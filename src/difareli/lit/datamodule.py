@@ -114,8 +114,8 @@ class EncodingsDataModule(L.LightningDataModule):
         self.synth = dict(synth) if synth else None
         self.train_split, self.val_split = train_split, val_split
         self.allow_split_fallback = bool(allow_split_fallback)
-        # The student's pair sampler (difareli.lit.pairs.PAIR_SAMPLERS: teacher | gt | mix | gt_shadow | identity); None:
-        # records.
+        # The student's pair sampler (difareli.lit.pairs.PAIR_SAMPLERS: teacher | gt | mix | gt_shadow |
+        # identity); None: records.
         self.pairs, self.teacher_pairs, self.gt_light, self.gt_identity = pairs, teacher_pairs, gt_light, gt_identity
         self.gt_maps = gt_maps
         #: derived encoding versions read in place of their base (``{"shadow_map": "diff-1a2b"}``;
@@ -241,7 +241,8 @@ class EncodingsDataModule(L.LightningDataModule):
                                           self.gt_light, self.gt_identity, self.gt_maps)
             # Validation: ground truth where the store has it (SynthFaces), else the training pairs' kind; its
             # target maps the march's (gt_maps' default), as a relight's at test time.
-            kind = "gt" if self.pairs in ("teacher", "mix", "gt_shadow") and store.meta(val[0]).get("subject") else self.pairs
+            synthfaces = store.meta(val[0]).get("subject")
+            kind = "gt" if self.pairs in ("teacher", "mix", "gt_shadow") and synthfaces else self.pairs
             self.val_set = pair_dataset(kind, store, val, self.spatial, self.nonspatial, teacher, self.gt_light)
             return
         self.train_set = EncodingsDataset(store, train, self.spatial, self.nonspatial, self.exact_share)

@@ -166,9 +166,9 @@ class ShadowPairs(PairDataset):
     def __init__(self, store, ids, spatial, nonspatial, min_share: float = SHADOW_PAIR_SHARE):
         super().__init__(store, ids, spatial, nonspatial)
         if not store.available("image_unshadowed_gt") or "shadow_map" not in self.inputs:
-            raise UserError(f"shadow pairs need image_unshadowed_gt (SynthFaces v3 from 2026-12-07: regenerate the store "
-                            f"with difareli-synth) and a shadow_map input; the store at {store.root} or the model lacks "
-                            "them; or use data.pairs=gt")
+            raise UserError(f"shadow pairs need image_unshadowed_gt (SynthFaces v3 from 2026-12-07: regenerate the "
+                            f"store with difareli-synth) and a shadow_map input; the store at {store.root} or the "
+                            "model lacks them; or use data.pairs=gt")
         shares = {rid: _shadow_share(store.read(rid, ["face_mask", "shadow_visible_gt"])) for rid in self.ids}
         self.ids = [rid for rid, share in shares.items() if share >= min_share]
         if not self.ids:
