@@ -35,6 +35,7 @@ from torch.utils.data import ConcatDataset, Dataset
 from difareli.data import encodings as enc
 from difareli.data.inputs import image_to_tensor, prepare_nonspatial, prepare_spatial, read_record, relight_reads
 from difareli.errors import UserError, check_record
+from difareli.evaluation.map_response import shadowed_records
 from difareli.data.store import EncodingStore
 from difareli.render.retarget import retarget
 from difareli.data.provenance import PROVENANCE, store_identity
@@ -155,13 +156,15 @@ class GroundTruthPairs(PairDataset):
 
 #: A record takes part in :class:`ShadowPairs` when its visible shadows cover at least this share of its face.
 SHADOW_PAIR_SHARE = 0.02
+
+
 class ShadowPairs(PairDataset):
     """SynthFaces v3, one light: a shadowed record's cast shadows taken away (the target: the same light rendered
     with no cast shadow, ``image_unshadowed_gt``, c at the strength scale's floor and a zero map) or given back (the
     source: that image with a zero map and that c; the target: the record itself with its own map), one of the two
-    at random at every visit. Light and
-    geometry do not change, so only the map (and c) tells the student what to draw: what relighting at a fixed light
-    with another shadow strength asks of it, and what ``evaluation.map_response`` measures."""
+    at random at every visit. Light and geometry do not change, so only the map (and c) tells the student what to
+    draw: what relighting at a fixed light with another shadow strength asks of it, and what
+    ``evaluation.map_response`` measures."""
 
     def __init__(self, store, ids, spatial, nonspatial, min_share: float = SHADOW_PAIR_SHARE):
         super().__init__(store, ids, spatial, nonspatial)
@@ -169,8 +172,7 @@ class ShadowPairs(PairDataset):
             raise UserError(f"shadow pairs need image_unshadowed_gt (SynthFaces v3 from 2026-12-07: regenerate the "
                             f"store with difareli-synth) and a shadow_map input; the store at {store.root} or the "
                             "model lacks them; or use data.pairs=gt")
-        shares = {rid: _shadow_share(store.read(rid, ["face_mask", "shadow_visible_gt"])) for rid in self.ids}
-        self.ids = [rid for rid, share in shares.items() if share >= min_share]
+        self.ids = shadowed_records(store, self.ids, min_share)
         if not self.ids:
             raise UserError(f"no record of {store.root} has visible cast shadows on {min_share:.0%} of its face")
 
@@ -185,11 +187,6 @@ class ShadowPairs(PairDataset):
         if int(torch.randint(2, (1,))):  # taken away
             return self.item(rid, src, free, free["image"])
         return self.item(rid, free, src, src["image"])  # given back
-
-
-def _shadow_share(arrays: Mapping[str, np.ndarray]) -> float:
-    face = np.asarray(arrays["face_mask"], bool)
-    return float((np.asarray(arrays["shadow_visible_gt"], bool) & face).sum() / max(face.sum(), 1))
 
 
 def check_pair_source(pair_store: EncodingStore, store: EncodingStore) -> None:
@@ -232,21 +229,17 @@ class TeacherPairs(PairDataset):
         return self.item(rid, src, tgt, pair["image"])
 
 
-class MixedPairs(ConcatDataset):
-    """Teacher pairs and ground-truth pairs together."""
-
-    def __init__(self, store, ids, spatial, nonspatial, pair_store: EncodingStore,
-                 gt: Mapping[str, Any] | None = None):
-        teacher = TeacherPairs(store, ids, spatial, nonspatial, pair_store)
-        gt = GroundTruthPairs(store, ids, spatial, nonspatial, **dict(gt or {}))
-        super().__init__([teacher, gt])
-        self.ids = teacher.ids + gt.ids
-
-
 def _concat(parts: Sequence[PairDataset]) -> ConcatDataset:
+    """The pair datasets one after the other; ``ids``: their sources, in the same order."""
     out = ConcatDataset(parts)
     out.ids = [rid for part in parts for rid in part.ids]
     return out
+
+
+def _mixed(store, ids, spatial, nonspatial, pair_store: EncodingStore, gt: Mapping[str, Any] | None = None):
+    """Teacher pairs and ground-truth pairs together."""
+    return _concat([TeacherPairs(store, ids, spatial, nonspatial, pair_store),
+                    GroundTruthPairs(store, ids, spatial, nonspatial, **dict(gt or {}))])
 
 
 def _needs_pair_store(make_with: Callable) -> Callable:
@@ -263,7 +256,7 @@ def _needs_pair_store(make_with: Callable) -> Callable:
 PAIR_SAMPLERS: dict[str, Callable[..., Dataset]] = {
     "teacher": _needs_pair_store(lambda store, ids, sp, ns, ps, gt: TeacherPairs(store, ids, sp, ns, ps)),
     "gt": lambda store, ids, sp, ns, pair_store=None, gt=None: GroundTruthPairs(store, ids, sp, ns, **dict(gt or {})),
-    "mix": _needs_pair_store(MixedPairs),
+    "mix": _needs_pair_store(_mixed),
     "gt_shadow": lambda store, ids, sp, ns, pair_store=None, gt=None: _concat(
         [GroundTruthPairs(store, ids, sp, ns, **dict(gt or {})), ShadowPairs(store, ids, sp, ns)]),
     "identity": lambda store, ids, sp, ns, pair_store=None, gt=None: IdentityPairs(store, ids, sp, ns),
