@@ -2,13 +2,14 @@
 name, and a rerun that finds everything relit before."""
 
 import csv
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import imageio.v3 as iio
 
 from difareli.errors import UserError
-from difareli.relight import batch
+from difareli.relight import batch, photo
 
 
 def test_photo_paths_folder_glob_and_one_file(tmp_path):
@@ -41,8 +42,9 @@ def test_a_rerun_over_photos_all_relit_relights_none(tmp_path):
     assert batch.relight_photos(paths, out, progress=False, relighter=None) == {"done": 0, "skipped": 0,
                                                                                "resumed": 2}
     (out / "a_png_composite.png").unlink()  # its row says relit, its file is gone: it is done again (and, the
-    # photo itself missing, skipped with a row saying why)
-    again = batch.relight_photos(paths, out, progress=False, relighter=None, target=None, size=None, face=None,
+    # photo itself missing, skipped with a row saying why: reading it is the relighter's sources' first step)
+    reads = SimpleNamespace(photo_faces=lambda path, **kw: photo.read_photo(path))
+    again = batch.relight_photos(paths, out, progress=False, relighter=reads, target=None, size=None, face=None,
                                  composite={})
     assert again == {"done": 0, "skipped": 1, "resumed": 1}
     with (out / batch.CSV_NAME).open() as f:

@@ -1,15 +1,14 @@
 """Photos in one command: ``difareli-relight image=<folder or glob>`` and ``face=all|<index>``.
 
-:func:`relight_photos` relights every photo of :func:`photo_paths` under one target, composites every chosen face
-into the one photo and writes per input ``<name>_composite.png``, ``<name>_relit.png`` (the relit crops side by
-side) and its row of ``relight.csv`` (seconds, faces, the check's measures, the outcome; one row per
-:func:`output_names` name, its latest). A photo that cannot be relit is one line on stderr and a ``skipped`` row.
-The folder is locked while a run writes it and its settings are recorded (:data:`SETTINGS`): a rerun with other
-settings is refused, one with the same resumes (files written atomically, the row last) and tries the skipped
-photos again."""
+:func:`relight_photos` relights every photo of :func:`photo_paths` under one target, every chosen face composited
+into the photo, and writes ``<name>_composite.png``, ``<name>_relit.png`` (the crops side by side) and its row of
+``relight.csv`` (one per :func:`output_names` name, its latest; a photo that cannot be relit: a ``skipped`` row and
+one line on stderr). The folder is locked while a run writes it and its :data:`SETTINGS` recorded: a rerun with
+others is refused, one with the same resumes (files written atomically, the row last), trying skipped photos again."""
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import glob
 import hashlib
@@ -18,7 +17,7 @@ import os
 import re
 import sys
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -27,7 +26,7 @@ import numpy as np
 from difareli.data import provenance
 from difareli.errors import UserError
 from difareli.estimators.loading import IMAGE_SUFFIXES
-from difareli.relight import photo, photo_check
+from difareli.relight import photo_check
 from difareli.relight.relighter import Relighter
 from difareli.relight.sources import Source
 from difareli.relight.targets import Targets
@@ -93,29 +92,19 @@ def output_names(paths: Sequence[Path]) -> list[str]:
 def relight_one(path: Path, *, relighter: Relighter, target: Callable[[Source], Targets], size: int | None, face: Any,
                 composite: Mapping[str, Any], strict: bool = False, say=print
                 ) -> tuple[np.ndarray, list[np.ndarray], dict[str, Any]]:
-    """One photo: every chosen face relit under ``target(source)`` (its Targets) by the relighter
-    (:meth:`~difareli.relight.sources.Sources.photo_source`, ``relight``) and composited in turn into the photo.
-    Returns (composite, relit crops, CSV row fields); a UserError for a photo that cannot be relit."""
-    what = f"image={path}"
-    rgb = photo.read_photo(path)
-    boxes = photo.detect_faces(rgb, relighter.photo_size(size))
-    chosen = photo.choose_faces(boxes, face, what) if boxes else [None]
-    for i, box in enumerate(boxes):
-        say(f"{what}: {photo.describe_box(i, box, i in chosen)}")
-    out, crops, worst = rgb, [], None
+    """One photo: every chosen face (the relighter's :meth:`~difareli.relight.sources.Sources.photo_faces`) relit
+    under ``target(source)`` (its Targets) and composited in turn into the photo. Returns (composite, relit crops,
+    CSV row fields); a UserError for a photo that cannot be relit."""
+    out, found, faces = relighter.photo_faces(path, size=size, face=face, strict=strict, say=say)
+    crops, worst = [], None
     parts = list(composite["parts"]) if composite.get("parts") else None
-    for i in chosen:
-        name = what if i is None or len(boxes) < 2 else f"{what} face {i}"
-        source = relighter.photo_source(rgb, size=size, face=None if i is None else boxes[i], strict=strict,
-                                        what=name, key=("image", str(path), i))
-        say(source.check.line())
+    for source in faces:
         worst = source.check if worst is None or (worst.ok and not source.check.ok) else worst
         relit = relighter.relight(source, target(source))
         crops.append(relit[0])
         out = relit.composite(composite.get("mode", "ratio"), composite.get("feather", 0.03), parts, onto=out)[0]
-    row = {"faces": len(boxes), "relit_faces": len(crops), "verdict": "ok" if worst.ok else "poor",
-           **worst.measures}
-    return out, crops, row
+    return out, crops, {"faces": found, "relit_faces": len(crops), "verdict": "ok" if worst.ok else "poor",
+                        **worst.measures}
 
 
 def relight_photos(paths: Sequence[Path], out_dir: str | Path, *, progress: bool = True,
@@ -124,15 +113,11 @@ def relight_photos(paths: Sequence[Path], out_dir: str | Path, *, progress: bool
     returns counts {"done", "skipped", "resumed"}."""
     from tqdm.auto import tqdm
 
-    out_dir = Path(out_dir)
-    csv_path = out_dir / CSV_NAME
-    with fileio.folder_lock(out_dir, "relight"):
-        before = read_rows(csv_path)
-        if settings is not None:
-            provenance.ensure(out_dir, settings, "relit photos", name=SETTINGS, has_results=csv_path.is_file())
+    out_dir, names = Path(out_dir), output_names(paths)
+    with _opened(out_dir, settings) as before:
         counts = {"done": 0, "skipped": 0, "resumed": 0}
         todo = []  # the bar counts only these: photos relit before would make its rate and time left untrue
-        for path, name in zip(paths, output_names(paths)):
+        for path, name in zip(paths, names):
             prior = before.get(name)
             if prior is not None and prior["status"] == "relit" and (out_dir / f"{name}_composite.png").is_file():
                 counts["resumed"] += 1  # a photo skipped before is tried again: the user may have fixed it
@@ -147,36 +132,43 @@ def relight_photos(paths: Sequence[Path], out_dir: str | Path, *, progress: bool
                 counts["skipped"] += 1
                 reason = str(e).removeprefix(f"image={path}: ").splitlines()[0]
                 print(f"skipped image={path}: {reason}", file=sys.stderr)
-                row = {"status": "skipped", "reason": reason}
+                row, images = {"status": "skipped", "reason": reason}, {}
             else:
-                viz.save_png(np.concatenate(crops, axis=1), out_dir / f"{name}_relit.png")
-                viz.save_png(full, out_dir / f"{name}_composite.png")
-                row = {"status": "relit", **row}
+                row, images = {"status": "relit", **row}, {"relit": np.concatenate(crops, axis=1), "composite": full}
                 counts["done"] += 1
             before[name] = {"name": name, "photo": str(path), "seconds": time.perf_counter() - start, **row}
-            write_rows(csv_path, before)
+            _keep(out_dir, name, images, before)
         bar.close()
     return counts
 
 
-def read_rows(path: Path) -> dict[str, dict[str, str]]:
-    """The rows of a folder's ``relight.csv`` by output name ({} for none); another table there is refused."""
-    if not path.is_file():
-        return {}
-    with path.open(newline="") as f:
-        reader = csv.DictReader(f)
-        if not {"name", "photo", "status"} <= set(reader.fieldnames or ()):
-            raise UserError(f"{path} is not a difareli-relight photo table (its columns: "
-                            f"{', '.join(reader.fieldnames or ['none'])[:160]}); give another out_dir")
-        return {row["name"]: row for row in reader}
+@contextlib.contextmanager
+def _opened(out_dir: Path, settings: Mapping[str, Any] | None) -> Iterator[dict[str, dict[str, str]]]:
+    """The folder locked while a run writes it, with its ``relight.csv`` rows by output name ({} for none; another
+    table there is refused) and its ``settings`` recorded (a rerun with others is refused)."""
+    path = out_dir / CSV_NAME
+    with fileio.folder_lock(out_dir, "relight"):
+        rows = {}
+        if path.is_file():
+            with path.open(newline="") as f:
+                reader = csv.DictReader(f)
+                if not {"name", "photo", "status"} <= set(reader.fieldnames or ()):
+                    raise UserError(f"{path} is not a difareli-relight photo table (its columns: "
+                                    f"{', '.join(reader.fieldnames or ['none'])[:160]}); give another out_dir")
+                rows = {row["name"]: row for row in reader}
+        if settings is not None:
+            provenance.ensure(out_dir, settings, "relit photos", name=SETTINGS, has_results=path.is_file())
+        yield rows
 
 
-def write_rows(path: Path, rows: Mapping[str, Mapping[str, Any]]) -> None:
-    """The table written whole (atomically): one row per output name, its latest outcome."""
+def _keep(out_dir: Path, name: str, images: Mapping[str, np.ndarray], rows: Mapping[str, Mapping[str, Any]]) -> None:
+    """A photo's outcome kept: its images ``<name>_<kind>.png``, then the table written whole (atomically) with its
+    row, one row per output name (its latest outcome): a run killed in between relights the photo again."""
     buf = io.StringIO()
     w = csv.DictWriter(buf, FIELDS, extrasaction="ignore")
     w.writeheader()
     w.writerows({k: (f"{v:.4g}" if isinstance(v, float) else v) for k, v in row.items()}  # numbers people read
                 for row in rows.values())
-    fileio.write_text_atomic(path, buf.getvalue())
-
+    for kind, image in images.items():
+        viz.save_png(image, out_dir / f"{name}_{kind}.png")
+    fileio.write_text_atomic(out_dir / CSV_NAME, buf.getvalue())

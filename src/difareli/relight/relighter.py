@@ -190,9 +190,8 @@ class Relighter(Sources):
         """Targets ``first:stop`` of each source of a chunk decoded in one batch (source-major); a one-pass model:
         one pass per source (its source condition is per image). ``one``: the chunk is a request's one source, its
         images as the network lays them out and its inversion expanded (a job's are concatenated and repeated)."""
-        tgt = condition_tensors(self.model, [a for s, t in zip(chunk, sets)
-                                             for a in t.retarget(s.arrays, self.model_inputs, first, stop)],
-                                self.device)
+        retargeted = [a for s, t in zip(chunk, sets) for a in t.retarget(s.arrays, self.model_inputs, first, stop)]
+        tgt = condition_tensors(self.model, retargeted, self.device)
         n = min(stop, len(sets[0])) - first
         if inv is None:
             outs = [relight(self.model, x0[i:i + 1], tuple(None if v is None else v[i:i + 1] for v in cond),
@@ -212,17 +211,14 @@ class Relighter(Sources):
         n = len(x) // len(chunk)
         flat = [(start + r // n) * k + first + r % n for r in range(len(x))]
         known = {(start + i) * k + j for i, b in enumerate(blamed[start:start + len(chunk)]) for j in b}
-        self._warn_if_saturated(x, what, flat, known)
-
-    def _warn_if_saturated(self, x: Tensor, what: str, index: Sequence[int], blamed: set[int]) -> None:
         # A sampler unstable at its step count (UniPC at 3-5 steps here) decodes to saturated noise, not an error;
         # a target light already said to be implausible (check_inputs) is the cause there, not the sampler.
         clipped = (x.float().abs() >= 0.999).float().mean(dim=(1, 2, 3))
-        bad = [index[i] for i, f in enumerate(clipped.tolist()) if f > SATURATED_SHARE and index[i] not in blamed]
+        bad = [flat[i] for i, f in enumerate(clipped.tolist()) if f > SATURATED_SHARE and flat[i] not in known]
         if bad:
             warnings.warn(f"relight of {what}: {len(bad)} image(s) (first: target {bad[0]}) have over "
                           f"{SATURATED_SHARE:.0%} of their values clipped ({self.describe()}): the sampler may be "
-                          "unstable at this step count; try more steps or sampler=ddim", RuntimeWarning, stacklevel=5)
+                          "unstable at this step count; try more steps or sampler=ddim", RuntimeWarning, stacklevel=4)
 
 
 def _images_in(sources: Sequence[Source], one: bool) -> Tensor:

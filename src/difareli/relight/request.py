@@ -1,10 +1,8 @@
 """A relight request as a user states it, and its answer: the third layer of the relight spine, above the relighter.
 
-:class:`Request` (:meth:`Request.from_config`: a command's ``conf/relight.yaml``, each value checked once, before
-any work) names the source, the :class:`Target`, a :class:`Rotation` video, the compositing and how it is relit;
-:func:`respond` answers it through a :class:`~difareli.relight.relighter.Relighter` as an :class:`Answer` that a
-command only writes out (a batch of photos: :mod:`difareli.relight.batch`). The app, ``difareli-video`` and the
-demo relight through :class:`Target`, :class:`Rotation` and :func:`rotation_video` too.
+:class:`Request` (:meth:`Request.from_config`: each value checked once, before any work) names the source, the
+:class:`Target`, a :class:`Rotation` video, the compositing and how it is relit (:class:`Relighting`); :func:`respond`
+answers it as an :class:`Answer` that a command only writes (a batch of photos: :mod:`difareli.relight.batch`).
 """
 
 from __future__ import annotations
@@ -84,13 +82,10 @@ class Target:
         if (shadow is None and self.given and other is None and getattr(source, "photo", None) is not None
                 and "shadow" in source.arrays):
             shadow = photo_shadow(encodings.shadow_logit(source.arrays))[0]  # a photo's own c draws no shadow
-        sun = None if found is None else self.turn() @ found.direction
+        turn = next((TURNS[k](getattr(self, k)) for k in TURNS if getattr(self, k) is not None and self.turns_own()),
+                    np.eye(3))  # the rotation applied to the source's light, and so to its key sun
+        sun = None if found is None else turn @ found.direction
         return Targets.of([light], [shadow], "the target", suns=[sun]), found
-
-    def turn(self) -> np.ndarray:
-        """The rotation this target applies to the source's light (and so to its key sun); identity otherwise."""
-        k = next((k for k in TURNS if getattr(self, k) is not None), None)
-        return np.eye(3) if k is None or not self.turns_own() else TURNS[k](getattr(self, k))
 
 
 def relight_targets(relighter: Relighter, source: Source, targets: Sequence[Target]) -> Relit:
@@ -258,11 +253,8 @@ MAX_FRAMES = 3600
 
 
 def check_target(t: Mapping[str, Any]) -> Target:
-    """A config's ``target`` block as a :class:`Target`, each value checked: its sun, its numbers, a named light
-    or an existing file for ``light`` and ``envmap``, and one way to give the light (:class:`Target`)."""
-    errors.check_choice(t["sun"], "target.sun", TARGET_SUNS)
-    for key in (*TURNS, "shadow"):
-        errors.check_number(t.get(key), f"target.{key}")
+    """A config's ``target`` block as a :class:`Target`, each value checked: a named light or an existing file for
+    ``light`` and ``envmap``, its sun, its numbers, and one way to give the light (:class:`Target`)."""
     for key, names, kind in (("light", presets.NAMES, "9x3 SH light"), ("envmap", presets.ENVMAPS, "HDR map")):
         value = t.get(key)
         if value is None or is_named(value, key):
@@ -272,6 +264,9 @@ def check_target(t: Mapping[str, Any]) -> Target:
         elif not Path(str(value)).is_file():
             raise errors.UserFileNotFoundError(f"target.{key}={value}: no such named light or file; give one of "
                                                f"{', '.join(names)}, or a {kind} file")
+    errors.check_choice(t["sun"], "target.sun", TARGET_SUNS)
+    for key in (*TURNS, "shadow"):
+        errors.check_number(t.get(key), f"target.{key}")
     return Target(**{k: t.get(k) for k in (*TARGET_KEYS[:-1], "shadow", "sun")})
 
 
@@ -375,10 +370,8 @@ def respond(relighter: Relighter, request: Request, say: Callable[[str], None] |
 
 
 def answer_photos(relighter: Relighter, request: Request) -> dict[str, int]:
-    """A batch request (``request.photos``: a folder, a glob, or several faces of one photo) answered by
-    ``relighter`` under the request's one target: :func:`difareli.relight.batch.relight_photos` writes each photo's
-    composite, relit crops and CSV row into ``request.out_dir`` as it goes (a rerun resumes; a progress bar where
-    the relighter shows progress); counts {done, skipped, resumed}."""
+    """A batch request (``request.photos``) under its one target, written into ``request.out_dir`` as it goes
+    (:func:`difareli.relight.batch.relight_photos`); counts {done, skipped, resumed}."""
     settings = {"checkpoint": provenance.model_identity(relighter.model), "precision": relighter.runtime.precision,
                 "sampler": None if relighter.spec is None else relighter.spec.to_config(),
                 "mean_matching": relighter.mean_matching, "photo_size": request.photo_size, "face": str(request.face),

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -154,6 +154,25 @@ class Sources:
         if src.grey:
             notes.append(f"{what} is grey: its light is grey and its relights are made grey (their luminance)")
         return dataclasses.replace(src, photo=prepared, notes=tuple(notes), check=verdict)
+
+    def photo_faces(self, path: str | Path, *, size: int | None = None, face: Any = "largest", strict: bool = False,
+                    say: Callable[[str], None] = print) -> tuple[np.ndarray, int, Iterator[Source]]:
+        """A photo file's faces: (its pixels, how many faces were found, each chosen one as a :meth:`photo_source`,
+        made as it is asked for). ``face`` = largest | all | <index> (left to right); each face found is said."""
+        what = f"image={path}"
+        rgb = photos.read_photo(path)
+        boxes = photos.detect_faces(rgb, self.photo_size(size))
+        chosen = photos.choose_faces(boxes, face, what) if boxes else [None]
+        for i, box in enumerate(boxes):
+            say(f"{what}: {photos.describe_box(i, box, i in chosen)}")
+
+        def made(i: int | None) -> Source:
+            source = self.photo_source(rgb, size=size, face=None if i is None else boxes[i], strict=strict,
+                                       what=what if i is None or len(boxes) < 2 else f"{what} face {i}",
+                                       key=("image", str(path), i))
+            say(source.check.line())
+            return source
+        return rgb, len(boxes), map(made, chosen)
 
     def source_from_arrays(self, arrays: Mapping[str, np.ndarray], what: str = "in-memory record",
                            key: Any = None) -> Source:
