@@ -177,7 +177,7 @@ def run_benchmark(store: EncodingStore, method: Method, protocols: Sequence[str]
     with folder_lock(out_dir, "benchmark"), on_full_disk(out_dir, scratch=[out_dir], fix=RESUME):
         settings = run_settings(store, method, protocols, scoring, limit=limit, oracle_light=oracle_light,
                                 oracle_shadow=oracle_shadow, shard=shard)
-        recorded = _recorded(out_dir)
+        recorded = read_json_mapping(out_dir / SETTINGS)  # {} if none; an unreadable one: provenance.ensure's
         if scoring.score_mask == DEFAULT_MASK and recorded and "score_mask" not in recorded:
             settings.pop("score_mask")  # rows of a run from before the option: scored on face_mask, resumable
         provenance.ensure(out_dir, settings, "benchmark rows", name=SETTINGS,
@@ -198,18 +198,13 @@ def finished_run(store: EncodingStore, method: Method, protocols: Sequence[str],
         return None
     want = run_settings(store, method, protocols, scoring or Scoring.of(store), limit=limit,
                         oracle_light=oracle_light, oracle_shadow=oracle_shadow, shard=None)
-    if provenance.differences(_recorded(out_dir), provenance.plain(want)):
+    if provenance.differences(read_json_mapping(out_dir / SETTINGS), provenance.plain(want)):
         return None
     try:
         stated = json.loads((out_dir / provenance.PROVENANCE).read_text())
     except (OSError, ValueError):
         return None
     return BenchmarkResult(records=tables.read_records(out_dir / tables.PER_IMAGE_CSV), provenance=stated)
-
-
-def _recorded(out_dir: Path) -> dict:
-    """The settings recorded in ``out_dir`` ({} if none; an unreadable file is left to provenance.ensure)."""
-    return read_json_mapping(out_dir / SETTINGS)
 
 
 def run_settings(store: EncodingStore, method: Method, protocols: Sequence[str], scoring: Scoring, *,
