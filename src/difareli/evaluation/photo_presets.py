@@ -21,7 +21,8 @@ Per photo and target:
   away from the target map's edges; their ground-truth bounds come from :mod:`difareli.evaluation.photo_path`;
 - ``lum_change``: the face's log luminance change in the composite, ``lum_pred`` the Lambertian ratio relight's
   (what the target light predicts on the estimated normals), ``lum_dev`` their difference (< 0: darker than the
-  light predicts);
+  light predicts); ``lum_dev_lit`` the same outside the target's cast-shadow map (the Lambertian prediction draws
+  no cast shadow, so a relight that draws the map's shadow is darker than it by that shadow alone);
 - ``shadow_cover`` / ``shadow_response``: the share of the face the target's cast-shadow map covers (the march
   toward the light's radiance peak, as the relight makes it, whatever shadow strength it is given) and the
   darkening the relit crop shows inside it (against a 3 px ring around it) over what the light's key sun predicts
@@ -63,7 +64,7 @@ from difareli.render.retarget import cast_shadows
 READS = ("normal", "face_mask", "depth", "cam", "shadow")
 TARGETS = ("own", *NAMES)
 COLUMNS = ("light_angle", "light_rel", "light_turn", "identity", "seam", "blotch", "lum_change", "lum_pred", "lum_dev",
-           "shadow_cover", "shadow_response", "recon_dssim", "recon_mse")
+           "lum_dev_lit", "shadow_cover", "shadow_response", "recon_dssim", "recon_mse")
 
 
 @dataclass(frozen=True)
@@ -219,12 +220,14 @@ def score_photo(source: Source, relit: Relit, names: Sequence[str] = NAMES) -> l
         m_photo = to_photo(maps[k], source.photo.quad, photo.shape[:2]) > 0.5
         exclude = art.shadow_edges([m_photo], int(math.ceil(reg.sigma)))
         change, pred = (art.luminance_change(x, photo, reg.face) for x in (comps[k], lams[k]))
+        lit_change, lit_pred = (art.luminance_change(x, photo, reg.face & ~m_photo) for x in (comps[k], lams[k]))
         share = art.key_sun_share(lights[k], a["normal"])
         row = {"photo": source.what, "target": name, "light_angle": angle, "light_rel": rel, "identity": ids[k],
                "light_turn": light_turn(fits[k], fits[0], lights[0], lights[k]),
                "seam": art.seam_score(comps[k], photo, reg.paste, reg.width),
                "blotch": art.blotch_score(comps[k], photo, reg.face, reg.sigma, exclude),
                "lum_change": change, "lum_pred": pred, "lum_dev": change - pred,
+               "lum_dev_lit": lit_change - lit_pred,
                "shadow_cover": float((maps[k] & face_crop).sum() / max(face_crop.sum(), 1)),
                "shadow_response": art.cast_shadow_response(np.asarray(relit[k]), lam_crops[k], face_crop, maps[k],
                                                            share),
