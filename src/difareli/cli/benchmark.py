@@ -17,9 +17,11 @@ from difareli.checkpoints import zoo
 from difareli.configs import CONFIG_DIR
 from difareli.data import shard as sharding
 from difareli.evaluation.baselines import build_method
-from difareli.lighting.light_fit import light_fit_from_config
-from difareli.evaluation.benchmark import DEFAULT_MASK, BenchmarkResult, Scoring, run_benchmark
-from difareli.evaluation.rescore import rescore
+from difareli.lighting.light_fit import LightFit, light_fit_from_config
+from difareli.evaluation.benchmark import BenchmarkJob
+from difareli.evaluation.rescore import Rescore
+from difareli.evaluation.result import BenchmarkResult
+from difareli.evaluation.scoring import DEFAULT_MASK, Scoring
 from difareli.cli import common
 from difareli.lit import logging as lit_logging
 from difareli.data.store import EncodingStore
@@ -30,18 +32,45 @@ SHARD_JOB_KEYS = ("store", "method", "sampler", "protocols", "limit", "oracle_li
 
 
 def run(cfg: DictConfig) -> BenchmarkResult:
-    """Benchmark the configured method; prints and returns the summary."""
+    """Benchmark the configured method (``rescore=``: :func:`rescore_run` instead); prints and returns the summary."""
+    if cfg.get("rescore"):
+        return rescore_run(cfg)
+    job = benchmark_job(cfg)
+    result = job.run()
+    if job.shard is not None:  # what difareli-table checks before merging shards: same job, every shard once
+        sharding.write_marker(job.out_dir, job.shard, shard_job(cfg))
+    if cfg.get("logger"):  # the summary table and comparison grids to wandb / TensorBoard (logger=many_loggers)
+        lit_logging.log_benchmark(cfg, result)
+    print(result.paths["summary_md"].read_text())
+    print(f"per-image scores: {result.paths['per_image']}")
+    return result
+
+
+def rescore_run(cfg: DictConfig) -> BenchmarkResult:
+    """``rescore=<run dir>``: the saved relit images of a finished run scored again as the config says (no
+    relighting); prints and returns the summary."""
+    store, scoring, estimator = checked(cfg)
+    result = Rescore(store, Path(cfg.rescore), Path(cfg.out_dir), scoring, estimator).run()
+    print(result.paths["summary_md"].read_text())
+    return result
+
+
+def checked(cfg: DictConfig) -> tuple[EncodingStore, Scoring, LightFit]:
+    """The config, each value checked before any work (:func:`validate`), and what every run of the command reads
+    from it: the store, how pairs are scored and the light fit."""
     with_checkpoint(cfg)
     validate(cfg)
     store = EncodingStore.open(cfg.store).use_versions(cfg.get("versions"))
     # The rule, the score mask and the target sun, checked once, before the method (and its checkpoint) is built.
     scoring = Scoring.of(store, OmegaConf.select(cfg, "metrics.rule", default=None), cfg.get("score_mask"),
                          cfg.get("target_sun", "shadows"))
-    estimator = light_fit_from_config(OmegaConf.to_container(cfg.light_fit, resolve=True))
-    if cfg.get("rescore"):  # the saved relit images of a finished run, scored again under `rule`
-        result = rescore(store, cfg.rescore, cfg.out_dir, scoring, estimator)
-        print(result.paths["summary_md"].read_text())
-        return result
+    return store, scoring, light_fit_from_config(OmegaConf.to_container(cfg.light_fit, resolve=True))
+
+
+def benchmark_job(cfg: DictConfig) -> BenchmarkJob:
+    """The benchmark the config asks for, every value checked (:func:`checked`, the shard) before its method (and
+    its checkpoint) is built."""
+    store, scoring, estimator = checked(cfg)
     try:
         spec = sharding.parse(cfg.get("shard"))  # before any work: a bad value fails in one line
     except ValueError as e:
@@ -57,23 +86,21 @@ def run(cfg: DictConfig) -> BenchmarkResult:
         method.name += "+gt-light"
     elif cfg.get("oracle_shadow") and method.needs_light:
         method.name += "+gt-c"
-    limit = int(cfg.limit) if cfg.limit is not None else None
-    result = run_benchmark(store, method, list(cfg.protocols), Path(cfg.out_dir), limit=limit,
-                           oracle_light=bool(cfg.oracle_light), oracle_shadow=bool(cfg.get("oracle_shadow", False)),
-                           estimator=estimator, grid_pairs=int(cfg.grid_pairs),
-                           save_images=bool(cfg.save_images), progress=bool(cfg.progress), shard=spec,
-                           scoring=scoring)
-    if spec is not None:  # what difareli-table checks before merging shards: same job, every shard once
-        job = {k: OmegaConf.to_container(cfg[k], resolve=True) if OmegaConf.is_config(cfg[k]) else cfg[k]
-               for k in SHARD_JOB_KEYS if k in cfg}
-        if job.get("score_mask") == DEFAULT_MASK:  # shards of runs from before the option stay mergeable
-            job.pop("score_mask")
-        sharding.write_marker(cfg.out_dir, spec, {**job, "store": str(Path(cfg.store).resolve())})
-    if cfg.get("logger"):  # the summary table and comparison grids to wandb / TensorBoard (logger=many_loggers)
-        lit_logging.log_benchmark(cfg, result)
-    print(result.paths["summary_md"].read_text())
-    print(f"per-image scores: {result.paths['per_image']}")
-    return result
+    return BenchmarkJob(store, method, tuple(cfg.protocols), Path(cfg.out_dir), scoring,
+                        limit=None if cfg.limit is None else int(cfg.limit), oracle_light=bool(cfg.oracle_light),
+                        oracle_shadow=bool(cfg.get("oracle_shadow", False)), estimator=estimator,
+                        grid_pairs=int(cfg.grid_pairs), save_images=bool(cfg.save_images),
+                        progress=bool(cfg.progress), shard=spec)
+
+
+def shard_job(cfg: DictConfig) -> dict:
+    """What a shard's marker says of its job (:data:`SHARD_JOB_KEYS`, the store's resolved path): what
+    difareli-table compares before merging shards."""
+    job = {k: OmegaConf.to_container(cfg[k], resolve=True) if OmegaConf.is_config(cfg[k]) else cfg[k]
+           for k in SHARD_JOB_KEYS if k in cfg}
+    if job.get("score_mask") == DEFAULT_MASK:  # shards of runs from before the option stay mergeable
+        job.pop("score_mask")
+    return {**job, "store": str(Path(cfg.store).resolve())}
 
 
 def with_checkpoint(cfg: DictConfig) -> None:

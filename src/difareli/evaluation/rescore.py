@@ -1,12 +1,13 @@
-"""``difareli-benchmark rescore=<run dir>``: a finished run's saved relit PNGs scored again (another metric rule or
-mask, and the extra columns of :mod:`difareli.evaluation.extras`) without relighting, against the run's own store only
-and from a per-image CSV that holds each of the run's pairs exactly once, each row of the method and rule the run
-recorded."""
+"""``difareli-benchmark rescore=<run dir>`` (:class:`Rescore`): a finished run's saved relit PNGs scored again
+(another metric rule or mask, and the extra columns of :mod:`difareli.evaluation.extras`) without relighting, against
+the run's own store only and from a per-image CSV that holds each of the run's pairs exactly once, each row of the
+method and rule the run recorded."""
 
 from __future__ import annotations
 
 import dataclasses
 import json
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
@@ -18,57 +19,72 @@ from difareli.data import shard as sharding
 from difareli.data.store import EncodingStore
 from difareli.evaluation import metrics, tables
 from difareli.data.protocols import PROTOCOLS
-from difareli.evaluation.benchmark import SETTINGS, BenchmarkResult, Scoring, score, write_outputs
+from difareli.evaluation.benchmark import SETTINGS
+from difareli.evaluation.result import BenchmarkResult, write_outputs
+from difareli.evaluation.scoring import Scoring, score
 from difareli.evaluation.pairs import Lights, StoredFace, load_pairs
 from difareli.evaluation.extras import PairExtras
 from difareli.lighting.light_fit import LightFit
 from difareli.utils.fileio import on_full_disk, write_json_atomic
 
 
-def rescore(store: EncodingStore, run_dir: str | Path, out_dir: str | Path, scoring: Scoring,
-            estimator: LightFit | None = None) -> BenchmarkResult:
-    """Score the relit PNGs a finished run saved (``relit/<protocol>/<pair id>.png``) again as ``scoring`` says (the
-    benchmark's :class:`~.benchmark.Scoring`, checked at the door), into ``out_dir``: the same images, another metric
-    rule or mask (seconds and failed rows are kept from the run). The store must be the run's (its recorded
-    identity), and the run's CSV must hold each of its pairs exactly once; the lighting error refits the target light
-    with ``estimator`` (default LightFit). Each file of the run is read once."""
-    run_dir, rule, score_mask = Path(run_dir), scoring.rule, scoring.score_mask
-    settings, stated = (_run_json(run_dir, name) for name in (SETTINGS, "provenance.json"))  # each readable or absent
-    _check_same_store(store, run_dir, settings, stated)
-    rows = tables.read_records(run_dir / tables.PER_IMAGE_CSV)
-    _check_rows(store, run_dir, rows, settings)
-    pairs = {(PROTOCOLS[p.protocol], p.id): p for v in load_pairs(store, list(PROTOCOLS)).values() for p in v}
-    result = BenchmarkResult(records=[], provenance={**stated, "metrics rule": rule, "score mask": score_mask,
-                                                     "rescored from": str(run_dir)})
-    extras = PairExtras(store, score_mask, fit=estimator)
-    result.provenance.update(extras.provenance())
-    result.notes = list(extras.notes)
-    oracle = bool(settings.get("oracle_light"))
-    lights = Lights(store, None if oracle else (estimator or LightFit()))
-    scorers = {short: metrics.relight_metrics(rule) for short in PROTOCOLS.values()}
-    for r in rows:
-        pair = pairs.get((r.protocol, r.record_id))
-        source, target = (StoredFace(store, pair.source), StoredFace(store, pair.target)) if pair else (None, None)
-        if r.status != "ok":
-            ex, info = extras.empty(target) if pair else ({}, {})
-            result.records.append(dataclasses.replace(r, rule=rule, extra=ex, info=info))
-            continue
-        png = run_dir / "relit" / (pair.protocol if pair else "?") / f"{r.record_id}.png"
-        if pair is None or not png.is_file():
-            raise errors.UserError(f"rescore={run_dir}: no relit image {png} for {r.protocol} pair {r.record_id} "
-                                   "(was the run made with save_images=true on this store?); rerun the benchmark")
-        gt = target.read(["image", score_mask])
-        relit = _relit_png(png, run_dir, np.shape(gt["image"])[:2])
-        s = score(relit, gt["image"], gt[score_mask], rule, scorers[r.protocol])
-        ex, info = extras(relit, source, target, lights.get(pair.target if oracle else pair.light_source))
-        result.records.append(dataclasses.replace(r, dssim=s["dssim"], mse=s["mse"], lpips=s["lpips"], rule=rule,
-                                                  extra=ex, info=info))
-    result.metric_stats = {p: {k: m.stat() for k, m in sc.items()} for p, sc in scorers.items()}
-    with on_full_disk(out_dir, scratch=[out_dir]):
-        if settings:  # the rescored folder records its store too: a rescore of it is checked the same way
-            write_json_atomic(Path(out_dir) / SETTINGS, {**settings, "rule": rule, "score_mask": score_mask})
-        result.paths.update(write_outputs(result, Path(out_dir), caption=f"{run_dir.name} rescored ({rule})"))
-    return result
+@dataclass(frozen=True)
+class Rescore:
+    """The relit PNGs a finished run in ``run_dir`` saved (``relit/<protocol>/<pair id>.png``) scored again as
+    ``scoring`` says (the benchmark's :class:`~.scoring.Scoring`, checked at the door), into ``out_dir``: the same
+    images, another metric rule or mask (seconds and failed rows are kept from the run). The lighting error refits
+    the target light with ``estimator`` (default LightFit)."""
+
+    store: EncodingStore
+    run_dir: Path
+    out_dir: Path
+    scoring: Scoring
+    estimator: LightFit | None = None
+
+    def run(self) -> BenchmarkResult:
+        """The rescored result, its files written. The store must be the run's (its recorded identity), and the
+        run's CSV must hold each of its pairs exactly once; each file of the run is read once."""
+        store, run_dir, out_dir, estimator = self.store, self.run_dir, self.out_dir, self.estimator
+        rule, score_mask = self.scoring.rule, self.scoring.score_mask
+        # each readable or absent
+        settings, stated = (_run_json(run_dir, name) for name in (SETTINGS, "provenance.json"))
+        _check_same_store(store, run_dir, settings, stated)
+        rows = tables.read_records(run_dir / tables.PER_IMAGE_CSV)
+        _check_rows(store, run_dir, rows, settings)
+        pairs = {(PROTOCOLS[p.protocol], p.id): p for v in load_pairs(store, list(PROTOCOLS)).values() for p in v}
+        result = BenchmarkResult(records=[], provenance={**stated, "metrics rule": rule, "score mask": score_mask,
+                                                         "rescored from": str(run_dir)})
+        extras = PairExtras(store, score_mask, fit=estimator)
+        result.provenance.update(extras.provenance())
+        result.notes = list(extras.notes)
+        oracle = bool(settings.get("oracle_light"))
+        lights = Lights(store, None if oracle else (estimator or LightFit()))
+        scorers = {short: metrics.relight_metrics(rule) for short in PROTOCOLS.values()}
+        for r in rows:
+            pair = pairs.get((r.protocol, r.record_id))
+            source, target = ((StoredFace(store, pair.source), StoredFace(store, pair.target)) if pair
+                              else (None, None))
+            if r.status != "ok":
+                ex, info = extras.empty(target) if pair else ({}, {})
+                result.records.append(dataclasses.replace(r, rule=rule, extra=ex, info=info))
+                continue
+            png = run_dir / "relit" / (pair.protocol if pair else "?") / f"{r.record_id}.png"
+            if pair is None or not png.is_file():
+                raise errors.UserError(f"rescore={run_dir}: no relit image {png} for {r.protocol} pair "
+                                       f"{r.record_id} (was the run made with save_images=true on this store?); "
+                                       "rerun the benchmark")
+            gt = target.read(["image", score_mask])
+            relit = _relit_png(png, run_dir, np.shape(gt["image"])[:2])
+            s = score(relit, gt["image"], gt[score_mask], rule, scorers[r.protocol])
+            ex, info = extras(relit, source, target, lights.get(pair.target if oracle else pair.light_source))
+            result.records.append(dataclasses.replace(r, dssim=s["dssim"], mse=s["mse"], lpips=s["lpips"],
+                                                      rule=rule, extra=ex, info=info))
+        result.metric_stats = {p: {k: m.stat() for k, m in sc.items()} for p, sc in scorers.items()}
+        with on_full_disk(out_dir, scratch=[out_dir]):
+            if settings:  # the rescored folder records its store too: a rescore of it is checked the same way
+                write_json_atomic(out_dir / SETTINGS, {**settings, "rule": rule, "score_mask": score_mask})
+            result.paths.update(write_outputs(result, out_dir, caption=f"{run_dir.name} rescored ({rule})"))
+        return result
 
 
 def _run_json(run_dir: Path, name: str) -> dict:
