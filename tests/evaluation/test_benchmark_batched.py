@@ -100,3 +100,30 @@ def test_batched_relights_equal_pair_by_pair(synth_store, tiny_checkpoint, tmp_p
         for m in ("dssim", "mse", "lpips"):
             assert getattr(a, m) == pytest.approx(getattr(b, m), rel=0.05 if precision == "bf16" else 1e-3, abs=1e-4)
     assert worst < (BF16_TOL if precision == "bf16" else 1e-2)
+
+
+def test_a_batched_pair_is_scored_from_the_source_its_batch_read(synth_store, tmp_path, monkeypatch):
+    """Issue 62: a pair relit in a batch is scored (its extra columns) and drawn in the comparison grid from the
+    source record as its batch read and checked it, not from a second read of the record."""
+    from difareli.evaluation.extras import PairExtras
+    from difareli.utils import viz
+
+    store, method = EncodingStore.open(synth_store), Batching()
+    given, scored, drawn = [], [], []
+    many, extras, grid = method.relight_many, PairExtras.__call__, viz.grid
+
+    def relight_many(sources, targets):
+        given.extend(sources)
+        return many(sources, targets)
+
+    def score_extras(self, relit, source, target, light):
+        scored.append(source)
+        return extras(self, relit, source, target, light)
+
+    method.relight_many = relight_many
+    monkeypatch.setattr(PairExtras, "__call__", score_extras)
+    monkeypatch.setattr(viz, "grid", lambda rows: drawn.extend(rows) or grid(rows))
+    res = run_benchmark(store, method, BOTH, tmp_path, limit=3, progress=False, grid_pairs=1)
+    assert [r.status for r in res.records] == ["ok"] * 6 and method.single == 0
+    assert len(scored) == 6 and all(any(s is g for g in given) for s in scored)
+    assert len(drawn) == 2 and all(any(row[0] is g.image for g in given) for row in drawn)

@@ -6,7 +6,7 @@ it would the method's own relight of that pair. A method without ``relight_many`
 from __future__ import annotations
 
 import time
-from typing import Sequence
+from typing import NamedTuple, Sequence
 
 import numpy as np
 
@@ -14,6 +14,15 @@ from difareli import errors
 from difareli.data.store import CorruptRecordError, EncodingStore
 from difareli.evaluation.baselines import Method
 from difareli.evaluation.pairs import Lights, Pair, StoredFace
+
+
+class Made(NamedTuple):
+    """A pair relit in a batch: its image, its share of the call's seconds, and its source as the call read and
+    checked it (the pair loop scores from it instead of reading the record again)."""
+
+    relit: np.ndarray
+    seconds: float
+    source: StoredFace
 
 
 class BatchedRelights:
@@ -27,7 +36,7 @@ class BatchedRelights:
     def __init__(self, store: EncodingStore, method: Method, lights: Lights, oracle_shadow: bool,
                  todo: Sequence[tuple[str, Pair]]):
         self.store, self.method, self.lights, self.oracle_shadow = store, method, lights, oracle_shadow
-        self.ready: dict[tuple[str, str], tuple[np.ndarray, float]] = {}
+        self.ready: dict[tuple[str, str], Made] = {}
         self.calls: list[list[tuple[str, list[tuple[str, Pair]]]]] = []
         self.call_of: dict[tuple[str, str], int] = {}
         self.made: set[int] = set()
@@ -49,8 +58,9 @@ class BatchedRelights:
                 for _, pairs in self.calls[-1]:
                     self.call_of.update({(short, pair.id): len(self.calls) - 1 for short, pair in pairs})
 
-    def get(self, short: str, pair: Pair) -> tuple[np.ndarray, float] | None:
-        """``(relit, seconds)`` of a pair, its call made now if it was not yet; None: relight it on its own."""
+    def get(self, short: str, pair: Pair) -> Made | None:
+        """A pair's :class:`Made`, its call made now if it was not yet; None (a pair resumed, or left to the pair by
+        pair path): relight it on its own."""
         key = (short, pair.id)
         call = self.call_of.pop(key, None)
         if call is not None and call not in self.made:  # once: a failed call is not retried pair by pair
@@ -70,5 +80,5 @@ class BatchedRelights:
         except (errors.NonFiniteError, CorruptRecordError):
             return  # each pair of the call relit on its own: only a bad one fails
         seconds = (time.perf_counter() - start) / sum(len(pairs) for _, pairs in call)
-        for (_, pairs), relit in zip(call, images):
-            self.ready.update({(short, p.id): (image, seconds) for (short, p), image in zip(pairs, relit)})
+        for (_, pairs), relit, face in zip(call, images, faces):
+            self.ready.update({(short, p.id): Made(image, seconds, face) for (short, p), image in zip(pairs, relit)})

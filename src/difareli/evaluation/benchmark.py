@@ -43,7 +43,7 @@ from difareli.evaluation import metrics, tables
 from difareli.evaluation.extras import PairExtras
 from difareli.utils import viz
 from difareli.evaluation.baselines import Method
-from difareli.evaluation.batched import BatchedRelights
+from difareli.evaluation.batched import BatchedRelights, Made
 from difareli.lighting.light_fit import LightFit
 from difareli.evaluation.result import BenchmarkResult, write_outputs
 from difareli.evaluation.scoring import DEFAULT_MASK, Scoring, score
@@ -173,11 +173,12 @@ def finished_run(store: EncodingStore, method: Method, protocols: Sequence[str],
 
 @dataclass
 class _Run:
-    """What every pair of one run shares: its ``job``, the pairs' ``lights`` and ``extras``; ``columns``: the extra
-    CSV columns; ``exact``: the store holds exact lights; ``source_light``: the method's own source-light fit (its
-    error is measured too)."""
+    """What every pair of one run shares: its ``job``, the store's ``protocols.json`` (``doc``, read once), the
+    pairs' ``lights`` and ``extras``; ``columns``: the extra CSV columns; ``exact``: the store holds exact lights;
+    ``source_light``: the method's own source-light fit (its error is measured too)."""
 
     job: BenchmarkJob
+    doc: dict
     lights: Lights
     extras: PairExtras
     columns: list[str]
@@ -192,7 +193,7 @@ def _run(run: _Run, result: BenchmarkResult) -> BenchmarkResult:
     rule, score_mask = job.scoring.rule, job.scoring.score_mask
     done = _scored_so_far(out_dir, method.name, rule)
     selected = {proto: list(sharding.select(pairs, job.shard, key=lambda p: p.id))
-                for proto, pairs in load_pairs(store, job.protocols, job.limit).items()}
+                for proto, pairs in load_pairs(store, job.protocols, job.limit, run.doc).items()}
     batched = BatchedRelights(store, method, run.lights, job.oracle_shadow,
                               [(PROTOCOLS[proto], pair) for proto, pairs in selected.items() for pair in pairs
                                if (PROTOCOLS[proto], pair.id) not in done])
@@ -203,19 +204,21 @@ def _run(run: _Run, result: BenchmarkResult) -> BenchmarkResult:
         for pair in tqdm(pairs, desc=f"{method.name} {proto}", disable=not job.progress):
             light, shadow = run.lights.for_pair(pair, oracle_shadow=job.oracle_shadow)
             result.provenance.setdefault("target c", run.lights.shadow_note)
+            made = batched.get(short, pair)  # None for a pair resumed or relit on its own
+            # Each record read once: the source as its batch read it, or here (with the ground truth).
+            source = made.source if made is not None else StoredFace(store, pair.source)
+            target = StoredFace(store, pair.target)
             if run.exact:  # the fitted lights' errors
                 result.light_errors += [{"protocol": short, **e}
-                                        for e in run.lights.errors(pair, light, run.source_light)]
+                                        for e in run.lights.errors(pair, light, run.source_light, source)]
             png = out_dir / "relit" / proto / f"{pair.id}.png"
             want_grid = len(grid_rows) < job.grid_pairs
             prev = done.get((short, pair.id))
-            source, target = StoredFace(store, pair.source), StoredFace(store, pair.target)  # each read once
             if prev is not None and (not want_grid or prev.status != "ok" or png.is_file()):
                 # scored before the run was killed: not redone
                 rec, relit = prev, _read_png(png) if want_grid and prev.status == "ok" else None
             else:
-                rec, relit = _relight_and_score(run, pair, source, target, light, shadow, scorer,
-                                                batched.get(short, pair))
+                rec, relit = _relight_and_score(run, pair, source, target, light, shadow, scorer, made)
                 _keep(run, rec, relit, png)
             result.records.append(rec)
             if want_grid and relit is not None:  # input | light source | relit | ground truth
@@ -253,18 +256,18 @@ def _start(job: BenchmarkJob) -> tuple[_Run, BenchmarkResult]:
     if job.marches:
         result.provenance["target sun"] = ("found from the light-source image's cast shadows (render.sun_fit)"
                                            if scoring.target_sun == "shadows" else "the fitted light's radiance peak")
-    run = _Run(job, lights, extras, [*extras.metrics(), *extras.strata()], exact,
+    run = _Run(job, doc, lights, extras, [*extras.metrics(), *extras.strata()], exact,
                method.source_light if fits else None)
     return run, result
 
 
 def _relight_and_score(run: _Run, pair: Pair, source: StoredFace, target: StoredFace, light: np.ndarray,
-                       shadow: float | None, scorer, batched: tuple[np.ndarray, float] | None = None
+                       shadow: float | None, scorer, made: Made | None = None
                        ) -> tuple[tables.Record, np.ndarray | None]:
     """One pair relit by the method and scored: its row and relit image, or (a bad pair) its failed row and None.
-    Its source is read whole and checked once: here (the method takes its encodings from it), or for ``batched``
-    (its relit image and seconds, made in a batch) by :class:`~difareli.evaluation.batched.BatchedRelights`; the
-    target light and shadow are checked by the method's relight (a model's ``Targets``)."""
+    Its source is read whole and checked once: here (the method takes its encodings from it), or, for a pair
+    ``made`` in a batch, by :class:`~difareli.evaluation.batched.BatchedRelights`; the target light and shadow are
+    checked by the method's relight (a model's ``Targets``)."""
     job = run.job
     name, short = job.method.name, PROTOCOLS[pair.protocol]
     rule, mask = job.scoring.rule, job.scoring.score_mask
@@ -274,12 +277,12 @@ def _relight_and_score(run: _Run, pair: Pair, source: StoredFace, target: Stored
     # a record whose file is corrupt. Other user errors (a missing record or encoding, an image too small
     # to score, a method's wrong output) hold for every pair: they stop the run with their message.
     try:
-        if batched is None:
+        if made is None:
             errors.check_record(source.read(), pair.source, job.store.root)
             relit = job.method.relight(source, light, shadow, target=target, target_sun=run.lights.sun(pair))
             seconds = time.perf_counter() - start
         else:
-            relit, seconds = batched
+            relit, seconds = made.relit, made.seconds
         relit = errors.check_output(relit, f"{name} relight of pair {pair.id}")
         if relit.shape != gt["image"].shape or relit.dtype != np.uint8:
             raise errors.UserError(f"{name} returned {relit.dtype} {relit.shape}; expected uint8 {gt['image'].shape}")

@@ -9,7 +9,7 @@ import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterable, Sequence
+from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 
@@ -98,11 +98,13 @@ def no_pairs(path: Path, protocol: str, others: Sequence[str]) -> str:
     return f"{path} has no {protocol} pairs: {why}{alone}"
 
 
-def load_pairs(store: EncodingStore, protocols: Sequence[str], limit: int | None = None) -> dict[str, list[Pair]]:
-    """The pairs of each protocol from the store's ``protocols.json``; ``limit`` keeps at most that many,
-    evenly spaced over the list (so a small run still covers several subjects and lights)."""
+def load_pairs(store: EncodingStore, protocols: Sequence[str], limit: int | None = None,
+               doc: Mapping[str, Any] | None = None) -> dict[str, list[Pair]]:
+    """The pairs of each protocol from the store's ``protocols.json`` (``doc``: as :func:`protocols_doc` read it
+    already); ``limit`` keeps at most that many, evenly spaced over the list (so a small run still covers several
+    subjects and lights)."""
     path = Path(store.root) / PROTOCOLS_FILE
-    doc = protocols_doc(store)
+    doc = protocols_doc(store) if doc is None else doc
     out: dict[str, list[Pair]] = {}
     for p in protocols:
         if p not in PROTOCOLS:
@@ -177,16 +179,17 @@ class Lights:
         c, self.shadow_note = target_shadow_of(self.store, record_id, oracle=oracle or self.estimator is None)
         return c
 
-    def errors(self, pair: Pair, light: np.ndarray,
-               source_light: Callable[[StoredFace], np.ndarray] | None = None) -> list[dict]:
+    def errors(self, pair: Pair, light: np.ndarray, source_light: Callable[[StoredFace], np.ndarray] | None = None,
+               source: StoredFace | None = None) -> list[dict]:
         """``pair``'s rows of the light-estimation errors (all but the protocol): its target ``light``'s, if
         fitted, and the source light a method fits itself (``source_light``: the method's own door, so the
-        light scored is the one it relights with, fitted once), if any, against the exact lights."""
+        light scored is the one it relights with, fitted once; given the pair's ``source`` as the caller read it,
+        if any), against the exact lights."""
         out = []
         if self.estimator is not None:
             out.append(("target", pair.light_source, self.error(light, pair.target, pair.target)))
         if source_light is not None:
-            fitted = source_light(StoredFace(self.store, pair.source))
+            fitted = source_light(source or StoredFace(self.store, pair.source))
             out.append(("source", pair.source, self.error(fitted, pair.source, pair.source)))
         return [{"record_id": pair.id, "light": which, "from": frm, "rel_error": rel, "rel_error_gain_free": free}
                 for which, frm, (rel, free) in out]

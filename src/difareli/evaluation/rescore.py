@@ -22,7 +22,7 @@ from difareli.data.protocols import PROTOCOLS
 from difareli.evaluation.benchmark import SETTINGS
 from difareli.evaluation.result import BenchmarkResult, write_outputs
 from difareli.evaluation.scoring import Scoring, score
-from difareli.evaluation.pairs import Lights, StoredFace, load_pairs
+from difareli.evaluation.pairs import Lights, StoredFace, load_pairs, protocols_doc
 from difareli.evaluation.extras import PairExtras
 from difareli.lighting.light_fit import LightFit
 from difareli.utils.fileio import on_full_disk, write_json_atomic
@@ -50,8 +50,10 @@ class Rescore:
         settings, stated = (_run_json(run_dir, name) for name in (SETTINGS, "provenance.json"))
         _check_same_store(store, run_dir, settings, stated)
         rows = tables.read_records(run_dir / tables.PER_IMAGE_CSV)
-        _check_rows(store, run_dir, rows, settings)
-        pairs = {(PROTOCOLS[p.protocol], p.id): p for v in load_pairs(store, list(PROTOCOLS)).values() for p in v}
+        doc = protocols_doc(store)  # read once, for both of its uses
+        _check_rows(store, run_dir, rows, settings, doc)
+        pairs = {(PROTOCOLS[p.protocol], p.id): p for v in load_pairs(store, list(PROTOCOLS), doc=doc).values()
+                 for p in v}
         result = BenchmarkResult(records=[], provenance={**stated, "metrics rule": rule, "score mask": score_mask,
                                                          "rescored from": str(run_dir)})
         extras = PairExtras(store, score_mask, fit=estimator)
@@ -154,9 +156,11 @@ def _check_recorded(run_dir: Path, rows: Sequence[tables.Record], settings: dict
                                        f"({SETTINGS}); the CSV was edited: restore it or rerun the benchmark")
 
 
-def _check_rows(store: EncodingStore, run_dir: Path, rows: Sequence[tables.Record], settings: dict) -> None:
-    """Each pair of the run exactly once, as difareli-table requires: duplicated or missing rows are refused; each
-    row of the run's method and rule (:func:`_check_recorded`)."""
+def _check_rows(store: EncodingStore, run_dir: Path, rows: Sequence[tables.Record], settings: dict,
+                doc: dict) -> None:
+    """Each pair of the run exactly once, as difareli-table requires (its pairs from ``doc``, the store's
+    ``protocols.json``): duplicated or missing rows are refused; each row of the run's method and rule
+    (:func:`_check_recorded`)."""
     _check_recorded(run_dir, rows, settings)
     seen: dict[tuple[str, str], int] = {}
     for r in rows:
@@ -168,7 +172,8 @@ def _check_rows(store: EncodingStore, run_dir: Path, rows: Sequence[tables.Recor
                                "repeated rows or rerun the benchmark")
     if "protocols" not in settings:
         return
-    want = {(PROTOCOLS[p], q.id) for p, v in load_pairs(store, settings["protocols"], settings.get("limit")).items()
+    want = {(PROTOCOLS[p], q.id) for p, v in load_pairs(store, settings["protocols"], settings.get("limit"),
+                                                        doc).items()
             for q in sharding.select(v, settings.get("shard"), key=lambda q: q.id)}
     missing, extra = sorted(want - set(seen)), sorted(set(seen) - want)
     if missing or extra:
