@@ -7,7 +7,8 @@ import pytest
 
 from difareli.evaluation import tables
 from difareli.evaluation.baselines import Identity, Oracle
-from difareli.evaluation.benchmark import Scoring, run_benchmark
+from difareli.evaluation.benchmark import run_benchmark
+from difareli.evaluation.scoring import Scoring
 from difareli.evaluation.pairs import StoredFace, load_pairs
 from difareli.data.store import EncodingStore
 

@@ -12,7 +12,8 @@ import pytest
 
 from difareli import errors
 from difareli.evaluation.baselines import Identity
-from difareli.evaluation.benchmark import SETTINGS, Scoring, run_benchmark
+from difareli.evaluation.benchmark import SETTINGS, run_benchmark
+from difareli.evaluation.scoring import Scoring
 from difareli.errors import UserError
 from difareli.data.store import EncodingStore
 

@@ -11,7 +11,8 @@ import pytest
 
 from difareli.evaluation import tables
 from difareli.evaluation.baselines import Identity
-from difareli.evaluation.benchmark import Scoring, finished_run
+from difareli.evaluation.benchmark import finished_run
+from difareli.evaluation.scoring import Scoring
 from difareli.data.store import EncodingStore
 from difareli.synth.command import synth_command
 from difareli.diffusion import DEFAULT_SAMPLER, PRESETS

@@ -1,7 +1,9 @@
 """difareli-benchmark: one relighting method on a store's protocols (SynthFaces, or Multi-PIE
 from difareli-multipie)
 -> relit images, per-image CSV, tables; scored under ``metrics.rule`` (paper | composite,
-difareli.evaluation.metrics)."""
+difareli.evaluation.metrics). The command's door: each config value is checked here, once, before any work, and
+one typed job goes down (a :class:`~difareli.evaluation.benchmark.BenchmarkJob`, or for ``rescore=`` a
+:class:`~difareli.evaluation.rescore.Rescore`)."""
 
 from __future__ import annotations
 

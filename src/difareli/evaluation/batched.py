@@ -1,6 +1,6 @@
 """The benchmark's relights made in batches (issue 63): several pairs per network pass through a method's
 ``relight_many`` (:meth:`difareli.evaluation.baselines.DiffusionMethod.relight_many`, the relighter's one decode
-loop), handed to :func:`difareli.evaluation.benchmark.run_benchmark`'s pair loop, which checks and scores each as
+loop), handed to :meth:`difareli.evaluation.benchmark.BenchmarkJob.run`'s pair loop, which checks and scores each as
 it would the method's own relight of that pair. A method without ``relight_many`` relights pair by pair."""
 
 from __future__ import annotations

@@ -97,7 +97,7 @@ class BenchmarkJob:
     grid_pairs: int = 4
     save_images: bool = True
     progress: bool = True
-    shard: Any = None
+    shard: sharding.Shard | str | None = None
 
     def run(self) -> BenchmarkResult:
         """Relight and score every pair (module doc) and write the run's outputs. ``out_dir`` is locked for the run,
