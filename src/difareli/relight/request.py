@@ -299,7 +299,7 @@ def check_store(root: str, versions: Mapping[str, Any] | None, **records: str | 
     (``record``, ``target_record``: None for none; the key is said as the config spells it); returned, open."""
     store = EncodingStore.open(root).use_versions(versions)
     for key, rid in records.items():
-        if rid is not None and not store.has(str(rid)):
+        if rid is not None and str(rid) not in store:  # an id that could not name a record is in no store
             some = ", ".join(store.ids()[:3])
             raise errors.UserError(f"{key.replace('_', '.')}={rid}: no such record in the store {root} ({len(store)} "
                                    f"records{', e.g. ' + some if some else ''}); give one of its record ids")
