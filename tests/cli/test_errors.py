@@ -245,7 +245,11 @@ def test_benchmark_limit_and_out_dir_checked_first(tmp_path):
     f = tmp_path / "afile"
     f.write_text("keep")
     for override, want in {"limit=0": "limit=0 is invalid", "limit=-3": "limit=-3 is invalid",
-                           f"out_dir={f}": "is a file"}.items():
+                           f"out_dir={f}": "is a file",
+                           # a word is no boolean: bool("no") would have run with exact lights
+                           "oracle_light=no": "oracle_light='no' is invalid",
+                           "oracle_shadow=1": "oracle_shadow=1 is invalid",
+                           "save_images=off": "save_images='off' is invalid"}.items():
         cfg = compose_train(tmp_path / "run", [f"store={tmp_path}/missing", override], config_name="benchmark")
         with pytest.raises(UserError, match=want):
             run(cfg)  # fails before opening the (missing) store

@@ -134,6 +134,12 @@ def test_cli_two_photos_plus_bad_files_then_rerun_does_nothing(tmp_path):
     assert summary.written == 0 and report["skipped"] == 2 and report["failed"] == len(bad)
     assert {p: p.stat().st_mtime_ns for p in (out / "records").rglob("*")} == mtimes
 
+    # A word for a boolean is refused before anything loads (bool("no") is True: it would have overwritten).
+    proc = _cli(f"in_dir={src}", f"out_dir={out}", "overwrite=no")
+    log = proc.communicate(timeout=120)[0]
+    assert proc.returncode == 2 and "overwrite='no' is invalid: give overwrite=true or overwrite=false" in log, log
+    assert {p: p.stat().st_mtime_ns for p in (out / "records").rglob("*")} == mtimes
+
 
 def test_several_faces_keep_the_largest():
     import skimage.data

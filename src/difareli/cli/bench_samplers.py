@@ -58,7 +58,7 @@ def run(cfg: DictConfig) -> dict:
                                    f"student={cfg.checkpoint}")
         cases = speed.store_cases(EncodingStore.open(cfg.store), relighter,
                                   records=list(cfg.records) if cfg.records is not None else None, limit=cfg.limit,
-                                  oracle_target=bool(cfg.get("oracle_target", False)))
+                                  oracle_target=errors.check_bool(cfg.get("oracle_target", False), "oracle_target"))
         reference = (cfg.reference.sampler, int(cfg.reference.steps)) if cfg.reference is not None else None
         if reference is not None and reference[0] not in configured:
             raise errors.MissingError(f"reference.sampler={reference[0]!r} is not configured under samplers "

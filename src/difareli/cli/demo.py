@@ -28,7 +28,8 @@ def run(cfg: DictConfig) -> DemoResult:
     res = run_demo(str(zoo.resolve(cfg.checkpoint)), cfg.out_dir, sampler=OmegaConf.to_container(cfg.sampler),
                    runtime=OmegaConf.to_container(cfg.runtime), subjects=int(cfg.subjects),
                    resolution=int(cfg.resolution), seed=int(cfg.seed), frames=int(cfg.frames), pairs=int(cfg.pairs),
-                   rows=int(cfg.rows), photo=bool(cfg.photo), progress=bool(cfg.progress))
+                   rows=int(cfg.rows), photo=errors.check_bool(cfg.photo, "photo"),
+                   progress=errors.check_bool(cfg.progress, "progress"))
     print(answer(cfg, res))
     print("\n== the detail ==")
     if res.table is not None:

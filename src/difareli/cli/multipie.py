@@ -14,7 +14,7 @@ import hydra
 from omegaconf import DictConfig, ListConfig
 
 from difareli.cli.common import CONFIG_PATH
-from difareli.errors import check_int, check_out_dir, cli_entry
+from difareli.errors import check_bool, check_int, check_out_dir, cli_entry
 from difareli.multipie import layout, protocols
 from difareli.multipie.build import BuildReport, build, check_root
 from difareli.cli.preprocess import build_pipeline
@@ -43,7 +43,7 @@ def run(cfg: DictConfig, pipeline=None) -> BuildReport:
     report = build(cfg.root, cfg.out_dir, pipeline, pair_files(cfg.pairs), seed=int(cfg.seed),
                    same_subject=int(cfg.same_subject), different_subject=int(cfg.different_subject),
                    recordings=recordings, illuminations=ill, images=str(cfg.images),
-                   progress=bool(cfg.progress), log=lambda line: print(line, file=sys.stderr))
+                   progress=check_bool(cfg.progress, "progress"), log=lambda line: print(line, file=sys.stderr))
     print(report.summary())
     print(f"next: difareli-benchmark store={cfg.out_dir} method=identity|lambertian|diffusion ...")
     return report

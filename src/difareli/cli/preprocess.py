@@ -21,7 +21,7 @@ import hydra
 from omegaconf import DictConfig, open_dict
 
 from difareli.cli.common import CONFIG_PATH
-from difareli.errors import UserError, check_int, check_out_dir, cli_entry
+from difareli.errors import UserError, check_bool, check_int, check_out_dir, cli_entry
 from difareli.data.shard import parse as parse_shard
 from difareli.estimators.loading import IMAGE_SUFFIXES
 
@@ -103,15 +103,16 @@ def main(cfg: DictConfig) -> None:
     except ValueError as e:
         raise UserError(f"shard={cfg.get('shard')!r}: {e}") from None
     check_int(cfg.get("workers") or 1, "workers", 1)
+    # overwrite=no would be truthy: refused before any estimator loads or any record is touched
+    flags = {k: check_bool(cfg[k], k) for k in ("overwrite", "previews", "durable", "progress")}
     auto_size = cfg.get("size") is None
     pipeline = build_pipeline(cfg)
     names = [type(s).__name__ for s in pipeline.steps]
     print(f"encodings: {', '.join(pipeline.encodings)}\nestimators: {', '.join(names) or '(alignment only)'}\n"
           f"size: {pipeline.size} px" + (f" (checkpoint={cfg.checkpoint}'s training resolution)"
                                          if cfg.get("checkpoint") and auto_size else ""))
-    summary = run(pipeline, str(cfg.in_dir), str(cfg.out_dir), overwrite=bool(cfg.overwrite),
-                  previews=bool(cfg.previews), durable=bool(cfg.durable), progress=bool(cfg.progress),
-                  shard=cfg.get("shard"), workers=int(cfg.get("workers") or 1))
+    summary = run(pipeline, str(cfg.in_dir), str(cfg.out_dir), **flags, shard=cfg.get("shard"),
+                  workers=int(cfg.get("workers") or 1))
     print(f"written {summary.written}, skipped {summary.skipped}, failed {summary.failed}; "
           f"{summary.images_per_second:.2f} images/s at {pipeline.size}px; report: {cfg.out_dir}/{REPORT}")
     if summary.stages:

@@ -50,8 +50,9 @@ def run(cfg: DictConfig):
                               min_contrast=None if cfg.min_contrast is None else float(cfg.min_contrast),
                               min_coherence=None if cfg.min_coherence is None else float(cfg.min_coherence),
                               batch_size=int(cfg.batch_size), check_after=int(cfg.check_after),
-                              version=cfg.version, runtime=runtime, mean_matching=bool(cfg.mean_matching),
-                              device=runtime.torch_device, progress=bool(cfg.progress))
+                              version=cfg.version, runtime=runtime,
+                              mean_matching=errors.check_bool(cfg.mean_matching, "mean_matching"),
+                              device=runtime.torch_device, progress=errors.check_bool(cfg.progress, "progress"))
     version = rep.name.split("@", 1)[1]
     summary = {"name": rep.name, "raw": rep.raw, "c_min": rep.c_min, "c_max": rep.c_max, "threshold": rep.threshold,
                "threshold_rule": store.derived[rep.name]["threshold_rule"], "median": store.derived[rep.name]["median"],
@@ -75,7 +76,7 @@ def run_maker(cfg: DictConfig, store, ids):
 
     version = None if cfg.version in (None, "difference") else cfg.version
     rep = derived_maps.compute(store, method=cfg.maker, light=cfg.light, version=version, ids=ids,
-                               progress=bool(cfg.progress))
+                               progress=errors.check_bool(cfg.progress, "progress"))
     write_json_atomic(Path(cfg.out_dir) / "shadow_maps.json", {"name": rep.name, "written": rep.written,
                                                                "records": rep.records, **rep.provenance})
     print(f"wrote {rep.written} map(s) ({rep.records - rep.written} already there) as {rep.name} in "

@@ -108,9 +108,10 @@ def run(cfg: DictConfig) -> tables.Table:
     dirs = expand_runs(runs)
     sharding.check_complete(dirs)  # sharded benchmark runs: every shard of each job exactly once
     strata, bins, mode = check_strata(cfg)
+    drop = errors.check_bool(cfg.get("drop_bad_rows", False), "drop_bad_rows")
     table, records = tables.merge_runs(dirs, methods=list(cfg.methods) if cfg.methods else None,
-                                       drop_bad_rows=bool(cfg.get("drop_bad_rows", False)), strata=strata,
-                                       bins=bins, with_records=True, labels=run_labels(cfg.get("label")))
+                                       drop_bad_rows=drop, strata=strata, bins=bins, with_records=True,
+                                       labels=run_labels(cfg.get("label")))
     chosen = published_methods(cfg.get("published"))
     if chosen is not False:
         check_multipie(dirs, table.rule)

@@ -185,8 +185,8 @@ class Relighting:
         """A command config's ``checkpoint`` (read by :meth:`make_relighter`, the first work), ``sampler``, ``runtime``,
         ``mean_matching``, ``batch_size`` and ``progress``, each checked."""
         return cls(cfg["checkpoint"], None if cfg["sampler"] is None else SamplerSpec.from_config(cfg["sampler"]),
-                   Runtime.from_config(cfg["runtime"]), bool(cfg["mean_matching"]),
-                   errors.check_int(cfg["batch_size"], "batch_size", 1), bool(cfg["progress"]))
+                   Runtime.from_config(cfg["runtime"]), errors.check_bool(cfg["mean_matching"], "mean_matching"),
+                   errors.check_int(cfg["batch_size"], "batch_size", 1), errors.check_bool(cfg["progress"], "progress"))
 
     def make_relighter(self, cache_size: int | None = None) -> Relighter:
         """The relighter (``cache_size``: its caches bounded to the last sources, for a long-lived caller)."""
