@@ -12,7 +12,7 @@ from difareli.errors import UserError
 
 SHIPPED = ("difareli_pp-synth64", "difareli-synth64", "difareli_pp_ss-synth64", "difareli_pp_shadows-synth64",
            "difareli_pp_v2-synth64", "difareli_pp_ss_v3-synth64", "difareli_pp_est-synth64",
-           "difareli_pp_ss_est-synth64", "difareli_pp_ss_shadowpairs-synth64")
+           "difareli_pp_ss_est-synth64", "difareli_pp_ss_shadowpairs-synth64", "difareli_pp_vis_est-synth64")
 
 
 def _no_pickle(monkeypatch):
