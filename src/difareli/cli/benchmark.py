@@ -139,8 +139,7 @@ def validate(cfg: DictConfig) -> None:
     errors.check_int(cfg.grid_pairs, "grid_pairs", 0)
     errors.check_int(cfg.num_threads, "num_threads", 1, allow_none=True)
     for key in ("oracle_light", "oracle_shadow", "save_images", "progress"):  # oracle_light=no is no "true"
-        if cfg.get(key) is not None:
-            errors.check_bool(cfg.get(key), key)
+        errors.check_bool(cfg.get(key, False), key)  # a config without a key reads false, as benchmark_job does
     errors.check_out_dir(cfg.out_dir)
     if "checkpoint" in cfg.method:  # a trained model (the diffusion method): its sampler, runtime and file
         common.check_relighting(cfg)
