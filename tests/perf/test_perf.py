@@ -156,10 +156,32 @@ def test_profile_train_step_accounts_for_the_step():
     # bound, in a clean-clone run and one of three reruns). The bound below only catches a category set that
     # misses most of the work.
     prof = perf.profile_train_step("tiny", 16, 2, "32-true", steps=3, warmup=1)
-    assert set(prof) == {"step", *perf.STEP_CATEGORIES, "other"}
-    parts = {k: v for k, v in prof.items() if k != "step"}
+    assert set(prof) == {"step", *perf.STEP_CATEGORIES, "other", "conv_GFLOPs", "gemm_GFLOPs"}
+    assert prof["conv_GFLOPs"] > 0 and prof["gemm_GFLOPs"] > 0
+    parts = {k: v for k, v in prof.items() if k not in ("step", "conv_GFLOPs", "gemm_GFLOPs")}
     assert all(v >= 0 for v in parts.values()) and parts["convolution"] > 0 and parts["optimizer (AdamW)"] > 0
     assert 0.3 * prof["step"] < sum(parts.values()) <= 1.05 * prof["step"]
+
+
+class _OneConv(torch.nn.Module):
+    """A module whose loss is one 3x3 convolution: its FLOPs in closed form."""
+
+    def __init__(self, image_grad: bool):
+        super().__init__()
+        self.conv, self.image_grad = torch.nn.Conv2d(3, 8, 3, padding=1), image_grad
+
+    def diffusion_loss(self, batch):
+        x = batch["x"].requires_grad_(self.image_grad)
+        return self.conv(x).square().mean() + x.sum() * 0  # a pointwise op, not counted
+
+
+@pytest.mark.parametrize("image_grad", [False, True])
+@pytest.mark.parametrize("bf16", [False, True])
+def test_conv_flops_counts_the_convolutions_forward_and_backward(image_grad, bf16):
+    """2 B C_out H W C_in k^2 forward; the weight's gradient as much again, and the input's where it is asked for."""
+    fwd = 2 * 2 * 8 * 8 * 8 * 3 * 9
+    got = perf.conv_flops(_OneConv(image_grad), {"x": torch.randn(2, 3, 8, 8)}, bf16)
+    assert got == fwd * (3 if image_grad else 2)
 
 
 def test_ablation_report_counts_every_pass():

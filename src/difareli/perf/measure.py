@@ -355,7 +355,22 @@ def profile_train_step(preset: str, res: int, batch: int, precision: str, steps:
     for ev in prof.key_averages():
         cat = next((c for c, keys in STEP_CATEGORIES.items() if any(k in ev.key for k in keys)), "other")
         out[cat] += ev.self_cpu_time_total / 1e6 / steps  # microseconds over all profiled steps
-    return {"step": wall, **out}
+    conv = conv_flops(module, batch_, bf16)
+    return {"step": wall, **out, "conv_GFLOPs": conv / 1e9 / max(out["convolution"], 1e-12),
+            "gemm_GFLOPs": gemm_ceiling("cpu", "bf16" if bf16 else "fp32") / 1e9}
+
+
+def conv_flops(module, batch: dict, bf16: bool = False) -> int:
+    """FLOPs of the convolutions of one training step, forward and backward (``FlopCounterMode``'s count per op):
+    over the profiler's convolution time, the rate the convolution kernels themselves reach."""
+    from torch.utils.flop_counter import FlopCounterMode
+
+    with FlopCounterMode(display=False) as counter:
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+            loss = module.diffusion_loss(batch)
+        loss.backward()
+    module.zero_grad(set_to_none=True)
+    return int(sum(v for op, v in counter.get_flop_counts()["Global"].items() if "convolution" in str(op)))
 
 
 # ------------------------------------------------------------------------------------------ timing
