@@ -106,52 +106,6 @@ def test_stream_keeps_order_batches_and_isolates_failures():
     assert ident.sizes == [3, 4, 2] and ident.torch_threads == {1}
 
 
-class _Masks:
-    """A per-photo step between the image-only one and the batched one: ``masks`` from ``shape``; the thread it ran
-    in and the photos it saw, in order; a photo whose crop's third pixel is 9 fails here."""
-
-    provides = ("masks",)
-    requires = ("image", "shape")
-
-    def __init__(self):
-        self.threads, self.seen, self.ran = set(), [], threading.Event()
-
-    def __call__(self, ctx, needed):
-        self.threads.add(threading.current_thread().name)
-        self.seen.append(int(ctx["image"][1, 1, 0]))
-        self.ran.set()
-        if ctx["image"][0, 2, 0] == 9:
-            raise BadInput("no masks")
-        return {"masks": np.full((8, 8), ctx["shape"][0], np.float32)}
-
-
-def test_per_photo_steps_run_as_each_photo_arrives():
-    """The steps before the batched one run on each photo as it comes (the last chunk then waits only for the
-    batched step): photo 1 is read only once photo 0's masks were made, though its chunk of 4 is not full."""
-    geo, masks, ident = _Geometry(), _Masks(), _Identity()
-    pipe = Pipeline(_Crop(), [geo, masks, ident], ["shape", "masks", "identity"])
-    assert pipe.batched_from == 2
-    waited = []
-
-    photos = {i: _photo(i) for i in range(6)}
-    photos[4][0, 2] = 9
-
-    def load(i):
-        if i == 1:
-            waited.append(masks.ran.wait(timeout=5))  # before this change: masks ran when the chunk was full
-        return photos[i], []
-
-    got = list(stream(pipe, range(6), load, chunk=4))
-    assert waited == [True] and masks.seen == [0, 1, 2, 3, 4, 5] and masks.threads == {"MainThread"}
-    assert isinstance(got[4][1], BadInput) and "no masks" in str(got[4][1])
-    assert ident.sizes == [4, 1]  # photo 4 failed in its per-photo step: not passed to batch()
-    for i, res, _, _ in got:
-        if i != 4:
-            arrays, meta, _ = res
-            assert arrays["masks"][0, 0] == arrays["identity"][0] == photos[i][:8, :8].mean()
-            assert list(meta["seconds"]) == ["align", "_Geometry", "_Masks", "_Identity"]
-
-
 def test_the_reader_stops_with_its_consumer():
     pipe = Pipeline(_Crop(), [_Geometry(), _Identity()], ["shape", "identity"])
     loaded = []

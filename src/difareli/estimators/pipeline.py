@@ -134,9 +134,8 @@ class Pipeline:
                 chosen.append(est)
             todo.extend(r for r in est.requires if r != "image")
         steps, done = [], {"image"}
-        while len(steps) < len(chosen):  # topological order by requirements, batched steps as late as they can be
-            ready = sorted((e for e in chosen if e not in steps and set(e.requires) <= done),
-                           key=lambda e: hasattr(e, "batch"))  # stable: .stream runs the steps before them per photo
+        while len(steps) < len(chosen):  # topological order by requirements
+            ready = [e for e in chosen if e not in steps and set(e.requires) <= done]
             if not ready:
                 raise UserError("estimator requirements form a cycle or are missing: "
                                 f"{[(type(e).__name__, e.requires) for e in chosen if e not in steps]}")
@@ -227,25 +226,6 @@ class Pipeline:
             if not set(est.requires) <= {"image"}:
                 return self.steps[:i]
         return list(self.steps)
-
-    @property
-    def batched_from(self) -> int:
-        """The index of the first step after :attr:`image_steps` that takes photos in a ``batch`` (the identity
-        network), else ``len(steps)``: the steps before it run on each photo as it comes (:mod:`.stream`)."""
-        first = len(self.image_steps)
-        return next((first + i for i, est in enumerate(self.steps[first:]) if hasattr(est, "batch")), len(self.steps))
-
-    def advance(self, prepared: dict, start: int, stop: int) -> dict | Exception:
-        """Steps ``start:stop`` on one prepared photo; an estimator's exception is returned in its place, as
-        :meth:`finish_many` keeps it (the photo fails alone)."""
-        for est in self.steps[start:stop]:
-            t0 = time.perf_counter()
-            try:
-                res = est(prepared["ctx"], self.needed)
-            except Exception as e:  # noqa: BLE001 - one photo's failure is its own entry
-                return e
-            prepared = self._merge(prepared, type(est).__name__, res, time.perf_counter() - t0)
-        return prepared
 
     def finish_many(self, prepared: Sequence[dict | Exception], start: int = 0
                     ) -> list[tuple[dict, dict, dict] | Exception]:

@@ -2,9 +2,8 @@
 
 A reader thread decodes each photo, aligns it (:meth:`Pipeline.prepare`: BlazeFace and FaceMesh) and runs the
 estimators that read only the crop (:attr:`Pipeline.image_steps`: the geometry, FaceMesh again, the BFM fit, the
-G-buffer), whose graphs only it touches, while this thread runs the others on the photos read before: the
-per-photo ones as each photo arrives (:meth:`Pipeline.advance`), the batched one (the identity network) and any
-after it ``chunk`` photos at a time (:meth:`Pipeline.finish_many`), so the last chunk waits only for that.
+G-buffer), whose graphs only it touches, while this thread runs the others on the photos read before
+(:meth:`Pipeline.finish_many`, ``chunk`` at a time, so that the identity network takes them in one batch).
 mediapipe's graph runs, torch and OpenCV release the GIL, so on two cores the two stages run side by side (the
 split puts about half of the work on each side). Results come back in input order; the reader stays at most one
 chunk ahead of the chunk being finished (memory stays bounded: a photo read is 6 MB at 256 px, 25 MB at 512) and
@@ -80,7 +79,7 @@ def stream(pipeline, items: Iterable, load: Callable[[Any], tuple[Any, list[str]
     with pipeline.limits(logs=False):  # one BLAS / torch thread for the whole run; logs are captured per call
         reader.start()
         try:
-            done, front, batched = False, len(pipeline.image_steps), pipeline.batched_from
+            done = False
             while not done:
                 batch = []
                 while len(batch) < chunk:
@@ -90,30 +89,18 @@ def stream(pipeline, items: Iterable, load: Callable[[Any], tuple[Any, list[str]
                         break
                     if isinstance(got, _Broken):
                         raise got.error
-                    batch.append(_advance(pipeline, got, front, batched))
+                    batch.append(got)
                 if batch:
-                    yield from _finish(pipeline, batch, batched)
+                    yield from _finish(pipeline, batch)
         finally:
             stop.set()
             reader.join(timeout=5)
 
 
-def _advance(pipeline, entry: tuple, start: int, stop: int) -> tuple:
-    """A photo's steps before the batched one, run as it arrives (not once its chunk is full): the last chunk
-    then waits only for its batched step, not for every step of its photos, once the reader is done."""
-    item, prep, seconds = entry
-    if isinstance(prep, Exception) or start == stop:
-        return entry
+def _finish(pipeline, batch: list) -> Iterator:
     t0 = time.perf_counter()
     with native_logs():
-        prep = pipeline.advance(prep, start, stop)
-    return item, prep, seconds + time.perf_counter() - t0
-
-
-def _finish(pipeline, batch: list, start: int) -> Iterator:
-    t0 = time.perf_counter()
-    with native_logs():
-        results = pipeline.finish_many([prep for _, prep, _ in batch], start=start)
+        results = pipeline.finish_many([prep for _, prep, _ in batch], start=len(pipeline.image_steps))
     share = (time.perf_counter() - t0) / len(batch)
     for (item, prep, seconds), res in zip(batch, results, strict=True):
         extra = {} if isinstance(prep, Exception) else {k: prep[k] for k in ("load_notes", "input_size")}
