@@ -177,10 +177,12 @@ class _OneConv(torch.nn.Module):
 
 @pytest.mark.parametrize("image_grad", [False, True])
 @pytest.mark.parametrize("bf16", [False, True])
-def test_conv_flops_counts_the_convolutions_forward_and_backward(image_grad, bf16):
-    """2 B C_out H W C_in k^2 forward; the weight's gradient as much again, and the input's where it is asked for."""
+def test_train_step_flops_counts_the_convolutions_forward_and_backward(image_grad, bf16):
+    """2 B C_out H W C_in k^2 forward; the weight's gradient as much again, and the input's where it is asked for;
+    under bf16 autocast the same count."""
     fwd = 2 * 2 * 8 * 8 * 8 * 3 * 9
-    got = perf.conv_flops(_OneConv(image_grad), {"x": torch.randn(2, 3, 8, 8)}, bf16)
+    with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+        got = perf.train_step_flops(_OneConv(image_grad), {"x": torch.randn(2, 3, 8, 8)}, "convolution")
     assert got == fwd * (3 if image_grad else 2)
 
 

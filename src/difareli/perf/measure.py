@@ -30,7 +30,7 @@ from difareli.data.inputs import Condition, input_dims
 from difareli.errors import UserError
 from difareli.hardware import peak_flops
 from difareli.nn import get_config
-from difareli.runtime.core import Runtime, count_flops
+from difareli.runtime.core import Runtime, flops_by_op
 
 #: The model variant of the GPU report and the training benchmark (the paper's DiFaReli++).
 DEFAULT_VARIANT = "difareli_pp"
@@ -191,13 +191,14 @@ def _channels_last(items: list[dict]) -> dict:
 
 
 # ------------------------------------------------------------------------------------------ training cost
-def train_step_flops(module, batch: dict) -> int:
+def train_step_flops(module, batch: dict, op: str = "") -> int:
     """FLOPs of one training step's forward and backward of ``L_simple`` (counted exactly on the module's device;
-    the optimizer update is not counted)."""
+    the optimizer update is not counted); ``op``: only the operators whose name holds it (``"convolution"``: the
+    convolutions forward and backward)."""
     def step():
         module.diffusion_loss(batch).backward()
 
-    flops = count_flops(step)
+    flops = sum(v for name, v in flops_by_op(step).items() if op in name)
     module.zero_grad(set_to_none=True)
     return flops
 
@@ -355,22 +356,11 @@ def profile_train_step(preset: str, res: int, batch: int, precision: str, steps:
     for ev in prof.key_averages():
         cat = next((c for c, keys in STEP_CATEGORIES.items() if any(k in ev.key for k in keys)), "other")
         out[cat] += ev.self_cpu_time_total / 1e6 / steps  # microseconds over all profiled steps
-    conv = conv_flops(module, batch_, bf16)
+    # The convolutions' FLOPs over their profiled time: the rate the convolution kernels themselves reach (a FLOP
+    # count does not depend on the precision, so it is counted without autocast).
+    conv = train_step_flops(module, batch_, "convolution")
     return {"step": wall, **out, "conv_GFLOPs": conv / 1e9 / max(out["convolution"], 1e-12),
             "gemm_GFLOPs": gemm_ceiling("cpu", "bf16" if bf16 else "fp32") / 1e9}
-
-
-def conv_flops(module, batch: dict, bf16: bool = False) -> int:
-    """FLOPs of the convolutions of one training step, forward and backward (``FlopCounterMode``'s count per op):
-    over the profiler's convolution time, the rate the convolution kernels themselves reach."""
-    from torch.utils.flop_counter import FlopCounterMode
-
-    with FlopCounterMode(display=False) as counter:
-        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
-            loss = module.diffusion_loss(batch)
-        loss.backward()
-    module.zero_grad(set_to_none=True)
-    return int(sum(v for op, v in counter.get_flop_counts()["Global"].items() if "convolution" in str(op)))
 
 
 # ------------------------------------------------------------------------------------------ timing

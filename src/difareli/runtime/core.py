@@ -388,10 +388,16 @@ class _GraphedDenoiser:
 
 
 # ---------------------------------------------------------------------- FLOPs and peaks
-def count_flops(fn: Callable, *args: Any, **kwargs: Any) -> int:
-    """FLOPs (2 per multiply-add) of one call of ``fn`` (forward and, if ``fn`` calls backward, backward)."""
+def flops_by_op(fn: Callable, *args: Any, **kwargs: Any) -> dict[str, int]:
+    """FLOPs (2 per multiply-add) of one call of ``fn`` (forward and, if ``fn`` calls backward, backward), per
+    operator (``aten.convolution``, ``aten.convolution_backward``, ``aten.mm`` ...)."""
     from torch.utils.flop_counter import FlopCounterMode
 
     with FlopCounterMode(display=False) as counter:
         fn(*args, **kwargs)
-    return int(counter.get_total_flops())
+    return {str(op): int(v) for op, v in counter.get_flop_counts()["Global"].items()}
+
+
+def count_flops(fn: Callable, *args: Any, **kwargs: Any) -> int:
+    """FLOPs of one call of ``fn``, all operators (:func:`flops_by_op`)."""
+    return sum(flops_by_op(fn, *args, **kwargs).values())
