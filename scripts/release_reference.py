@@ -22,7 +22,7 @@ from pathlib import Path
 import torch
 from omegaconf import OmegaConf
 
-from difareli.checkpoints import zoo
+from difareli.checkpoints import loading, zoo
 from difareli.diffusion import DEFAULT_SAMPLER, as_spec
 from difareli.jobs.compare import compare_to_baselines
 from difareli.checkpoints.loading import read_checkpoint
@@ -79,7 +79,7 @@ def main() -> None:
     ema = OmegaConf.select(cfg, "callbacks.ema.decay", default=0.999)
     # A fine-tuned run (init_from=<checkpoint>) counts the steps and hours of the checkpoint it started from.
     init = a.init_from or OmegaConf.select(cfg, "init_from", default=None)
-    prior = read_checkpoint(str(zoo.resolve(init, "init_from"))) if init else None
+    prior = read_checkpoint(str(loading.resolve(init, "init_from"))) if init else None
     comparison, bench = benchmark(a, a.run_checkpoint)
     train_s = float(timer.get("train", 0.0))
     wall = a.wall or (f"{train_s / 3600:.2f} h of {'fine-tuning' if prior is not None else 'training'} "
@@ -134,7 +134,7 @@ def refresh(a: argparse.Namespace) -> None:
     comparison, bench = benchmark(a, a.run_checkpoint)
     facts.update(sampler=comparison.facts["sampler"], benchmark=bench, **({"notes": a.notes} if a.notes else {}),
                  **({"data": a.data} if a.data else {}))
-    write(str(zoo.resolve(a.run_checkpoint)), a.name, facts, comparison)
+    write(str(loading.resolve(a.run_checkpoint)), a.name, facts, comparison)
 
 
 def write(checkpoint: str, name: str, facts: dict, comparison) -> None:

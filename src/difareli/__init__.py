@@ -1,6 +1,6 @@
 """difareli: DiFaReli++ face relighting (diffusion with consistent cast shadows), Lightning + Hydra."""
 
-from difareli.checkpoints import registry as _registry
+from difareli.checkpoints import loading as _loading
 
 __version__ = "0.1.0"
 
@@ -10,5 +10,5 @@ def _models() -> None:
 
 
 # The package's root hands the checkpoint loader, once, how its model classes load: a checkpoint names its class and
-# the loader looks it up (difareli.checkpoints.registry); Lightning loads only when a checkpoint is first read.
-_registry.provide(_models)
+# the loader looks it up (difareli.checkpoints.loading); Lightning loads only when a checkpoint is first read.
+_loading.provide(_models)

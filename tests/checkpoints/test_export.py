@@ -6,7 +6,7 @@ import json
 import pytest
 import torch
 
-from difareli.checkpoints import export, zoo
+from difareli.checkpoints import export, loading, zoo
 from difareli.checkpoints.loading import load_checkpoint, read_checkpoint
 from difareli.errors import UserError
 
@@ -45,8 +45,8 @@ def test_export_round_trips_every_tensor_and_the_config(tmp_path, monkeypatch):
 def test_shipped_names_load_from_their_folders_without_pickle(monkeypatch):
     for name in SHIPPED:
         assert export.is_folder(zoo.SHIPPED_DIR / name) and (zoo.SHIPPED_DIR / f"{name}.ckpt").is_file()
-        assert zoo.resolve(name, prefer_folder=True) == zoo.SHIPPED_DIR / name
-        assert zoo.resolve(name) == zoo.SHIPPED_DIR / f"{name}.ckpt"  # callers that torch.load a file
+        assert loading.resolve(name, prefer_folder=True) == zoo.SHIPPED_DIR / name
+        assert loading.resolve(name) == zoo.SHIPPED_DIR / f"{name}.ckpt"  # callers that torch.load a file
     assert zoo.available() == sorted(SHIPPED)
     ref = {n: load_checkpoint(zoo.SHIPPED_DIR / f"{n}.ckpt").model.state_dict() for n in SHIPPED}
     _no_pickle(monkeypatch)

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from difareli.lighting import sh
-from difareli.checkpoints import zoo
+from difareli.checkpoints import loading, zoo
 from difareli.lit import load_checkpoint
 from difareli.checkpoints.loading import read_checkpoint
 from difareli.relight.relighter import Relighter
@@ -60,11 +60,11 @@ def test_names_resolve_and_errors_list_them(tiny_checkpoint, tmp_path, monkeypat
     monkeypatch.setattr(zoo, "SHIPPED_DIR", tmp_path)
     zoo.export(tiny_checkpoint("difareli"), "mini-synth32", FACTS, out_dir=tmp_path)
     assert zoo.available() == ["mini-synth32"]
-    assert zoo.resolve("mini-synth32") == tmp_path / "mini-synth32.ckpt"
+    assert loading.resolve("mini-synth32") == tmp_path / "mini-synth32.ckpt"
     loaded = load_checkpoint("mini-synth32")
     assert loaded.config["name"] == "difareli" and loaded.global_step == 20
     with pytest.raises(FileNotFoundError, match="mini-synth32"):
-        zoo.resolve("no-such-model")
+        loading.resolve("no-such-model")
     assert "mini-synth32" in zoo.card("mini-synth32")
 
 

@@ -24,7 +24,7 @@ ALLOWED = {
     "evaluation/baselines.py": "a method config's _target_ (conf/method/*.yaml, chosen by the command)",
 }
 #: Strings that name a class above their file as data, not as an import: looked up among the registered classes
-#: (checkpoints.registry.MODULE_CLASSES, which difareli.lit fills), never imported.
+#: (checkpoints.loading.MODULE_CLASSES, which difareli.lit fills), never imported.
 NAMED_AS_DATA = {"checkpoints/format.py": "the module class that checkpoints older than the module key recorded"}
 
 

@@ -67,7 +67,7 @@ def test_grey_image_gets_a_grey_light_and_colour_keeps_its_own():
 
 
 def test_grey_like_and_is_grey_tolerance():
-    from difareli.relight.photo import grey_like
+    from difareli.utils.imageops import grey_like
 
     rng = np.random.default_rng(0)
     g = np.repeat(rng.integers(0, 256, (20, 20, 1)), 3, -1).astype(np.uint8)

@@ -86,9 +86,9 @@ def test_key_sun_needs_the_images_face_and_the_choice_is_checked():
     light = fit(a)
     found = sun_fit.key_sun(a, light, fit=fit)
     np.testing.assert_array_equal(found.direction, sun_fit.fit_sun(a, light, fit=fit).direction)
-    assert sun_fit.describe(found).startswith("marched toward the key sun found from the image's cast shadows")
+    assert found.note.startswith("marched toward the key sun found from the image's cast shadows")
     assert sun_fit.key_sun({k: v for k, v in a.items() if k != "face_mask"}, light, fit=fit) is None
-    assert sun_fit.describe(None) == "marched toward the light's radiance peak"
+    assert sun_fit.PEAK_NOTE == "marched toward the light's radiance peak"
     assert check_choice("peak", "target.sun", sun_fit.TARGET_SUNS) == "peak"
     with pytest.raises(UserError, match=r"^target.sun='east': use one of shadows, peak$"):
         check_choice("east", "target.sun", sun_fit.TARGET_SUNS)

@@ -26,9 +26,8 @@ from pathlib import Path
 # The folder's layout and its reader live below the loaders (checkpoints/format.py); re-exported here.
 from difareli.checkpoints.format import (  # noqa: F401
     CARD, CONFIG, CONFIG_KEYS, FOLDER_FORMAT, FOLDER_VERSION, WEIGHTS, is_folder, read_folder)
-from difareli.checkpoints.format import check_finite_state
 from difareli.errors import UserError, is_no_space
-from difareli.checkpoints import zoo
+from difareli.checkpoints import loading, zoo
 from difareli.utils.fileio import fsync_dir, no_space
 
 
@@ -46,16 +45,15 @@ def export_folder(checkpoint: str | Path, folder: str | Path) -> Path:
     ``folder`` must be new, empty or an earlier weights folder (replaced whole). A source holding NaN/Inf weights is
     refused before anything is written. The three files are written into a scratch folder beside ``folder`` and
     renamed into place together, so a failure (a full disk, a kill) never leaves a partial or mixed folder."""
-    from difareli.checkpoints.loading import read_checkpoint
-    source = zoo.resolve(checkpoint)
+    source = loading.resolve(checkpoint)
     if source.is_dir():
         raise UserError(f"checkpoint={checkpoint} is already a weights folder ({source}); copy it instead")
     folder = Path(folder)
     if folder.exists() and (not folder.is_dir() or (any(folder.iterdir()) and not is_folder(folder))):
         raise UserError(f"{folder} exists and is not an empty folder or a weights folder; give a new folder")
-    ckpt = read_checkpoint(source)
-    check_finite_state(ckpt["state_dict"], f"checkpoint={checkpoint}", "a folder of it would not load, so nothing "
-                       "was written: export a checkpoint whose weights are finite (an earlier step's)")
+    ckpt = loading.read_checkpoint(source)
+    loading.check_finite_state(ckpt["state_dict"], f"checkpoint={checkpoint}", "a folder of it would not load, so "
+                               "nothing was written: export a checkpoint whose weights are finite (an earlier step's)")
     stage = folder.parent / f".{folder.name}.partial-{os.getpid()}"
     try:
         stage.mkdir(parents=True)

@@ -2,8 +2,10 @@
 keeps, the translation of older formats, and the two files a checkpoint is stored as: a ``.ckpt`` (any torch file,
 read with ``torch.load(weights_only=True)``: :func:`load_torch_file`) and a weights folder (``model.safetensors`` +
 ``config.json`` + ``README.md``, written by :mod:`difareli.checkpoints.export`; read with no pickle at all:
-:func:`read_folder`). Used by the Lightning modules, :mod:`difareli.checkpoints.loading`,
-:mod:`difareli.checkpoints.zoo` and the authors' weights' import; nothing here imports any of them.
+:func:`read_folder`, the safetensors header checked against the file first, :func:`read_header`). Every problem
+is one line naming the file (and the key or tensor) and the fix. Used by the Lightning modules,
+:mod:`difareli.checkpoints.loading`, :mod:`difareli.checkpoints.zoo` and the authors' weights' import; nothing
+here imports any of them, and torch loads only when a file is read.
 
 Checkpoints written before format 2 (flat ``spatial_type`` / ``modulate_skips`` / ``lr`` / ``weight_decay``,
 statistics in ``state_dict`` buffers) are translated by :func:`upgrade_checkpoint`.
@@ -14,11 +16,12 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
-from typing import Any, Mapping
-
-import torch
+from typing import TYPE_CHECKING, Any, Mapping
 
 from difareli.errors import UserError, UserFileNotFoundError
+
+if TYPE_CHECKING:
+    import torch
 
 #: The module class that wrote a checkpoint (``package.module.Class``) and the format version.
 MODULE_KEY, FORMAT_KEY, FORMAT_VERSION = "difareli_module", "difareli_format", 2
@@ -156,11 +159,10 @@ def folder_problem(path: str | Path) -> str | None:
 def read_folder(folder: str | Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:
     """The checkpoint dict of a weights folder (``state_dict`` from safetensors, the rest from JSON); no pickle.
     ``config.json`` is checked against its schema (:func:`check_config`) and the safetensors header against the
-    file (:func:`~difareli.checkpoints.safetensors_file.read_header`) before any tensor is read."""
+    file (:func:`read_header`) before any tensor is read."""
+    import torch
     from safetensors import SafetensorError
     from safetensors.torch import load_file
-
-    from difareli.checkpoints.safetensors_file import read_header
 
     folder = Path(folder)
     fix = f"export the folder again: difareli-export <checkpoint>.ckpt {folder}"
@@ -185,6 +187,104 @@ def read_folder(folder: str | Path, map_location: str | torch.device = "cpu") ->
     except (SafetensorError, OSError, ValueError) as e:  # changed under us since the header was checked
         raise UserError(f"{folder / WEIGHTS}: unreadable ({str(e)[:120]}); {fix}") from None
     return ckpt
+
+
+# ---------------------------------------------------------------------------------------------- model.safetensors
+#: Bytes per element of the dtypes difareli writes (floats for weights, integers and bools for buffers).
+DTYPE_BYTES = {"F64": 8, "F32": 4, "F16": 2, "BF16": 2, "I64": 8, "I32": 4, "I16": 2, "I8": 1, "U8": 1, "BOOL": 1}
+FLOAT_DTYPES = ("F64", "F32", "F16", "BF16")
+#: The reader's own bound on a header (safetensors refuses larger ones).
+MAX_HEADER = 100_000_000
+
+
+def _kind_of(first: bytes) -> str | None:
+    """What a file that is not safetensors is, from its first bytes (PyTorch writes zips, older ones pickles)."""
+    if first.startswith(b"PK\x03\x04"):
+        return "a zip archive (a PyTorch .ckpt saved by torch.save, renamed?)"
+    if first[:1] == b"\x80" and first[1:2] in (b"\x02", b"\x03", b"\x04", b"\x05"):
+        return "a Python pickle (an old PyTorch .ckpt, renamed?)"
+    return None
+
+
+def read_header(path: str | Path, fix: str) -> dict[str, dict[str, Any]]:
+    """The tensors a safetensors file holds, ``{name: {"dtype", "shape", "data_offsets"}}``, after checking the
+    header against the file: a little-endian 64-bit header length, a UTF-8 JSON object ``{name: {"dtype",
+    "shape", "data_offsets": [begin, end]}, "__metadata__": {str: str}}``, then the data, whose tensors' byte ranges
+    must tile it exactly. A problem is a UserError ``<path>: <what>; <fix>``."""
+    path = Path(path)
+    size = path.stat().st_size
+    with open(path, "rb") as f:
+        first = f.read(8)
+        kind = _kind_of(first)
+        if kind is not None:
+            raise UserError(f"{path} is {kind}, not a safetensors file; give the .ckpt itself as checkpoint=<file>."
+                            "ckpt, or make a folder from it: difareli-export <file>.ckpt <folder>")
+        if len(first) < 8:
+            raise UserError(f"{path}: {size} bytes, too short for a safetensors file (the 8-byte header length is "
+                            f"cut): truncated; {fix}")
+        n = int.from_bytes(first, "little")
+        if n > min(size - 8, MAX_HEADER):
+            raise UserError(f"{path}: its header claims {n} bytes, the file holds {size - 8} after the length: "
+                            f"truncated or not a safetensors file; {fix}")
+        raw = f.read(n)
+    try:
+        header = json.loads(raw.decode("utf-8"))
+    except RecursionError:  # a few hundred nested brackets: no tensor list nests, so it was made to break readers
+        raise UserError(f"{path}: its header nests arrays or objects too deeply to be a tensor list: corrupt; "
+                        f"{fix}") from None
+    except (UnicodeDecodeError, ValueError) as e:
+        raise UserError(f"{path}: its header is not JSON ({str(e)[:80]}): corrupt; {fix}") from None
+    if not isinstance(header, dict):
+        raise UserError(f"{path}: its header is a JSON {type(header).__name__}, not an object: corrupt; {fix}")
+    meta = header.pop("__metadata__", {})
+    if not isinstance(meta, dict) or not all(isinstance(v, str) for v in meta.values()):
+        raise UserError(f"{path}: its __metadata__ is not an object of strings: corrupt; {fix}")
+    for name, entry in header.items():
+        _check_entry(path, name, entry, fix)
+    _check_tiling(path, header, size - 8 - n, fix)
+    return header
+
+
+def _check_entry(path: Path, name: str, entry: Any, fix: str) -> None:
+    """One tensor's entry: a known dtype, a shape of non-negative integers, offsets spanning exactly its bytes."""
+    where = f"{path}: tensor {name!r}"
+    if not isinstance(entry, dict) or set(entry) != {"dtype", "shape", "data_offsets"}:
+        raise UserError(f"{where}: its entry is not {{dtype, shape, data_offsets}}: corrupt; {fix}")
+    dtype, shape, offsets = entry["dtype"], entry["shape"], entry["data_offsets"]
+    if dtype not in DTYPE_BYTES:
+        raise UserError(f"{where}: dtype {str(dtype)[:20]!r} is not one difareli weights use "
+                        f"({', '.join(DTYPE_BYTES)}); {fix}")
+
+    def ints(v: Any) -> bool:
+        return isinstance(v, list) and all(isinstance(x, int) and not isinstance(x, bool) and x >= 0 for x in v)
+
+    if not ints(shape):
+        raise UserError(f"{where}: shape {str(shape)[:40]} is not a list of non-negative integers: corrupt; {fix}")
+    if not ints(offsets) or len(offsets) != 2 or offsets[0] > offsets[1]:
+        raise UserError(f"{where}: data_offsets {str(offsets)[:40]} are not [begin, end] with begin <= end: "
+                        f"corrupt; {fix}")
+    need = math.prod(shape) * DTYPE_BYTES[dtype]
+    if offsets[1] - offsets[0] != need:
+        raise UserError(f"{where}: shape {tuple(shape)} of {dtype} needs {need} bytes, its data_offsets span "
+                        f"{offsets[1] - offsets[0]}: the header lies; {fix}")
+
+
+def _check_tiling(path: Path, header: dict, data: int, fix: str) -> None:
+    """The tensors' byte ranges follow one another from 0 with no gap or overlap and end where the file does."""
+    end, last = 0, None
+    for name, entry in sorted(header.items(), key=lambda kv: tuple(kv[1]["data_offsets"])):
+        begin = entry["data_offsets"][0]
+        if begin != end:
+            before = f"tensor {last!r} ends" if last else "the data starts"
+            raise UserError(f"{path}: tensor {name!r} starts at byte {begin}, {before} at {end}: "
+                            f"{'an overlap' if begin < end else 'a gap'}, the header lies; {fix}")
+        end, last = entry["data_offsets"][1], name
+    if end > data:
+        raise UserError(f"{path}: tensor {last!r} ends at byte {end} of the data, the file holds {data}: "
+                        f"truncated; {fix}")
+    if end < data:
+        raise UserError(f"{path}: {data - end} bytes after the last tensor {last!r}: not the file that was "
+                        f"written; {fix}")
 
 
 # ---------------------------------------------------------------------------------------------- config.json schema
@@ -293,6 +393,8 @@ def check_hyper_parameters(hp: Any, where: Any, fix: str) -> None:
 def load_torch_file(path: Any, what: str = "checkpoint", map_location: Any = "cpu") -> Any:
     """``torch.load(path, weights_only=True)``; a missing, truncated or non-torch file is a UserError naming
     it (never a hint to load untrusted pickles)."""
+    import torch
+
     p = Path(str(path))
     if not p.is_file():
         raise UserFileNotFoundError(f"{what} {p} does not exist (difareli-train writes <run>/checkpoints/last.ckpt)")
@@ -305,110 +407,3 @@ def load_torch_file(path: Any, what: str = "checkpoint", map_location: Any = "cp
             first = "it holds objects other than tensors and plain containers"
         raise UserError(f"{what} {p} ({size} bytes) is not a readable PyTorch file ({first[:160]}); it may be "
                         "truncated or corrupt: copy it again or use another checkpoint") from None
-
-
-# ---------------------------------------------------------------------------------------------- the weights
-def check_finite_state(state: Mapping[str, Any], where: Any, fix: str) -> None:
-    """Every floating tensor of ``state`` is finite; the first that is not is a UserError naming it (the weights
-    themselves are bad, whatever precision a run would use)."""
-    for name, t in state.items():
-        if isinstance(t, torch.Tensor) and t.is_floating_point() and t.numel():
-            bad = int((~torch.isfinite(t)).sum())
-            if bad:
-                raise UserError(f"{where}: tensor {name!r} holds {bad} NaN/Inf value(s) of {t.numel()}: the weights "
-                                f"are corrupt or the run diverged; {fix}")
-
-
-def load_weights(model: torch.nn.Module, state: Mapping[str, torch.Tensor], where: Any, fix: str) -> None:
-    """Load ``state`` into ``model`` (built from the checkpoint's hyperparameters) after checking it: the same
-    tensor names, each of the model's shape and kind (floating or not), every float finite; one line naming the
-    tensor instead of PyTorch's dump."""
-    want = model.state_dict()
-    missing, extra = sorted(set(want) - set(state)), sorted(set(state) - set(want))
-    if missing or extra:
-        what = (f"lacks {len(missing)} tensor(s) the model built from its hyperparameters has (e.g. {missing[0]!r})"
-                if missing else f"has {len(extra)} tensor(s) that model does not (e.g. {extra[0]!r})")
-        raise UserError(f"{where}: the weights {what}; {fix}")
-    for name, w in want.items():
-        t = state[name]
-        if tuple(t.shape) != tuple(w.shape):
-            raise UserError(f"{where}: tensor {name!r} has shape {tuple(t.shape)}, the model built from its "
-                            f"hyperparameters needs {tuple(w.shape)}; {fix}")
-        if t.is_floating_point() != w.is_floating_point():
-            raise UserError(f"{where}: tensor {name!r} is {str(t.dtype).removeprefix('torch.')}, the model's is "
-                            f"{str(w.dtype).removeprefix('torch.')}; {fix}")
-    check_finite_state(state, where, fix)
-    model.load_state_dict(state)
-
-
-def _fits(value: Any, hint: Any) -> bool:
-    """Whether a plain (JSON or checkpoint) value fits a parameter's type hint; hints it cannot judge pass."""
-    import collections.abc
-    import types
-    import typing
-
-    origin = typing.get_origin(hint)
-    if origin in (typing.Union, types.UnionType):
-        return any(_fits(value, a) for a in typing.get_args(hint))
-    if hint is type(None):
-        return value is None
-    if hint in (bool, int, float):
-        return _is(value, hint) and (hint is not bool or isinstance(value, bool))
-    base = origin or hint
-    if base is collections.abc.Callable or not isinstance(base, type):  # a partial's config; Any
-        return True
-    if base in (collections.abc.Sequence, list, tuple) and isinstance(value, str):
-        return False  # "shading" is not a list of names
-    return isinstance(value, base) or (base is tuple and isinstance(value, list))
-
-
-def _hint_name(hint: Any) -> str:
-    text = hint.__name__ if isinstance(hint, type) else str(hint)
-    return text.replace("typing.", "").replace("collections.abc.", "")
-
-
-def check_parameters(cls: type, config: Mapping[str, Any], where: Any, fix: str) -> None:
-    """``config`` against ``cls``'s constructor: no parameter it lacks, none it requires missing, each value of
-    its parameter's type; one line naming the hyperparameter."""
-    import inspect
-    import typing
-
-    params = {k: q for k, q in inspect.signature(cls).parameters.items() if k != "self"}
-    if not any(q.kind is q.VAR_KEYWORD for q in params.values()):
-        unknown = sorted(set(config) - set(params))
-        if unknown:
-            raise UserError(f"{where}: hyper_parameters.{unknown[0]} is not a parameter of {cls.__name__}; {fix}")
-    missing = [k for k, q in params.items() if q.default is q.empty and q.kind is q.POSITIONAL_OR_KEYWORD
-               and k not in config]
-    if missing:
-        raise UserError(f"{where}: hyper_parameters.{missing[0]} is missing ({cls.__name__} requires it); {fix}")
-    try:
-        hints = typing.get_type_hints(cls.__init__)
-    except Exception:  # noqa: BLE001 - a hint that does not resolve: the constructor judges the values
-        hints = {}
-    for key, value in config.items():
-        if key in hints and not _fits(value, hints[key]):
-            shown = json.dumps(value)[:40] if _is(value, float) or isinstance(value, str) else type(value).__name__
-            raise UserError(f"{where}: hyper_parameters.{key} is {shown}, not of {cls.__name__}'s type for it "
-                            f"({_hint_name(hints[key])}); {fix}")
-
-
-def build_module(cls: type, config: Mapping[str, Any], state: Mapping[str, torch.Tensor], path: Any):
-    """``cls(**config)`` with ``state`` loaded (:func:`load_weights`), both checked first (:func:`check_parameters`,
-    :func:`check_hyper_parameters`): one line naming the checkpoint's file and the hyperparameter or tensor."""
-    p = Path(str(path))
-    folder = is_folder(p)
-    where, weights = (p / CONFIG, p / WEIGHTS) if folder else (p, p)
-    fix = (f"export the folder again: difareli-export <checkpoint>.ckpt {p}" if folder else
-           "use the difareli version that wrote the checkpoint, or another checkpoint (an earlier step's)")
-    check_hyper_parameters(dict(config), where, fix)  # a .ckpt's too: its resolution bounds a photo's relight
-    check_parameters(cls, config, where, fix)
-    try:
-        model = cls(**config)
-    except UserError as e:
-        raise UserError(f"{where}: its hyperparameters do not build {cls.__name__} ({e}); {fix}") from None
-    except (TypeError, ValueError, KeyError) as e:  # a value the hints allow but the constructor refuses
-        raise UserError(f"{where}: its hyperparameters do not build {cls.__name__} ({type(e).__name__}: "
-                        f"{str(e)[:160]}); {fix}") from None
-    load_weights(model, state, weights, fix)
-    return model

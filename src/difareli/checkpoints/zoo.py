@@ -4,8 +4,8 @@ Each one is ``src/difareli/checkpoints/<name>.ckpt`` (a slim Lightning checkpoin
 hyperparameters, the module class; no optimizer state; kept for resuming training and ``init_from``) beside its model
 card ``<name>.md`` and its weights folder ``<name>/`` (``model.safetensors``, ``config.json``, ``README.md``, written
 by ``difareli-export``: loads with no pickle). :func:`export` writes the .ckpt and card from a training run;
-:func:`resolve` turns a name or a path into a file or folder, and every loader (``lit.load_checkpoint``, the CLIs,
-the notebooks) goes through it: ``load_checkpoint`` reads a shipped name from its folder.
+:func:`difareli.checkpoints.loading.resolve` turns a name or a path into a file or folder, and every loader goes
+through it: ``load_checkpoint`` reads a shipped name from its folder.
 """
 
 from __future__ import annotations
@@ -13,13 +13,14 @@ from __future__ import annotations
 import json
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import torch
-
-from difareli.checkpoints.format import SLIM_KEYS, folder_problem, is_folder, load_torch_file
-from difareli.errors import UserError, UserFileNotFoundError, check_file
+from difareli.checkpoints.format import SLIM_KEYS, is_folder, load_torch_file
+from difareli.errors import UserError
 from difareli.utils.fileio import torch_save_atomic, write_text_atomic
+
+if TYPE_CHECKING:
+    import torch
 
 #: Where the shipped checkpoints and their model cards live (package data).
 SHIPPED_DIR = Path(__file__).resolve().parent  # the weights ship beside this module
@@ -32,33 +33,6 @@ def available() -> list[str]:
     """Names of the shipped checkpoints."""
     folders = {p.name for p in SHIPPED_DIR.iterdir() if is_folder(p)}
     return sorted({p.stem for p in SHIPPED_DIR.glob("*.ckpt")} | folders)
-
-
-def resolve(checkpoint: str | Path, key: str = "checkpoint", prefer_folder: bool = False) -> Path:
-    """The file or weights folder of a checkpoint given as a path or as a shipped name (a path of that name wins);
-    a shipped name is its ``.ckpt`` (what a caller that ``torch.load`` s the file needs) or, with ``prefer_folder``
-    (``load_checkpoint``), its weights folder when it has one. A missing one is a FileNotFoundError naming the
-    input and the shipped names."""
-    path = Path(str(checkpoint)).expanduser()
-    if path.is_file():
-        return check_file(path, key)
-    if is_folder(path):
-        return path
-    if folder_problem(path):  # a weights folder missing one of its files: say which, not "is a folder"
-        raise UserFileNotFoundError(folder_problem(path))
-    shipped = "/" not in str(checkpoint) and str(checkpoint) not in ("", ".", "..")
-    if shipped and prefer_folder and is_folder(SHIPPED_DIR / str(checkpoint)):
-        return SHIPPED_DIR / str(checkpoint)
-    if shipped and (SHIPPED_DIR / f"{checkpoint}.ckpt").is_file():
-        return SHIPPED_DIR / f"{checkpoint}.ckpt"
-    if shipped and is_folder(SHIPPED_DIR / str(checkpoint)):
-        return SHIPPED_DIR / str(checkpoint)
-    try:
-        return check_file(path, key)
-    except FileNotFoundError as e:
-        raise UserFileNotFoundError(f"{e} (<run>/checkpoints/last.ckpt, or a weights folder of difareli-export), or "
-                                    f"the name of a shipped checkpoint: "
-                                    f"{', '.join(available()) or 'none shipped'}") from None
 
 
 def suite() -> str | None:

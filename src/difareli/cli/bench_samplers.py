@@ -15,7 +15,7 @@ from omegaconf import DictConfig, OmegaConf
 from difareli import errors
 from difareli.perf import measure as perf
 from difareli.perf import samplers as speed
-from difareli.checkpoints import zoo
+from difareli.checkpoints import loading
 from difareli.checkpoints.loading import LoadedCheckpoint
 from difareli.cli import common
 from difareli.relight.relightable import OnePassRelightable
@@ -34,7 +34,7 @@ def run(cfg: DictConfig) -> dict:
     errors.check_int(cfg.student_repeats, "student_repeats", 1)
     errors.check_out_dir(cfg.out_dir)
     if cfg.checkpoint is not None:
-        zoo.resolve(cfg.checkpoint, "checkpoint")
+        loading.resolve(cfg.checkpoint, "checkpoint")
     runtime = Runtime.from_config(cfg.runtime)
     device = runtime.torch_device
     if cfg.threads:
@@ -110,7 +110,7 @@ def _student(cfg: DictConfig, cases: list, runtime: Runtime) -> tuple:
         if cfg.checkpoint is None:
             raise errors.UserError("student=<checkpoint> is timed against a teacher checkpoint: give checkpoint=... "
                                    "and store=..., or student=untrained for timing only")
-        checkpoint = zoo.resolve(cfg.student, "student")
+        checkpoint = loading.resolve(cfg.student, "student")
     relighter = Relighter(checkpoint, runtime=runtime)
     if not isinstance(relighter.model, OnePassRelightable):
         raise errors.UserError(f"student={cfg.student} is not a one-pass model; give a model=student checkpoint")

@@ -15,7 +15,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from difareli import errors
-from difareli.checkpoints import zoo
+from difareli.checkpoints import loading
 from difareli.configs import CONFIG_DIR
 from difareli.data import shard as sharding
 from difareli.evaluation.baselines import build_method
@@ -143,7 +143,7 @@ def validate(cfg: DictConfig) -> None:
     errors.check_out_dir(cfg.out_dir)
     if "checkpoint" in cfg.method:  # a trained model (the diffusion method): its sampler, runtime and file
         common.check_relighting(cfg)
-        zoo.resolve(cfg.method.get("checkpoint") or "", "method.checkpoint")
+        loading.resolve(cfg.method.get("checkpoint") or "", "method.checkpoint")
 
 
 @hydra.main(version_base="1.3", config_path=common.CONFIG_PATH, config_name="benchmark")

@@ -12,7 +12,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from difareli import errors
-from difareli.checkpoints import zoo
+from difareli.checkpoints import loading, zoo
 from difareli.checkpoints.format import load_torch_file
 from difareli.cli import common
 from difareli.jobs.demo import DemoResult, run_demo
@@ -25,7 +25,7 @@ def run(cfg: DictConfig) -> DemoResult:
     if cfg.num_threads is not None:
         torch.set_num_threads(int(cfg.num_threads))
     start = time.perf_counter()
-    res = run_demo(str(zoo.resolve(cfg.checkpoint)), cfg.out_dir, sampler=OmegaConf.to_container(cfg.sampler),
+    res = run_demo(str(loading.resolve(cfg.checkpoint)), cfg.out_dir, sampler=OmegaConf.to_container(cfg.sampler),
                    runtime=OmegaConf.to_container(cfg.runtime), subjects=int(cfg.subjects),
                    resolution=int(cfg.resolution), seed=int(cfg.seed), frames=int(cfg.frames), pairs=int(cfg.pairs),
                    rows=int(cfg.rows), photo=errors.check_bool(cfg.photo, "photo"),
@@ -108,7 +108,7 @@ def first_section(suite: str) -> str:
 
 def card_benchmark(checkpoint: str) -> str | None:
     """The benchmark paragraph of a checkpoint's model card (shipped checkpoints have one), else None."""
-    ckpt = load_torch_file(zoo.resolve(checkpoint), "checkpoint")
+    ckpt = load_torch_file(loading.resolve(checkpoint), "checkpoint")
     text = (ckpt.get("model_card") or {}).get("benchmark") if isinstance(ckpt, dict) else None
     return str(text) if text else None
 
@@ -116,7 +116,7 @@ def card_benchmark(checkpoint: str) -> str | None:
 def validate(cfg: DictConfig) -> None:
     """Config values, checked before any work."""
     common.check_relighting(cfg)  # before the store is made and the checkpoint read
-    zoo.resolve(cfg.checkpoint)
+    loading.resolve(cfg.checkpoint)
     for key, low in (("subjects", 10), ("resolution", 16), ("frames", 1), ("pairs", 1), ("rows", 1)):
         errors.check_int(cfg[key], key, low)
     errors.check_int(cfg.num_threads, "num_threads", 1, allow_none=True)

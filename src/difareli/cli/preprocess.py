@@ -20,6 +20,8 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig, open_dict
 
+from difareli.checkpoints import loading
+from difareli.checkpoints.format import load_torch_file, training_resolution, upgrade_checkpoint
 from difareli.cli.common import CONFIG_PATH
 from difareli.errors import UserError, check_bool, check_int, check_out_dir, cli_entry
 from difareli.data.shard import parse as parse_shard
@@ -31,10 +33,7 @@ DEFAULT_SIZE = 256
 
 def checkpoint_facts(checkpoint) -> tuple[int | None, list[str]]:
     """``(training resolution, inputs)`` of a checkpoint (a file or a shipped name), read without Lightning."""
-    from difareli.checkpoints import zoo
-    from difareli.checkpoints.format import load_torch_file, training_resolution, upgrade_checkpoint
-
-    ckpt = upgrade_checkpoint(load_torch_file(zoo.resolve(checkpoint, "checkpoint"), "checkpoint"))
+    ckpt = upgrade_checkpoint(load_torch_file(loading.resolve(checkpoint, "checkpoint"), "checkpoint"))
     hp = ckpt.get("hyper_parameters")
     if not isinstance(hp, dict):
         raise UserError(f"checkpoint={checkpoint} is not a difareli checkpoint (no hyper_parameters); give "

@@ -11,7 +11,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from difareli.diffusion.spec import check_sampler
 from difareli import errors
-from difareli.checkpoints import zoo
+from difareli.checkpoints import loading
 from difareli.cli import common
 from difareli.utils.fileio import write_json_atomic
 from difareli.data.store import EncodingStore
@@ -122,7 +122,7 @@ def validate(cfg: DictConfig) -> None:
         raise errors.UserError("maker=difference relights with a DiFaReli: give checkpoint=<its .ckpt or a shipped "
                                "name, e.g. difareli-synth64>, or maker=march for maps without a model")
     check_sampler(cfg.sampler)
-    zoo.resolve(cfg.checkpoint, "checkpoint")  # a file or a shipped name, as in every other CLI
+    loading.resolve(cfg.checkpoint, "checkpoint")  # a file or a shipped name, as in every other CLI
     if cfg.median != "auto":
         errors.check_int(cfg.median, "median", 1)
         if int(cfg.median) % 2 == 0:

@@ -6,7 +6,7 @@ import hydra
 from omegaconf import DictConfig
 
 from difareli import errors
-from difareli.checkpoints import zoo
+from difareli.checkpoints import loading
 from difareli.cli import common
 from difareli.render.sun_fit import TARGET_SUNS
 from difareli.data.store import EncodingStore
@@ -18,7 +18,7 @@ def run(cfg: DictConfig) -> dict:
     from difareli.jobs.teacher_pairs import generate_teacher_pairs
     from difareli.relight.relighter import Relighter
     common.check_relighting(cfg)
-    zoo.resolve(cfg.checkpoint, "checkpoint")  # a file or a shipped name, as in every other CLI
+    loading.resolve(cfg.checkpoint, "checkpoint")  # a file or a shipped name, as in every other CLI
     errors.check_int(cfg.batch_size, "batch_size", 1)
     errors.check_int(cfg.per_record, "per_record", 1)
     errors.check_int(cfg.limit, "limit", 1, allow_none=True)

@@ -11,7 +11,7 @@ from omegaconf import DictConfig
 
 from difareli.diffusion.spec import check_sampler
 from difareli import errors
-from difareli.checkpoints import zoo
+from difareli.checkpoints import loading
 from difareli.cli import common
 from difareli.checkpoints.loading import check_resume, read_checkpoint
 from difareli.lit import logging as lit_logging
@@ -34,7 +34,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         raise errors.UserError(f"init_from={init_from} and ckpt_path={ckpt_path}: give one (ckpt_path resumes a run "
                                "with its optimizer and step; init_from starts a new run from a checkpoint's weights)")
     if init_from:  # fine-tuning: the weights (and their input normalisation), not the optimizer or the step
-        ckpt = read_checkpoint(str(zoo.resolve(init_from, "init_from")))
+        ckpt = read_checkpoint(str(loading.resolve(init_from, "init_from")))
     if ckpt is not None:  # another variant's statistics would not even fit the network: name both variants
         check_resume_variant(ckpt_path or init_from, ckpt, cfg.model, "init_from" if init_from else "ckpt_path")
         datamodule.check_checkpoint(ckpt["hyper_parameters"], ckpt_path or init_from)  # before a size mismatch

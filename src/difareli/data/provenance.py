@@ -13,6 +13,7 @@ import json
 from pathlib import Path
 from typing import Any, Mapping
 
+from difareli.checkpoints import loading
 from difareli.errors import UserError
 from difareli.utils.fileio import write_json_atomic
 
@@ -36,10 +37,8 @@ def file_digest(path: str | Path, chars: int = 16) -> str:
 
 def checkpoint_identity(checkpoint: Any) -> str:
     """``sha256:<digest>`` of a checkpoint given as a path or a shipped name
-    (:func:`difareli.checkpoints.zoo.resolve`)."""
-    from difareli.checkpoints import zoo
-
-    return f"sha256:{file_digest(zoo.resolve(str(checkpoint)))}"
+    (:func:`difareli.checkpoints.loading.resolve`)."""
+    return f"sha256:{file_digest(loading.resolve(str(checkpoint)))}"
 
 
 def store_identity(store) -> str:

@@ -25,7 +25,7 @@ from difareli.lighting.light_fit import LightFit, face_normals
 from difareli.errors import UserError
 from difareli.evaluation.pairs import StoredFace, exact_light_name
 from difareli.data import encodings
-from difareli.relight.photo import grey_like
+from difareli.utils.imageops import grey_like
 from difareli.relight.targets import Targets
 from difareli.data.inputs import check_store_fits
 from difareli.relight.relightable import OnePassRelightable

@@ -42,6 +42,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from difareli import errors
+from difareli.checkpoints.loading import LoadedCheckpoint
 from difareli.data import derived
 from difareli.data import encodings
 from difareli.utils import imageops
@@ -196,7 +197,6 @@ def compute(model, store, spec, *, provenance: Mapping[str, Any], ids: Sequence[
 def _relighter(model, spec, runtime, device, mean_matching: bool, batch_size: int) -> Relighter:
     """The :class:`Relighter` of a loaded ``model`` (its hyperparameters: the store is checked against them);
     without a ``runtime``, plain fp32 on ``device``."""
-    from difareli.checkpoints.loading import LoadedCheckpoint  # Lightning loads only when a model relights
 
     rt = runtime if runtime is not None else {"device": str(device), "precision": "fp32"}
     return Relighter(LoadedCheckpoint.of_module(model), spec, runtime=rt, mean_matching=mean_matching,

@@ -1,5 +1,5 @@
 """LightningModules and their checkpoints: importing it registers the model classes a checkpoint names
-(:mod:`difareli.checkpoints.registry`)."""
+(:mod:`difareli.checkpoints.loading`)."""
 
 from difareli.checkpoints.loading import LoadedCheckpoint, load_checkpoint
 from difareli.lit.diffusion import DiffusionModule

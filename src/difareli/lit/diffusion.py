@@ -21,7 +21,7 @@ import torch
 import torch.nn.functional as F
 
 from difareli.checkpoints.format import stamp, upgrade_checkpoint
-from difareli.checkpoints.registry import register
+from difareli.checkpoints.loading import register
 from difareli.diffusion.schedule import DiffusionSchedule
 from difareli.errors import UserError
 from difareli.nn import build_network

@@ -36,6 +36,7 @@ from typing import Any
 
 from difareli.checkpoints.format import OFFICIAL_REPO as REPO
 from difareli.checkpoints.format import is_official, load_torch_file, stamp
+from difareli.checkpoints.loading import load_checkpoint
 from difareli.errors import UserError, check_file, check_out_dir
 # read_config and PARAM_WIDTHS are also named from here (scripts/bench_official.py, docs/official_code.md).
 from difareli.official.config import DEFAULTS, PARAM_ENCODING, PARAM_WIDTHS, OfficialConfig, read_config
@@ -294,7 +295,6 @@ def verify_loaded(module: Any, path: str | Path, seed: int = 0) -> float:
     at the training resolution: 0.0 when the file holds exactly the converted weights."""
     import torch
 
-    from difareli.checkpoints.loading import load_checkpoint
 
     loaded = load_checkpoint(path).model
     g = torch.Generator().manual_seed(seed)

@@ -8,7 +8,7 @@ per process and crop size (:func:`pipeline_for`): building one and its first ima
 A photo is aligned at the resolution its checkpoint was trained at
 (:func:`difareli.checkpoints.format.training_resolution`) unless told otherwise, and an input at another
 resolution is named in a warning (:func:`resolution_warning`). A grey photo (:func:`is_grey`) gets a grey light and
-comes back grey (:func:`grey_like`): it has no colour for the model to keep.
+comes back grey (:class:`~difareli.relight.relit.Relit`): it has no colour for the model to keep.
 
 A group photo: :func:`detect_faces` lists every face (left to right), ``prepare_photo(..., face=box)`` aligns the
 one chosen (``face=<index>|largest|all`` of difareli-relight, :func:`choose_faces`). Where the aligned square runs
@@ -34,7 +34,6 @@ import numpy as np
 from difareli.errors import UserError, check_file
 from difareli.estimators.light import describe_light, is_grey, light_direction  # noqa: F401 (re-exported)
 from difareli.estimators.loading import BadInput, load_image
-from difareli.utils.imageops import LUMA
 from difareli.estimators.align import inside_photo
 from difareli.estimators.quiet import native_logs
 from difareli.relight.composite import DEFAULT_PARTS, Compositor
@@ -78,13 +77,6 @@ def photo_dims(encodings: Sequence[str], size: int, estimators: Mapping[str, Any
         return pipeline_for([*encodings, *(["masks"] if composite else [])], size, estimators).dims()
     except ImportError as e:
         raise ImportError(f"relighting a photo needs the estimators' packages ({e}); {EXTRAS_FIX}") from e
-
-
-def grey_like(images: np.ndarray) -> np.ndarray:
-    """uint8 images (..., 3) as their Rec. 709 luminance in all three channels (a grey photo's relights)."""
-    a = np.asarray(images)
-    y = np.clip(np.round(a.astype(np.float64) @ np.asarray(LUMA, np.float64)), 0, 255).astype(np.uint8)
-    return np.repeat(y[..., None], 3, axis=-1)
 
 
 def pipeline_for(encodings: Sequence[str], size: int, estimators: Mapping[str, Any] | None = None):
@@ -133,16 +125,6 @@ def detect_faces(rgb: np.ndarray, size: int, estimators: Mapping[str, Any] | Non
     except ImportError as e:
         raise ImportError(f"relighting a photo needs the estimators' packages ({e}); {EXTRAS_FIX}") from e
     return [b for _, b in sorted(found, key=lambda sb: sb[1][0])]
-
-
-def check_face(face: Any) -> None:
-    """``face=`` as a choice (largest | all | an index >= 0), checked before any photo is read: a typo is the
-    command's error, said once, not a "skipped" line per photo."""
-    key = str(face).strip().lower()
-    if key in ("largest", "all") or key.isdigit():
-        return
-    raise UserError(f"face={face} is invalid: give face=largest, face=all or face=<index> (0, 1, ...: the detected "
-                    "faces left to right)")
 
 
 def choose_faces(boxes: Sequence[np.ndarray], face: Any, what: str) -> list[int]:

@@ -17,11 +17,11 @@ from torch import Tensor
 from tqdm.auto import tqdm
 
 from difareli import errors
+from difareli.checkpoints.loading import LoadedCheckpoint, load_checkpoint
 from difareli.data.inputs import condition_tensors, image_to_tensor
 from difareli.diffusion.relight import Inversion, SamplerSpec
 from difareli.diffusion.spec import DEFAULT_SAMPLER, PRESETS
 from difareli.lighting.plausible import implausible_lights
-from difareli.relight import photo as photos
 from difareli.relight.core import invert_image, relight
 from difareli.relight.relightable import OnePassRelightable
 from difareli.relight.relit import Relit
@@ -54,8 +54,6 @@ class Relighter(Sources):
                  runtime: Runtime | Mapping[str, Any] | None = None, device: str | None = None,
                  mean_matching: bool = True, batch_size: int = 16, progress: bool = False,
                  cache_size: int | None = None):
-        from difareli.checkpoints.loading import LoadedCheckpoint, load_checkpoint  # Lightning: when one is loaded
-
         # The checkpoint first: a command's values (sampler, runtime, batch size) were checked before any work by its
         # config (Relighting.from_config, cli.common.check_relighting); the conversions and checks here serve a caller
         # that passes mappings.
@@ -136,7 +134,7 @@ class Relighter(Sources):
         (N, H, W, 3) uint8, seconds per stage), indexable as its images; a grey source comes back grey."""
         seconds: dict[str, float] = {}
         images = self._relight([source], [targets], cache=True, seconds=seconds)[0]
-        return Relit(photos.grey_like(images) if source.grey else images, seconds, source, targets)
+        return Relit(images, seconds, source, targets)  # a grey source's relights made grey
 
     def relight_many(self, sources: Sequence[Source], targets: Sequence[Targets], *,
                      as_float: bool = False) -> np.ndarray:

@@ -10,12 +10,14 @@ from typing import Any, Sequence
 
 import numpy as np
 from difareli.errors import UserError
+from difareli.utils.imageops import grey_like
 
 
 class Relit(np.ndarray):
     """The relights of one source under N targets (N, H, W, 3) uint8, with ``seconds`` per stage (``invert``: 0 when
     the inversion was reused; ``decode``; ``composite`` once composited), the ``source`` (with its photo, if any)
-    and the ``targets`` they were made under."""
+    and the ``targets`` they were made under. A grey source's relights are their luminance (``source.grey``: a
+    colour the model adds is invented)."""
 
     seconds: dict[str, float]
     source: Any
@@ -23,7 +25,8 @@ class Relit(np.ndarray):
 
     def __new__(cls, images: np.ndarray, seconds: dict[str, float] | None = None, source: Any = None,
                 targets: Any = None) -> "Relit":
-        obj = np.asarray(images).view(cls)
+        grey = getattr(source, "grey", False)
+        obj = np.asarray(grey_like(images) if grey else images).view(cls)
         obj.seconds, obj.source, obj.targets = dict(seconds or {}), source, targets
         return obj
 

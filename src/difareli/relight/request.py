@@ -26,8 +26,8 @@ from difareli.relight.composite import MODES, part_mask
 from difareli.relight.relighter import Relighter
 from difareli.relight.relit import Relit
 from difareli.relight.sources import Source
-from difareli.relight.targets import (TARGET_KEYS, TURNS, Targets, is_named, load_envmap, photo_shadow,
-                                      rotation_targets, target_lights)
+from difareli.relight.targets import (TARGET_KEYS, TURNS, Targets, load_envmap, photo_shadow, rotation_targets,
+                                      target_lights)
 from difareli.render import sun_fit
 from difareli.render.sun_fit import TARGET_SUNS
 from difareli.runtime.core import Runtime
@@ -138,7 +138,12 @@ class Rotation:
                                         sun=None if found is None else found.direction, light=light,
                                         shadows=self.shadows, maps=self.maps, split=self.split)
         targets = plausible(targets, source, "the rotation's lights") if self.plausible else targets
-        return targets, {"shadow": why, "maps": sun_fit.describe(found) if marched else None}
+        return targets, {"shadow": why, "maps": _map_note(found) if marched else None}
+
+
+def _map_note(found: sun_fit.SunFit | None) -> str:
+    """Where a target map is marched: toward the key sun ``found`` (its note), else the radiance peak."""
+    return sun_fit.PEAK_NOTE if found is None else found.note
 
 
 def plausible(targets: Targets, source: Source, what: str = "the target lights") -> Targets:
@@ -257,7 +262,7 @@ def check_target(t: Mapping[str, Any]) -> Target:
     ``light`` and ``envmap``, its sun, its numbers, and one way to give the light (:class:`Target`)."""
     for key, names, kind in (("light", presets.NAMES, "9x3 SH light"), ("envmap", presets.ENVMAPS, "HDR map")):
         value = t.get(key)
-        if value is None or is_named(value, key):
+        if value is None or (isinstance(value, str) and value in names):
             continue
         if "/" in str(value) or Path(str(value)).suffix:  # a path: said as a missing file
             errors.check_file(value, f"target.{key}")
@@ -275,7 +280,7 @@ def check_photos(image: str, face: Any, axis: str | None, record: str | None, co
     """The photos of ``image=`` (a folder or a glob; ``face=all|<index>``: several faces of one photo) as a batch,
     None for one photo; a batch takes a target light, not a video or a target record, and an ``out_dir`` its
     listing does not read; the compositing (a known mode, known parts, a feather >= 0)."""
-    photo.check_face(face)  # a typo is the command's error before any photo is read (not a skipped row per photo)
+    check_face(face)  # a typo is the command's error before any photo is read (not a skipped row per photo)
     photos = photo_paths(image)
     if photos is not None:
         check_out_dir_apart(image, out_dir)
@@ -292,6 +297,16 @@ def check_photos(image: str, face: Any, axis: str | None, record: str | None, co
     if errors.check_number(composite["feather"], "composite.feather", allow_none=False) < 0:
         raise errors.UserError(f"composite.feather={composite['feather']}: must be >= 0 (a fraction of the crop size)")
     return None if photos is None else tuple(photos)
+
+
+def check_face(face: Any) -> None:
+    """``face=`` as a choice (largest | all | an index >= 0), checked before any photo is read: a typo is the
+    command's error, said once, not a "skipped" line per photo."""
+    key = str(face).strip().lower()
+    if key in ("largest", "all") or key.isdigit():
+        return
+    raise errors.UserError(f"face={face} is invalid: give face=largest, face=all or face=<index> (0, 1, ...: the "
+                           "detected faces left to right)")
 
 
 def check_store(root: str, versions: Mapping[str, Any] | None, **records: str | None) -> EncodingStore:
@@ -350,7 +365,7 @@ def respond(relighter: Relighter, request: Request, say: Callable[[str], None] |
         out.relit = relighter.relight(source, targets)
         out.tell(f"target light 0: {photo.describe_light(targets.lights[0])}")
         if "shadow_map" in relighter.model_inputs:
-            out.tell(f"target 0 shadow map: {sun_fit.describe(found)}")
+            out.tell(f"target 0 shadow map: {_map_note(found)}")
         out.tell(f"relit {source.what} ({out.relit.describe_seconds()}; {relighter.describe()})")
         if other is not None and store.meta(t.record).get("subject") == store.meta(source.key[1]).get("subject"):
             out.truth = np.asarray(other.arrays["image"])

@@ -40,6 +40,8 @@ ENCODINGS = ("image", "normal", "depth", "cam", "face_mask", "masks")
 #: the video): ``shadows``, toward the key sun found from the cast shadows of the image the light was fitted to
 #: (:func:`key_sun`); ``peak``, toward the light's radiance peak.
 TARGET_SUNS = ("shadows", "peak")
+#: Where a target map is marched without a key sun (none found, or none sought).
+PEAK_NOTE = "marched toward the light's radiance peak"
 
 
 @dataclass(frozen=True)
@@ -56,6 +58,16 @@ class SunFit:
     def moved_deg(self) -> float:
         """Degrees between the found sun and the radiance peak."""
         return float(np.degrees(np.arccos(np.clip(self.direction @ self.peak, -1.0, 1.0))))
+
+    @property
+    def note(self) -> str:
+        """Where a target shadow map marched toward this fit goes, for console lines and summaries (no fit at
+        all: :data:`PEAK_NOTE`)."""
+        if self.evidence < MIN_EVIDENCE:
+            return (f"{PEAK_NOTE} (the image shows {self.evidence} px of cast shadow, fewer than the "
+                    f"{MIN_EVIDENCE} its key sun is found from)")
+        return (f"marched toward the key sun found from the image's cast shadows ({self.evidence} px; "
+                f"{self.moved_deg:.1f} degrees from the radiance peak, map IoU {self.iou:.2f})")
 
 
 def shadow_evidence(arrays: Mapping[str, np.ndarray], light: np.ndarray, fit: LightFit | None = None
@@ -106,14 +118,3 @@ def key_sun(arrays: Mapping[str, np.ndarray], light: np.ndarray, fit: LightFit |
 def record_sun(store, record_id: str, light: np.ndarray, fit: LightFit | None = None) -> SunFit | None:
     """:func:`key_sun` of ``light`` on ``store``'s record ``record_id`` (the image it was fitted to)."""
     return key_sun(store.read(record_id, [k for k in ENCODINGS if store.available(k)]), light, fit=fit)
-
-
-def describe(found: SunFit | None) -> str:
-    """Where a target shadow map is marched, for console lines and summaries."""
-    if found is None:
-        return "marched toward the light's radiance peak"
-    if found.evidence < MIN_EVIDENCE:
-        return (f"marched toward the light's radiance peak (the image shows {found.evidence} px of cast shadow, "
-                f"fewer than the {MIN_EVIDENCE} its key sun is found from)")
-    return (f"marched toward the key sun found from the image's cast shadows ({found.evidence} px; "
-            f"{found.moved_deg:.1f} degrees from the radiance peak, map IoU {found.iou:.2f})")

@@ -23,6 +23,13 @@ def luminance(rgb: np.ndarray) -> np.ndarray:
     return np.asarray(rgb, dtype=np.float64) @ LUMA
 
 
+def grey_like(images: np.ndarray) -> np.ndarray:
+    """uint8 images (..., 3) as their Rec. 709 luminance in all three channels (a grey photo's relights)."""
+    a = np.asarray(images)
+    y = np.clip(np.round(a.astype(np.float64) @ LUMA), 0, 255).astype(np.uint8)
+    return np.repeat(y[..., None], 3, axis=-1)
+
+
 @functools.lru_cache(maxsize=1)
 def _lab_tables() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """scikit-image's sRGB -> linear RGB value of each 8-bit level (its formula, on its ``img_as_float`` of the
