@@ -192,7 +192,6 @@ def read_folder(folder: str | Path, map_location: str | torch.device = "cpu") ->
 # ---------------------------------------------------------------------------------------------- model.safetensors
 #: Bytes per element of the dtypes difareli writes (floats for weights, integers and bools for buffers).
 DTYPE_BYTES = {"F64": 8, "F32": 4, "F16": 2, "BF16": 2, "I64": 8, "I32": 4, "I16": 2, "I8": 1, "U8": 1, "BOOL": 1}
-FLOAT_DTYPES = ("F64", "F32", "F16", "BF16")
 #: The reader's own bound on a header (safetensors refuses larger ones).
 MAX_HEADER = 100_000_000
 
@@ -305,8 +304,9 @@ _JSON = {dict: "an object", list: "an array", str: "a string", int: "an integer"
          bool: "true or false", type(None): "null"}
 
 
-def _is(value: Any, kind: type) -> bool:
-    """JSON typing: an integer is not a bool; a number may be an integer."""
+def json_is(value: Any, kind: type) -> bool:
+    """JSON typing (a config's values and a checkpoint's hyperparameters): an integer is not a bool; a number may
+    be an integer."""
     if kind is int:
         return isinstance(value, int) and not isinstance(value, bool)
     if kind is float:
@@ -329,11 +329,11 @@ def check_config(config: Any, where: Path, fix: str) -> None:
         raise UserError(f"{where} is not a difareli weights folder's config (no \"format\": \"{FOLDER_FORMAT}\"); "
                         "make one with difareli-export <checkpoint> <folder>")
     version = config.get("version")
-    if _is(version, int) and version > FOLDER_VERSION:
+    if json_is(version, int) and version > FOLDER_VERSION:
         raise UserError(f"{where.parent} is a weights folder of version {version}, newer than this difareli reads "
                         f"({FOLDER_VERSION}); load it with the difareli version that wrote it")
     fmt = config.get(FORMAT_KEY)
-    if _is(fmt, int) and fmt > FORMAT_VERSION:
+    if json_is(fmt, int) and fmt > FORMAT_VERSION:
         raise UserError(f"{where}: {FORMAT_KEY} is {fmt}, newer than this difareli reads ({FORMAT_VERSION}); load it "
                         "with the difareli version that wrote it")
     unknown = sorted(set(config) - set(CONFIG_SCHEMA))
@@ -344,7 +344,7 @@ def check_config(config: Any, where: Path, fix: str) -> None:
             if required:
                 raise UserError(f"{where}: the required key {key!r} is missing; {fix}")
             continue
-        if not _is(config[key], kind):
+        if not json_is(config[key], kind):
             raise _wrong(where, key, config[key], _JSON[kind], fix)
     if not config[MODULE_KEY].startswith("difareli."):  # said here, naming the file: the loader would not import it
         raise _wrong(where, MODULE_KEY, config[MODULE_KEY], "a model class under difareli. (a checkpoint is data: "
@@ -372,7 +372,7 @@ def check_hyper_parameters(hp: Any, where: Any, fix: str) -> None:
     if not isinstance(dims, dict) or set(dims) != set(INPUT_DIMS):
         raise _wrong(where, "hyper_parameters.input_dims", dims, f"an object {{{', '.join(INPUT_DIMS)}}}", fix)
     for key, (lo, hi) in INPUT_DIMS.items():
-        if not _is(dims[key], int) or not lo <= dims[key] <= hi:
+        if not json_is(dims[key], int) or not lo <= dims[key] <= hi:
             raise _wrong(where, f"hyper_parameters.input_dims.{key}", dims[key], f"an integer from {lo} to {hi}"
                          + (" (px; the paper's models are 256)" if key == "resolution" else ""), fix)
     for key in ("spatial_inputs", "nonspatial_inputs"):
@@ -384,7 +384,7 @@ def check_hyper_parameters(hp: Any, where: Any, fix: str) -> None:
         return
     ok = isinstance(stats, dict) and set(stats) == {"mean", "std"} and all(
         isinstance(stats[k], (list, tuple)) and len(stats[k]) == dims["nonspatial_dim"]
-        and all(_is(v, float) and math.isfinite(v) for v in stats[k]) for k in stats)
+        and all(json_is(v, float) and math.isfinite(v) for v in stats[k]) for k in stats)
     if not ok or not all(v > 0 for v in stats["std"]):
         raise _wrong(where, "hyper_parameters.nonspatial_stats", stats, f"null or {{mean, std}}: "
                      f"{dims['nonspatial_dim']} finite numbers each (input_dims.nonspatial_dim), stds > 0", fix)

@@ -19,8 +19,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Mapping
 
-from difareli.checkpoints.format import (CONFIG, MODULE_KEY, WEIGHTS, _is, check_hyper_parameters, folder_problem,
-                                         is_folder, load_torch_file, read_folder, refuse_official,
+from difareli.checkpoints.format import (CONFIG, MODULE_KEY, WEIGHTS, check_hyper_parameters, folder_problem,
+                                         is_folder, json_is, load_torch_file, read_folder, refuse_official,
                                          training_resolution, upgrade_checkpoint)
 from difareli.checkpoints import zoo
 from difareli.errors import UserError, UserFileNotFoundError, check_file
@@ -68,8 +68,9 @@ def resolve(checkpoint: str | Path, key: str = "checkpoint", prefer_folder: bool
         return check_file(path, key)
     if is_folder(path):
         return path
-    if folder_problem(path):  # a weights folder missing one of its files: say which, not "is a folder"
-        raise UserFileNotFoundError(folder_problem(path))
+    problem = folder_problem(path)  # a weights folder missing one of its files: say which, not "is a folder"
+    if problem:
+        raise UserFileNotFoundError(problem)
     shipped = "/" not in str(checkpoint) and str(checkpoint) not in ("", ".", "..")
     if shipped and prefer_folder and is_folder(zoo.SHIPPED_DIR / str(checkpoint)):
         return zoo.SHIPPED_DIR / str(checkpoint)
@@ -103,9 +104,9 @@ class LoadedCheckpoint:
     def of(cls, model: L.LightningModule, config: Mapping[str, Any], global_step: int = 0) -> "LoadedCheckpoint":
         """``model`` with its hyperparameters ``config`` as a loaded checkpoint: the config as inference reads it
         (``compile`` dropped: inference never compiles implicitly) and the normalisation statistics it holds."""
-        config = _inference_config(config)
         import torch
 
+        config = _inference_config(config)
         raw = config.get("nonspatial_stats") or {}
         stats = {k: torch.as_tensor(v, dtype=torch.float32) for k, v in raw.items()}
         return cls(model=model, config=config, stats=stats, global_step=int(global_step))
@@ -175,9 +176,11 @@ def check_resume(ckpt_path: Any, model: Any, ckpt: Mapping[str, Any] | None = No
 def check_finite_state(state: Mapping[str, Any], where: Any, fix: str) -> None:
     """Every floating tensor of ``state`` is finite; the first that is not is a UserError naming it (the weights
     themselves are bad, whatever precision a run would use)."""
+    import torch
+
     for name, t in state.items():
-        if hasattr(t, "is_floating_point") and t.is_floating_point() and t.numel():
-            bad = int((~t.isfinite()).sum())
+        if isinstance(t, torch.Tensor) and t.is_floating_point() and t.numel():
+            bad = int((~torch.isfinite(t)).sum())
             if bad:
                 raise UserError(f"{where}: tensor {name!r} holds {bad} NaN/Inf value(s) of {t.numel()}: the weights "
                                 f"are corrupt or the run diverged; {fix}")
@@ -217,7 +220,7 @@ def _fits(value: Any, hint: Any) -> bool:
     if hint is type(None):
         return value is None
     if hint in (bool, int, float):
-        return _is(value, hint) and (hint is not bool or isinstance(value, bool))
+        return json_is(value, hint) and (hint is not bool or isinstance(value, bool))
     base = origin or hint
     if base is collections.abc.Callable or not isinstance(base, type):  # a partial's config; Any
         return True
@@ -252,7 +255,7 @@ def check_parameters(cls: type, config: Mapping[str, Any], where: Any, fix: str)
         hints = {}
     for key, value in config.items():
         if key in hints and not _fits(value, hints[key]):
-            shown = json.dumps(value)[:40] if _is(value, float) or isinstance(value, str) else type(value).__name__
+            shown = json.dumps(value)[:40] if json_is(value, float) or isinstance(value, str) else type(value).__name__
             raise UserError(f"{where}: hyper_parameters.{key} is {shown}, not of {cls.__name__}'s type for it "
                             f"({_hint_name(hints[key])}); {fix}")
 

@@ -16,7 +16,6 @@ from difareli import errors
 from difareli.perf import measure as perf
 from difareli.perf import samplers as speed
 from difareli.checkpoints import loading
-from difareli.checkpoints.loading import LoadedCheckpoint
 from difareli.cli import common
 from difareli.relight.relightable import OnePassRelightable
 from difareli.relight.relighter import Relighter
@@ -105,7 +104,7 @@ def _student(cfg: DictConfig, cases: list, runtime: Runtime) -> tuple:
         student, res = perf.untrained_model(model_cfg, preset, cases[0].x0.shape[-1], device, seed=cfg.seed)
         if cfg.checkpoint is None:
             return student, speed.random_cases(len(cases), student, res, device, seed=cfg.seed)
-        checkpoint = LoadedCheckpoint.of_module(student)
+        checkpoint = loading.LoadedCheckpoint.of_module(student)
     else:
         if cfg.checkpoint is None:
             raise errors.UserError("student=<checkpoint> is timed against a teacher checkpoint: give checkpoint=... "

@@ -13,7 +13,6 @@ from __future__ import annotations
 import sys
 
 from difareli.checkpoints import loading
-from difareli.checkpoints.loading import read_checkpoint
 from difareli.cli.argv import argv_or_help
 from difareli.errors import UserError, cli_entry
 
@@ -42,7 +41,7 @@ def verify_folder(checkpoint: str, folder: str) -> int:
 
     from difareli.checkpoints.export import read_folder
 
-    a, b = read_checkpoint(loading.resolve(checkpoint)), read_folder(folder)
+    a, b = loading.read_checkpoint(loading.resolve(checkpoint)), read_folder(folder)
     if set(a["state_dict"]) != set(b["state_dict"]):
         raise UserError(f"{folder}: its tensors differ in names from {checkpoint}'s")
     for k, v in a["state_dict"].items():

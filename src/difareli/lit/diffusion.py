@@ -93,7 +93,7 @@ class RelightingModule(L.LightningModule):
         super().__init_subclass__(**kwargs)
         register(cls)
         # The constructor published whole on the class (its own parameters, then what every model takes: _common's)
-        # for whoever reads it: checkpoints.format.check_parameters checks a checkpoint's hyperparameters against
+        # for whoever reads it: checkpoints.loading.check_parameters checks a checkpoint's hyperparameters against
         # it. Not on __init__ itself: Lightning reads that one against the constructor's locals.
         own = inspect.signature(cls.__init__)
         common = [q.replace(kind=q.KEYWORD_ONLY) for k, q in inspect.signature(cls._common).parameters.items()
