@@ -11,7 +11,7 @@ import pytest
 
 from difareli.evaluation import tables
 from difareli.evaluation.baselines import Identity
-from difareli.evaluation.benchmark import finished_run
+from difareli.evaluation.benchmark import BenchmarkJob
 from difareli.evaluation.scoring import Scoring
 from difareli.data.store import EncodingStore
 from difareli.synth.command import synth_command
@@ -55,11 +55,12 @@ def test_suite_tables_every_model_beside_the_baselines_at_the_default_sampler(ti
     # What is reused: a finished run with exactly the settings asked for; another limit is another run.
     store, where = EncodingStore.open(synth_store), out / synth_store.name / "identity"
     protocols = ["same_subject", "different_subject"]
-    kept = finished_run(store, Identity(), protocols, where, limit=2)
+    kept = BenchmarkJob.of(store, Identity(), protocols, where, limit=2).finished()
     assert kept is not None and {r.record_id for r in kept.records} == {r.record_id for r in records
                                                                           if r.method == "identity"}
-    assert finished_run(store, Identity(), protocols, where, limit=3) is None
-    assert finished_run(store, Identity(), protocols, where, limit=2, scoring=Scoring.of(store, "composite")) is None
+    assert BenchmarkJob.of(store, Identity(), protocols, where, limit=3).finished() is None
+    assert BenchmarkJob.of(store, Identity(), protocols, where, limit=2,
+                           scoring=Scoring.of(store, "composite")).finished() is None
 
 
 def _suite_module():

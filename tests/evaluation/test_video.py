@@ -12,6 +12,7 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
+from difareli.data import target_shadow
 from difareli.relight import targets
 from difareli.evaluation import video as vid
 from difareli.data.store import EncodingStore
@@ -47,8 +48,8 @@ def test_frame_changes_and_temporal_error_closed_form():
 
 def test_typical_shadowed_c_ignores_unshadowed_records():
     no = math.log(1e-3 / (1 - 1e-3))
-    assert targets.typical_shadowed_c(np.array([no, no, -3.0, -2.0, -1.0])) == pytest.approx(-2.0)
-    assert targets.typical_shadowed_c(np.array([no, no])) is None
+    assert target_shadow.typical_shadowed_c(np.array([no, no, -3.0, -2.0, -1.0])) == pytest.approx(-2.0)
+    assert target_shadow.typical_shadowed_c(np.array([no, no])) is None
 
 
 @pytest.fixture(scope="module")
@@ -114,7 +115,7 @@ def test_shadow_rule_finds_exact_cast_shadows(rotation):
 def test_target_shadow_policy(synth_store):
     store = EncodingStore.open(synth_store)
     c, note = targets.video_shadow(store, -6.9, None)
-    want = targets.typical_shadowed_c(np.array([store.read(r, ["shadow"])["shadow"][0]
+    want = target_shadow.typical_shadowed_c(np.array([store.read(r, ["shadow"])["shadow"][0]
                                                 for r in store.ids(split="train")]))
     assert c == pytest.approx(want) and "median c of the train split" in note
     assert targets.video_shadow(store, -2.0, None)[0] == -2.0

@@ -148,7 +148,7 @@ def _independent(ckpt, store, pairs, sampler):
     from difareli.evaluation.benchmark import score
     from difareli.evaluation.pairs import StoredFace
     from difareli.lighting.light_fit import LightFit
-    from difareli.relight.targets import target_shadow_of
+    from difareli.data.target_shadow import target_shadow_of
     from difareli.render.sun_fit import record_sun
 
     method = DiffusionMethod(str(ckpt), sampler, runtime={"device": "cpu", "precision": "fp32"})

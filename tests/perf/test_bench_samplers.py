@@ -124,7 +124,7 @@ def test_store_cases_target_is_same_subject_other_light(synth_store):
 def test_store_cases_default_target_is_what_a_user_has(synth_store):
     # Not the target record's stored maps: the light fitted to its image, the policy c, maps re-rendered on
     # the source's geometry (the shadow map ray-marched on the source's depth).
-    from difareli.relight import targets
+    from difareli.data import target_shadow
     from difareli.render import retarget
     from difareli.lighting.light_fit import LightFit
 
@@ -133,7 +133,7 @@ def test_store_cases_default_target_is_what_a_user_has(synth_store):
     model.spatial_inputs, model.nonspatial_inputs = ["shading", "shadow_map", "masks"], ["shape", "cam", "identity"]
     c = speed.store_cases(store, _door(model), records=["s00006_l1"], limit=None)[0]
     light = LightFit().from_store(store, "s00006_l0")
-    cval, how = targets.target_shadow_of(store, "s00006_l0")
+    cval, how = target_shadow.target_shadow_of(store, "s00006_l0")
     src = {k: np.asarray(v) for k, v in store.read("s00006_l1").items()}
     np.testing.assert_allclose(c.target_cond[0][0, :3].permute(1, 2, 0).numpy(),
                                retarget.render_shading(src, light), atol=1e-6)

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from difareli.checkpoints import zoo
-from difareli.relight.composite import Compositor, crop_to_photo, feathered, part_mask
+from difareli.estimators.align import crop_to_photo
+from difareli.relight.composite import Compositor, feathered, part_mask
 from difareli.data.encodings import PART_INDEX
 from difareli.lighting import sh
 

@@ -49,13 +49,6 @@ from .service import Service
 from difareli.errors import UserError, is_no_space, user_message
 
 
-def error_message(exc: BaseException) -> str | None:
-    """The one-line message of a user error (as the CLIs print it after ``difareli-<name>: ``), else None."""
-    if isinstance(exc, RequestError):
-        return str(exc)
-    return user_message(exc)
-
-
 def page() -> bytes:
     return resources.files("difareli.app").joinpath("static/index.html").read_bytes()
 
@@ -282,7 +275,7 @@ class Handler(BaseHTTPRequestHandler):
         except Exception as e:  # noqa: BLE001 - every failure becomes a JSON answer the page can show
             if isinstance(e, OSError) and not isinstance(e, UserError):  # the server's own disk or files: its paths
                 return self._server_fault(e)  # and fix are for the operator, not in a 400 to the client
-            msg = error_message(e)
+            msg = user_message(e)  # a user error's line, as the CLIs print it; else None
             if msg is None:
                 traceback.print_exc(file=sys.stderr)
                 self._json(500, {"error": f"internal error: {type(e).__name__}: {e}"})

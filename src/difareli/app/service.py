@@ -30,7 +30,9 @@ from difareli.checkpoints import zoo
 from difareli.checkpoints.format import is_folder
 from difareli.data import encodings
 from difareli.data.store import EncodingStore
+from difareli.data.target_shadow import photo_shadow
 from difareli.diffusion.samplers import SAMPLERS
+from difareli.evaluation.metrics import image_errors
 from difareli.diffusion.spec import DEFAULT_SAMPLER, PRESETS, SamplerSpec
 from difareli.lighting import sh
 from difareli.lighting.presets import ENVMAPS
@@ -38,7 +40,6 @@ from difareli.runtime.core import Runtime
 from difareli.relight.photo import read_photo
 from difareli.relight.sources import Source
 from difareli.relight.request import Relighting, Target, relight_targets
-from difareli.relight.targets import photo_shadow
 from difareli.utils.lru import LRU
 from difareli.utils.viz import png_data_url
 
@@ -261,7 +262,7 @@ class Service:
         if ckpt != s.checkpoint:  # another model may read more
             s = (self.photo(s.source.what.removeprefix("image="), s.source.photo.rgb, ckpt, s.notes)
                  if s.source.photo is not None else self.record(s.id.removeprefix("record-"), ckpt))
-        # No strength: the relight spine's rule (Target.for_source: a photo's targets.photo_shadow, a record's own c).
+        # No strength: the relight spine's rule (Target.for_source: a photo's photo_shadow, a record's own c).
         target = light if strength is None else dataclasses.replace(light, shadow=encodings.denormalise_c(strength))
         own = Target()  # the source's own light and c
         # The reconstruction (the source relit under its own light) joins the first decode's batch, then is cached.
@@ -270,7 +271,9 @@ class Service:
             warnings.simplefilter("always")
             relit = relight_targets(relighter, s.source, [target] if key in self._errors else [target, own])
         if key not in self._errors:
-            self._errors[key] = reconstruction_error(relit[1], s.source.arrays)
+            face = s.source.arrays.get("face_mask")
+            self._errors[key] = {**image_errors(relit[1], s.source.arrays["image"], face),
+                                 "region": "whole crop" if face is None else "face mask"}
         out = {"crop": png_data_url(relit[0]), "what": s.source.what, "how": relighter.describe(),
                "error": self._errors[key],
                "warnings": list(dict.fromkeys(str(w.message) for w in caught
@@ -319,19 +322,6 @@ class Service:
 def _zoo_name(value: str) -> bool:
     """A shipped checkpoint's name (no path)."""
     return "/" not in value and os.sep not in value and value in zoo.available()
-
-
-def reconstruction_error(recon: np.ndarray, arrays: Mapping[str, np.ndarray]) -> dict:
-    """MSE and DSSIM of the self-relight against the input, on the face mask ([0, 1] units)."""
-    import torch
-
-    from difareli.evaluation.metrics import dssim, masked_mse, unit_tensor
-
-    mask = np.array(arrays["face_mask"], bool) if "face_mask" in arrays else np.ones(recon.shape[:2], bool)
-    m = torch.from_numpy(mask)[None]
-    pred, target = unit_tensor(recon), unit_tensor(arrays["image"])
-    return {"mse": round(float(masked_mse(pred, target, m)[0]), 5), "dssim": round(float(dssim(pred, target, m)[0]), 5),
-            "region": "face mask" if "face_mask" in arrays else "whole crop"}
 
 
 def decode_upload(data_url: str) -> bytes:

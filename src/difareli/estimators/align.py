@@ -63,11 +63,7 @@ def warp_quad(image: np.ndarray, quad: np.ndarray, size: int, border: str = "ref
         h, w = image.shape[:2]
         image = cv2.resize(image, (max(1, round(w / shrink)), max(1, round(h / shrink))), interpolation=cv2.INTER_AREA)
         quad = quad * [image.shape[1] / w, image.shape[0] / h]
-    ex = (quad[3] - quad[0]) / size  # input step per output column
-    ey = (quad[1] - quad[0]) / size  # input step per output row
-    # Output pixel centre (u + .5, v + .5) -> input continuous coords; cv2 indexes pixel centres as integers.
-    off = quad[0] + 0.5 * (ex + ey) - 0.5
-    m = np.array([[ex[0], ey[0], off[0]], [ex[1], ey[1], off[1]]])
+    m = crop_to_photo(quad, size)
     mode = {"reflect": cv2.BORDER_REFLECT_101, "replicate": cv2.BORDER_REPLICATE, "zeros": cv2.BORDER_CONSTANT}
     return cv2.warpAffine(image, m, (size, size), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                           borderMode=mode[border], borderValue=0)
@@ -83,6 +79,23 @@ def inside_photo(quad: np.ndarray, size: int, hw: tuple[int, int]) -> np.ndarray
     x = xy_u[None, :, 0] + t[:, None] * (quad[1, 0] - quad[0, 0]) / size
     y = xy_u[None, :, 1] + t[:, None] * (quad[1, 1] - quad[0, 1]) / size
     return (x >= 0) & (x <= hw[1]) & (y >= 0) & (y <= hw[0])
+
+
+def crop_to_photo(quad: np.ndarray, size: int) -> np.ndarray:
+    """The (2, 3) affine from crop pixel indices to photo pixel indices (the one :func:`warp_quad` samples)."""
+    quad = np.asarray(quad, dtype=np.float64)
+    ex, ey = (quad[3] - quad[0]) / size, (quad[1] - quad[0]) / size  # photo steps per crop column and row
+    off = quad[0] + 0.5 * (ex + ey) - 0.5  # pixel centres: index i sits at continuous i + 0.5 (cv2: at i)
+    return np.array([[ex[0], ey[0], off[0]], [ex[1], ey[1], off[1]]])
+
+
+def photo_window(quad: np.ndarray, hw: tuple[int, int]) -> tuple[int, int, int, int] | None:
+    """``(y0, y1, x0, x1)``: the photo pixels the quad touches, clipped to the photo; None if it misses it."""
+    quad = np.asarray(quad, dtype=np.float64)
+    x0, y0 = np.floor(quad.min(0)).astype(int) - 1
+    x1, y1 = np.ceil(quad.max(0)).astype(int) + 1
+    y0, x0, y1, x1 = max(y0, 0), max(x0, 0), min(y1, hw[0]), min(x1, hw[1])
+    return None if y1 <= y0 or x1 <= x0 else (int(y0), int(y1), int(x0), int(x1))
 
 
 def merge_boxes(found: list[tuple[float, np.ndarray]], overlap: float = 0.5) -> list[tuple[float, np.ndarray]]:

@@ -4,7 +4,7 @@ Multi-PIE store made by ``difareli-multipie`` from a user's copy (the same ``pro
 For each pair (:mod:`difareli.evaluation.pairs`): relight ``source`` under the light fitted to ``light_source``
 (protocol (i) ``same_subject``: the same person under the target light; (ii) ``different_subject``: another person
 under that very light) as a user would get it (:class:`~difareli.lighting.light_fit.LightFit`), with the shadow
-strength c a user has (``targets.target_shadow_of``), and score it against ``target`` on its ``score_mask``
+strength c a user has (``data.target_shadow.target_shadow_of``), and score it against ``target`` on its ``score_mask``
 (:class:`~difareli.evaluation.scoring.Scoring`) through the torchmetrics ``Metric`` s of
 :func:`difareli.evaluation.metrics.relight_metrics`.
 ``oracle_light`` takes the exact light and c instead (``light_gt`` / ``shadow_gt`` where the store's ``light`` /
@@ -99,6 +99,12 @@ class BenchmarkJob:
     progress: bool = True
     shard: sharding.Shard | str | None = None
 
+    @classmethod
+    def of(cls, store: EncodingStore, method: Method, protocols: Sequence[str], out_dir: str | Path, *,
+           scoring: Scoring | None = None, **values: Any) -> "BenchmarkJob":
+        """The job of these values, by keyword (``scoring`` None: :class:`Scoring`'s defaults for the store)."""
+        return cls(store, method, tuple(protocols), Path(out_dir), scoring or Scoring.of(store), **values)
+
     def run(self) -> BenchmarkResult:
         """Relight and score every pair (module doc) and write the run's outputs. ``out_dir`` is locked for the run,
         and :data:`SETTINGS` records what scores its rows (:meth:`settings`): a resumed run with other settings is
@@ -154,21 +160,10 @@ class BenchmarkJob:
                 and "shadow_map" in getattr(relighter, "model_inputs", ()))
 
 
-def run_benchmark(store: EncodingStore, method: Method, protocols: Sequence[str], out_dir: str | Path, *,
-                  limit: int | None = None, oracle_light: bool = False, oracle_shadow: bool = False,
-                  estimator: LightFit | None = None, grid_pairs: int = 4, save_images: bool = True,
-                  progress: bool = True, shard: str | None = None, scoring: Scoring | None = None) -> BenchmarkResult:
-    """:meth:`BenchmarkJob.run` of these values (``scoring`` None: :class:`Scoring`'s defaults)."""
-    return BenchmarkJob(store, method, tuple(protocols), Path(out_dir), scoring or Scoring.of(store), limit,
-                        oracle_light, oracle_shadow, estimator, grid_pairs, save_images, progress, shard).run()
-
-
-def finished_run(store: EncodingStore, method: Method, protocols: Sequence[str], out_dir: str | Path, *,
-                 limit: int | None = None, oracle_light: bool = False, oracle_shadow: bool = False,
-                 scoring: Scoring | None = None) -> BenchmarkResult | None:
-    """:meth:`BenchmarkJob.finished` of these values (an unsharded run; ``scoring`` as in :func:`run_benchmark`)."""
-    return BenchmarkJob(store, method, tuple(protocols), Path(out_dir), scoring or Scoring.of(store), limit,
-                        oracle_light, oracle_shadow).finished()
+def run_benchmark(store: EncodingStore, method: Method, protocols: Sequence[str], out_dir: str | Path,
+                  **values: Any) -> BenchmarkResult:
+    """:meth:`BenchmarkJob.run` of these values (:meth:`BenchmarkJob.of`)."""
+    return BenchmarkJob.of(store, method, protocols, out_dir, **values).run()
 
 
 @dataclass

@@ -127,6 +127,14 @@ def masked_mse(pred: Tensor, target: Tensor, mask: Tensor, rule: str | None = No
     return _masked_mean(d * d, m)
 
 
+def image_errors(image, target, mask=None) -> dict[str, float]:
+    """MSE and DSSIM of a uint8 image against another (H, W, 3) on a mask (None: the whole image), rounded for
+    people to read: the app's reconstruction error (a source relit under its own light, against itself)."""
+    m = torch.from_numpy(np.ones(np.shape(image)[:2], bool) if mask is None else np.array(mask, bool))[None]
+    pred, want = unit_tensor(image), unit_tensor(target)
+    return {"mse": round(float(masked_mse(pred, want, m)[0]), 5), "dssim": round(float(dssim(pred, want, m)[0]), 5)}
+
+
 def lpips(pred: Tensor, target: Tensor, mask: Tensor, data_range: float = 1.0, rule: str | None = None) -> Tensor:
     """LPIPS-Alex (v0.1) spatial map averaged over the mask -> [B].
 

@@ -18,7 +18,7 @@ from difareli.data.protocols import PROTOCOLS, PROTOCOLS_FILE, SPLITS_FILE
 from difareli.data.store import EncodingStore
 from difareli.lighting import sh
 from difareli.lighting.light_fit import LightFit
-from difareli.relight.targets import target_shadow_of
+from difareli.data.target_shadow import target_shadow_of
 from difareli.render import sun_fit
 from difareli.utils.fileio import read_json_mapping
 
@@ -175,7 +175,7 @@ class Lights:
 
     def shadow(self, record_id: str, oracle: bool = False) -> float | None:
         """The cast-shadow strength c' a user has for the target given by ``record_id``'s image, or the exact
-        one (``oracle``, or oracle lights); :func:`targets.target_shadow_of` states the policy."""
+        one (``oracle``, or oracle lights); :func:`~difareli.data.target_shadow.target_shadow_of` states the policy."""
         c, self.shadow_note = target_shadow_of(self.store, record_id, oracle=oracle or self.estimator is None)
         return c
 

@@ -42,7 +42,8 @@ from difareli.evaluation import artefacts as art
 from difareli.evaluation import metrics, paired
 from difareli.evaluation.baselines import ratio_relight
 from difareli.evaluation.records import Record, mean_se, protocol_label
-from difareli.relight.composite import crop_to_photo, part_mask
+from difareli.estimators.align import crop_to_photo
+from difareli.relight.composite import part_mask
 from difareli.relight.relighter import Relighter
 from difareli.relight.request import Request, Target
 from difareli.relight.sources import Source
@@ -67,7 +68,7 @@ def composite_settings() -> dict:
 # --------------------------------------------------------------------------- geometry of a relit photo
 def to_photo(crop_map: np.ndarray, quad: np.ndarray, hw: tuple[int, int], order: int = 0) -> np.ndarray:
     """A crop-space map (S, S) warped into photo pixels (H, W) through the alignment ``quad`` (the composite's
-    transform, :func:`~difareli.relight.composite.crop_to_photo`); 0 outside the crop. ``order`` 0: nearest."""
+    transform, :func:`~difareli.estimators.align.crop_to_photo`); 0 outside the crop. ``order`` 0: nearest."""
     crop_map = np.asarray(crop_map, np.float64)
     m = crop_to_photo(quad, crop_map.shape[0])
     inv = np.linalg.inv(m[:, :2])

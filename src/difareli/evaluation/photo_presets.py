@@ -51,7 +51,8 @@ from difareli.evaluation.records import mean_se
 from difareli.lighting import sh
 from difareli.lighting.light_fit import LightFit
 from difareli.lighting.presets import NAMES
-from difareli.relight.composite import part_mask, photo_window
+from difareli.estimators.align import photo_window
+from difareli.relight.composite import part_mask
 from difareli.relight.photo import detect_faces
 from difareli.relight.relighter import Relighter
 from difareli.relight.relit import Relit

@@ -3,7 +3,7 @@ SynthFaces store's test pairs of both protocols, and the facts a model card stat
 
 The one home of this comparison for ``difareli-demo``, ``scripts/release_reference.py`` (the shipped references'
 model cards) and ``scripts/gpu_train_reference.py``: every method runs through
-:func:`difareli.evaluation.benchmark.run_benchmark` with one shared light estimator, so the three rows see the same
+:class:`difareli.evaluation.benchmark.BenchmarkJob` with one shared light estimator, so the three rows see the same
 fitted target lights, and the rows merge into one :class:`~difareli.evaluation.tables.Table`.
 """
 
@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from difareli.evaluation import tables
-from difareli.evaluation.benchmark import BenchmarkResult, finished_run, run_benchmark
+from difareli.evaluation.benchmark import BenchmarkJob, BenchmarkResult
 from difareli.data.protocols import PROTOCOLS
 from difareli.data.store import EncodingStore
 from difareli.evaluation.baselines import DiffusionMethod, Identity, LambertianRatio
@@ -66,9 +66,9 @@ def compare_to_baselines(store: EncodingStore | str | Path, checkpoint: Any, sam
 
     Target lights are fitted to the light-source images and the target c is what a user has (the benchmark's
     defaults), unless ``oracle_light`` / ``oracle_shadow``; the card facts say which. Each method's run is written
-    under ``out_dir/<method name>`` (resumable, as :func:`~difareli.evaluation.benchmark.run_benchmark` is); ``reuse``:
-    a method's finished run there with the same settings is read back instead of relit again. ``model_name`` names the
-    model's row (``<model_name>/<sampler>``; default: its config's variant name)."""
+    under ``out_dir/<method name>`` (resumable, as a :class:`~difareli.evaluation.benchmark.BenchmarkJob` is);
+    ``reuse``: a method's finished run there with the same settings is read back instead of relit again.
+    ``model_name`` names the model's row (``<model_name>/<sampler>``; default: its config's variant name)."""
     start = time.perf_counter()
     store = store if isinstance(store, EncodingStore) else EncodingStore.open(store)
     fit = LightFit()  # one estimator: every row is scored under the same fitted target lights
@@ -77,12 +77,11 @@ def compare_to_baselines(store: EncodingStore | str | Path, checkpoint: Any, sam
     for method in (Identity(), LambertianRatio(estimator=fit), model):
         t0 = time.perf_counter()
         where = Path(out_dir) / slug(method.name)
-        done = finished_run(store, method, list(protocols), where, limit=pairs, oracle_light=oracle_light,
-                            oracle_shadow=oracle_shadow) if reuse else None
-        runs[method.name] = done or run_benchmark(
-            store, method, list(protocols), where, limit=pairs, oracle_light=oracle_light,
-            oracle_shadow=oracle_shadow, estimator=fit, grid_pairs=grid_pairs, save_images=save_images,
-            progress=progress)
+        job = BenchmarkJob.of(store, method, protocols, where, limit=pairs, oracle_light=oracle_light,
+                              oracle_shadow=oracle_shadow, estimator=fit, grid_pairs=grid_pairs,
+                              save_images=save_images, progress=progress)
+        done = job.finished() if reuse else None
+        runs[method.name] = done or job.run()
         # A reused run's seconds are its relights' own (what the rows' s/img says), not this reading of them.
         seconds[method.name] = (sum(r.seconds for r in done.records if r.seconds == r.seconds) if done
                                 else time.perf_counter() - t0)

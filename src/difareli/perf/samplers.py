@@ -47,7 +47,8 @@ from difareli.runtime.core import Runtime
 from difareli.data.store import EncodingStore
 from difareli.errors import MissingError, UserError
 from difareli.relight.relighter import Relighter
-from difareli.relight.targets import Targets, target_shadow_of
+from difareli.data.target_shadow import target_shadow_of
+from difareli.relight.targets import Targets
 from difareli.lighting.light_fit import LightFit
 from difareli.utils.fileio import atomic_path
 
@@ -97,9 +98,9 @@ def store_cases(store: EncodingStore, relighter: Relighter, records: Iterable[st
     checked by :class:`~difareli.relight.targets.Targets` and :meth:`Relighter.check_inputs`), on its device.
 
     By default the target is what a user would have: the light fitted to the target record's image
-    (:class:`~difareli.lighting.light_fit.LightFit`), the c of :func:`targets.target_shadow_of`, and the
-    light-dependent encodings re-rendered on the source's geometry (shadow map ray-marched on its depth, toward
-    the light's radiance peak). ``oracle_target`` takes the target record's stored light-dependent encodings
+    (:class:`~difareli.lighting.light_fit.LightFit`), the c of :func:`~difareli.data.target_shadow.target_shadow_of`,
+    and the light-dependent encodings re-rendered on the source's geometry (shadow map ray-marched on its depth,
+    toward the light's radiance peak). ``oracle_target`` takes the target record's stored light-dependent encodings
     instead. The ground truth is the target record's image and the mask the source's ``face_mask``; each case's
     ``inputs`` says which target was used.
     """

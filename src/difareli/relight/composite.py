@@ -3,8 +3,8 @@ transform into the original photo at its resolution, blended with a feathered fa
 
 The alignment (:mod:`difareli.estimators.align`) resamples the oriented square ``quad`` of the photo (continuous
 pixel coordinates: top-left, bottom-left, bottom-right, top-right) to ``size`` x ``size``; crop pixel index
-``(u, v)`` maps to photo pixel index ``M @ (u, v, 1)`` with :func:`crop_to_photo`. The composite works only in the
-window of the photo that the crop covers, so its cost follows the face, not the photo.
+``(u, v)`` maps to photo pixel index ``M @ (u, v, 1)`` with :func:`~difareli.estimators.align.crop_to_photo`. The
+composite works only in the window of the photo that the crop covers, so its cost follows the face, not the photo.
 
 Two transfers (``mode``):
 
@@ -34,29 +34,13 @@ import torch
 
 from difareli.data.encodings import PART_INDEX
 from difareli.errors import UserError
+from difareli.estimators.align import crop_to_photo, photo_window
 
 #: Parts of the ``masks`` label map blended back by default (the model relights them; the background keeps the
 #: photo's own light, since only the crop's share of it was seen).
 DEFAULT_PARTS = ("skin", "l_brow", "r_brow", "l_eye", "r_eye", "nose", "u_lip", "l_lip", "mouth", "neck", "hair",
                  "hat")
 MODES = ("ratio", "pixels")
-
-
-def crop_to_photo(quad: np.ndarray, size: int) -> np.ndarray:
-    """The (2, 3) affine from crop pixel indices to photo pixel indices (the one ``align.warp_quad`` samples)."""
-    quad = np.asarray(quad, dtype=np.float64)
-    ex, ey = (quad[3] - quad[0]) / size, (quad[1] - quad[0]) / size
-    off = quad[0] + 0.5 * (ex + ey) - 0.5  # pixel centres: index i sits at continuous i + 0.5
-    return np.array([[ex[0], ey[0], off[0]], [ex[1], ey[1], off[1]]])
-
-
-def photo_window(quad: np.ndarray, hw: tuple[int, int]) -> tuple[int, int, int, int] | None:
-    """``(y0, y1, x0, x1)``: the photo pixels the quad touches, clipped to the photo; None if it misses it."""
-    quad = np.asarray(quad, dtype=np.float64)
-    x0, y0 = np.floor(quad.min(0)).astype(int) - 1
-    x1, y1 = np.ceil(quad.max(0)).astype(int) + 1
-    y0, x0, y1, x1 = max(y0, 0), max(x0, 0), min(y1, hw[0]), min(x1, hw[1])
-    return None if y1 <= y0 or x1 <= x0 else (int(y0), int(y1), int(x0), int(x1))
 
 
 def part_mask(labels: np.ndarray, parts: Sequence[str] = DEFAULT_PARTS) -> np.ndarray:

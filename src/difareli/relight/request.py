@@ -17,6 +17,7 @@ import numpy as np
 
 from difareli import errors
 from difareli.data import encodings, provenance
+from difareli.data.target_shadow import photo_shadow
 from difareli.data.store import EncodingStore
 from difareli.diffusion.spec import SamplerSpec
 from difareli.lighting import presets, sh
@@ -26,8 +27,7 @@ from difareli.relight.composite import MODES, part_mask
 from difareli.relight.relighter import Relighter
 from difareli.relight.relit import Relit
 from difareli.relight.sources import Source
-from difareli.relight.targets import (TARGET_KEYS, TURNS, Targets, load_envmap, photo_shadow, rotation_targets,
-                                      target_lights)
+from difareli.relight.targets import TARGET_KEYS, TURNS, Targets, load_envmap, rotation_targets, target_lights
 from difareli.render import sun_fit
 from difareli.render.sun_fit import TARGET_SUNS
 from difareli.runtime.core import Runtime
@@ -38,7 +38,7 @@ from difareli.utils import viz
 class Target:
     """The target of a request: at most one of ``TARGET_KEYS``, checked as it is made (an environment map may take a
     ``yaw`` too; none: the source's own light), its shadow strength c' (None: the other record's, else for a photo
-    under a new light ``targets.photo_shadow``, else the source's own) and where its map is marched (``sun``)."""
+    under a new light ``target_shadow.photo_shadow``, else the source's own) and where its map is marched (``sun``)."""
 
     light: str | None = None
     record: str | None = None
