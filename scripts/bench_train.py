@@ -110,19 +110,16 @@ def profile(configs: list[str], variant: str, steps: int, warmup: int) -> None:
                                      opts[0] if opts else "")
     print("| where the step's time goes (self CPU time, torch.profiler) | " + " | ".join(cols) + " |")
     print("|---|" + "---:|" * len(cols))
-    print("| wall s/step (under the profiler) | " + " | ".join(f"{v['step']:.3f}" for v in cols.values()) + " |")
-    rates = ("conv_GFLOPs", "gemm_GFLOPs")
-    totals = {c: sum(x for k, x in v.items() if k not in ("step", *rates)) for c, v in cols.items()}
-    for cat in next(iter(cols.values())):
-        if cat not in ("step", *rates):
-            print(f"| {cat} | " + " | ".join(f"{v[cat]:.3f} s ({100 * v[cat] / totals[c]:.0f}%)"
-                                          for c, v in cols.items()) + " |")
+    print("| wall s/step (under the profiler) | " + " | ".join(f"{v.step:.3f}" for v in cols.values()) + " |")
+    for cat in next(iter(cols.values())).seconds:
+        print(f"| {cat} | " + " | ".join(f"{v.seconds[cat]:.3f} s ({100 * v.seconds[cat] / v.total:.0f}%)"
+                                      for v in cols.values()) + " |")
     # The convolutions' own rate against the matmul measured here, and the most that anything outside them can give.
     print("| convolutions' FLOPs over their time, GFLOP/s (of the matmul measured here) | " + " | ".join(
-        f"{v['conv_GFLOPs']:.0f} ({v['conv_GFLOPs'] / v['gemm_GFLOPs']:.2f} of {v['gemm_GFLOPs']:.0f})"
+        f"{v.conv_gflops:.0f} ({v.conv_gflops / v.gemm_gflops:.2f} of {v.gemm_gflops:.0f})"
         for v in cols.values()) + " |")
     print("| the step's speed-up if all but the convolutions took no time | " + " | ".join(
-        f"{totals[c] / v['convolution']:.2f}x" for c, v in cols.items()) + " |")
+        f"{v.total / v.seconds['convolution']:.2f}x" for v in cols.values()) + " |")
 
 
 if __name__ == "__main__":

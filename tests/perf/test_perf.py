@@ -156,11 +156,11 @@ def test_profile_train_step_accounts_for_the_step():
     # bound, in a clean-clone run and one of three reruns). The bound below only catches a category set that
     # misses most of the work.
     prof = perf.profile_train_step("tiny", 16, 2, "32-true", steps=3, warmup=1)
-    assert set(prof) == {"step", *perf.STEP_CATEGORIES, "other", "conv_GFLOPs", "gemm_GFLOPs"}
-    assert prof["conv_GFLOPs"] > 0 and prof["gemm_GFLOPs"] > 0
-    parts = {k: v for k, v in prof.items() if k not in ("step", "conv_GFLOPs", "gemm_GFLOPs")}
+    parts = prof.seconds
+    assert set(parts) == {*perf.STEP_CATEGORIES, "other"} and prof.total == pytest.approx(sum(parts.values()))
+    assert prof.conv_gflops > 0 and prof.gemm_gflops > 0
     assert all(v >= 0 for v in parts.values()) and parts["convolution"] > 0 and parts["optimizer (AdamW)"] > 0
-    assert 0.3 * prof["step"] < sum(parts.values()) <= 1.05 * prof["step"]
+    assert 0.3 * prof.step < prof.total <= 1.05 * prof.step
 
 
 class _OneConv(torch.nn.Module):

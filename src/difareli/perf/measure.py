@@ -320,11 +320,27 @@ STEP_CATEGORIES: dict[str, tuple[str, ...]] = {
 }
 
 
+@dataclass(frozen=True)
+class StepProfile:
+    """Where a training step's time goes: ``seconds`` per category (:data:`STEP_CATEGORIES`, plus "other": self CPU
+    time, summed over threads), ``step`` the wall seconds per step under the profiler, and two rates in GFLOP/s:
+    the convolutions' FLOPs over their own time and the matmul ceiling measured in the same process."""
+
+    step: float
+    seconds: dict[str, float]
+    conv_gflops: float
+    gemm_gflops: float
+
+    @property
+    def total(self) -> float:
+        """The categories' seconds together."""
+        return sum(self.seconds.values())
+
+
 def profile_train_step(preset: str, res: int, batch: int, precision: str, steps: int = 3, warmup: int = 2,
-                       variant: str = DEFAULT_VARIANT, opts: str = "") -> dict[str, float]:
-    """Seconds per training step by category (:data:`STEP_CATEGORIES`, plus "other"), from torch.profiler's self
-    CPU time of ``steps`` steps (forward, backward of L_simple, AdamW) of random batches, after ``warmup`` steps;
-    ``"step"`` is the wall time per step under the profiler. CPU only; ``opts`` as :func:`train_throughput`."""
+                       variant: str = DEFAULT_VARIANT, opts: str = "") -> StepProfile:
+    """A :class:`StepProfile` from torch.profiler's self CPU time of ``steps`` training steps (forward, backward of
+    L_simple, AdamW) of random batches, after ``warmup`` steps. CPU only; ``opts`` as :func:`train_throughput`."""
     from torch.profiler import ProfilerActivity, profile
 
     flags = {o for o in opts.split(",") if o}
@@ -359,8 +375,8 @@ def profile_train_step(preset: str, res: int, batch: int, precision: str, steps:
     # The convolutions' FLOPs over their profiled time: the rate the convolution kernels themselves reach (a FLOP
     # count does not depend on the precision, so it is counted without autocast).
     conv = train_step_flops(module, batch_, "convolution")
-    return {"step": wall, **out, "conv_GFLOPs": conv / 1e9 / max(out["convolution"], 1e-12),
-            "gemm_GFLOPs": gemm_ceiling("cpu", "bf16" if bf16 else "fp32") / 1e9}
+    return StepProfile(wall, out, conv / 1e9 / max(out["convolution"], 1e-12),
+                       gemm_ceiling("cpu", "bf16" if bf16 else "fp32") / 1e9)
 
 
 # ------------------------------------------------------------------------------------------ timing
