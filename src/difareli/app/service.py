@@ -32,7 +32,6 @@ from difareli.data import encodings
 from difareli.data.store import EncodingStore
 from difareli.data.target_shadow import photo_shadow
 from difareli.diffusion.samplers import SAMPLERS
-from difareli.evaluation.metrics import image_errors
 from difareli.diffusion.spec import DEFAULT_SAMPLER, PRESETS, SamplerSpec
 from difareli.lighting import sh
 from difareli.lighting.presets import ENVMAPS
@@ -271,6 +270,8 @@ class Service:
             warnings.simplefilter("always")
             relit = relight_targets(relighter, s.source, [target] if key in self._errors else [target, own])
         if key not in self._errors:
+            from difareli.evaluation.metrics import image_errors  # torchmetrics: kept out of the app's start-up
+
             face = s.source.arrays.get("face_mask")
             self._errors[key] = {**image_errors(relit[1], s.source.arrays["image"], face),
                                  "region": "whole crop" if face is None else "face mask"}

@@ -16,9 +16,9 @@ import numpy as np
 from difareli import errors
 from difareli.data.protocols import PROTOCOLS, PROTOCOLS_FILE, SPLITS_FILE
 from difareli.data.store import EncodingStore
+from difareli.data.target_shadow import target_shadow_of
 from difareli.lighting import sh
 from difareli.lighting.light_fit import LightFit
-from difareli.data.target_shadow import target_shadow_of
 from difareli.render import sun_fit
 from difareli.utils.fileio import read_json_mapping
 
