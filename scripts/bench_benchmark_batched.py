@@ -24,6 +24,7 @@ from difareli.data.store import EncodingStore
 from difareli.diffusion.spec import DEFAULT_SAMPLER, PRESETS
 from difareli.evaluation.baselines import DiffusionMethod
 from difareli.evaluation.benchmark import run_benchmark
+from difareli.utils.processes import openmp_wait_policy
 
 BOTH = ["same_subject", "different_subject"]
 
@@ -49,12 +50,13 @@ def main() -> None:
     ap.add_argument("--store", default="data/test_est_s1011")
     ap.add_argument("--limit", type=int, default=None, help="pairs per protocol (default: all)")
     ap.add_argument("--rounds", type=int, default=2)
+    ap.add_argument("--threads", type=int, default=1, help="torch CPU threads (conf/benchmark.yaml's num_threads)")
     args = ap.parse_args()
-    torch.set_num_threads(1)  # conf/benchmark.yaml's num_threads
+    torch.set_num_threads(args.threads)
     method = DiffusionMethod(args.checkpoint, PRESETS[DEFAULT_SAMPLER].to_config())
     store = EncodingStore.open(args.store)
     print(f"{method.name}, {method.relighter.describe()}, batch_size {method.batch_size}, store {args.store}, "
-          f"limit {args.limit}")
+          f"limit {args.limit}, {args.threads} thread(s), OMP_WAIT_POLICY {openmp_wait_policy()}")
     wall: dict[str, list[float]] = {"batched": [], "one_by_one": []}
     with tempfile.TemporaryDirectory() as tmp:
         for r in range(args.rounds):

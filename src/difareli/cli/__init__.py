@@ -1,10 +1,12 @@
 """difareli.cli: the console entry points.
 
-Importing this package sets passive OpenMP waiting (``OMP_WAIT_POLICY=PASSIVE`` unless the environment says
-otherwise) before any command imports torch: on a shared few-core CPU, busy-waiting threads made one relight take
-1.75 s to 50 s (docs/scaling_out.md, "Two jobs on one machine").
+Importing this package chooses how torch's idle OpenMP threads wait before any command imports torch
+(``difareli.utils.processes.openmp_for_machine``): passively (``OMP_WAIT_POLICY=PASSIVE``) where other work is running
+when the command starts, since busy-waiting threads beside another job made one relight take 1.75 s to 50 s; libgomp's
+own spin-then-sleep on a quiet machine, where passive waiting made a 64-px relight 2.2x and a training step 1.27x
+slower. An explicit setting in the environment wins (docs/scaling_out.md, "Two jobs on one machine").
 """
 
-from difareli.utils.processes import passive_openmp
+from difareli.utils.processes import openmp_for_machine
 
-passive_openmp()
+openmp_for_machine()

@@ -13,9 +13,9 @@ the written file the normal way and checks that its eps equals the converted net
 Any CLI given an official file as ``checkpoint=`` stops with a message naming this command.
 """
 
-from difareli.utils.processes import passive_openmp
+from difareli.utils.processes import openmp_for_machine
 
-passive_openmp()  # before torch loads: idle OpenMP threads sleep (docs/scaling_out.md)
+openmp_for_machine()  # before torch loads: idle OpenMP threads sleep on a busy machine (docs/scaling_out.md)
 
 import sys
 

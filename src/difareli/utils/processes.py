@@ -5,12 +5,15 @@ Use :func:`die_with_parent` as a ``ProcessPoolExecutor`` initializer with the pa
 kernel delivers SIGKILL to the worker the moment its parent exits, however it exits (SIGKILL included,
 ``prctl(PR_SET_PDEATHSIG)``); elsewhere a daemon thread polls the parent pid and exits the worker.
 
-:func:`passive_openmp` sets ``OMP_WAIT_POLICY=PASSIVE`` where the environment leaves it unset. torch's OpenMP
-runtime (libgomp) otherwise spins 300,000 iterations after every parallel region before sleeping: on a machine
-shared with another job those spinning threads hold cores the other job needs, and the same relight took 1.75 s
-to 50 s between rounds; passive waiting removed the spread. libgomp reads the variable once, when
-torch loads it, so this must run before ``import torch`` (a console entry's first line); processes started later
-inherit it either way.
+:func:`openmp_for_machine` chooses how torch's idle OpenMP threads (libgomp) wait, before torch loads. Left to
+itself libgomp spins 300,000 iterations after every parallel region before a thread sleeps: alone on a machine that
+is what keeps a small network fast (with passive waiting every operator pays a thread wake-up: a 64-px relight at
+batch 1 took 2.2x as long and a tiny training step 1.27x, docs/perf/README.md); beside another job those spinning
+threads hold the cores the other job needs (the same relight took 1.75 s to 50 s between rounds on a shared machine).
+So a command waits passively (``OMP_WAIT_POLICY=PASSIVE``) only where other work is running when it starts
+(:func:`machine_busy`), and an explicit setting in the environment always wins. libgomp reads the variable once,
+when torch loads it, so this must run before ``import torch`` (a console entry's first line); processes started
+later inherit it either way.
 """
 
 from __future__ import annotations
@@ -24,15 +27,52 @@ import threading
 import time
 
 _PR_SET_PDEATHSIG = 1
-#: OpenMP settings a command starts with unless its environment sets them (see the module docstring).
+#: OpenMP settings a command starts with on a busy machine unless its environment sets them (the module docstring).
 OPENMP_DEFAULTS = {"OMP_WAIT_POLICY": "PASSIVE"}
+#: The machine counts as busy when other runnable threads fill at least this share of the CPUs this process may use,
+#: and are at least BUSY_MIN (a quiet machine shows one now and then: the shell or agent that started the command).
+BUSY_SHARE, BUSY_MIN = 0.5, 2
 _SET_BEFORE_TORCH: dict[str, str] = {}
 
 
-def passive_openmp(environ: dict[str, str] | None = None) -> bool:
-    """Set :data:`OPENMP_DEFAULTS` where ``environ`` (default ``os.environ``) leaves them unset; True if this
-    process's OpenMP runtime will see them (torch not imported yet). Explicit settings are kept."""
+def runnable_elsewhere(samples: int = 7, interval: float = 0.01, stat: str = "/proc/stat") -> float | None:
+    """How many threads other than this one are runnable right now: the median of ``samples`` readings of
+    ``procs_running`` in /proc/stat (which counts the reader too), ``interval`` seconds apart; None where the
+    file cannot be read. A snapshot, not the load average: the load a finished command leaves behind decays over
+    minutes and would make the next command of a script wait passively on a quiet machine."""
+    counts = []
+    for i in range(samples):
+        try:
+            with open(stat) as f:
+                line = next((ln for ln in f if ln.startswith("procs_running")), None)
+        except OSError:
+            return None
+        if line is None:
+            return None
+        counts.append(int(line.split()[1]) - 1)
+        if i + 1 < samples:
+            time.sleep(interval)
+    return float(sorted(counts)[len(counts) // 2])
+
+
+def machine_busy(others: float | None = None, cpus: int | None = None) -> bool:
+    """Whether other work holds at least :data:`BUSY_SHARE` of the CPUs this process may run on and
+    :data:`BUSY_MIN` threads (``others``: :func:`runnable_elsewhere` by default; False where it cannot be told)."""
+    others = runnable_elsewhere() if others is None else others
+    if others is None:
+        return False
+    if cpus is None:
+        cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return others >= max(BUSY_MIN, BUSY_SHARE * cpus)
+
+
+def openmp_for_machine(environ: dict[str, str] | None = None, busy: bool | None = None) -> bool:
+    """On a busy machine (``busy``, default :func:`machine_busy`) set :data:`OPENMP_DEFAULTS` where ``environ``
+    (default ``os.environ``) leaves them unset, so idle threads sleep at once; on a quiet one leave libgomp's own
+    policy. True if it set them and this process's OpenMP runtime will see them (torch not imported yet)."""
     env = os.environ if environ is None else environ
+    if all(key in env for key in OPENMP_DEFAULTS) or not (machine_busy() if busy is None else busy):
+        return False
     for key, value in OPENMP_DEFAULTS.items():
         env.setdefault(key, value)
     effective = "torch" not in sys.modules
@@ -42,7 +82,7 @@ def passive_openmp(environ: dict[str, str] | None = None) -> bool:
 
 
 def openmp_wait_policy() -> str:
-    """The wait policy this process's OpenMP runtime uses, as far as Python can tell: what :func:`passive_openmp`
+    """The wait policy this process's OpenMP runtime uses, as far as Python can tell: what :func:`openmp_for_machine`
     set before torch loaded, else what the process was started with, else libgomp's default (spin, then sleep)."""
     if "OMP_WAIT_POLICY" in _SET_BEFORE_TORCH:
         return _SET_BEFORE_TORCH["OMP_WAIT_POLICY"]
