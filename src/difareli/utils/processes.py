@@ -8,7 +8,7 @@ kernel delivers SIGKILL to the worker the moment its parent exits, however it ex
 :func:`openmp_for_machine` chooses how torch's idle OpenMP threads (libgomp) wait, before torch loads. Left to
 itself libgomp spins 300,000 iterations after every parallel region before a thread sleeps: alone on a machine that
 is what keeps a small network fast (with passive waiting every operator pays a thread wake-up: a 64-px relight at
-batch 1 took 2.2x as long and a tiny training step 1.27x, docs/perf/README.md); beside another job those spinning
+batch 1 took 2.1x as long and ``difareli-train`` 1.22x, docs/perf/README.md); beside another job those spinning
 threads hold the cores the other job needs (the same relight took 1.75 s to 50 s between rounds on a shared machine).
 So a command waits passively (``OMP_WAIT_POLICY=PASSIVE``) only where other work is running when it starts
 (:func:`machine_busy`), and an explicit setting in the environment always wins. libgomp reads the variable once,
