@@ -1,11 +1,12 @@
 """difareli-benchmark's seconds per pair, batched relights against pair by pair, interleaved in one process (issue 63).
 
-One model method at the benchmark's defaults (the default sampler, runtime and batch size, one thread as
-``num_threads`` gives), run through :func:`difareli.evaluation.benchmark.run_benchmark` in turns: ``batched`` (the
-method as shipped: ``relight_many``, :mod:`difareli.evaluation.batched`) and ``one_by_one`` (the same method behind
-a wrapper without ``relight_many``: each pair through ``Relighter.relight``, a source's inversion cached for its
-other pairs, as before). The relighter's caches are emptied before every run. Prints per run the wall seconds per
-pair (relight, scoring and writing) and the rows' relight seconds per pair, then the medians and their ratio.
+One model method at the benchmark's defaults (the default sampler, runtime and batch size, torch's threads as
+``num_threads`` gives, or ``--threads``), run through :func:`difareli.evaluation.benchmark.run_benchmark` in turns:
+``batched`` (the method as shipped: ``relight_many``, :mod:`difareli.evaluation.batched`) and ``one_by_one`` (the
+same method behind a wrapper without ``relight_many``: each pair through ``Relighter.relight``, a source's inversion
+cached for its other pairs, as before). The relighter's caches are emptied before every run. Prints per run the wall
+seconds per pair (relight, scoring and writing) and the rows' relight seconds per pair, then the medians and their
+ratio.
 
     nice -n 19 env OMP_NUM_THREADS=1 .venv/bin/python scripts/bench_benchmark_batched.py --limit 12 --rounds 2
 """
@@ -50,13 +51,15 @@ def main() -> None:
     ap.add_argument("--store", default="data/test_est_s1011")
     ap.add_argument("--limit", type=int, default=None, help="pairs per protocol (default: all)")
     ap.add_argument("--rounds", type=int, default=2)
-    ap.add_argument("--threads", type=int, default=1, help="torch CPU threads (conf/benchmark.yaml's num_threads)")
+    ap.add_argument("--threads", type=int, default=None,
+                    help="torch CPU threads (default: torch's, as conf/benchmark.yaml's num_threads)")
     args = ap.parse_args()
-    torch.set_num_threads(args.threads)
+    if args.threads:
+        torch.set_num_threads(args.threads)
     method = DiffusionMethod(args.checkpoint, PRESETS[DEFAULT_SAMPLER].to_config())
     store = EncodingStore.open(args.store)
     print(f"{method.name}, {method.relighter.describe()}, batch_size {method.batch_size}, store {args.store}, "
-          f"limit {args.limit}, {args.threads} thread(s), OMP_WAIT_POLICY {openmp_wait_policy()}")
+          f"limit {args.limit}, {torch.get_num_threads()} thread(s), OMP_WAIT_POLICY {openmp_wait_policy()}")
     wall: dict[str, list[float]] = {"batched": [], "one_by_one": []}
     with tempfile.TemporaryDirectory() as tmp:
         for r in range(args.rounds):

@@ -19,18 +19,18 @@ POLICIES = {"passive": {"OMP_WAIT_POLICY": "PASSIVE"}, "libgomp's own": {}}
 
 def job(checkpoint: str, store: str, relights: int) -> None:
     """The timed relights of one process; prints the median milliseconds."""
-    import numpy as np
-
     from difareli.data.store import EncodingStore
     from difareli.perf import samplers as speed
+    from difareli.perf.measure import time_calls
     from difareli.relight.relighter import Relighter
     from difareli.runtime.core import Runtime
 
     runtime = Runtime()
     relighter = Relighter(checkpoint, runtime=runtime)
     case = speed.store_cases(EncodingStore.open(store), relighter, limit=1)[0]
-    secs = [speed.timed_relight(relighter.model, case, None, runtime)[1] for _ in range(relights + 5)][5:]
-    print(f"{1e3 * float(np.median(secs)):.2f}")
+    timings = time_calls(lambda: speed.timed_relight(relighter.model, case, None, runtime), relights, warmup=5,
+                         runtime=runtime)
+    print(f"{1e3 * timings.median:.2f}")
 
 
 def main() -> None:

@@ -334,11 +334,11 @@ def test_usage_errors(capsys):
 
 # ---------------------------------------------------------------------------------------------- OpenMP (item 5)
 def test_console_entry_makes_openmp_passive_on_a_busy_machine_before_torch_loads():
-    # A busy machine stood in for by a /proc/stat whose procs_running is high: the rule reads it before torch loads.
+    # A busy machine stood in for by other runnable threads the rule counts (64 or none), before torch loads.
     env = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")}
     env["OMP_DISPLAY_ENV"] = "VERBOSE"  # libgomp prints the values it read when torch loaded it
-    code = ("from difareli.utils import processes as p; import functools; "
-            "p.runnable_elsewhere = functools.partial(lambda: {busy}); "
+    code = ("from difareli.utils import processes as p; "
+            "p.runnable_elsewhere = lambda: {busy}; "
             "import difareli.cli.import_checkpoint, torch; torch.ones(8).sum()")
     read = {}
     for busy in (64.0, 0.0):

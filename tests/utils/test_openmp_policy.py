@@ -13,22 +13,15 @@ from difareli.utils import processes
 from difareli.utils.processes import machine_busy, openmp_for_machine, runnable_elsewhere
 
 
-def _stat(tmp_path, counts):
-    """A /proc/stat stand-in whose procs_running reads ``counts`` in turn (one file per reading)."""
-    files = []
-    for i, n in enumerate(counts):
-        f = tmp_path / f"stat{i}"
-        f.write_text(f"cpu  1 2 3 4\nctxt 10\nprocs_running {n}\nprocs_blocked 0\n")
-        files.append(str(f))
-    return files
-
-
 def test_runnable_elsewhere_is_the_median_reading_less_the_reader(tmp_path, monkeypatch):
-    files = iter(_stat(tmp_path, [1, 9, 3, 3, 2]))
-    real_open = open
-    monkeypatch.setattr("builtins.open", lambda path, *a, **k: real_open(next(files) if path == "S" else path, *a, **k))
+    stat = tmp_path / "stat"
+    stat.write_text("cpu  1 2 3 4\nctxt 10\nprocs_running 3\nprocs_blocked 0\n")
+    assert runnable_elsewhere(samples=1, stat=str(stat)) == 2.0  # the file's 3 less the reader
+    readings = iter([1, 9, 3, 3, 2])
+    monkeypatch.setattr(processes, "_procs_running", lambda path: next(readings))
     # readings 0, 8, 2, 2, 1 others: the median 2 (a burst of one reading does not decide)
     assert runnable_elsewhere(samples=5, interval=0.0, stat="S") == 2.0
+    monkeypatch.undo()
     assert runnable_elsewhere(samples=1, stat=str(tmp_path / "missing")) is None
     (tmp_path / "nokey").write_text("cpu 1 2 3\n")
     assert runnable_elsewhere(samples=1, stat=str(tmp_path / "nokey")) is None

@@ -42,17 +42,23 @@ def runnable_elsewhere(samples: int = 7, interval: float = 0.01, stat: str = "/p
     minutes and would make the next command of a script wait passively on a quiet machine."""
     counts = []
     for i in range(samples):
-        try:
-            with open(stat) as f:
-                line = next((ln for ln in f if ln.startswith("procs_running")), None)
-        except OSError:
+        running = _procs_running(stat)
+        if running is None:
             return None
-        if line is None:
-            return None
-        counts.append(int(line.split()[1]) - 1)
+        counts.append(running - 1)
         if i + 1 < samples:
             time.sleep(interval)
     return float(sorted(counts)[len(counts) // 2])
+
+
+def _procs_running(stat: str) -> int | None:
+    """``procs_running`` of a /proc/stat file; None where it cannot be read or has no such line."""
+    try:
+        with open(stat) as f:
+            line = next((ln for ln in f if ln.startswith("procs_running")), None)
+    except OSError:
+        return None
+    return None if line is None else int(line.split()[1])
 
 
 def machine_busy(others: float | None = None, cpus: int | None = None) -> bool:
