@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from difareli.data import target_shadow
-from difareli.relight import targets
+from difareli.relight import request
 from difareli.evaluation import video as vid
 from difareli.data.store import EncodingStore
 from difareli.errors import UserError
@@ -114,12 +114,12 @@ def test_shadow_rule_finds_exact_cast_shadows(rotation):
 
 def test_target_shadow_policy(synth_store):
     store = EncodingStore.open(synth_store)
-    c, note = targets.video_shadow(store, -6.9, None)
+    c, note = request.video_shadow(store, -6.9, None)
     want = target_shadow.typical_shadowed_c(np.array([store.read(r, ["shadow"])["shadow"][0]
                                                 for r in store.ids(split="train")]))
     assert c == pytest.approx(want) and "median c of the train split" in note
-    assert targets.video_shadow(store, -2.0, None)[0] == -2.0
-    assert targets.video_shadow(store, -6.9, -1.5) == (-1.5, "target c' = -1.500 (given: target.shadow)")
+    assert request.video_shadow(store, -2.0, None)[0] == -2.0
+    assert request.video_shadow(store, -6.9, -1.5) == (-1.5, "target c' = -1.500 (given: target.shadow)")
 
 
 def test_video_cli_frames_and_outputs(tiny_checkpoint, synth_store, tmp_path):

@@ -33,6 +33,19 @@ def fake(monkeypatch):
     return seen
 
 
+class StandIn:
+    """A relighter as the folder's record sees it: only its identity (relight_one is faked)."""
+
+    def __init__(self, weights: str):
+        self.weights = weights
+
+    def identity(self) -> dict:
+        return {"checkpoint": self.weights, "precision": "bf16", "sampler": None, "mean_matching": True}
+
+
+AA = StandIn("weights:aa")
+
+
 def rows(out):
     with (out / batch.CSV_NAME).open() as f:
         return list(csv.DictReader(f))
@@ -46,11 +59,11 @@ def test_same_named_photos_in_three_folders_give_three_output_sets(tmp_path, fak
     assert batch.output_names(paths) == ["x__a", "y__a", "z__a"]
     assert batch.output_names([tmp_path / n for n in ("a.jpg", "a.png", "b.png")]) == ["a", "a_png", "b"]
     out = tmp_path / "out"
-    assert batch.relight_photos(paths, out, progress=False) == {"done": 3, "skipped": 0, "resumed": 0}
+    assert batch.relight_photos(paths, out, relighter=AA, progress=False) == {"done": 3, "skipped": 0, "resumed": 0}
     assert sorted(p.name for p in out.glob("*_composite.png")) == ["x__a_composite.png", "y__a_composite.png",
                                                                    "z__a_composite.png"]
     assert [(r["name"], r["photo"]) for r in rows(out)] == [(f"{d}__a", str(p)) for d, p in zip("xyz", paths)]
-    assert batch.relight_photos(paths, out, progress=False) == {"done": 0, "skipped": 0, "resumed": 3}
+    assert batch.relight_photos(paths, out, relighter=AA, progress=False) == {"done": 0, "skipped": 0, "resumed": 3}
 
 
 def test_a_rerun_keeps_one_row_per_photo(tmp_path, fake):
@@ -59,7 +72,7 @@ def test_a_rerun_keeps_one_row_per_photo(tmp_path, fake):
     paths = batch.photo_paths(str(tmp_path))
     out = tmp_path / "out"
     for _ in range(3):  # the skipped photo is tried again each time: its row replaced, not appended
-        batch.relight_photos(paths, out, progress=False)
+        batch.relight_photos(paths, out, relighter=AA, progress=False)
     assert sorted((r["name"], r["status"]) for r in rows(out)) == [("bad", "skipped"), ("good", "relit")]
     assert fake.count(tmp_path / "bad.png") == 3 and fake.count(tmp_path / "good.png") == 1
 
@@ -67,12 +80,15 @@ def test_a_rerun_keeps_one_row_per_photo(tmp_path, fake):
 def test_a_rerun_with_other_settings_is_refused_naming_the_setting(tmp_path, fake):
     (tmp_path / "p.png").write_bytes(b"x")
     paths, out = batch.photo_paths(str(tmp_path)), tmp_path / "out"
-    batch.relight_photos(paths, out, progress=False, settings={"checkpoint": "weights:aa", "target.yaw": 45.0})
+    batch.relight_photos(paths, out, relighter=AA, progress=False, settings={"target.yaw": 45.0})
     with pytest.raises(UserError, match=r"^.*out holds relit photos made with other settings \(target.yaw: 45.0 "
                                         r"there, -90.0 now\); give another output folder"):
-        batch.relight_photos(paths, out, progress=False, settings={"checkpoint": "weights:aa", "target.yaw": -90.0})
-    assert batch.relight_photos(paths, out, progress=False, settings={"checkpoint": "weights:aa",
-                                                                       "target.yaw": 45.0})["resumed"] == 1
+        batch.relight_photos(paths, out, relighter=AA, progress=False, settings={"target.yaw": -90.0})
+    with pytest.raises(UserError, match=r"other settings \(checkpoint: 'weights:aa' there, 'weights:bb' now\)"):
+        batch.relight_photos(paths, out, relighter=StandIn("weights:bb"), progress=False,
+                             settings={"target.yaw": 45.0})  # the relighter's identity is recorded with the request's
+    assert batch.relight_photos(paths, out, relighter=AA, progress=False,
+                                settings={"target.yaw": 45.0})["resumed"] == 1
 
 
 def test_links_that_lead_nowhere_are_named(tmp_path):
@@ -92,12 +108,12 @@ def test_two_runs_on_one_folder_and_another_tools_csv_are_refused(tmp_path, fake
     paths, out = batch.photo_paths(str(tmp_path)), tmp_path / "out"
     with folder_lock(out, "relight"):
         with pytest.raises(UserError, match="is being written by difareli-relight"):
-            batch.relight_photos(paths, out, progress=False)
+            batch.relight_photos(paths, out, relighter=AA, progress=False)
     assert fake == []
     (out / batch.CSV_NAME).write_text("id,score\n1,0.5\n")
     with pytest.raises(UserError, match=r"relight.csv is not a difareli-relight photo table \(its columns: id, "
                                         r"score\); give another out_dir"):
-        batch.relight_photos(paths, out, progress=False)
+        batch.relight_photos(paths, out, relighter=AA, progress=False)
 
 
 def config(**over):
@@ -166,11 +182,11 @@ def test_a_full_disk_mid_folder_is_one_line_and_the_rerun_resumes(tmp_path, fake
 
     monkeypatch.setattr(viz.iio, "imwrite", full)
     with pytest.raises(UserError) as e:
-        batch.relight_photos(paths, out, progress=False)
+        batch.relight_photos(paths, out, relighter=AA, progress=False)
     assert str(e.value) == (f"no space left on the device writing {out / 'y__a_composite.png'} (No space left on "
                             "device); free space or write elsewhere (nothing already written was changed)")
     assert [r["name"] for r in rows(out)] == ["x__a"] and not list(out.glob(".*.tmp-*"))
     monkeypatch.setattr(viz.iio, "imwrite", real)
     before = len(fake)
-    assert batch.relight_photos(paths, out, progress=False) == {"done": 1, "skipped": 0, "resumed": 1}
+    assert batch.relight_photos(paths, out, relighter=AA, progress=False) == {"done": 1, "skipped": 0, "resumed": 1}
     assert [r["name"] for r in rows(out)] == ["x__a", "y__a"] and fake[before:] == [paths[1]]

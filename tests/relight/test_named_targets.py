@@ -96,7 +96,7 @@ def test_a_comparison_shows_a_face_at_least_256_px_tall(synth_store, tmp_path):
 def test_a_photo_under_a_new_light_gets_the_photo_default_shadow_unless_its_own_is_stronger():
     from difareli.data.encodings import denormalise_c
     from difareli.data.target_shadow import PHOTO_SHADOW, photo_shadow
-    from difareli.relight.targets import rotation_targets
+    from difareli.relight.request import rotation_targets
 
     default = denormalise_c(PHOTO_SHADOW)
     frontal = -4.122039794921875  # the frontal photo: its own c drew no nose shadow

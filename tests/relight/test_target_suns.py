@@ -56,7 +56,7 @@ def test_sun_directions_are_checked():
 def test_a_rotation_videos_key_sun_turns_with_its_light():
     """``rotation_targets(..., sun=d)``: frame i's map is marched toward ``R_i d``, the rotation that turns the SH
     light (its direction turns the same way); yaw 90 degrees takes +z to +x."""
-    from difareli.relight.targets import rotation_targets
+    from difareli.relight.request import rotation_targets
 
     light = sh.directional_light(_direction(30, 40), 1.0)
     sun = _direction(35, 80)

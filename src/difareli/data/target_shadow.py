@@ -1,7 +1,7 @@
 """The shadow strength c' a target gets when none is given (SPEC 5.2, 12): a photo's (:func:`photo_shadow`), a
 benchmark pair's, the c a user has for a target image (:func:`target_shadow_of`), each with a sentence saying where
 it came from, and the median shadowed c of a split (:func:`split_typical_c`) that a rotation video of an unshadowed
-record falls back on (its rule: :func:`difareli.relight.targets.video_shadow`).
+record falls back on (its rule: :func:`difareli.relight.request.video_shadow`).
 """
 
 from __future__ import annotations

@@ -24,9 +24,10 @@ from typing import Any
 import numpy as np
 
 from difareli.data import provenance
-from difareli.errors import UserError
+from difareli.errors import UserError, check_choice, check_number
 from difareli.estimators.loading import IMAGE_SUFFIXES
 from difareli.relight import photo_check
+from difareli.relight.composite import MODES, part_mask
 from difareli.relight.relighter import Relighter
 from difareli.relight.sources import Source
 from difareli.relight.targets import Targets
@@ -76,6 +77,40 @@ def check_out_dir_apart(image: str, out_dir: str | Path) -> None:
                         "outputs as photos; give an out_dir outside them")
 
 
+def check_photos(image: str, face: Any, axis: str | None, record: str | None, composite: Mapping[str, Any],
+                 out_dir: str) -> tuple[Path, ...] | None:
+    """The photos of ``image=`` (a folder or a glob; ``face=all|<index>``: several faces of one photo) as a batch,
+    None for one photo; a batch takes a target light, not a video or a target record, and an ``out_dir`` its
+    listing does not read; the compositing (a known mode, known parts, a feather >= 0)."""
+    check_face(face)  # a typo is the command's error before any photo is read (not a skipped row per photo)
+    photos = photo_paths(image)
+    if photos is not None:
+        check_out_dir_apart(image, out_dir)
+    if photos is None and str(face).lower() != "largest":
+        photos = [Path(str(image))]  # several faces of one photo
+    if photos is not None and (axis is not None or record is not None):
+        raise UserError(f"image={image} face={face}: a folder or several faces take a target light "
+                               "(target.light|yaw|roll|pitch|envmap), not video.axis or target.record")
+    check_choice(composite["mode"], "composite.mode", MODES)
+    try:
+        part_mask(np.zeros((1, 1), np.uint8), list(composite["parts"] or []))
+    except ValueError as e:
+        raise UserError(f"composite.parts: {e}") from None
+    if check_number(composite["feather"], "composite.feather", allow_none=False) < 0:
+        raise UserError(f"composite.feather={composite['feather']}: must be >= 0 (a fraction of the crop size)")
+    return None if photos is None else tuple(photos)
+
+
+def check_face(face: Any) -> None:
+    """``face=`` as a choice (largest | all | an index >= 0), checked before any photo is read: a typo is the
+    command's error, said once, not a "skipped" line per photo."""
+    key = str(face).strip().lower()
+    if key in ("largest", "all") or key.isdigit():
+        return
+    raise UserError(f"face={face} is invalid: give face=largest, face=all or face=<index> (0, 1, ...: the "
+                           "detected faces left to right)")
+
+
 def output_names(paths: Sequence[Path]) -> list[str]:
     """Each photo's name in ``out_dir``: its path below the photos' common folder without its suffix (folders
     joined by ``__``); a later photo that would share an earlier one's name gets its suffix (``a.jpg``, ``a.png``
@@ -107,13 +142,15 @@ def relight_one(path: Path, *, relighter: Relighter, target: Callable[[Source], 
                         **worst.measures}
 
 
-def relight_photos(paths: Sequence[Path], out_dir: str | Path, *, progress: bool = True,
+def relight_photos(paths: Sequence[Path], out_dir: str | Path, *, relighter: Relighter | None, progress: bool = True,
                    settings: Mapping[str, Any] | None = None, **kwargs) -> dict:
-    """Relight every photo of ``paths`` (module doc; ``settings``: what relights them, recorded and checked);
-    returns counts {"done", "skipped", "resumed"}."""
+    """Relight every photo of ``paths`` (module doc; ``settings``: the request's, recorded with the relighter's
+    ``identity()`` and checked); returns counts {"done", "skipped", "resumed"}."""
     from tqdm.auto import tqdm
 
     out_dir, names = Path(out_dir), output_names(paths)
+    if settings is not None:  # the record names the relighter that writes the folder, taken where it relights
+        settings = {**relighter.identity(), **settings}
     with _opened(out_dir, settings) as before:
         counts = {"done": 0, "skipped": 0, "resumed": 0}
         todo = []  # the bar counts only these: photos relit before would make its rate and time left untrue
@@ -127,7 +164,7 @@ def relight_photos(paths: Sequence[Path], out_dir: str | Path, *, progress: bool
         for path, name in bar:
             start = time.perf_counter()
             try:
-                full, crops, row = relight_one(path, say=lambda s: bar.write(s), **kwargs)
+                full, crops, row = relight_one(path, relighter=relighter, say=lambda s: bar.write(s), **kwargs)
             except UserError as e:
                 counts["skipped"] += 1
                 reason = str(e).removeprefix(f"image={path}: ").splitlines()[0]

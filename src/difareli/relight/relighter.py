@@ -18,6 +18,7 @@ from tqdm.auto import tqdm
 
 from difareli import errors
 from difareli.checkpoints.loading import LoadedCheckpoint, load_checkpoint
+from difareli.data import provenance
 from difareli.data.inputs import condition_tensors, image_to_tensor
 from difareli.diffusion.relight import Inversion, SamplerSpec
 from difareli.diffusion.spec import DEFAULT_SAMPLER, PRESETS
@@ -84,6 +85,12 @@ class Relighter(Sources):
         """How this relighter relights, for console lines: the sampler (or one pass) and the runtime."""
         how = "one pass" if isinstance(self.model, OnePassRelightable) else f"{self.spec.name}, {self.spec.steps} steps"
         return f"{how}, {self.runtime.precision}{', compiled' if self.runtime.compile else ''}"
+
+    def identity(self) -> dict[str, Any]:
+        """What relights, as an output folder's record compares it: the weights by content (not their file), the
+        precision, the sampler (None: one pass) and mean matching."""
+        return {"checkpoint": provenance.model_identity(self.model), "precision": self.runtime.precision,
+                "sampler": None if self.spec is None else self.spec.to_config(), "mean_matching": self.mean_matching}
 
     def key_sun(self, source: Source) -> sun_fit.SunFit | None:
         """Where this model's target map for the source's light is marched: the key sun found from the source

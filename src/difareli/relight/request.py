@@ -16,18 +16,17 @@ from typing import Any
 import numpy as np
 
 from difareli import errors
-from difareli.data import encodings, provenance
-from difareli.data.target_shadow import photo_shadow
+from difareli.data import encodings
+from difareli.data.target_shadow import SHADOWED_C, SHADOWED_SHARE, photo_shadow, split_typical_c
 from difareli.data.store import EncodingStore
 from difareli.diffusion.spec import SamplerSpec
 from difareli.lighting import presets, sh
 from difareli.relight import photo
-from difareli.relight.batch import check_out_dir_apart, photo_paths, relight_photos
-from difareli.relight.composite import MODES, part_mask
+from difareli.relight.batch import check_photos, relight_photos
 from difareli.relight.relighter import Relighter
 from difareli.relight.relit import Relit
 from difareli.relight.sources import Source
-from difareli.relight.targets import TARGET_KEYS, TURNS, Targets, load_envmap, rotation_targets, target_lights
+from difareli.relight.targets import TARGET_KEYS, TURNS, Targets, load_envmap, target_lights
 from difareli.render import sun_fit
 from difareli.render.sun_fit import TARGET_SUNS
 from difareli.runtime.core import Runtime
@@ -100,7 +99,7 @@ def relight_targets(relighter: Relighter, source: Source, targets: Sequence[Targ
 @dataclass(frozen=True)
 class Rotation:
     """A 360-degree rotation video's target: the source's own light (or the environment map file ``envmap``'s)
-    turned about ``axis`` in ``frames`` frames, with ``shadow`` (None: the policy of ``targets.rotation_targets``,
+    turned about ``axis`` in ``frames`` frames, with ``shadow`` (None: the policy of :func:`rotation_targets`,
     from ``split``), toward the key sun found from the source's cast shadows turned with it (``sun=shadows``) or
     each frame's radiance peak (``peak``); ``shadows`` and ``maps``: each frame's c' and target map given (an
     oracle's) instead; ``plausible``: each frame's light made plausible for the face (:func:`plausible`)."""
@@ -153,6 +152,48 @@ def plausible(targets: Targets, source: Source, what: str = "the target lights")
     like, normals = source.arrays["light"], source.arrays.get("normal")
     return Targets.of([presets.plausible(light, like, normals) for light in targets.lights], targets.shadows, what,
                       maps=targets.maps, suns=targets.suns)
+
+
+def rotation_targets(source: Mapping[str, np.ndarray], axis: str, frames: int, *, store=None,
+                     given: float | None = None, sun: np.ndarray | None = None, light: np.ndarray | None = None,
+                     shadows=None, maps=None, split: str = "train") -> tuple[Targets, str]:
+    """The targets of a 360-degree rotation video about ``axis`` of a source's own light (or of ``light``, e.g. an
+    environment map's), and a sentence saying where their shadow strength c' came from: ``shadows``, one per frame
+    (an oracle's); ``given``; else, for a store record, :func:`video_shadow` (the input's own c when shadowed, else
+    ``split``'s typical shadowed c); else the input's own c (a photo). ``sun``: the source light's key sun
+    (``render.sun_fit.key_sun``), turned with the light, toward which each frame's map is marched (None: each
+    frame's radiance peak); ``maps``: each frame's target map given (an oracle's) instead of marched."""
+    _, rots = sh.rotation_frames(axis, frames)
+    if shadows is not None:
+        cs, why = list(shadows), "target c' per frame = the ground truth's exact c (oracle_shadow=true)"
+    else:
+        own = encodings.shadow_logit(source)
+        if store is not None and own is not None:
+            c, why = video_shadow(store, own, given, split)
+        elif given is not None:
+            c, why = given, f"target c' = {given} (given)"
+        else:  # a photo: no store to take a typical c from
+            c, why = photo_shadow(own)
+        cs = [c] * len(rots)
+    lights = sh.rotate(source["light"] if light is None else light, rots)
+    suns = None if sun is None else list(rots @ np.asarray(sun, np.float64))
+    return Targets.of(lights, cs, f"rotation about {axis}", maps=maps, suns=suns), why
+
+
+def video_shadow(store, record_c: float | None, given: float | None, split: str = "train") -> tuple[float, str]:
+    """The shadow strength c' for every frame of a video and a sentence saying where it came from: ``given``;
+    else the input's own c when it is shadowed; else the median shadowed c of ``split`` (the training split)."""
+    if given is not None:
+        return float(given), f"target c' = {float(given):.3f} (given: target.shadow)"
+    if record_c is not None and record_c >= SHADOWED_C:  # a visible cast shadow
+        return record_c, f"target c' = {record_c:.3f} (the input's own c: it has a cast shadow)"
+    c = split_typical_c(store, split)
+    own = "no 'shadow' encoding" if record_c is None else f"c = {record_c:.2f}"
+    if c is None:
+        raise errors.UserError(f"the input has no cast shadow ({own}) and the {split} split of {store.root} has no "
+                               "shadowed record to take a typical c from; give target.shadow=<logit c'>")
+    return c, (f"target c' = {c:.3f} (the input has no cast shadow, {own}: median c of the {split} split's "
+               f"shadowed records, share >= {SHADOWED_SHARE})")
 
 
 def rotation_video(relighter: Relighter, source: Source, rotation: Rotation, store: EncodingStore | None = None,
@@ -275,40 +316,6 @@ def check_target(t: Mapping[str, Any]) -> Target:
     return Target(**{k: t.get(k) for k in (*TARGET_KEYS[:-1], "shadow", "sun")})
 
 
-def check_photos(image: str, face: Any, axis: str | None, record: str | None, composite: Mapping[str, Any],
-                 out_dir: str) -> tuple[Path, ...] | None:
-    """The photos of ``image=`` (a folder or a glob; ``face=all|<index>``: several faces of one photo) as a batch,
-    None for one photo; a batch takes a target light, not a video or a target record, and an ``out_dir`` its
-    listing does not read; the compositing (a known mode, known parts, a feather >= 0)."""
-    check_face(face)  # a typo is the command's error before any photo is read (not a skipped row per photo)
-    photos = photo_paths(image)
-    if photos is not None:
-        check_out_dir_apart(image, out_dir)
-    if photos is None and str(face).lower() != "largest":
-        photos = [Path(str(image))]  # several faces of one photo
-    if photos is not None and (axis is not None or record is not None):
-        raise errors.UserError(f"image={image} face={face}: a folder or several faces take a target light "
-                               "(target.light|yaw|roll|pitch|envmap), not video.axis or target.record")
-    errors.check_choice(composite["mode"], "composite.mode", MODES)
-    try:
-        part_mask(np.zeros((1, 1), np.uint8), list(composite["parts"] or []))
-    except ValueError as e:
-        raise errors.UserError(f"composite.parts: {e}") from None
-    if errors.check_number(composite["feather"], "composite.feather", allow_none=False) < 0:
-        raise errors.UserError(f"composite.feather={composite['feather']}: must be >= 0 (a fraction of the crop size)")
-    return None if photos is None else tuple(photos)
-
-
-def check_face(face: Any) -> None:
-    """``face=`` as a choice (largest | all | an index >= 0), checked before any photo is read: a typo is the
-    command's error, said once, not a "skipped" line per photo."""
-    key = str(face).strip().lower()
-    if key in ("largest", "all") or key.isdigit():
-        return
-    raise errors.UserError(f"face={face} is invalid: give face=largest, face=all or face=<index> (0, 1, ...: the "
-                           "detected faces left to right)")
-
-
 def check_store(root: str, versions: Mapping[str, Any] | None, **records: str | None) -> EncodingStore:
     """A source store that opens (its header, the derived ``versions`` asked for) and holds the ``records`` named
     (``record``, ``target_record``: None for none; the key is said as the config spells it); returned, open."""
@@ -387,10 +394,8 @@ def respond(relighter: Relighter, request: Request, say: Callable[[str], None] |
 def answer_photos(relighter: Relighter, request: Request) -> dict[str, int]:
     """A batch request (``request.photos``) under its one target, written into ``request.out_dir`` as it goes
     (:func:`difareli.relight.batch.relight_photos`); counts {done, skipped, resumed}."""
-    settings = {"checkpoint": provenance.model_identity(relighter.model), "precision": relighter.runtime.precision,
-                "sampler": None if relighter.spec is None else relighter.spec.to_config(),
-                "mean_matching": relighter.mean_matching, "photo_size": request.photo_size, "face": str(request.face),
-                "strict": request.strict, "composite": dict(request.composite),
+    settings = {"photo_size": request.photo_size, "face": str(request.face), "strict": request.strict,
+                "composite": dict(request.composite),
                 **{f"target.{k}": v for k, v in dataclasses.asdict(request.target).items()}}
     return relight_photos(list(request.photos), request.out_dir, progress=relighter.progress, settings=settings,
                           relighter=relighter, target=lambda s: request.target.for_source(relighter, s)[0],

@@ -13,8 +13,6 @@ from typing import Mapping
 
 import numpy as np
 
-from difareli.data import encodings
-from difareli.data.target_shadow import SHADOWED_C, SHADOWED_SHARE, photo_shadow, split_typical_c
 from difareli.lighting import presets, sh
 from difareli.render.retarget import retarget_many
 from difareli.errors import (TARGET_LIGHT_MAX_ABS, UserError, UserFileNotFoundError, check_finite, check_light,
@@ -187,45 +185,3 @@ def target_lights(source_light: np.ndarray, *, light: str | None = None, other_l
         return presets.toward(src, direction, normals)
     turn = next(((TURNS[k], v) for k, v in dict(yaw=yaw, roll=roll, pitch=pitch).items() if v is not None), None)
     return src if turn is None else sh.rotate(src, turn[0](turn[1]))
-
-
-def rotation_targets(source: Mapping[str, np.ndarray], axis: str, frames: int, *, store=None,
-                     given: float | None = None, sun: np.ndarray | None = None, light: np.ndarray | None = None,
-                     shadows=None, maps=None, split: str = "train") -> tuple[Targets, str]:
-    """The targets of a 360-degree rotation video about ``axis`` of a source's own light (or of ``light``, e.g. an
-    environment map's), and a sentence saying where their shadow strength c' came from: ``shadows``, one per frame
-    (an oracle's); ``given``; else, for a store record, :func:`video_shadow` (the input's own c when shadowed, else
-    ``split``'s typical shadowed c); else the input's own c (a photo). ``sun``: the source light's key sun
-    (``render.sun_fit.key_sun``), turned with the light, toward which each frame's map is marched (None: each
-    frame's radiance peak); ``maps``: each frame's target map given (an oracle's) instead of marched."""
-    _, rots = sh.rotation_frames(axis, frames)
-    if shadows is not None:
-        cs, why = list(shadows), "target c' per frame = the ground truth's exact c (oracle_shadow=true)"
-    else:
-        own = encodings.shadow_logit(source)
-        if store is not None and own is not None:
-            c, why = video_shadow(store, own, given, split)
-        elif given is not None:
-            c, why = given, f"target c' = {given} (given)"
-        else:  # a photo: no store to take a typical c from
-            c, why = photo_shadow(own)
-        cs = [c] * len(rots)
-    lights = sh.rotate(source["light"] if light is None else light, rots)
-    suns = None if sun is None else list(rots @ np.asarray(sun, np.float64))
-    return Targets.of(lights, cs, f"rotation about {axis}", maps=maps, suns=suns), why
-
-
-def video_shadow(store, record_c: float | None, given: float | None, split: str = "train") -> tuple[float, str]:
-    """The shadow strength c' for every frame of a video and a sentence saying where it came from: ``given``;
-    else the input's own c when it is shadowed; else the median shadowed c of ``split`` (the training split)."""
-    if given is not None:
-        return float(given), f"target c' = {float(given):.3f} (given: target.shadow)"
-    if record_c is not None and record_c >= SHADOWED_C:  # a visible cast shadow
-        return record_c, f"target c' = {record_c:.3f} (the input's own c: it has a cast shadow)"
-    c = split_typical_c(store, split)
-    own = "no 'shadow' encoding" if record_c is None else f"c = {record_c:.2f}"
-    if c is None:
-        raise UserError(f"the input has no cast shadow ({own}) and the {split} split of {store.root} has no shadowed "
-                        "record to take a typical c from; give target.shadow=<logit c'>")
-    return c, (f"target c' = {c:.3f} (the input has no cast shadow, {own}: median c of the {split} split's "
-               f"shadowed records, share >= {SHADOWED_SHARE})")
