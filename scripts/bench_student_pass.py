@@ -10,7 +10,9 @@ Loads a teacher and its one-pass student, prepares one store case for each (the 
   the original network, contiguous inputs; the UNet still on the inference copy);
 - ``modulator``: the student's Modulator alone, on the inference copy;
 - ``teacher_gn_mixed``, ``student_gn_mixed``: the teacher's pass and the student's relight with GroupNorm32 as it
-  was before issue 63 (PyTorch's mixed bf16 kernel on channels-last input too).
+  was before issue 63 (PyTorch's mixed bf16 kernel on channels-last input too);
+- ``teacher_k_each_step``: the teacher's pass with AdaGN's ``k = MLP3(nonspatial)`` run again at every pass, as
+  before a prepared condition kept them (``nn.unet.ReusedVector``; the timed ``teacher`` reuses them).
 
 Only ratios of one run compare on a loaded machine; the medians and minima of every entry are printed, then the
 per-op self CPU time of the teacher's and the student's pass (``--profile``, torch.profiler, interleaved).
@@ -30,6 +32,7 @@ import torch
 import torch.nn.functional as F
 
 from difareli.data.store import EncodingStore
+from difareli.nn import network
 from difareli.nn.unet import GroupNorm32
 from difareli.perf import samplers as speed
 from difareli.relight.core import _condition, relight
@@ -58,7 +61,17 @@ def _passes(teacher: Relighter, student: Relighter, store: EncodingStore, runtim
            "student_autocast_mod": old_student,
            "modulator": lambda: runtime.condition(sm.net, sp, ns)}
     return {**fns, "teacher_gn_mixed": _with_gn_mixed(fns["teacher"]),
-            "student_gn_mixed": _with_gn_mixed(fns["student"])}
+            "student_gn_mixed": _with_gn_mixed(fns["student"]), "teacher_k_each_step": _k_each_step(fns["teacher"])}
+
+
+def _k_each_step(fn):
+    def run():
+        allowed, network.reuse_allowed = network.reuse_allowed, lambda: False
+        try:
+            return fn()
+        finally:
+            network.reuse_allowed = allowed
+    return run
 
 
 @contextlib.contextmanager
@@ -137,7 +150,7 @@ def main() -> None:
         # Per-round ratios: the passes of one round ran within milliseconds of each other, under the same load.
         for a, b in (("student", "teacher"), ("student_autocast_mod", "teacher"), ("student_autocast_mod", "student"),
                      ("student_gn_mixed", "teacher_gn_mixed"), ("teacher_gn_mixed", "teacher"),
-                     ("student_gn_mixed", "student")):
+                     ("student_gn_mixed", "student"), ("teacher_k_each_step", "teacher")):
             paired = np.median(np.array(secs[a]) / np.array(secs[b]))
             print(f"  {a} / {b}: medians {med[a] / med[b]:.3f}, minima {min(secs[a]) / min(secs[b]):.3f}, "
                   f"median of per-round ratios {paired:.3f}")

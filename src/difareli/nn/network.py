@@ -20,7 +20,7 @@ from . import controlnet  # noqa: F401  (registers spatial type "controlnet")
 from .conditioning import count_parameters, resolve_spatial
 from .nonspatial import CrossAttentionBlock, build_nonspatial
 from .presets import get_config
-from .unet import MLP3, UNet, UNetConfig
+from .unet import MLP3, ReusedVector, UNet, UNetConfig
 
 
 @dataclass
@@ -31,6 +31,22 @@ class Condition:
 
     spatial: Any = None
     nonspatial: Tensor | None = None
+
+    def reused(self) -> ReusedVector:
+        """The non-spatial vector as every step this condition serves receives it (:class:`ReusedVector`: AdaGN's
+        k computed once); kept on the condition, outside its fields, so a copied condition starts afresh."""
+        r = self.__dict__.get("_reused")
+        if r is None or r.vector is not self.nonspatial:
+            r = self.__dict__["_reused"] = ReusedVector(self.nonspatial)
+        return r
+
+
+def reuse_allowed() -> bool:
+    """Whether a pass may reuse what a condition computed at an earlier step: not where autograd records it (training
+    needs the MLP3s in each step's graph), nor in a compiled or CUDA-graph-captured pass, whose static inputs take
+    the next condition's values in place."""
+    return not torch.is_grad_enabled() and not torch.compiler.is_compiling() and not (
+        torch.cuda.is_available() and torch.cuda.is_current_stream_capturing())
 
 
 class DiffusionNet(nn.Module):
@@ -83,7 +99,10 @@ class DiffusionNet(nn.Module):
         if t.shape != (x_t.shape[0],):
             raise UserError(f"expected timesteps [{x_t.shape[0]}] for x_t {tuple(x_t.shape)}, got {tuple(t.shape)}")
         cond = cond if cond is not None else self.condition()
-        return self.unet(x_t, t, cond.nonspatial, self.spatial, cond.spatial)
+        ns = cond.nonspatial
+        if ns is not None and self.nonspatial.reusable and reuse_allowed():
+            ns = cond.reused()
+        return self.unet(x_t, t, ns, self.spatial, cond.spatial)
 
     def bind(self, cond: Condition) -> Callable[[Tensor, Tensor], Tensor]:
         """The sampler-facing denoiser ``(x, t) -> eps`` for one prepared condition."""

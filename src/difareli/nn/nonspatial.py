@@ -49,6 +49,7 @@ class NonSpatialConditioning(nn.Module):
     (``block_layer``) and ``prepare(vector)`` -> what the blocks receive as ``nonspatial``."""
 
     type_name = ""
+    reusable = False  # what the blocks receive may be wrapped for reuse across steps (unet.ReusedVector)
 
     def __init__(self, widths: Sequence[int], *, cfg: UNetConfig):
         super().__init__()
@@ -68,6 +69,8 @@ class NonSpatialConditioning(nn.Module):
 @register_nonspatial("adagn")
 class AdaGNNonSpatial(NonSpatialConditioning):
     """DiFaReli's AdaGN: the (normalised) vector itself reaches every residual block's MLP3; no parameters here."""
+
+    reusable = True
 
     @property
     def adagn_dim(self) -> int:

@@ -107,6 +107,26 @@ class MLP3(nn.Sequential):
         super().__init__(*layers)
 
 
+class ReusedVector:
+    """A prepared condition's non-spatial vector as the blocks receive it at every step of an inference sampler:
+    each AdaGN's ``k = MLP3(vector)`` depends on neither ``t`` nor ``x_t``, so it is computed at the first step and
+    reused (kept per module; forgotten if the vector is changed in place)."""
+
+    def __init__(self, vector: Tensor):
+        self.vector, self.scales = vector, {}
+        self.version = self._version()
+
+    def _version(self) -> int | None:
+        return None if self.vector.is_inference() else self.vector._version  # inference tensors keep none
+
+    def scale(self, adagn: "AdaGN") -> Tensor:
+        if self._version() != self.version:
+            self.scales, self.version = {}, self._version()
+        if adagn not in self.scales:
+            self.scales[adagn] = adagn.mlp(self.vector)
+        return self.scales[adagn]
+
+
 class TimestepBlock(nn.Module):
     """Marker interface (guided-diffusion's ``TimestepBlock``): ``forward(h, emb, nonspatial)`` takes the time
     embedding and the non-spatial vector. Containers dispatch on this marker, never on concrete classes, so a new
@@ -139,7 +159,8 @@ class AdaGN(TimestepBlock):
         if self.mlp is not None:
             if nonspatial is None:
                 raise UserError("this network has non-spatial (AdaGN MLP3) conditioning; pass a non-spatial vector")
-            out = out * self.mlp(nonspatial)[..., None, None]
+            k = nonspatial.scale(self) if isinstance(nonspatial, ReusedVector) else self.mlp(nonspatial)
+            out = out * k[..., None, None]
         return out
 
 
