@@ -90,7 +90,7 @@ def check_photos(image: str, face: Any, axis: str | None, record: str | None, co
         photos = [Path(str(image))]  # several faces of one photo
     if photos is not None and (axis is not None or record is not None):
         raise UserError(f"image={image} face={face}: a folder or several faces take a target light "
-                               "(target.light|yaw|roll|pitch|envmap), not video.axis or target.record")
+                        "(target.light|yaw|roll|pitch|envmap), not video.axis or target.record")
     check_choice(composite["mode"], "composite.mode", MODES)
     try:
         part_mask(np.zeros((1, 1), np.uint8), list(composite["parts"] or []))
@@ -108,7 +108,7 @@ def check_face(face: Any) -> None:
     if key in ("largest", "all") or key.isdigit():
         return
     raise UserError(f"face={face} is invalid: give face=largest, face=all or face=<index> (0, 1, ...: the "
-                           "detected faces left to right)")
+                    "detected faces left to right)")
 
 
 def output_names(paths: Sequence[Path]) -> list[str]:
