@@ -20,7 +20,7 @@ from difareli.utils.fileio import folder_lock
 from difareli.lit.pairs import LIGHT_FROM_KEY, SOURCE_KEY
 from difareli.relight.targets import Targets
 from difareli.render.sun_fit import TARGET_SUNS
-from difareli.data.provenance import model_identity, store_identity
+from difareli.data.provenance import store_identity
 from difareli.data.store import EncodingStore
 
 
@@ -66,10 +66,10 @@ def generate_teacher_pairs(relighter, store: EncodingStore, out: str | Path, *, 
 
 def pair_provenance(relighter, store: EncodingStore, *, split: str, seed: int, per_record: int,
                     target_sun: str = "shadows") -> dict[str, Any]:
-    """What makes a teacher-pair store: the source store, the teacher's weights and how they relit."""
-    return {"kind": "teacher_pairs", "source_store": store_identity(store), "teacher": model_identity(relighter.model),
-            "sampler": relighter.spec.to_config() if relighter.spec is not None else None,
-            "mean_matching": bool(relighter.mean_matching), "precision": relighter.runtime.precision,
+    """What makes a teacher-pair store: the source store, the teacher's weights and how they relit (the relighter's
+    identity, its weights under ``teacher``)."""
+    how = relighter.identity()
+    return {"kind": "teacher_pairs", "source_store": store_identity(store), "teacher": how.pop("checkpoint"), **how,
             "split": split, "seed": int(seed), "per_record": int(per_record),
             **({"target_sun": target_sun} if "shadow_map" in relighter.model_inputs else {})}
 

@@ -90,7 +90,8 @@ class Relighter(Sources):
         """What relights, as an output folder's record compares it: the weights by content (not their file), the
         precision, the sampler (None: one pass) and mean matching."""
         return {"checkpoint": provenance.model_identity(self.model), "precision": self.runtime.precision,
-                "sampler": None if self.spec is None else self.spec.to_config(), "mean_matching": self.mean_matching}
+                "sampler": None if self.spec is None else self.spec.to_config(),
+                "mean_matching": bool(self.mean_matching)}
 
     def key_sun(self, source: Source) -> sun_fit.SunFit | None:
         """Where this model's target map for the source's light is marched: the key sun found from the source
