@@ -87,8 +87,7 @@ class Relighter(Sources):
         return f"{how}, {self.runtime.precision}{', compiled' if self.runtime.compile else ''}"
 
     def identity(self) -> dict[str, Any]:
-        """What relights, as an output folder's record compares it: the weights by content (not their file), the
-        precision, the sampler (None: one pass) and mean matching."""
+        """What relights, as a folder's record compares it: weights by content, precision, sampler, mean matching."""
         return {"checkpoint": provenance.model_identity(self.model), "precision": self.runtime.precision,
                 "sampler": None if self.spec is None else self.spec.to_config(),
                 "mean_matching": bool(self.mean_matching)}
