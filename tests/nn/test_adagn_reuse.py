@@ -76,3 +76,16 @@ def test_training_and_crossattention_pass_the_vector_itself():
         assert network.reuse_allowed()
     net = make("difareli++", nonspatial={"type": "crossattn"})
     assert not net.nonspatial.reusable  # its blocks take context tokens, not a vector to wrap
+
+
+@pytest.mark.parametrize("where", ["compiling", "capturing"])
+def test_no_reuse_inside_a_compiled_pass_or_a_cuda_graph_capture(where, monkeypatch):
+    """A traced or captured pass is replayed with the next condition's values in place: its k must come from
+    its own inputs (the stand-ins below say what torch.compile and a CUDA-graph capture report)."""
+    if where == "compiling":
+        monkeypatch.setattr(torch.compiler, "is_compiling", lambda: True)
+    else:
+        monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+        monkeypatch.setattr(torch.cuda, "is_current_stream_capturing", lambda: True)
+    with torch.no_grad():
+        assert not network.reuse_allowed()
