@@ -12,7 +12,7 @@ Loads a teacher and its one-pass student, prepares one store case for each (the 
 - ``teacher_gn_mixed``, ``student_gn_mixed``: the teacher's pass and the student's relight with GroupNorm32 as it
   was before issue 63 (PyTorch's mixed bf16 kernel on channels-last input too);
 - ``teacher_k_each_step``: the teacher's pass with AdaGN's ``k = MLP3(nonspatial)`` run again at every pass, as
-  before a prepared condition kept them (``nn.unet.ReusedVector``; the timed ``teacher`` reuses them).
+  before a prepared condition kept them (``nn.reuse.ReusedVector``; the timed ``teacher`` reuses them).
 
 Only ratios of one run compare on a loaded machine; the medians and minima of every entry are printed, then the
 per-op self CPU time of the teacher's and the student's pass (``--profile``, torch.profiler, interleaved).
@@ -32,7 +32,7 @@ import torch
 import torch.nn.functional as F
 
 from difareli.data.store import EncodingStore
-from difareli.nn import network
+from difareli.nn import reuse
 from difareli.nn.unet import GroupNorm32
 from difareli.perf import samplers as speed
 from difareli.relight.core import _condition, relight
@@ -66,11 +66,11 @@ def _passes(teacher: Relighter, student: Relighter, store: EncodingStore, runtim
 
 def _k_each_step(fn):
     def run():
-        allowed, network.reuse_allowed = network.reuse_allowed, lambda: False
+        allowed, reuse.allowed = reuse.allowed, lambda: False
         try:
             return fn()
         finally:
-            network.reuse_allowed = allowed
+            reuse.allowed = allowed
     return run
 
 

@@ -1,4 +1,4 @@
-"""AdaGN's k = MLP3(nonspatial) computed once per prepared condition in inference (nn.unet.ReusedVector): every
+"""AdaGN's k = MLP3(nonspatial) computed once per prepared condition in inference (nn.reuse.ReusedVector): every
 step's eps equal to the pass that recomputes it, each MLP3 run once over a sampler's steps, and recomputed where
 reuse would be wrong (autograd, a vector changed in place)."""
 
@@ -7,7 +7,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from difareli.nn import network
+from difareli.nn import reuse
 from difareli.nn.unet import MLP3
 
 from .test_nn import inputs, make
@@ -24,8 +24,8 @@ def _counting(net) -> list[int]:
     return calls
 
 
-def _steps(net, cond, x, reuse: bool, monkeypatch) -> list[torch.Tensor]:
-    monkeypatch.setattr(network, "reuse_allowed", lambda: reuse)
+def _steps(net, cond, x, allowed: bool, monkeypatch) -> list[torch.Tensor]:
+    monkeypatch.setattr(reuse, "allowed", lambda: allowed)
     return [net(x, torch.full((x.shape[0],), t), cond) for t in (999, 500, 3)]
 
 
@@ -59,7 +59,7 @@ def test_each_mlp3_runs_once_over_the_steps_of_one_condition(monkeypatch):
 def test_a_vector_changed_in_place_is_computed_again(monkeypatch):
     net = make("difareli++")
     x, spatial, nonspatial = inputs("difareli++")
-    monkeypatch.setattr(network, "reuse_allowed", lambda: True)
+    monkeypatch.setattr(reuse, "allowed", lambda: True)
     with torch.no_grad():
         cond = net.condition(spatial, nonspatial.clone())  # the condition holds the vector itself
         net(x, torch.full((2,), 10), cond)
@@ -71,9 +71,9 @@ def test_a_vector_changed_in_place_is_computed_again(monkeypatch):
 
 def test_training_and_crossattention_pass_the_vector_itself():
     with torch.enable_grad():
-        assert not network.reuse_allowed()  # autograd needs the MLP3s in each step's graph
+        assert not reuse.allowed()  # autograd needs the MLP3s in each step's graph
     with torch.no_grad():
-        assert network.reuse_allowed()
+        assert reuse.allowed()
     net = make("difareli++", nonspatial={"type": "crossattn"})
     assert not net.nonspatial.reusable  # its blocks take context tokens, not a vector to wrap
 
@@ -88,4 +88,4 @@ def test_no_reuse_inside_a_compiled_pass_or_a_cuda_graph_capture(where, monkeypa
         monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
         monkeypatch.setattr(torch.cuda, "is_current_stream_capturing", lambda: True)
     with torch.no_grad():
-        assert not network.reuse_allowed()
+        assert not reuse.allowed()

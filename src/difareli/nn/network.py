@@ -20,7 +20,8 @@ from . import controlnet  # noqa: F401  (registers spatial type "controlnet")
 from .conditioning import count_parameters, resolve_spatial
 from .nonspatial import CrossAttentionBlock, build_nonspatial
 from .presets import get_config
-from .unet import MLP3, ReusedVector, UNet, UNetConfig
+from . import reuse
+from .unet import MLP3, UNet, UNetConfig
 
 
 @dataclass
@@ -32,21 +33,13 @@ class Condition:
     spatial: Any = None
     nonspatial: Tensor | None = None
 
-    def reused(self) -> ReusedVector:
-        """The non-spatial vector as every step this condition serves receives it (:class:`ReusedVector`: AdaGN's
+    def reused(self) -> reuse.ReusedVector:
+        """The non-spatial vector as every step this condition serves receives it (``reuse.ReusedVector``: AdaGN's
         k computed once); kept on the condition, outside its fields, so a copied condition starts afresh."""
         r = self.__dict__.get("_reused")
         if r is None or r.vector is not self.nonspatial:
-            r = self.__dict__["_reused"] = ReusedVector(self.nonspatial)
+            r = self.__dict__["_reused"] = reuse.ReusedVector(self.nonspatial)
         return r
-
-
-def reuse_allowed() -> bool:
-    """Whether a pass may reuse what a condition computed at an earlier step: not where autograd records it (training
-    needs the MLP3s in each step's graph), nor in a compiled or CUDA-graph-captured pass, whose static inputs take
-    the next condition's values in place."""
-    return not torch.is_grad_enabled() and not torch.compiler.is_compiling() and not (
-        torch.cuda.is_available() and torch.cuda.is_current_stream_capturing())
 
 
 class DiffusionNet(nn.Module):
@@ -100,7 +93,7 @@ class DiffusionNet(nn.Module):
             raise UserError(f"expected timesteps [{x_t.shape[0]}] for x_t {tuple(x_t.shape)}, got {tuple(t.shape)}")
         cond = cond if cond is not None else self.condition()
         ns = cond.nonspatial
-        if ns is not None and self.nonspatial.reusable and reuse_allowed():
+        if ns is not None and self.nonspatial.reusable and reuse.allowed():
             ns = cond.reused()
         return self.unet(x_t, t, ns, self.spatial, cond.spatial)
 

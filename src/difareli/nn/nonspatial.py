@@ -49,7 +49,7 @@ class NonSpatialConditioning(nn.Module):
     (``block_layer``) and ``prepare(vector)`` -> what the blocks receive as ``nonspatial``."""
 
     type_name = ""
-    reusable = False  # what the blocks receive may be wrapped for reuse across steps (unet.ReusedVector)
+    reusable = False  # what the blocks receive may be wrapped for reuse across steps (reuse.ReusedVector)
 
     def __init__(self, widths: Sequence[int], *, cfg: UNetConfig):
         super().__init__()

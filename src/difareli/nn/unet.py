@@ -26,6 +26,8 @@ from torch.utils.checkpoint import checkpoint
 
 from difareli.errors import UserError
 
+from .reuse import ReusedVector
+
 
 @dataclass
 class UNetConfig:
@@ -105,26 +107,6 @@ class MLP3(nn.Sequential):
         if out_silu:
             layers.append(nn.SiLU())
         super().__init__(*layers)
-
-
-class ReusedVector:
-    """A prepared condition's non-spatial vector as the blocks receive it at every step of an inference sampler:
-    each AdaGN's ``k = MLP3(vector)`` depends on neither ``t`` nor ``x_t``, so it is computed at the first step and
-    reused (kept per module; forgotten if the vector is changed in place)."""
-
-    def __init__(self, vector: Tensor):
-        self.vector, self.scales = vector, {}
-        self.version = self._version()
-
-    def _version(self) -> int | None:
-        return None if self.vector.is_inference() else self.vector._version  # inference tensors keep none
-
-    def scale(self, adagn: "AdaGN") -> Tensor:
-        if self._version() != self.version:
-            self.scales, self.version = {}, self._version()
-        if adagn not in self.scales:
-            self.scales[adagn] = adagn.mlp(self.vector)
-        return self.scales[adagn]
 
 
 class TimestepBlock(nn.Module):
