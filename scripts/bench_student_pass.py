@@ -26,6 +26,7 @@ import argparse
 import collections
 import contextlib
 import time
+from unittest import mock
 
 import numpy as np
 import torch
@@ -66,11 +67,8 @@ def _passes(teacher: Relighter, student: Relighter, store: EncodingStore, runtim
 
 def _k_each_step(fn):
     def run():
-        allowed, reuse.allowed = reuse.allowed, lambda: False
-        try:
+        with mock.patch.object(reuse, "allowed", lambda: False):
             return fn()
-        finally:
-            reuse.allowed = allowed
     return run
 
 
