@@ -33,6 +33,8 @@ from difareli.data import shard as sharding
 from difareli.utils.processes import die_with_parent
 
 _PIPELINE = None
+#: Photos whose entries and previews may wait in the preview thread (memory: their arrays and contexts).
+PREVIEWS_AHEAD = 4
 
 
 def _init(parent_pid: int, config: Mapping) -> None:
@@ -129,17 +131,31 @@ def finish_one(f: Path, res: tuple | Exception, extra: dict, preview: Path | Non
 def compute_streamed(pipeline: Pipeline, files: list[Path], preview_dir: Path | None, ids: Mapping[Path, str]
                      ) -> Iterator[dict]:
     """:func:`compute_one` of every file, decoding and alignment overlapped with the estimators (:mod:`.stream`),
-    yielded in ``files`` order."""
+    yielded in ``files`` order. Each photo's report entry and preview are made in a third thread while the
+    estimators go on with the next photos: a preview is a third of a photo's CPU time (mostly PNG encoding, which
+    releases the GIL), and in the estimators' thread it would be the run's bottleneck."""
+    from collections import deque
+    from concurrent.futures import ThreadPoolExecutor
+
     from .stream import stream
 
     def load(f: Path):
         return load_image(f, pipeline.min_side, pipeline.max_side)
 
-    for f, res, extra, seconds in stream(pipeline, files, load):
+    def finish(f: Path, res, extra: dict, seconds: float) -> dict:
         t0 = time.perf_counter()
         done = finish_one(f, res, extra, None if preview_dir is None else preview_dir / f"{ids[f]}.png", 0.0)
         done["seconds"] = seconds + time.perf_counter() - t0
-        yield done
+        return done
+
+    pending: deque = deque()
+    with ThreadPoolExecutor(1, thread_name_prefix="preprocess-preview") as pool:
+        for f, res, extra, seconds in stream(pipeline, files, load):
+            pending.append(pool.submit(finish, f, res, extra, seconds))
+            while len(pending) > PREVIEWS_AHEAD or (pending and pending[0].done()):
+                yield pending.popleft().result()
+        while pending:
+            yield pending.popleft().result()
 
 
 def run(pipeline: Pipeline, in_dir: str, out_dir: str, *, overwrite: bool = False, previews: bool = True,

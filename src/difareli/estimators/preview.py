@@ -88,32 +88,36 @@ def labels(ctx: dict) -> list[str]:
 
 def label(panel: np.ndarray, text: str) -> np.ndarray:
     """``panel`` with ``text`` drawn over its top rows, white on a dark band, wrapped to the panel's width."""
-    from PIL import Image, ImageDraw, ImageFont
+    out = panel.copy()
+    label_into(out, text)
+    return out
 
-    im = Image.fromarray(panel)
+
+def label_into(panel: np.ndarray, text: str) -> None:
+    """:func:`label` in place (``panel`` may be a view into the strip): only the rows the text can reach go
+    through Pillow."""
+    from PIL import Image, ImageDraw
+
+    from difareli.utils.viz import font, text_width
+
     size = max(8, round(panel.shape[0] / 22))
-    try:
-        font = ImageFont.load_default(size=size)
-    except TypeError:  # pragma: no cover - Pillow < 10.1: the fixed bitmap font
-        font = ImageFont.load_default()
-    draw = ImageDraw.Draw(im)
     lines, cur = [], ""
     for word in text.split():
         trial = f"{cur} {word}".strip()
-        if cur and draw.textlength(trial, font=font) > panel.shape[1] - 4:
+        if cur and text_width(trial, size) > panel.shape[1] - 4:
             lines.append(cur)
             cur = word
         else:
             cur = trial
     lines.append(cur)
     band = (size + 2) * len(lines) + 2
-    dark = np.asarray(im).copy()
-    dark[:band] = (dark[:band] * 0.35).astype(np.uint8)
-    im = Image.fromarray(dark)
+    top = panel[:min(panel.shape[0], band + 2 * size)].copy()  # a glyph reaches at most 2 sizes below its line
+    top[:band] = (top[:band] * 0.35).astype(np.uint8)
+    im = Image.fromarray(top)
     draw = ImageDraw.Draw(im)
     for i, line in enumerate(lines):
-        draw.text((2, 1 + i * (size + 2)), line, fill=(255, 255, 255), font=font)
-    return np.asarray(im)
+        draw.text((2, 1 + i * (size + 2)), line, fill=(255, 255, 255), font=font(size))
+    panel[:len(top)] = np.asarray(im)
 
 
 def panels(ctx: dict) -> list[np.ndarray]:
@@ -147,13 +151,23 @@ def panels(ctx: dict) -> list[np.ndarray]:
     return out
 
 
-def save_preview(path: str | Path, ctx: dict) -> None:
-    """Write the preview strip PNG atomically (:func:`~difareli.utils.fileio.atomic_path`)."""
-    from PIL import Image
+def strip(ctx: dict) -> np.ndarray:
+    """The labelled panels side by side, 2 white columns between them."""
+    ps = panels(ctx)
+    h, w = ps[0].shape[:2]
+    out = np.full((h, len(ps) * (w + 2) - 2, 3), 255, np.uint8)
+    for i, (p, text) in enumerate(zip(ps, labels(ctx))):
+        view = out[:, i * (w + 2):i * (w + 2) + w]
+        view[...] = p
+        label_into(view, text)
+    return out
 
-    path = Path(path)
-    strip = np.concatenate([np.concatenate([p, np.full((p.shape[0], 2, 3), 255, np.uint8)], axis=1)
-                            for p in (label(p, t) for p, t in zip(panels(ctx), labels(ctx)))], axis=1)[:, :-2]
-    with atomic_path(path) as tmp:  # the scratch name hides the suffix PIL would choose the format by
-        # zlib level 1: the same pixels in a file ~11% larger, 3x faster than PIL's default 6 (21 against 69 ms).
-        Image.fromarray(strip).save(tmp, format="PNG", compress_level=PNG_LEVEL)
+
+def save_preview(path: str | Path, ctx: dict) -> None:
+    """Write the preview strip PNG atomically (:func:`~difareli.utils.fileio.atomic_path`) with
+    :func:`~difareli.utils.png.png_bytes` at zlib level :data:`PNG_LEVEL` (lossless at any level)."""
+    from difareli.utils.png import png_bytes
+
+    data = png_bytes(strip(ctx), PNG_LEVEL)
+    with atomic_path(Path(path)) as tmp:
+        tmp.write_bytes(data)

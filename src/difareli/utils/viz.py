@@ -6,6 +6,7 @@ fast palette per frame), with the line a command ends with for each file. Every 
 from __future__ import annotations
 
 import base64
+import functools
 import importlib.util
 from pathlib import Path
 from typing import Sequence
@@ -102,7 +103,9 @@ def caption(cell: np.ndarray, text: str, fill: int = 255, size: int | None = Non
     return np.concatenate([band, cell], axis=0)
 
 
-def _font(size: int):
+@functools.lru_cache(maxsize=32)
+def font(size: int):
+    """Pillow's default font at ``size`` (loaded once per size: a load costs more than drawing a label)."""
     from PIL import ImageFont
 
     try:
@@ -115,7 +118,7 @@ def text_width(text: str, size: int) -> int:
     """Pixel width of ``text`` at font ``size``."""
     from PIL import Image, ImageDraw
 
-    return int(np.ceil(ImageDraw.Draw(Image.new("RGB", (1, 1))).textlength(text, font=_font(size))))
+    return int(np.ceil(ImageDraw.Draw(Image.new("RGB", (1, 1))).textlength(text, font=font(size))))
 
 
 def fitted_size(text: str, size: int, width: int, smallest: int = 7) -> int:
@@ -130,7 +133,7 @@ def draw_text(canvas: np.ndarray, text: str, xy: tuple[int, int], size: int, col
     from PIL import Image, ImageDraw
 
     im = Image.fromarray(canvas)
-    ImageDraw.Draw(im).text(xy, text, fill=colour, font=_font(size))
+    ImageDraw.Draw(im).text(xy, text, fill=colour, font=font(size))
     canvas[...] = np.asarray(im)
 
 
