@@ -21,6 +21,9 @@ PALETTE = np.array([
     [220, 30, 60], [150, 0, 40], [90, 0, 90], [255, 220, 120], [60, 160, 60], [110, 70, 40], [200, 200, 0],
 ], dtype=np.uint8)
 assert len(PALETTE) == NUM_MASK_PARTS
+#: The masks panel's blend ``0.35 v + 0.65 p`` (truncated to uint8) for every pair of uint8 values: a lookup is
+#: the same pixels in half the time.
+BLEND = (0.35 * np.arange(256)[:, None] + 0.65 * np.arange(256)[None, :]).astype(np.uint8)
 #: zlib level of the preview PNGs (lossless at any level; see :func:`save_preview`).
 PNG_LEVEL = 1
 
@@ -134,18 +137,20 @@ def panels(ctx: dict) -> list[np.ndarray]:
     # The stored R is unclipped (SPEC 3); the view is scaled by its 99th percentile on the face.
     out.append(shading_display(ctx["shading"], ctx.get("face_mask"))[0] if "shading" in ctx else blank)
     if "masks" in ctx:
-        out.append((0.35 * image + 0.65 * PALETTE[ctx["masks"]]).astype(np.uint8))
+        out.append(BLEND[image, PALETTE[ctx["masks"]]])
     elif "face_mask" in ctx:
         out.append((image * ctx["face_mask"][..., None]).astype(np.uint8))
     else:
         out.append(blank)
     if "shadow_map" in ctx:
-        dim = (0.5 * image).astype(np.float64)
-        sm = ctx["shadow_map"][..., None]
-        cast = ctx.get("cast", ctx["shadow_map"] > 0)[..., None]
+        sm = ctx["shadow_map"]
+        cast = np.asarray(ctx.get("cast", sm > 0), bool)
+        panel = image // 2  # off the cast shadow: the image at half, (0.5 * v) truncated
+        on = sm[cast][:, None]
         # Red: ray-traced shadow at normalised c; blue outline-free tint: traced but c ~ 0.
-        red = np.array([255.0, 40, 40]) * sm + np.array([60.0, 60, 255]) * (cast & (sm == 0))
-        out.append(np.clip(np.where(cast, 0.4 * dim + 0.6 * red, dim), 0, 255).astype(np.uint8))
+        red = np.array([255.0, 40, 40]) * on + np.array([60.0, 60, 255]) * (on == 0)
+        panel[cast] = np.clip(0.4 * (0.5 * image[cast]) + 0.6 * red, 0, 255).astype(np.uint8)
+        out.append(panel)
     else:
         out.append(blank)
     return out
