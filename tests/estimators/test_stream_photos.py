@@ -86,3 +86,22 @@ def test_a_descriptor_does_not_depend_on_its_batch(runs):
     np.testing.assert_array_equal(pair, alone)
     np.testing.assert_array_equal(nine, alone)
     np.testing.assert_allclose(single, alone, rtol=0, atol=IDENTITY_ATOL)
+
+
+def test_a_record_that_fails_to_write_in_the_writer_thread_is_a_failed_entry(runs, tmp_path, monkeypatch):
+    pipe, _ = runs
+    _photos(tmp_path / "in")
+    real = EncodingStore.write
+
+    def write(self, rid, *args, **kwargs):
+        if rid == "camera":
+            raise OSError("disk says no")
+        return real(self, rid, *args, **kwargs)
+
+    monkeypatch.setattr(EncodingStore, "write", write)
+    summary = run(pipe, str(tmp_path / "in"), str(tmp_path / "out"), previews=True, progress=False)
+    by_id = {e["id"]: e for e in summary.entries}
+    assert (summary.written, summary.failed) == (3, 3)
+    assert by_id["camera"]["status"] == "failed"
+    assert "internal error: OSError: disk says no" in by_id["camera"]["reason"]
+    assert EncodingStore.open(tmp_path / "out").ids() == ["astronaut", "astronaut_mirror", "camera_mirror"]

@@ -17,7 +17,7 @@ from __future__ import annotations
 import multiprocessing as mp
 import os
 import time
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -128,12 +128,14 @@ def finish_one(f: Path, res: tuple | Exception, extra: dict, preview: Path | Non
     return {**out, "entry": entry, "seconds": seconds}
 
 
-def compute_streamed(pipeline: Pipeline, files: list[Path], preview_dir: Path | None, ids: Mapping[Path, str]
-                     ) -> Iterator[dict]:
+def compute_streamed(pipeline: Pipeline, files: list[Path], preview_dir: Path | None, ids: Mapping[Path, str],
+                     write: Callable[[Path, dict], None] | None = None) -> Iterator[dict]:
     """:func:`compute_one` of every file, decoding and alignment overlapped with the estimators (:mod:`.stream`),
-    yielded in ``files`` order. Each photo's report entry and preview are made in a third thread while the
-    estimators go on with the next photos: a preview is a third of a photo's CPU time (mostly PNG encoding, which
-    releases the GIL), and in the estimators' thread it would be the run's bottleneck."""
+    yielded in ``files`` order. Each photo's report entry, preview and ``write(f, result)`` (the record, where the
+    photo succeeded) run in a third thread while the estimators go on with the next photos: they are a third of a
+    photo's time (PNG encoding and file writes, which release the GIL), and in the estimators' thread they would
+    be the run's bottleneck. ``result["written"]`` says that ``write`` returned, ``result["write_error"]`` holds
+    what it raised."""
     from collections import deque
     from concurrent.futures import ThreadPoolExecutor
 
@@ -145,6 +147,12 @@ def compute_streamed(pipeline: Pipeline, files: list[Path], preview_dir: Path | 
     def finish(f: Path, res, extra: dict, seconds: float) -> dict:
         t0 = time.perf_counter()
         done = finish_one(f, res, extra, None if preview_dir is None else preview_dir / f"{ids[f]}.png", 0.0)
+        if write is not None and done["entry"]["status"] == "ok":
+            try:
+                write(f, done)
+                done["written"] = True
+            except Exception as e:  # noqa: BLE001 - reported by the caller, as its own write's error would be
+                done["write_error"] = e
         done["seconds"] = seconds + time.perf_counter() - t0
         return done
 
@@ -193,7 +201,8 @@ def run(pipeline: Pipeline, in_dir: str, out_dir: str, *, overwrite: bool = Fals
     if workers > 1 and len(todo) > 1:
         results = compute_in_workers(pipeline, todo, preview_dir, ids, workers)
     elif overlap and len(todo) > 1:
-        results = compute_streamed(pipeline, todo, preview_dir, ids)
+        results = compute_streamed(pipeline, todo, preview_dir, ids, write=lambda f, res: store.write(
+            ids[f], res["arrays"], res["meta"], overwrite=overwrite))
     else:
         results = (compute_one(pipeline, f, preview_dir and preview_dir / f"{ids[f]}.png") for f in todo)
     t_work = time.perf_counter()
@@ -211,7 +220,10 @@ def run(pipeline: Pipeline, in_dir: str, out_dir: str, *, overwrite: bool = Fals
                 if note.startswith(("small face", "grey photo")):  # what changes the result, on the console too
                     tqdm.write(f"{f.name}: {note}")
             try:
-                store.write(rid, res["arrays"], res["meta"], overwrite=overwrite)
+                if "write_error" in res:
+                    raise res["write_error"]
+                if not res.get("written"):
+                    store.write(rid, res["arrays"], res["meta"], overwrite=overwrite)
                 for k, v in res["meta"]["seconds"].items():
                     summary.stages[k] = summary.stages.get(k, 0.0) + v
                 summary.written += 1
