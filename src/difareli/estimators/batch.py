@@ -166,6 +166,19 @@ def compute_streamed(pipeline: Pipeline, files: list[Path], preview_dir: Path | 
             yield pending.popleft().result()
 
 
+def announce(f: Path, entry: dict, arrays: Mapping[str, Any], say: Callable[[str], None]) -> None:
+    """The console lines of a photo written: where its fitted light comes from (also put in its report ``entry``)
+    and the notes that change the result."""
+    if "light" in arrays:
+        from .light import describe_light
+
+        entry["light_from"] = describe_light(arrays["light"])
+        say(f"{f.name}: light {entry['light_from']}")
+    for note in entry.get("notes", []):
+        if note.startswith(("small face", "grey photo")):
+            say(f"{f.name}: {note}")
+
+
 def run(pipeline: Pipeline, in_dir: str, out_dir: str, *, overwrite: bool = False, previews: bool = True,
         durable: bool = False, progress: bool = True, shard: str | None = None, workers: int = 1,
         overlap: bool = True) -> RunSummary:
@@ -211,14 +224,7 @@ def run(pipeline: Pipeline, in_dir: str, out_dir: str, *, overwrite: bool = Fals
         rid = ids[f]
         entry: dict[str, Any] = {"file": str(f), "id": rid, **res["entry"]}
         if entry["status"] == "ok":
-            if "light" in res["arrays"]:  # where the fitted light comes from, one line per photo (and the report)
-                from .light import describe_light
-
-                entry["light_from"] = describe_light(res["arrays"]["light"])
-                tqdm.write(f"{f.name}: light {entry['light_from']}")
-            for note in entry.get("notes", []):
-                if note.startswith(("small face", "grey photo")):  # what changes the result, on the console too
-                    tqdm.write(f"{f.name}: {note}")
+            announce(f, entry, res["arrays"], tqdm.write)
             try:
                 if "write_error" in res:
                     raise res["write_error"]
