@@ -99,9 +99,7 @@ def label(panel: np.ndarray, text: str) -> np.ndarray:
 def label_into(panel: np.ndarray, text: str) -> None:
     """:func:`label` in place (``panel`` may be a view into the strip): only the rows the text can reach go
     through Pillow."""
-    from PIL import Image, ImageDraw
-
-    from difareli.utils.viz import font, text_width
+    from difareli.utils.viz import draw_text, text_width
 
     size = max(8, round(panel.shape[0] / 22))
     lines, cur = [], ""
@@ -114,13 +112,10 @@ def label_into(panel: np.ndarray, text: str) -> None:
             cur = trial
     lines.append(cur)
     band = (size + 2) * len(lines) + 2
-    top = panel[:min(panel.shape[0], band + 2 * size)].copy()  # a glyph reaches at most 2 sizes below its line
+    top = panel[:min(panel.shape[0], band + 2 * size)]  # a glyph reaches at most 2 sizes below its line
     top[:band] = (top[:band] * 0.35).astype(np.uint8)
-    im = Image.fromarray(top)
-    draw = ImageDraw.Draw(im)
     for i, line in enumerate(lines):
-        draw.text((2, 1 + i * (size + 2)), line, fill=(255, 255, 255), font=font(size))
-    panel[:len(top)] = np.asarray(im)
+        draw_text(top, line, (2, 1 + i * (size + 2)), size, colour=(255, 255, 255))
 
 
 def panels(ctx: dict) -> list[np.ndarray]:

@@ -104,7 +104,7 @@ def caption(cell: np.ndarray, text: str, fill: int = 255, size: int | None = Non
 
 
 @functools.lru_cache(maxsize=32)
-def font(size: int):
+def _font(size: int):
     """Pillow's default font at ``size`` (loaded once per size: a load costs more than drawing a label)."""
     from PIL import ImageFont
 
@@ -118,7 +118,7 @@ def text_width(text: str, size: int) -> int:
     """Pixel width of ``text`` at font ``size``."""
     from PIL import Image, ImageDraw
 
-    return int(np.ceil(ImageDraw.Draw(Image.new("RGB", (1, 1))).textlength(text, font=font(size))))
+    return int(np.ceil(ImageDraw.Draw(Image.new("RGB", (1, 1))).textlength(text, font=_font(size))))
 
 
 def fitted_size(text: str, size: int, width: int, smallest: int = 7) -> int:
@@ -133,7 +133,7 @@ def draw_text(canvas: np.ndarray, text: str, xy: tuple[int, int], size: int, col
     from PIL import Image, ImageDraw
 
     im = Image.fromarray(canvas)
-    ImageDraw.Draw(im).text(xy, text, fill=colour, font=font(size))
+    ImageDraw.Draw(im).text(xy, text, fill=colour, font=_font(size))
     canvas[...] = np.asarray(im)
 
 
